@@ -1,0 +1,460 @@
+"""Convex block geometry for the DDA solver (host side: numpy + trimesh).
+
+A block is a convex polyhedron stored in its *body frame* (centroid at the origin) with
+
+* polygon faces (coplanar hull triangles merged, vertex loops counter-clockwise seen from outside),
+* outward unit face normals ``n_f`` and offsets ``d_f`` (points on face f satisfy ``n_f . x = d_f``),
+* half-edge arrays (Nezami et al. 2004 / the DDA-FCP paper §4): ``he_vertex`` (origin vertex),
+  ``he_next``, ``he_prev``, ``he_twin``, ``he_face``; ``vertex_out_he`` (one outgoing half-edge per
+  vertex) and ``face_he`` (one half-edge per face).  Walking the half-edges leaving a vertex ``v``:
+  ``h = vertex_out_he[v]; repeat: h = he_twin[he_prev[h]]`` — O(valence), which FCP needs.
+* mass properties per unit density (volume, inertia tensor about the centroid), bounding radius.
+
+Non-convex meshes are refused (no well-kept convex-decomposition library is a dependency); the
+error says by how much the mesh falls short of its hull and suggests decomposing it.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+__all__ = [
+    "GeometryError",
+    "ConvexPolyhedron",
+    "from_trimesh",
+    "load_mesh",
+    "box",
+    "prism",
+    "half_edge_invariants",
+]
+
+# relative volume shortfall (1 - V_mesh / V_hull) above which a mesh counts as non-convex
+CONVEXITY_TOL = 1e-4
+
+
+class GeometryError(ValueError):
+    """A mesh cannot be used as a DDA block; the message names the mesh/file and the reason."""
+
+
+@dataclass
+class ConvexPolyhedron:
+    """Convex block in its body frame (centroid at the origin). Units: metres.
+
+    Attributes (V vertices, F faces, H half-edges, all int arrays int32):
+        name: label used in error messages.
+        vertices: (V, 3) float64, body-frame vertex positions.
+        faces: list of F int arrays, vertex loops CCW seen from outside.
+        face_normals: (F, 3) outward unit normals.  face_offsets: (F,) with n_f . x = d_f on face f (> 0).
+        he_vertex, he_next, he_prev, he_twin, he_face: (H,) half-edge arrays.
+        vertex_out_he: (V,) one outgoing half-edge per vertex.  face_he: (F,) one half-edge per face.
+        volume: m^3.  inertia_unit: (3, 3) inertia tensor about the centroid per unit density (m^5).
+        bounding_radius: max |vertex| (m).
+        origin_offset: (3,) centroid position in the source mesh's frame (to place the block where
+            the file put it).
+    """
+
+    name: str
+    vertices: np.ndarray
+    faces: list
+    face_normals: np.ndarray
+    face_offsets: np.ndarray
+    he_vertex: np.ndarray
+    he_next: np.ndarray
+    he_prev: np.ndarray
+    he_twin: np.ndarray
+    he_face: np.ndarray
+    vertex_out_he: np.ndarray
+    face_he: np.ndarray
+    volume: float
+    inertia_unit: np.ndarray
+    bounding_radius: float
+    origin_offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def num_vertices(self) -> int:
+        return len(self.vertices)
+
+    @property
+    def num_faces(self) -> int:
+        return len(self.faces)
+
+    @property
+    def num_half_edges(self) -> int:
+        return len(self.he_vertex)
+
+    @property
+    def centroid(self) -> np.ndarray:
+        """Centroid in the body frame (zero by construction)."""
+        return np.zeros(3)
+
+    @property
+    def size(self) -> float:
+        """Equivalent size L = V^(1/3) (m)."""
+        return float(self.volume ** (1.0 / 3.0))
+
+    def mass(self, density: float) -> float:
+        return float(self.volume * density)
+
+    def inertia(self, density: float) -> np.ndarray:
+        """Inertia tensor about the centroid, body frame (kg m^2)."""
+        return self.inertia_unit * density
+
+    def edges(self) -> np.ndarray:
+        """(E, 2) unique undirected edges (v0 < v1)."""
+        a = self.he_vertex
+        b = self.he_vertex[self.he_next]
+        m = a < b
+        return np.stack([a[m], b[m]], axis=1)
+
+    def triangles(self) -> np.ndarray:
+        """Fan triangulation of the polygon faces, (T, 3), for rendering/export."""
+        tris = []
+        for f in self.faces:
+            for k in range(1, len(f) - 1):
+                tris.append((f[0], f[k], f[k + 1]))
+        return np.asarray(tris, dtype=np.int64)
+
+    def to_trimesh(self) -> trimesh.Trimesh:
+        return trimesh.Trimesh(self.vertices.copy(), self.triangles(), process=False)
+
+    def transformed_vertices(self, position, quat_xyzw) -> np.ndarray:
+        """World-space vertices for a pose (quaternion x, y, z, w)."""
+        return self.vertices @ quat_to_matrix(quat_xyzw).T + np.asarray(position, dtype=float)
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """Rotation matrix of a unit quaternion given as (x, y, z, w) (Warp's order)."""
+    x, y, z, w = (float(c) for c in q)
+    n = np.sqrt(x * x + y * y + z * z + w * w)
+    if n == 0:
+        raise ValueError("zero quaternion")
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _merge_coplanar(points: np.ndarray, tris: np.ndarray, name: str, tol: float):
+    """Group hull triangles into polygon faces by (normal, offset); return vertex loops (CCW)."""
+    p0, p1, p2 = points[tris[:, 0]], points[tris[:, 1]], points[tris[:, 2]]
+    cr = np.cross(p1 - p0, p2 - p0)
+    area2 = np.linalg.norm(cr, axis=1)
+    if np.any(area2 <= 1e-14 * max(1.0, tol) ** 2):
+        keep = area2 > 0
+        tris, cr, area2, p0 = tris[keep], cr[keep], area2[keep], p0[keep]
+    nrm = cr / area2[:, None]
+    off = np.einsum("ij,ij->i", nrm, p0)
+    # union-find over triangles sharing an edge with the same plane
+    parent = np.arange(len(tris))
+
+    def find(a):
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    edge_owner = {}
+    for t, (a, b, c) in enumerate(tris):
+        for u, v in ((a, b), (b, c), (c, a)):
+            edge_owner[(int(u), int(v))] = t
+    for (u, v), t in edge_owner.items():
+        s = edge_owner.get((v, u))
+        if s is None:
+            raise GeometryError(f"mesh '{name}': hull is not a closed surface (edge {u}-{v} has no twin)")
+        if np.dot(nrm[t], nrm[s]) > 1 - 1e-6 and abs(off[t] - off[s]) < tol:
+            ra, rb = find(t), find(s)
+            if ra != rb:
+                parent[ra] = rb
+    groups = {}
+    for t in range(len(tris)):
+        groups.setdefault(find(t), []).append(t)
+    loops = []
+    for tlist in groups.values():
+        directed = set()
+        for t in tlist:
+            a, b, c = (int(x) for x in tris[t])
+            directed.update(((a, b), (b, c), (c, a)))
+        boundary = {u: v for (u, v) in directed if (v, u) not in directed}
+        start = next(iter(boundary))
+        loop = [start]
+        cur = boundary[start]
+        while cur != start:
+            loop.append(cur)
+            cur = boundary[cur]
+            if len(loop) > len(boundary):
+                raise GeometryError(f"mesh '{name}': could not build a simple loop for a face")
+        if len(loop) != len(boundary):
+            raise GeometryError(f"mesh '{name}': a merged face has a hole or several loops")
+        loops.append(np.asarray(loop, dtype=np.int32))
+    return loops
+
+
+def _drop_collinear(points: np.ndarray, loops: list, tol: float) -> list:
+    """Remove vertices lying on a straight edge of a polygon loop (keeps faces strictly convex)."""
+    out = []
+    for loop in loops:
+        changed = True
+        lp = list(loop)
+        while changed and len(lp) > 3:
+            changed = False
+            for k in range(len(lp)):
+                a, b, c = points[lp[k - 1]], points[lp[k]], points[lp[(k + 1) % len(lp)]]
+                if np.linalg.norm(np.cross(b - a, c - b)) < tol * np.linalg.norm(c - a):
+                    del lp[k]
+                    changed = True
+                    break
+        out.append(np.asarray(lp, dtype=np.int32))
+    return out
+
+
+def _build(points: np.ndarray, name: str, origin_offset=None) -> ConvexPolyhedron:
+    """Convex hull of points -> ConvexPolyhedron (centroid-centred, merged faces, half-edges)."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
+        raise GeometryError(f"mesh '{name}': need at least 4 points in 3D, got shape {points.shape}")
+    ext = np.ptp(points, axis=0)
+    scale = float(np.max(ext))
+    if not np.isfinite(points).all():
+        raise GeometryError(f"mesh '{name}': non-finite vertex coordinates")
+    if scale <= 0 or np.min(ext) <= 1e-9 * scale:
+        raise GeometryError(f"mesh '{name}': degenerate (flat or zero-size) point set, extents {ext}")
+    try:
+        hull = trimesh.convex.convex_hull(points, qhull_options="QbB Pp Qt")
+    except Exception as exc:  # qhull errors on degenerate input
+        raise GeometryError(f"mesh '{name}': convex hull failed ({exc})") from exc
+    vol = float(hull.volume)
+    if not np.isfinite(vol) or vol <= 1e-12 * scale**3:
+        raise GeometryError(f"mesh '{name}': zero or negative volume ({vol:g} m^3)")
+    props = hull.mass_properties  # density 1
+    com = np.asarray(props["center_mass"], dtype=np.float64)
+    inertia = np.asarray(props["inertia"], dtype=np.float64)
+    # keep only vertices used by the hull faces, re-indexed
+    used = np.unique(hull.faces)
+    remap = -np.ones(len(hull.vertices), dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    verts = np.asarray(hull.vertices[used], dtype=np.float64) - com
+    tris = remap[np.asarray(hull.faces)]
+    tol = 1e-7 * scale
+    loops = _merge_coplanar(verts, tris, name, tol)
+    loops = _drop_collinear(verts, loops, 1e-9)
+    # vertices that vanished (collinear) -> re-index again
+    used2 = np.unique(np.concatenate(loops))
+    if len(used2) != len(verts):
+        remap2 = -np.ones(len(verts), dtype=np.int64)
+        remap2[used2] = np.arange(len(used2))
+        verts = verts[used2]
+        loops = [remap2[lp].astype(np.int32) for lp in loops]
+    nV, nF = len(verts), len(loops)
+    normals = np.zeros((nF, 3))
+    offsets = np.zeros(nF)
+    for f, lp in enumerate(loops):
+        # Newell's method: robust polygon normal
+        p = verts[lp]
+        q = np.roll(p, -1, axis=0)
+        nn = np.array(
+            [
+                np.sum((p[:, 1] - q[:, 1]) * (p[:, 2] + q[:, 2])),
+                np.sum((p[:, 2] - q[:, 2]) * (p[:, 0] + q[:, 0])),
+                np.sum((p[:, 0] - q[:, 0]) * (p[:, 1] + q[:, 1])),
+            ]
+        )
+        nn /= np.linalg.norm(nn)
+        normals[f] = nn
+        offsets[f] = float(np.mean(p @ nn))
+    if np.any(offsets <= 0):
+        raise GeometryError(f"mesh '{name}': a face plane does not enclose the centroid (inverted hull)")
+    # half-edges
+    nH = sum(len(lp) for lp in loops)
+    he_vertex = np.zeros(nH, np.int32)
+    he_next = np.zeros(nH, np.int32)
+    he_prev = np.zeros(nH, np.int32)
+    he_face = np.zeros(nH, np.int32)
+    face_he = np.zeros(nF, np.int32)
+    h = 0
+    lookup = {}
+    for f, lp in enumerate(loops):
+        k = len(lp)
+        face_he[f] = h
+        for i in range(k):
+            he_vertex[h + i] = lp[i]
+            he_next[h + i] = h + (i + 1) % k
+            he_prev[h + i] = h + (i - 1) % k
+            he_face[h + i] = f
+            lookup[(int(lp[i]), int(lp[(i + 1) % k]))] = h + i
+        h += k
+    he_twin = np.full(nH, -1, np.int32)
+    vertex_out_he = np.full(nV, -1, np.int32)
+    for (u, v), e in lookup.items():
+        t = lookup.get((v, u))
+        if t is None:
+            raise GeometryError(f"mesh '{name}': half-edge {u}->{v} has no twin (not closed)")
+        he_twin[e] = t
+        if vertex_out_he[u] < 0:
+            vertex_out_he[u] = e
+    return ConvexPolyhedron(
+        name=name,
+        vertices=verts,
+        faces=loops,
+        face_normals=normals,
+        face_offsets=offsets,
+        he_vertex=he_vertex,
+        he_next=he_next,
+        he_prev=he_prev,
+        he_twin=he_twin,
+        he_face=he_face,
+        vertex_out_he=vertex_out_he,
+        face_he=face_he,
+        volume=vol,
+        inertia_unit=inertia,
+        bounding_radius=float(np.max(np.linalg.norm(verts, axis=1))),
+        origin_offset=com + (np.zeros(3) if origin_offset is None else np.asarray(origin_offset, float)),
+    )
+
+
+def from_trimesh(mesh: trimesh.Trimesh, name: str = "mesh") -> ConvexPolyhedron:
+    """Validate a closed convex triangle mesh and convert it to a ConvexPolyhedron.
+
+    Raises GeometryError for open (non-watertight), zero-volume or non-convex meshes.  Inverted
+    normals (negative signed volume) are fixed with a warning.
+    """
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise GeometryError(f"mesh '{name}': expected a trimesh.Trimesh, got {type(mesh).__name__}")
+    if len(mesh.faces) < 4 or len(mesh.vertices) < 4:
+        raise GeometryError(f"mesh '{name}': too few faces/vertices to enclose a volume")
+    mesh = mesh.copy()
+    mesh.merge_vertices()
+    if not mesh.is_watertight:
+        raise GeometryError(
+            f"mesh '{name}': not watertight (open boundary or non-manifold edges); a block must be a closed solid"
+        )
+    vol = float(mesh.volume)
+    scale = float(np.max(mesh.extents)) if len(mesh.vertices) else 0.0
+    if not np.isfinite(vol) or abs(vol) <= 1e-12 * max(scale, 1e-30) ** 3:
+        raise GeometryError(f"mesh '{name}': zero volume ({vol:g} m^3), degenerate mesh")
+    if vol < 0:
+        warnings.warn(f"mesh '{name}': faces are inverted (negative volume); flipping normals", stacklevel=2)
+        mesh.invert()
+        vol = -vol
+    hull_vol = float(mesh.convex_hull.volume)
+    ratio = vol / hull_vol
+    if ratio < 1.0 - CONVEXITY_TOL:
+        raise GeometryError(
+            f"mesh '{name}': not convex — its volume is {ratio:.4f} of its convex hull "
+            f"({100 * (1 - ratio):.2f}% short). DDA blocks must be convex: split the mesh into convex "
+            f"parts (e.g. with CoACD or V-HACD) and give each part as its own block."
+        )
+    return _build(np.asarray(mesh.vertices), name)
+
+
+def load_mesh(path) -> ConvexPolyhedron | list:
+    """Load STL/OBJ/PLY/GLB through trimesh.  One part -> ConvexPolyhedron; several -> list."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise GeometryError(f"mesh file '{path}': does not exist")
+    try:
+        loaded = trimesh.load(path, process=False)
+    except Exception as exc:
+        raise GeometryError(f"mesh file '{path}': trimesh could not read it ({exc})") from exc
+    if isinstance(loaded, trimesh.Scene):
+        parts = [(f"{path}:{k}", g) for k, g in _scene_parts(loaded)]
+    elif isinstance(loaded, trimesh.Trimesh):
+        parts = [(path, loaded)]
+    else:
+        raise GeometryError(f"mesh file '{path}': holds no triangle mesh ({type(loaded).__name__})")
+    if not parts:
+        raise GeometryError(f"mesh file '{path}': holds no triangle mesh")
+    out = []
+    for pname, m in parts:
+        if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+            raise GeometryError(f"mesh file '{pname}': part is not a triangle mesh")
+        m = m.copy()
+        m.merge_vertices()
+        bodies = m.split(only_watertight=False) if m.body_count > 1 else [m]
+        for k, b in enumerate(bodies):
+            out.append(from_trimesh(b, pname if len(bodies) == 1 else f"{pname}#{k}"))
+    return out[0] if len(out) == 1 else out
+
+
+def _scene_parts(scene: trimesh.Scene):
+    for node in scene.graph.nodes_geometry:
+        transform, gname = scene.graph[node]
+        g = scene.geometry[gname].copy()
+        g.apply_transform(transform)
+        yield node, g
+
+
+def box(size_xyz, name: str = "box") -> ConvexPolyhedron:
+    """Axis-aligned box centred at the origin with edge lengths (sx, sy, sz) in metres."""
+    s = np.asarray(size_xyz, dtype=float).reshape(3)
+    if np.any(s <= 0):
+        raise GeometryError(f"mesh '{name}': box size must be positive, got {s}")
+    c = np.array([[i, j, k] for i in (-0.5, 0.5) for j in (-0.5, 0.5) for k in (-0.5, 0.5)])
+    return _build(c * s, name)
+
+
+def prism(vertices, name: str = "prism") -> ConvexPolyhedron:
+    """Convex hull of the given points (e.g. the 6 corners of a wedge)."""
+    return _build(np.asarray(vertices, dtype=float), name, origin_offset=None)
+
+
+def half_edge_invariants(p: ConvexPolyhedron) -> dict:
+    """Check half-edge consistency; returns a dict of booleans (all must be True)."""
+    H = p.num_half_edges
+    idx = np.arange(H)
+    res = {}
+    res["twin_involution"] = bool(np.all(p.he_twin >= 0) and np.all(p.he_twin[p.he_twin] == idx))
+    res["twin_not_self"] = bool(np.all(p.he_twin != idx))
+    res["twin_reverses"] = bool(
+        np.all(p.he_vertex[p.he_twin] == p.he_vertex[p.he_next]) and np.all(p.he_face[p.he_twin] != p.he_face)
+    )
+    res["next_prev_inverse"] = bool(np.all(p.he_prev[p.he_next] == idx) and np.all(p.he_next[p.he_prev] == idx))
+    loops_ok = True
+    for f in range(p.num_faces):
+        h0 = p.face_he[f]
+        h, n = h0, 0
+        while True:
+            if p.he_face[h] != f:
+                loops_ok = False
+                break
+            h = p.he_next[h]
+            n += 1
+            if h == h0 or n > H:
+                break
+        loops_ok &= h == h0 and n == len(p.faces[f])
+    res["face_loops_close"] = bool(loops_ok)
+    E = H // 2
+    res["euler"] = bool(H % 2 == 0 and p.num_vertices - E + p.num_faces == 2)
+    res["vertex_out_he"] = bool(np.all(p.he_vertex[p.vertex_out_he] == np.arange(p.num_vertices)))
+    # walking around each vertex visits all its outgoing half-edges
+    valence = np.bincount(p.he_vertex, minlength=p.num_vertices)
+    ring_ok = True
+    for v in range(p.num_vertices):
+        h0 = p.vertex_out_he[v]
+        h, n = h0, 0
+        while True:
+            h = p.he_twin[p.he_prev[h]]
+            n += 1
+            if h == h0 or n > H:
+                break
+        ring_ok &= n == valence[v]
+    res["vertex_rings"] = bool(ring_ok)
+    # convexity / outward normals: every vertex on or behind every face plane
+    dist = p.vertices @ p.face_normals.T - p.face_offsets[None, :]
+    res["convex_outward"] = bool(np.all(dist <= 1e-9 * max(1.0, p.bounding_radius)))
+    # CCW loops: Newell normal of the loop agrees with the stored outward normal
+    res["ccw"] = bool(
+        all(
+            np.dot(np.cross(p.vertices[f[1]] - p.vertices[f[0]], p.vertices[f[2]] - p.vertices[f[1]]), p.face_normals[i]) > 0
+            for i, f in enumerate(p.faces)
+        )
+    )
+    return res
