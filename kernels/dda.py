@@ -1,0 +1,949 @@
+"""Warp kernels of the explicit 3D DDA block solver (rockwave.kernels.dda).
+
+Sources: Nezami et al. (2004) "A fast contact detection algorithm for 3-D discrete element method"
+(broad-phase cell size S ~ 1.5 D50, Fast Common Plane); the SPH-DDA rock/fluid seed paper §2-5
+(half-edges, explicit central difference dt <= 2/w_max); Shi (1993) DDA first-order block
+displacement (12 DOF: translation, rotation, 6 constant strains).
+
+Conventions: z up, SI units, float32.  Quaternions are Warp's (x, y, z, w).  A pair (A, B) has
+A < B; the common-plane normal n points from A to B; the force on B is +F, on A is -F.
+Strain vector s (wp.spatial_vector) = (eps_x, eps_y, eps_z, gamma_yz, gamma_zx, gamma_xy) in the
+block's body frame (engineering shear strains).
+"""
+
+import warp as wp
+
+KIND_RIGID = wp.constant(0)
+KIND_DEFORMABLE = wp.constant(1)
+KIND_FIXED = wp.constant(2)
+KIND_KINEMATIC = wp.constant(3)
+
+MOTION_NONE = wp.constant(0)
+MOTION_SINE = wp.constant(1)
+MOTION_TABLE = wp.constant(2)
+
+MAX_CONTACTS = 16  # contact points kept per pair (host side constant)
+K_MAX = wp.constant(MAX_CONTACTS)
+MAX_VALENCE = wp.constant(64)  # cap on half-edge walks around one vertex
+FCP_MAX_ITER = wp.constant(10)  # Nezami et al.: "usually very small" number of iterations
+
+FLAG_ENTRY_OVERFLOW = wp.constant(1)
+FLAG_LARGE_OVERFLOW = wp.constant(2)
+FLAG_PAIR_OVERFLOW = wp.constant(4)
+FLAG_CONTACT_OVERFLOW = wp.constant(8)
+
+
+# ----------------------------------------------------------------------------------------------
+# small helpers
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.func
+def strain_matrix(s: wp.spatial_vector) -> wp.mat33:
+    # symmetric small-strain tensor E from engineering strains (shear gamma = 2 eps_ij)
+    return wp.mat33(
+        s[0], 0.5 * s[5], 0.5 * s[4],
+        0.5 * s[5], s[1], 0.5 * s[3],
+        0.5 * s[4], 0.5 * s[3], s[2],
+    )
+
+
+@wp.func
+def strain_gen_force(X: wp.vec3, f: wp.vec3) -> wp.spatial_vector:
+    # generalised strain force Q_a = f . du/da for u = E X (Shi 1993 first-order displacement)
+    return wp.spatial_vector(
+        X[0] * f[0],
+        X[1] * f[1],
+        X[2] * f[2],
+        0.5 * (X[2] * f[1] + X[1] * f[2]),
+        0.5 * (X[2] * f[0] + X[0] * f[2]),
+        0.5 * (X[1] * f[0] + X[0] * f[1]),
+    )
+
+
+@wp.func
+def point_velocity(
+    b: int,
+    p: wp.vec3,
+    x: wp.array(dtype=wp.vec3),
+    q: wp.array(dtype=wp.quat),
+    v: wp.array(dtype=wp.vec3),
+    w: wp.array(dtype=wp.vec3),
+    strain_rate: wp.array(dtype=wp.spatial_vector),
+    kinds: wp.array(dtype=int),
+):
+    # v(p) = v + w x r (+ R dE/dt R^T r for deformable blocks)
+    r = p - x[b]
+    vel = v[b] + wp.cross(w[b], r)
+    if kinds[b] == KIND_DEFORMABLE:
+        X = wp.quat_rotate_inv(q[b], r)
+        vel = vel + wp.quat_rotate(q[b], strain_matrix(strain_rate[b]) * X)
+    return vel
+
+
+@wp.func
+def extent_along(n: wp.vec3, start: int, count: int, wv: wp.array(dtype=wp.vec3)):
+    # min/max of n.x over a block's world vertices and where they are attained
+    lo = float(1.0e30)
+    hi = float(-1.0e30)
+    ilo = int(start)
+    ihi = int(start)
+    for k in range(count):
+        d = wp.dot(n, wv[start + k])
+        if d < lo:
+            lo = d
+            ilo = start + k
+        if d > hi:
+            hi = d
+            ihi = start + k
+    return lo, ilo, hi, ihi
+
+
+@wp.func
+def signed_gap(n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: wp.array(dtype=wp.vec3)):
+    # gap of the plane family with normal +-n: gap(+n) = min_B n.x - max_A n.x; keep the better sign
+    loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv)
+    loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv)
+    gp = loB - hiA
+    gm = loA - hiB
+    if gm > gp:
+        return -n, gm
+    return n, gp
+
+
+@wp.func
+def try_plane(
+    cand: wp.vec3, best_n: wp.vec3, best_gap: float, sA: int, cA: int, sB: int, cB: int, wv: wp.array(dtype=wp.vec3)
+):
+    # keep the candidate plane with the largest gap (smallest overlap), FCP step iii
+    ln = wp.length(cand)
+    if ln < 1.0e-12:
+        return best_n, best_gap
+    nn, g = signed_gap(cand / ln, sA, cA, sB, cB, wv)
+    if g > best_gap + 1.0e-9:
+        return nn, g
+    return best_n, best_gap
+
+
+@wp.func
+def he_dest(h: int, he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)):
+    return he_vertex[he_next[h]]
+
+
+@wp.func
+def face_plane_of_he(
+    h: int, wv: wp.array(dtype=wp.vec3), he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)
+):
+    # outward normal and offset of the face left of half-edge h (CCW loop: n = (p1-p0) x (p2-p1))
+    h1 = he_next[h]
+    p0 = wv[he_vertex[h]]
+    p1 = wv[he_vertex[h1]]
+    p2 = wv[he_vertex[he_next[h1]]]
+    nf = wp.normalize(wp.cross(p1 - p0, p2 - p1))
+    return nf, wp.dot(nf, p0)
+
+
+@wp.func
+def fcp_plane(
+    n0: wp.vec3,
+    sA: int,
+    cA: int,
+    sB: int,
+    cB: int,
+    wv: wp.array(dtype=wp.vec3),
+    vertex_out_he: wp.array(dtype=int),
+    he_vertex: wp.array(dtype=int),
+    he_next: wp.array(dtype=int),
+    he_prev: wp.array(dtype=int),
+    he_twin: wp.array(dtype=int),
+):
+    # Fast Common Plane (Nezami et al. 2004): iterate closest vertices A, B and candidate planes
+    # (a) PB of AB, (b) faces at A or B, (c) edge at A x edge at B, (d) one edge at A or B and AB.
+    best_n, best_gap = signed_gap(n0, sA, cA, sB, cB, wv)
+    a = int(-1)
+    b = int(-1)
+    for it in range(FCP_MAX_ITER):
+        loA, ilA, hiA, ihA = extent_along(best_n, sA, cA, wv)
+        loB, ilB, hiB, ihB = extent_along(best_n, sB, cB, wv)
+        if ihA == a and ilB == b:
+            break
+        a = ihA
+        b = ilB
+        xa = wv[a]
+        xb = wv[b]
+        dab = xb - xa
+        # (a) perpendicular bisector of AB
+        best_n, best_gap = try_plane(dab, best_n, best_gap, sA, cA, sB, cB, wv)
+        # walk the half-edges leaving A: h -> twin(prev(h))
+        h0 = vertex_out_he[a]
+        h = h0
+        for ka in range(MAX_VALENCE):
+            nf, df = face_plane_of_he(h, wv, he_vertex, he_next)
+            best_n, best_gap = try_plane(nf, best_n, best_gap, sA, cA, sB, cB, wv)  # (b)
+            ea = wv[he_dest(h, he_vertex, he_next)] - xa
+            # (d) plane containing edge ea, as close to the PB as possible: n = AB - (AB.e)e
+            le = wp.length(ea)
+            if le > 0.0:
+                eh = ea / le
+                best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv)
+            # (c) edge at A x edge at B
+            g0 = vertex_out_he[b]
+            g = g0
+            for kb in range(MAX_VALENCE):
+                eb = wv[he_dest(g, he_vertex, he_next)] - xb
+                c = wp.cross(ea, eb)
+                if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
+                    best_n, best_gap = try_plane(c, best_n, best_gap, sA, cA, sB, cB, wv)
+                g = he_twin[he_prev[g]]
+                if g == g0:
+                    break
+            h = he_twin[he_prev[h]]
+            if h == h0:
+                break
+        # faces and edges at B: (b), (d)
+        g0 = vertex_out_he[b]
+        g = g0
+        for kb in range(MAX_VALENCE):
+            nf, df = face_plane_of_he(g, wv, he_vertex, he_next)
+            best_n, best_gap = try_plane(-nf, best_n, best_gap, sA, cA, sB, cB, wv)
+            eb = wv[he_dest(g, he_vertex, he_next)] - xb
+            le = wp.length(eb)
+            if le > 0.0:
+                eh = eb / le
+                best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv)
+            g = he_twin[he_prev[g]]
+            if g == g0:
+                break
+    return best_n, best_gap
+
+
+@wp.func
+def column_through(
+    p: wp.vec3,
+    n: wp.vec3,
+    fstart: int,
+    fcount: int,
+    face_he: wp.array(dtype=int),
+    wv: wp.array(dtype=wp.vec3),
+    he_vertex: wp.array(dtype=int),
+    he_next: wp.array(dtype=int),
+    tol: float,
+):
+    # interval [t_lo, t_hi] of the line p + t n inside a convex block (all faces n_f.x <= d_f);
+    # hit = False when the line misses it (a lateral face excludes p)
+    t_lo = float(-1.0e30)
+    t_hi = float(1.0e30)
+    hit = int(1)
+    for k in range(fcount):
+        nf, df = face_plane_of_he(face_he[fstart + k], wv, he_vertex, he_next)
+        c = wp.dot(nf, n)
+        s = df - wp.dot(nf, p)
+        if c > 1.0e-4:
+            t_hi = wp.min(t_hi, s / c)
+        elif c < -1.0e-4:
+            t_lo = wp.max(t_lo, s / c)
+        else:
+            if s < -tol:
+                hit = 0
+    if t_lo > t_hi + tol:
+        hit = 0
+    return t_lo, t_hi, hit
+
+
+@wp.func
+def hash_cell(cx: int, cy: int, cz: int, nbuckets: int):
+    h = (wp.uint32(cx) * wp.uint32(73856093)) ^ (wp.uint32(cy) * wp.uint32(19349663)) ^ (wp.uint32(cz) * wp.uint32(83492791))
+    return int(h & wp.uint32(nbuckets - 1))
+
+
+@wp.func
+def hash_key(key: int, cap: int):
+    h = wp.uint32(key) * wp.uint32(73244475)
+    return int((h >> wp.uint32(7)) & wp.uint32(cap - 1))
+
+
+@wp.func
+def table_find(key: int, keys: wp.array(dtype=int), cap: int):
+    # open addressing, linear probing; -1 = empty slot
+    s = hash_key(key, cap)
+    for k in range(cap):
+        kk = keys[s]
+        if kk == key:
+            return s
+        if kk == -1:
+            return -1
+        s = (s + 1) & (cap - 1)
+    return -1
+
+
+@wp.func
+def table_insert(key: int, keys: wp.array(dtype=int), cap: int):
+    s = hash_key(key, cap)
+    for k in range(cap):
+        old = wp.atomic_cas(keys, s, -1, key)
+        if old == -1 or old == key:
+            return s
+        s = (s + 1) & (cap - 1)
+    return -1
+
+
+@wp.func
+def movable(kind: int):
+    return kind == KIND_RIGID or kind == KIND_DEFORMABLE
+
+
+# ----------------------------------------------------------------------------------------------
+# pose -> world vertices, AABBs
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def world_vertices(
+    body_verts: wp.array(dtype=wp.vec3),
+    vert_block: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    q: wp.array(dtype=wp.quat),
+    strain: wp.array(dtype=wp.spatial_vector),
+    kinds: wp.array(dtype=int),
+    out: wp.array(dtype=wp.vec3),
+):
+    # x_world = x_c + R (X + E X)  (Shi's first-order displacement on top of the rigid motion)
+    v = wp.tid()
+    b = vert_block[v]
+    X = body_verts[v]
+    if kinds[b] == KIND_DEFORMABLE:
+        X = X + strain_matrix(strain[b]) * X
+    out[v] = x[b] + wp.quat_rotate(q[b], X)
+
+
+@wp.kernel
+def block_aabbs(
+    wv: wp.array(dtype=wp.vec3),
+    vert_start: wp.array(dtype=int),
+    vert_count: wp.array(dtype=int),
+    margin: float,
+    lo: wp.array(dtype=wp.vec3),
+    hi: wp.array(dtype=wp.vec3),
+    contact_count: wp.array(dtype=int),
+):
+    b = wp.tid()
+    s = vert_start[b]
+    l = wv[s]
+    h = wv[s]
+    for k in range(1, vert_count[b]):
+        p = wv[s + k]
+        l = wp.min(l, p)
+        h = wp.max(h, p)
+    m = wp.vec3(margin, margin, margin)
+    lo[b] = l - m
+    hi[b] = h + m
+    contact_count[b] = 0
+
+
+# ----------------------------------------------------------------------------------------------
+# broad phase: uniform grid (cell S ~ 1.5 D50), counting sort into hashed buckets
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.func
+def cell_range(l: wp.vec3, h: wp.vec3, inv_s: float):
+    c0 = wp.vec3i(int(wp.floor(l[0] * inv_s)), int(wp.floor(l[1] * inv_s)), int(wp.floor(l[2] * inv_s)))
+    c1 = wp.vec3i(int(wp.floor(h[0] * inv_s)), int(wp.floor(h[1] * inv_s)), int(wp.floor(h[2] * inv_s)))
+    return c0, c1
+
+
+@wp.kernel
+def bp_count(
+    lo: wp.array(dtype=wp.vec3),
+    hi: wp.array(dtype=wp.vec3),
+    inv_s: float,
+    large_cells: int,
+    nbuckets: int,
+    bucket_count: wp.array(dtype=int),
+    is_large: wp.array(dtype=int),
+    large_list: wp.array(dtype=int),
+    counters: wp.array(dtype=int),
+):
+    # counters: [0] pairs, [1] overflow flags, [2] large blocks
+    b = wp.tid()
+    c0, c1 = cell_range(lo[b], hi[b], inv_s)
+    nx = c1[0] - c0[0] + 1
+    ny = c1[1] - c0[1] + 1
+    nz = c1[2] - c0[2] + 1
+    # blocks spanning many cells (floors, slopes) are tested against all blocks instead
+    if nx > large_cells or ny > large_cells or nz > large_cells or nx * ny * nz > large_cells:
+        is_large[b] = 1
+        k = wp.atomic_add(counters, 2, 1)
+        if k < large_list.shape[0]:
+            large_list[k] = b
+        else:
+            wp.atomic_or(counters, 1, FLAG_LARGE_OVERFLOW)
+        return
+    is_large[b] = 0
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                hb = hash_cell(c0[0] + i, c0[1] + j, c0[2] + k, nbuckets)
+                wp.atomic_add(bucket_count, hb, 1)
+
+
+@wp.kernel
+def bp_fill(
+    lo: wp.array(dtype=wp.vec3),
+    hi: wp.array(dtype=wp.vec3),
+    inv_s: float,
+    nbuckets: int,
+    is_large: wp.array(dtype=int),
+    bucket_start: wp.array(dtype=int),
+    bucket_fill: wp.array(dtype=int),
+    entry_block: wp.array(dtype=int),
+    entry_cell: wp.array(dtype=wp.vec3i),
+    counters: wp.array(dtype=int),
+):
+    b = wp.tid()
+    if is_large[b] != 0:
+        return
+    c0, c1 = cell_range(lo[b], hi[b], inv_s)
+    for i in range(c1[0] - c0[0] + 1):
+        for j in range(c1[1] - c0[1] + 1):
+            for k in range(c1[2] - c0[2] + 1):
+                c = wp.vec3i(c0[0] + i, c0[1] + j, c0[2] + k)
+                hb = hash_cell(c[0], c[1], c[2], nbuckets)
+                e = bucket_start[hb] + wp.atomic_add(bucket_fill, hb, 1)
+                if e < entry_block.shape[0]:
+                    entry_block[e] = b
+                    entry_cell[e] = c
+                else:
+                    wp.atomic_or(counters, 1, FLAG_ENTRY_OVERFLOW)
+
+
+@wp.func
+def aabb_overlap(la: wp.vec3, ha: wp.vec3, lb: wp.vec3, hb: wp.vec3):
+    return la[0] <= hb[0] and lb[0] <= ha[0] and la[1] <= hb[1] and lb[1] <= ha[1] and la[2] <= hb[2] and lb[2] <= ha[2]
+
+
+@wp.func
+def emit_pair(i: int, j: int, pairs: wp.array(dtype=wp.vec2i), counters: wp.array(dtype=int)):
+    k = wp.atomic_add(counters, 0, 1)
+    if k < pairs.shape[0]:
+        pairs[k] = wp.vec2i(wp.min(i, j), wp.max(i, j))
+    else:
+        wp.atomic_or(counters, 1, FLAG_PAIR_OVERFLOW)
+
+
+@wp.kernel
+def bp_pairs(
+    lo: wp.array(dtype=wp.vec3),
+    hi: wp.array(dtype=wp.vec3),
+    inv_s: float,
+    kinds: wp.array(dtype=int),
+    bucket_start: wp.array(dtype=int),
+    bucket_count: wp.array(dtype=int),
+    entry_block: wp.array(dtype=int),
+    entry_cell: wp.array(dtype=wp.vec3i),
+    pairs: wp.array(dtype=wp.vec2i),
+    counters: wp.array(dtype=int),
+):
+    # one thread per bucket; a pair is emitted only from the cell holding the min corner of the
+    # AABB overlap, so it appears exactly once however many cells the two blocks share
+    hb = wp.tid()
+    s = bucket_start[hb]
+    n = bucket_count[hb]
+    if s + n > entry_block.shape[0]:
+        return
+    for e1 in range(s, s + n):
+        i = entry_block[e1]
+        ci = entry_cell[e1]
+        for e2 in range(e1 + 1, s + n):
+            j = entry_block[e2]
+            if j == i:
+                continue
+            cj = entry_cell[e2]
+            if ci[0] != cj[0] or ci[1] != cj[1] or ci[2] != cj[2]:
+                continue
+            if not (movable(kinds[i]) or movable(kinds[j])):
+                continue
+            if not aabb_overlap(lo[i], hi[i], lo[j], hi[j]):
+                continue
+            m = wp.max(lo[i], lo[j])
+            c0, c1 = cell_range(m, m, inv_s)
+            if c0[0] == ci[0] and c0[1] == ci[1] and c0[2] == ci[2]:
+                emit_pair(i, j, pairs, counters)
+
+
+@wp.kernel
+def bp_large_pairs(
+    lo: wp.array(dtype=wp.vec3),
+    hi: wp.array(dtype=wp.vec3),
+    kinds: wp.array(dtype=int),
+    is_large: wp.array(dtype=int),
+    large_list: wp.array(dtype=int),
+    pairs: wp.array(dtype=wp.vec2i),
+    counters: wp.array(dtype=int),
+):
+    # large block L (from the list) against every block j by AABB
+    k, j = wp.tid()
+    if k >= wp.min(counters[2], large_list.shape[0]):
+        return
+    L = large_list[k]
+    if j == L:
+        return
+    if is_large[j] != 0 and j < L:
+        return
+    if not (movable(kinds[L]) or movable(kinds[j])):
+        return
+    if aabb_overlap(lo[L], hi[L], lo[j], hi[j]):
+        emit_pair(L, j, pairs, counters)
+
+
+# ----------------------------------------------------------------------------------------------
+# narrow phase (FCP) + contact forces, one thread per candidate pair
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.func
+def add_contact(
+    slot: int,
+    nc: int,
+    p: wp.vec3,
+    depth: float,
+    ka: int,
+    kb: int,
+    dup_tol: float,
+    c_pos: wp.array(dtype=wp.vec3),
+    c_depth: wp.array(dtype=float),
+    c_key: wp.array(dtype=wp.vec2i),
+):
+    # append a contact point unless one already sits within dup_tol (coincident features)
+    base = slot * K_MAX
+    for k in range(nc):
+        if wp.length(c_pos[base + k] - p) < dup_tol:
+            return nc
+    if nc >= K_MAX:
+        return nc
+    c_pos[base + nc] = p
+    c_depth[base + nc] = depth
+    c_key[base + nc] = wp.vec2i(ka, kb)
+    return nc + 1
+
+
+@wp.kernel
+def narrow_phase(
+    pairs: wp.array(dtype=wp.vec2i),
+    counters: wp.array(dtype=int),
+    nblocks: int,
+    dt: float,
+    # geometry
+    wv: wp.array(dtype=wp.vec3),
+    vert_start: wp.array(dtype=int),
+    vert_count: wp.array(dtype=int),
+    face_start: wp.array(dtype=int),
+    face_count: wp.array(dtype=int),
+    face_he: wp.array(dtype=int),
+    vertex_out_he: wp.array(dtype=int),
+    he_vertex: wp.array(dtype=int),
+    he_next: wp.array(dtype=int),
+    he_prev: wp.array(dtype=int),
+    he_twin: wp.array(dtype=int),
+    block_size: wp.array(dtype=float),
+    # block state
+    kinds: wp.array(dtype=int),
+    inv_mass: wp.array(dtype=float),
+    x: wp.array(dtype=wp.vec3),
+    q: wp.array(dtype=wp.quat),
+    v: wp.array(dtype=wp.vec3),
+    w: wp.array(dtype=wp.vec3),
+    strain_rate: wp.array(dtype=wp.spatial_vector),
+    # materials
+    k_n: wp.array(dtype=float),
+    k_s: wp.array(dtype=float),
+    tan_phi: wp.array(dtype=float),
+    cohesion: wp.array(dtype=float),
+    tensile: wp.array(dtype=float),
+    zeta: wp.array(dtype=float),
+    # history: previous table (read) and current table (write)
+    old_keys: wp.array(dtype=int),
+    old_normal: wp.array(dtype=wp.vec3),
+    old_nc: wp.array(dtype=int),
+    old_ckey: wp.array(dtype=wp.vec2i),
+    old_shear: wp.array(dtype=wp.vec3),
+    new_keys: wp.array(dtype=int),
+    new_normal: wp.array(dtype=wp.vec3),
+    new_nc: wp.array(dtype=int),
+    new_ckey: wp.array(dtype=wp.vec2i),
+    new_shear: wp.array(dtype=wp.vec3),
+    new_pos: wp.array(dtype=wp.vec3),
+    new_depth: wp.array(dtype=float),
+    new_fn: wp.array(dtype=float),
+    # outputs
+    pair_gap: wp.array(dtype=float),
+    pair_slot: wp.array(dtype=int),
+    force: wp.array(dtype=wp.vec3),
+    torque: wp.array(dtype=wp.vec3),
+    strain_force: wp.array(dtype=wp.spatial_vector),
+    contact_count: wp.array(dtype=int),
+):
+    tid = wp.tid()
+    if tid >= wp.min(counters[0], pairs.shape[0]):
+        return
+    A = pairs[tid][0]
+    B = pairs[tid][1]
+    key = A * nblocks + B
+    cap = new_keys.shape[0]
+    slot = table_insert(key, new_keys, cap)
+    pair_slot[tid] = slot
+    if slot < 0:
+        wp.atomic_or(counters, 1, FLAG_CONTACT_OVERFLOW)
+        return
+    oslot = table_find(key, old_keys, old_keys.shape[0])
+    sA = vert_start[A]
+    cA = vert_count[A]
+    sB = vert_start[B]
+    cB = vert_count[B]
+    # FCP step i: warm start from last step's plane, else PB of the centroids
+    n0 = x[B] - x[A]
+    if oslot >= 0:
+        n0 = old_normal[oslot]
+    if wp.length(n0) < 1.0e-12:
+        n0 = wp.vec3(0.0, 0.0, 1.0)
+    n, gap = fcp_plane(wp.normalize(n0), sA, cA, sB, cB, wv, vertex_out_he, he_vertex, he_next, he_prev, he_twin)
+    new_normal[slot] = n
+    pair_gap[tid] = gap
+    new_nc[slot] = 0
+    if gap > 0.0:
+        return
+    size = wp.min(block_size[A], block_size[B])
+    tol = 1.0e-6 * size
+    dup_tol = 1.0e-4 * size
+    over = -gap  # total overlap along n: max_A n.x - min_B n.x
+    loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv)
+    loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv)
+    nc = int(0)
+    # vertices of A that may lie inside B: column through the vertex along n meets B's bottom
+    for k in range(cA):
+        va = sA + k
+        pa = wv[va]
+        if wp.dot(n, pa) >= loB - tol:
+            t_lo, t_hi, hit = column_through(pa, n, face_start[B], face_count[B], face_he, wv, he_vertex, he_next, tol)
+            d = wp.min(-t_lo, over)
+            if hit == 1 and d > 0.0:
+                nc = add_contact(slot, nc, pa + (0.5 * t_lo) * n, d, va, -1, dup_tol, new_pos, new_depth, new_ckey)
+    # vertices of B that may lie inside A
+    for k in range(cB):
+        vb = sB + k
+        pb = wv[vb]
+        if wp.dot(n, pb) <= hiA + tol:
+            t_lo, t_hi, hit = column_through(pb, n, face_start[A], face_count[A], face_he, wv, he_vertex, he_next, tol)
+            d = wp.min(t_hi, over)
+            if hit == 1 and d > 0.0:
+                nc = add_contact(slot, nc, pb + (0.5 * t_hi) * n, d, -1, vb, dup_tol, new_pos, new_depth, new_ckey)
+    # edge-edge crossings of the two contact patches, projected on the plane
+    t1 = wp.vec3(1.0, 0.0, 0.0)
+    if wp.abs(n[0]) > 0.6:
+        t1 = wp.vec3(0.0, 1.0, 0.0)
+    t1 = wp.normalize(t1 - wp.dot(t1, n) * n)
+    t2 = wp.cross(n, t1)
+    for k in range(cA):
+        va = sA + k
+        pa = wv[va]
+        if wp.dot(n, pa) < loB - tol:
+            continue
+        h0 = vertex_out_he[va]
+        h = h0
+        for ka in range(MAX_VALENCE):
+            ua = he_dest(h, he_vertex, he_next)
+            qa = wv[ua]
+            if wp.dot(n, qa) < loB - tol or va < ua:
+                # edge (va, ua) once: from its lower end if both ends are in the patch
+                ea = qa - pa
+                for kk in range(cB):
+                    vb = sB + kk
+                    pb = wv[vb]
+                    if wp.dot(n, pb) > hiA + tol:
+                        continue
+                    g0 = vertex_out_he[vb]
+                    g = g0
+                    for kb in range(MAX_VALENCE):
+                        ub = he_dest(g, he_vertex, he_next)
+                        qb = wv[ub]
+                        if wp.dot(n, qb) > hiA + tol or vb < ub:
+                            eb = qb - pb
+                            # solve pa + s ea = pb + u eb in the plane (2D)
+                            a0 = wp.dot(ea, t1)
+                            a1 = wp.dot(ea, t2)
+                            b0 = wp.dot(eb, t1)
+                            b1 = wp.dot(eb, t2)
+                            r0 = wp.dot(pb - pa, t1)
+                            r1 = wp.dot(pb - pa, t2)
+                            det = a0 * (-b1) - a1 * (-b0)
+                            if wp.abs(det) > 1.0e-6 * wp.length(ea) * wp.length(eb):
+                                s = (r0 * (-b1) - r1 * (-b0)) / det
+                                u = (a0 * r1 - a1 * r0) / det
+                                if s > 1.0e-5 and s < 1.0 - 1.0e-5 and u > 1.0e-5 and u < 1.0 - 1.0e-5:
+                                    xa_ = pa + s * ea
+                                    xb_ = pb + u * eb
+                                    d = wp.min(wp.dot(n, xa_ - xb_), over)
+                                    if d > 0.0:
+                                        ha = wp.min(h, he_twin[h])
+                                        hb2 = wp.min(g, he_twin[g])
+                                        nc = add_contact(slot, nc, 0.5 * (xa_ + xb_), d, ha, hb2, dup_tol, new_pos, new_depth, new_ckey)
+                        g = he_twin[he_prev[g]]
+                        if g == g0:
+                            break
+            h = he_twin[he_prev[h]]
+            if h == h0:
+                break
+    new_nc[slot] = nc
+    if nc == 0:
+        return
+    base = slot * K_MAX
+    # contact patch area (convex polygon through the points, angular order) -> area share
+    cen = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(nc):
+        cen = cen + new_pos[base + k]
+    cen = cen / float(nc)
+    area = float(0.0)
+    if nc >= 3:
+        for k in range(nc):
+            rk = new_pos[base + k] - cen
+            ak = wp.atan2(wp.dot(rk, t2), wp.dot(rk, t1))
+            best = float(1.0e9)
+            nxt = int(-1)
+            for m in range(nc):
+                rm = new_pos[base + m] - cen
+                am = wp.atan2(wp.dot(rm, t2), wp.dot(rm, t1))
+                da = am - ak
+                if da <= 0.0:
+                    da = da + 6.283185307
+                if m != k and da < best:
+                    best = da
+                    nxt = m
+            if nxt >= 0:
+                rn = new_pos[base + nxt] - cen
+                area = area + 0.5 * wp.dot(wp.cross(rk, rn), n)
+    area = wp.abs(area)
+    a_share = area / float(nc)
+    # material of the pair: the weaker of the two blocks
+    kn = wp.min(k_n[A], k_n[B])
+    ks = wp.min(k_s[A], k_s[B])
+    mu = wp.min(tan_phi[A], tan_phi[B])
+    coh = wp.min(cohesion[A], cohesion[B])
+    ten = wp.min(tensile[A], tensile[B])
+    zt = wp.max(zeta[A], zeta[B])
+    im = inv_mass[A] + inv_mass[B]
+    m_eff = float(0.0)
+    if im > 0.0:
+        m_eff = 1.0 / im
+    # dashpot per point: c = 2 zeta sqrt(k m_eff / n_points)  (n points act in parallel)
+    cn = 2.0 * zt * wp.sqrt(kn * m_eff / float(nc))
+    cs = 2.0 * zt * wp.sqrt(ks * m_eff / float(nc))
+    onc = int(0)
+    if oslot >= 0:
+        onc = old_nc[oslot]
+    for k in range(nc):
+        c = base + k
+        p = new_pos[c]
+        d = new_depth[c]
+        vrel = point_velocity(B, p, x, q, v, w, strain_rate, kinds) - point_velocity(A, p, x, q, v, w, strain_rate, kinds)
+        vn = wp.dot(vrel, n)
+        # normal: penalty k_n delta + dashpot; tension cut-off (pull only up to the tensile strength)
+        fn = kn * d - cn * vn
+        fn = wp.max(fn, -ten * a_share)
+        # shear: spring accumulated in the contact plane, carried from last step (matched by
+        # feature key), rotated onto the new plane keeping its magnitude
+        fs = wp.vec3(0.0, 0.0, 0.0)
+        ck = new_ckey[c]
+        for m in range(onc):
+            ok = old_ckey[oslot * K_MAX + m]
+            if ok[0] == ck[0] and ok[1] == ck[1]:
+                fo = old_shear[oslot * K_MAX + m]
+                mag = wp.length(fo)
+                fp = fo - wp.dot(fo, n) * n
+                lp = wp.length(fp)
+                if lp > 1.0e-20:
+                    fs = fp * (mag / lp)
+        vt = vrel - vn * n
+        fs = fs - (ks * dt) * vt
+        # Coulomb cap mu F_n + c A_share (sliding: no shear dashpot)
+        fmax = mu * wp.max(fn, 0.0) + coh * a_share
+        lfs = wp.length(fs)
+        fs_tot = fs
+        if lfs > fmax:
+            if lfs > 0.0:
+                fs = fs * (fmax / lfs)
+            fs_tot = fs
+        else:
+            fs_tot = fs - cs * vt
+        new_shear[c] = fs
+        new_fn[c] = fn
+        f = fn * n + fs_tot  # force on B
+        if movable(kinds[B]):
+            wp.atomic_add(force, B, f)
+            wp.atomic_add(torque, B, wp.cross(p - x[B], f))
+            if kinds[B] == KIND_DEFORMABLE:
+                Xb = wp.quat_rotate_inv(q[B], p - x[B])
+                wp.atomic_add(strain_force, B, strain_gen_force(Xb, wp.quat_rotate_inv(q[B], f)))
+        if movable(kinds[A]):
+            wp.atomic_add(force, A, -f)
+            wp.atomic_add(torque, A, wp.cross(p - x[A], -f))
+            if kinds[A] == KIND_DEFORMABLE:
+                Xa = wp.quat_rotate_inv(q[A], p - x[A])
+                wp.atomic_add(strain_force, A, strain_gen_force(Xa, wp.quat_rotate_inv(q[A], -f)))
+    wp.atomic_add(contact_count, A, nc)
+    wp.atomic_add(contact_count, B, nc)
+
+
+@wp.kernel
+def rehash_table(
+    old_keys: wp.array(dtype=int),
+    old_normal: wp.array(dtype=wp.vec3),
+    old_nc: wp.array(dtype=int),
+    old_ckey: wp.array(dtype=wp.vec2i),
+    old_shear: wp.array(dtype=wp.vec3),
+    new_keys: wp.array(dtype=int),
+    new_normal: wp.array(dtype=wp.vec3),
+    new_nc: wp.array(dtype=int),
+    new_ckey: wp.array(dtype=wp.vec2i),
+    new_shear: wp.array(dtype=wp.vec3),
+):
+    # move the contact history into a larger table (capacity growth)
+    s = wp.tid()
+    key = old_keys[s]
+    if key < 0:
+        return
+    t = table_insert(key, new_keys, new_keys.shape[0])
+    if t < 0:
+        return
+    new_normal[t] = old_normal[s]
+    nc = old_nc[s]
+    new_nc[t] = nc
+    for k in range(nc):
+        new_ckey[t * K_MAX + k] = old_ckey[s * K_MAX + k]
+        new_shear[t * K_MAX + k] = old_shear[s * K_MAX + k]
+
+
+# ----------------------------------------------------------------------------------------------
+# time integration (semi-implicit Euler = central difference with velocities at half steps)
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.func
+def kinematic_motion(
+    b: int,
+    t: float,
+    motion_type: wp.array(dtype=int),
+    motion_amp: wp.array(dtype=wp.vec3),
+    motion_freq: wp.array(dtype=float),
+    motion_phase: wp.array(dtype=float),
+    table_start: wp.array(dtype=int),
+    table_count: wp.array(dtype=int),
+    table_t: wp.array(dtype=float),
+    table_x: wp.array(dtype=wp.vec3),
+):
+    # displacement and velocity of a prescribed motion at time t:
+    # sine: u = A sin(2 pi f t + phase), du/dt = 2 pi f A cos(...); table: piecewise linear in t
+    mt = motion_type[b]
+    if mt == MOTION_SINE:
+        om = 6.283185307179586 * motion_freq[b]
+        arg = om * t + motion_phase[b]
+        return motion_amp[b] * wp.sin(arg), motion_amp[b] * (om * wp.cos(arg))
+    if mt == MOTION_TABLE:
+        s = table_start[b]
+        n = table_count[b]
+        if t <= table_t[s]:
+            return table_x[s], wp.vec3(0.0, 0.0, 0.0)
+        for k in range(n - 1):
+            t0 = table_t[s + k]
+            t1 = table_t[s + k + 1]
+            if t <= t1:
+                slope = (table_x[s + k + 1] - table_x[s + k]) / (t1 - t0)
+                return table_x[s + k] + slope * (t - t0), slope
+        return table_x[s + n - 1], wp.vec3(0.0, 0.0, 0.0)
+    return wp.vec3(0.0, 0.0, 0.0), wp.vec3(0.0, 0.0, 0.0)
+
+
+@wp.kernel
+def integrate_blocks(
+    kinds: wp.array(dtype=int),
+    inv_mass: wp.array(dtype=float),
+    inertia_body: wp.array(dtype=wp.mat33),
+    inv_inertia_body: wp.array(dtype=wp.mat33),
+    strain_minv: wp.array(dtype=wp.spatial_matrix),
+    strain_k: wp.array(dtype=wp.spatial_matrix),
+    strain_damp: wp.array(dtype=float),
+    gravity: wp.vec3,
+    t_next: float,
+    dt: float,
+    base_x: wp.array(dtype=wp.vec3),
+    motion_type: wp.array(dtype=int),
+    motion_amp: wp.array(dtype=wp.vec3),
+    motion_freq: wp.array(dtype=float),
+    motion_phase: wp.array(dtype=float),
+    table_start: wp.array(dtype=int),
+    table_count: wp.array(dtype=int),
+    table_t: wp.array(dtype=float),
+    table_x: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    q: wp.array(dtype=wp.quat),
+    v: wp.array(dtype=wp.vec3),
+    w: wp.array(dtype=wp.vec3),
+    strain: wp.array(dtype=wp.spatial_vector),
+    strain_rate: wp.array(dtype=wp.spatial_vector),
+    force: wp.array(dtype=wp.vec3),
+    torque: wp.array(dtype=wp.vec3),
+    strain_force: wp.array(dtype=wp.spatial_vector),
+    ext_force: wp.array(dtype=wp.vec3),
+    ext_torque: wp.array(dtype=wp.vec3),
+):
+    b = wp.tid()
+    kind = kinds[b]
+    if kind == KIND_KINEMATIC:
+        u, uv = kinematic_motion(b, t_next, motion_type, motion_amp, motion_freq, motion_phase, table_start, table_count, table_t, table_x)
+        x[b] = base_x[b] + u
+        v[b] = uv
+        w[b] = wp.vec3(0.0, 0.0, 0.0)
+    elif kind != KIND_FIXED:
+        im = inv_mass[b]
+        # translation: m dv/dt = F_contact + F_ext + m g
+        vn = v[b] + dt * ((force[b] + ext_force[b]) * im + gravity)
+        x[b] = x[b] + dt * vn
+        v[b] = vn
+        # rotation (world frame): I_w dw/dt = tau - w x (I_w w),  I_w = R I_b R^T
+        R = wp.quat_to_matrix(q[b])
+        Iw = R * inertia_body[b] * wp.transpose(R)
+        Iwinv = R * inv_inertia_body[b] * wp.transpose(R)
+        om = w[b]
+        tau = torque[b] + ext_torque[b] - wp.cross(om, Iw * om)
+        om = om + dt * (Iwinv * tau)
+        w[b] = om
+        # exact rotation by |w| dt about w: q <- dq(w dt) q
+        ang = wp.length(om) * dt
+        qn = q[b]
+        if ang > 0.0:
+            qn = wp.mul(wp.quat_from_axis_angle(om / wp.length(om), ang), qn)
+        q[b] = wp.normalize(qn)
+        if kind == KIND_DEFORMABLE:
+            # Shi's strain DOFs: M_e de'/dt = Q - V D e - 2 zeta w_e M_e e'
+            s = strain[b]
+            sr = strain_rate[b]
+            acc = strain_minv[b] * (strain_force[b] - strain_k[b] * s) - strain_damp[b] * sr
+            sr = sr + dt * acc
+            strain_rate[b] = sr
+            strain[b] = s + dt * sr
+    force[b] = wp.vec3(0.0, 0.0, 0.0)
+    torque[b] = wp.vec3(0.0, 0.0, 0.0)
+    strain_force[b] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    ext_force[b] = wp.vec3(0.0, 0.0, 0.0)
+    ext_torque[b] = wp.vec3(0.0, 0.0, 0.0)
+
+
+@wp.kernel
+def clear_forces(
+    force: wp.array(dtype=wp.vec3),
+    torque: wp.array(dtype=wp.vec3),
+    strain_force: wp.array(dtype=wp.spatial_vector),
+):
+    b = wp.tid()
+    force[b] = wp.vec3(0.0, 0.0, 0.0)
+    torque[b] = wp.vec3(0.0, 0.0, 0.0)
+    strain_force[b] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)

@@ -1,0 +1,766 @@
+"""Explicit 3D DDA rock-block solver (host side): specs -> BlockModel + BlockState -> BlockSolver.step.
+
+Data flow (DESIGN.md §1, §3): ``BlockSpec`` list -> ``BlockModel`` (static device arrays: concatenated
+vertices / faces / half-edges with per-block offsets, masses, inertia, kinds, materials) ->
+``BlockModel.state()`` -> ``BlockSolver(model).step(state, dt, t)`` runs, all as Warp kernels on the
+model's device: world vertices + AABBs, uniform-grid broad phase, Fast Common Plane narrow phase with
+multi-point contacts, penalty contact forces with per-pair history, explicit integration.
+
+Units SI, z up, quaternions (x, y, z, w).  Contact stiffness is *per contact point* (a face resting
+on a face gets >= 3 points, each with k_n), so a box resting on its face sinks m g / (n_points k_n).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from rockwave.geometry import ConvexPolyhedron, GeometryError, quat_to_matrix
+from rockwave.kernels import dda as K
+
+__all__ = [
+    "ContactMaterial",
+    "KinematicMotion",
+    "BlockSpec",
+    "BlockModel",
+    "BlockState",
+    "BlockSolver",
+    "BlockOverlapError",
+    "check_initial_overlap",
+    "KINDS",
+]
+
+KINDS = {"rigid": 0, "deformable": 1, "fixed": 2, "kinematic": 3}
+DEFAULT_YOUNGS_MODULUS = 10.0e9  # Pa, a medium-strength rock
+DEFAULT_RESTITUTION = 0.5
+PENALTY_FACTOR = 0.1  # default k_n = PENALTY_FACTOR * E * L  (N/m per contact point)
+
+
+class BlockOverlapError(ValueError):
+    """Two blocks overlap in the initial configuration."""
+
+
+def restitution_to_damping_ratio(e: float) -> float:
+    """Linear spring-dashpot: zeta = -ln e / sqrt(pi^2 + ln^2 e)  (e = 1 -> 0, e -> 0 -> 1)."""
+    if not 0.0 <= e <= 1.0:
+        raise ValueError(f"restitution must be in [0, 1], got {e}")
+    if e == 0.0:
+        return 1.0
+    le = math.log(e)
+    return -le / math.sqrt(math.pi**2 + le * le)
+
+
+@dataclass
+class ContactMaterial:
+    """Contact law of a block's surface (a pair uses the weaker value of the two blocks; damping the larger).
+
+    friction_angle_deg: Coulomb friction angle phi (mu = tan phi).
+    cohesion_pa: cohesion c (Pa), times the contact area share of each point.
+    tensile_strength_pa: pull allowed per unit area before the cut-off (0 = no tension).
+    normal_stiffness: k_n in N/m per contact point; None -> 0.1 * E * L (E = block modulus or 10 GPa,
+        L = V^(1/3)).  0.1 E L keeps the self-weight penetration ~1e-6 L-ish while the critical step
+        stays ~1e-3 s for metre-sized blocks (a full E*L would cut dt by ~3x for no gain in accuracy).
+    shear_stiffness: k_s in N/m per point; None -> k_n / (2 (1 + nu)) (the G/E ratio of the block).
+    restitution: coefficient e for the normal dashpot; damping_ratio overrides it if given.
+        Default e = 0.5 (zeta ~ 0.215).
+    """
+
+    friction_angle_deg: float = 30.0
+    cohesion_pa: float = 0.0
+    tensile_strength_pa: float = 0.0
+    normal_stiffness: float | None = None
+    shear_stiffness: float | None = None
+    restitution: float | None = None
+    damping_ratio: float | None = None
+
+    def resolved_damping_ratio(self) -> float:
+        if self.damping_ratio is not None:
+            if self.damping_ratio < 0:
+                raise ValueError("damping_ratio must be >= 0")
+            return float(self.damping_ratio)
+        return restitution_to_damping_ratio(DEFAULT_RESTITUTION if self.restitution is None else self.restitution)
+
+
+@dataclass
+class KinematicMotion:
+    """Prescribed motion of a kinematic block, as a displacement added to BlockSpec.position.
+
+    kind "sine": u(t) = amplitude * sin(2 pi frequency_hz t + phase_rad), du/dt exact.
+    kind "table": u(t) linear between rows (times, displacements), constant outside; du/dt = slope.
+    """
+
+    kind: str = "sine"
+    amplitude: tuple = (0.0, 0.0, 0.0)
+    frequency_hz: float = 0.0
+    phase_rad: float = 0.0
+    times: tuple = ()
+    displacements: tuple = ()
+
+    @staticmethod
+    def sine(amplitude, frequency_hz, phase_rad=0.0) -> "KinematicMotion":
+        return KinematicMotion("sine", tuple(float(a) for a in amplitude), float(frequency_hz), float(phase_rad))
+
+    @staticmethod
+    def table(times, displacements) -> "KinematicMotion":
+        t = np.asarray(times, float)
+        d = np.asarray(displacements, float).reshape(-1, 3)
+        if len(t) < 1 or len(t) != len(d) or np.any(np.diff(t) <= 0):
+            raise ValueError("motion table: times must be strictly increasing and match the displacement rows")
+        return KinematicMotion("table", times=tuple(t), displacements=tuple(map(tuple, d)))
+
+    def displacement(self, t: float) -> np.ndarray:
+        """Host-side evaluation (reference for tests and exporters)."""
+        if self.kind == "sine":
+            return np.asarray(self.amplitude) * math.sin(2 * math.pi * self.frequency_hz * t + self.phase_rad)
+        tt = np.asarray(self.times)
+        d = np.asarray(self.displacements)
+        return np.array([np.interp(t, tt, d[:, k]) for k in range(3)])
+
+
+@dataclass
+class BlockSpec:
+    """One block as a scene gives it.
+
+    geometry: body-frame convex polyhedron (centroid at origin).  position: centroid (m).
+    orientation: quaternion (x, y, z, w).  density kg/m^3.  velocity m/s, angular_velocity rad/s (world).
+    kind: "rigid" | "deformable" | "fixed" | "kinematic".  youngs_modulus Pa (None -> 10 GPa),
+    poisson_ratio.  motion: KinematicMotion (kinematic only).  strain_damping_ratio: damping of the
+    deformable block's strain modes.
+    """
+
+    geometry: ConvexPolyhedron
+    position: tuple = (0.0, 0.0, 0.0)
+    orientation: object = (0.0, 0.0, 0.0, 1.0)
+    density: float = 2600.0
+    velocity: tuple = (0.0, 0.0, 0.0)
+    angular_velocity: tuple = (0.0, 0.0, 0.0)
+    kind: str = "rigid"
+    youngs_modulus: float | None = None
+    poisson_ratio: float = 0.25
+    motion: KinematicMotion | None = None
+    material: ContactMaterial = field(default_factory=ContactMaterial)
+    name: str = ""
+    strain_damping_ratio: float = 0.05
+
+
+def _quat(q) -> np.ndarray:
+    a = np.asarray([float(c) for c in q], dtype=float)
+    n = np.linalg.norm(a)
+    if a.shape != (4,) or n == 0:
+        raise ValueError(f"orientation must be a non-zero quaternion (x, y, z, w), got {q}")
+    return a / n
+
+
+def _strain_mass(S: np.ndarray) -> np.ndarray:
+    """Generalised mass of the 6 strain DOFs: M_ab = tr(G_a^T G_b S), u = G_a X, S = rho int X X^T."""
+    G = np.zeros((6, 3, 3))
+    G[0][0, 0] = G[1][1, 1] = G[2][2, 2] = 1.0
+    G[3][1, 2] = G[3][2, 1] = 0.5  # gamma_yz
+    G[4][0, 2] = G[4][2, 0] = 0.5  # gamma_zx
+    G[5][0, 1] = G[5][1, 0] = 0.5  # gamma_xy
+    return np.einsum("aji,bjk,ki->ab", G, G, S)
+
+
+def _elastic_D(E: float, nu: float) -> np.ndarray:
+    """3D isotropic elasticity matrix for (eps_x, eps_y, eps_z, gamma_yz, gamma_zx, gamma_xy)."""
+    lam = E * nu / ((1 + nu) * (1 - 2 * nu))
+    G = E / (2 * (1 + nu))
+    D = np.zeros((6, 6))
+    D[:3, :3] = lam
+    D[0, 0] = D[1, 1] = D[2, 2] = lam + 2 * G
+    D[3, 3] = D[4, 4] = D[5, 5] = G
+    return D
+
+
+def _next_pow2(n: int) -> int:
+    return 1 << max(4, int(math.ceil(math.log2(max(1, n)))))
+
+
+class BlockModel:
+    """Static description of all blocks, as device arrays (V vertices, F faces, H half-edges, N blocks).
+
+    Geometry (global indices into the concatenated arrays): body_verts (V, vec3, body frame m),
+    vert_block (V,), vert_start/vert_count (N,), face_start/face_count (N,), face_he (F,),
+    vertex_out_he (V,), he_vertex/he_next/he_prev/he_twin (H,).
+    Per block: kinds (N, int: 0 rigid, 1 deformable, 2 fixed, 3 kinematic), mass (kg), inv_mass (0 for
+    fixed/kinematic), inertia_body / inv_inertia_body (mat33, kg m^2, body frame), block_size (bounding
+    diameter m), materials k_n, k_s (N/m per point), tan_phi, cohesion (Pa), tensile (Pa), zeta;
+    deformable: strain_minv, strain_k (spatial_matrix), strain_damp (1/s).
+    """
+
+    def __init__(
+        self,
+        specs: list,
+        device=None,
+        gravity=(0.0, 0.0, -9.81),
+        check_overlap: bool = True,
+        overlap_tol: float | None = None,
+    ):
+        if not specs:
+            raise ValueError("BlockModel needs at least one block")
+        self.device = wp.get_device(device)
+        self.specs = list(specs)
+        self.gravity = tuple(float(g) for g in gravity)
+        n = len(specs)
+        if n > 46340:
+            raise ValueError("BlockModel: at most 46340 blocks (pair keys are i*N+j in int32)")
+        self.num_blocks = n
+        self.names = []
+        verts, vblock, vstart, vcount = [], [], [], []
+        fstart, fcount, face_he, vout = [], [], [], []
+        hv, hn, hp, ht = [], [], [], []
+        kinds = np.zeros(n, np.int32)
+        mass = np.zeros(n)
+        inertia = np.zeros((n, 3, 3))
+        size = np.zeros(n)
+        radius = np.zeros(n)
+        kn = np.zeros(n)
+        ks = np.zeros(n)
+        tphi = np.zeros(n)
+        coh = np.zeros(n)
+        ten = np.zeros(n)
+        zeta = np.zeros(n)
+        sminv = np.zeros((n, 6, 6))
+        sk = np.zeros((n, 6, 6))
+        sdamp = np.zeros(n)
+        self.strain_omega = np.zeros(n)
+        self.strain_mass = np.zeros((n, 6, 6))
+        mtype = np.zeros(n, np.int32)
+        mamp = np.zeros((n, 3))
+        mfreq = np.zeros(n)
+        mphase = np.zeros(n)
+        tstart = np.zeros(n, np.int32)
+        tcount = np.zeros(n, np.int32)
+        tab_t, tab_x = [], []
+        nv = nf = nh = 0
+        for b, s in enumerate(specs):
+            g = s.geometry
+            if not isinstance(g, ConvexPolyhedron):
+                raise TypeError(f"block {b}: geometry must be a ConvexPolyhedron")
+            name = s.name or g.name or f"block{b}"
+            self.names.append(name)
+            if s.kind not in KINDS:
+                raise ValueError(f"block '{name}': kind must be one of {sorted(KINDS)}, got '{s.kind}'")
+            if not s.density > 0:
+                raise ValueError(f"block '{name}': density must be > 0")
+            kinds[b] = KINDS[s.kind]
+            verts.append(g.vertices)
+            vblock.append(np.full(g.num_vertices, b))
+            vstart.append(nv)
+            vcount.append(g.num_vertices)
+            fstart.append(nf)
+            fcount.append(g.num_faces)
+            face_he.append(g.face_he + nh)
+            vout.append(g.vertex_out_he + nh)
+            hv.append(g.he_vertex + nv)
+            hn.append(g.he_next + nh)
+            hp.append(g.he_prev + nh)
+            ht.append(g.he_twin + nh)
+            nv += g.num_vertices
+            nf += g.num_faces
+            nh += g.num_half_edges
+            mass[b] = g.mass(s.density)
+            inertia[b] = g.inertia(s.density)
+            size[b] = 2.0 * g.bounding_radius
+            radius[b] = g.bounding_radius
+            E = DEFAULT_YOUNGS_MODULUS if s.youngs_modulus is None else float(s.youngs_modulus)
+            nu = float(s.poisson_ratio)
+            if not (E > 0 and -1.0 < nu < 0.5):
+                raise ValueError(f"block '{name}': need youngs_modulus > 0 and -1 < poisson_ratio < 0.5")
+            m = s.material
+            kn[b] = PENALTY_FACTOR * E * g.size if m.normal_stiffness is None else float(m.normal_stiffness)
+            ks[b] = kn[b] / (2.0 * (1.0 + nu)) if m.shear_stiffness is None else float(m.shear_stiffness)
+            if kn[b] <= 0 or ks[b] < 0:
+                raise ValueError(f"block '{name}': contact stiffness must be positive")
+            tphi[b] = math.tan(math.radians(m.friction_angle_deg))
+            coh[b] = m.cohesion_pa
+            ten[b] = m.tensile_strength_pa
+            zeta[b] = m.resolved_damping_ratio()
+            if s.kind == "deformable":
+                I = inertia[b]
+                S = 0.5 * np.trace(I) * np.eye(3) - I
+                M = _strain_mass(S)
+                Kst = g.volume * _elastic_D(E, nu)
+                from scipy.linalg import eigh
+
+                om2 = eigh(Kst, M, eigvals_only=True)
+                self.strain_omega[b] = math.sqrt(max(om2.max(), 0.0))
+                self.strain_mass[b] = M
+                sminv[b] = np.linalg.inv(M)
+                sk[b] = Kst
+                sdamp[b] = 2.0 * s.strain_damping_ratio * self.strain_omega[b]
+            if s.kind == "kinematic":
+                mo = s.motion
+                if mo is None:
+                    raise ValueError(f"block '{name}': kinematic block needs a motion (KinematicMotion)")
+                if mo.kind == "sine":
+                    mtype[b] = 1
+                    mamp[b] = mo.amplitude
+                    mfreq[b] = mo.frequency_hz
+                    mphase[b] = mo.phase_rad
+                elif mo.kind == "table":
+                    mtype[b] = 2
+                    tstart[b] = len(tab_t)
+                    tcount[b] = len(mo.times)
+                    tab_t.extend(mo.times)
+                    tab_x.extend(mo.displacements)
+                else:
+                    raise ValueError(f"block '{name}': motion kind must be 'sine' or 'table'")
+        movable = (kinds == 0) | (kinds == 1)
+        inv_mass = np.where(movable, 1.0 / mass, 0.0)
+        inv_inertia = np.linalg.inv(inertia)
+        self.np = dict(
+            kinds=kinds, mass=mass, inertia=inertia, size=size, radius=radius, k_n=kn, k_s=ks, zeta=zeta,
+            tan_phi=tphi, body_verts=np.concatenate(verts), vert_start=np.asarray(vstart), vert_count=np.asarray(vcount),
+            motion_type=mtype,
+        )
+        self.movable = movable
+        d = self.device
+        f32 = wp.float32
+
+        def arr(a, dtype):
+            return wp.array(np.ascontiguousarray(a), dtype=dtype, device=d)
+
+        self.body_verts = arr(np.concatenate(verts).astype(np.float32), wp.vec3)
+        self.vert_block = arr(np.concatenate(vblock).astype(np.int32), int)
+        self.vert_start = arr(np.asarray(vstart, np.int32), int)
+        self.vert_count = arr(np.asarray(vcount, np.int32), int)
+        self.face_start = arr(np.asarray(fstart, np.int32), int)
+        self.face_count = arr(np.asarray(fcount, np.int32), int)
+        self.face_he = arr(np.concatenate(face_he).astype(np.int32), int)
+        self.vertex_out_he = arr(np.concatenate(vout).astype(np.int32), int)
+        self.he_vertex = arr(np.concatenate(hv).astype(np.int32), int)
+        self.he_next = arr(np.concatenate(hn).astype(np.int32), int)
+        self.he_prev = arr(np.concatenate(hp).astype(np.int32), int)
+        self.he_twin = arr(np.concatenate(ht).astype(np.int32), int)
+        self.num_vertices = nv
+        self.kinds = arr(kinds, int)
+        self.mass = arr(mass.astype(np.float32), f32)
+        self.inv_mass = arr(inv_mass.astype(np.float32), f32)
+        self.inertia_body = arr(inertia.astype(np.float32), wp.mat33)
+        self.inv_inertia_body = arr(inv_inertia.astype(np.float32), wp.mat33)
+        self.block_size = arr(size.astype(np.float32), f32)
+        self.k_n = arr(kn.astype(np.float32), f32)
+        self.k_s = arr(ks.astype(np.float32), f32)
+        self.tan_phi = arr(tphi.astype(np.float32), f32)
+        self.cohesion = arr(coh.astype(np.float32), f32)
+        self.tensile = arr(ten.astype(np.float32), f32)
+        self.zeta = arr(zeta.astype(np.float32), f32)
+        self.strain_minv = arr(sminv.astype(np.float32), wp.spatial_matrix)
+        self.strain_k = arr(sk.astype(np.float32), wp.spatial_matrix)
+        self.strain_damp = arr(sdamp.astype(np.float32), f32)
+        self.motion_type = arr(mtype, int)
+        self.motion_amp = arr(mamp.astype(np.float32), wp.vec3)
+        self.motion_freq = arr(mfreq.astype(np.float32), f32)
+        self.motion_phase = arr(mphase.astype(np.float32), f32)
+        self.table_start = arr(tstart, int)
+        self.table_count = arr(tcount, int)
+        self.table_t = arr(np.asarray(tab_t if tab_t else [0.0], np.float32), f32)
+        self.table_x = arr(np.asarray(tab_x if tab_x else [[0.0, 0.0, 0.0]], np.float32).reshape(-1, 3), wp.vec3)
+        self.base_position = np.array([np.asarray(s.position, float).reshape(3) for s in specs])
+        self.base_x = arr(self.base_position.astype(np.float32), wp.vec3)
+        self.d50 = float(np.median(size))
+        if check_overlap:
+            check_initial_overlap(self, tol=overlap_tol)
+
+    def initial_poses(self):
+        """(positions (N,3), quaternions (N,4) xyzw) at t = 0, kinematic motion applied."""
+        pos = self.base_position.copy()
+        quats = np.array([_quat(s.orientation) for s in self.specs])
+        for b, s in enumerate(self.specs):
+            if s.kind == "kinematic":
+                pos[b] = pos[b] + s.motion.displacement(0.0)
+        return pos, quats
+
+    def state(self) -> "BlockState":
+        """Allocate a BlockState at the specs' initial conditions."""
+        return BlockState(self)
+
+    def world_vertices_host(self, b: int, position, quat) -> np.ndarray:
+        return self.specs[b].geometry.transformed_vertices(position, quat)
+
+
+class BlockState:
+    """Time-varying block data (device arrays, N blocks, V vertices).
+
+    x (N, vec3 m, centroid world), q (N, quat xyzw body->world), v (N, vec3 m/s), w (N, vec3 rad/s,
+    world frame), strain / strain_rate (N, spatial_vector: eps_x, eps_y, eps_z, gamma_yz, gamma_zx,
+    gamma_xy, body frame; zero for non-deformable), ext_force / ext_torque (N, vec3 N, N m about the
+    centroid, world; other modules atomically add here before step, the solver zeroes them after use),
+    force / torque / strain_force (contact accumulators), contact_count (N, int: contact points of the
+    last step), world_verts (V, vec3), time (s), contact history tables (two, swapped each step).
+    """
+
+    def __init__(self, model: BlockModel):
+        self.model = model
+        d = model.device
+        n = model.num_blocks
+        pos, quats = model.initial_poses()
+        vel = np.array([np.asarray(s.velocity, float).reshape(3) for s in model.specs])
+        ang = np.array([np.asarray(s.angular_velocity, float).reshape(3) for s in model.specs])
+        fixed = ~model.movable
+        vel[fixed] = 0.0
+        ang[fixed] = 0.0
+        for b, s in enumerate(model.specs):
+            if s.kind == "kinematic":
+                mo = s.motion
+                if mo.kind == "sine":
+                    om = 2 * math.pi * mo.frequency_hz
+                    vel[b] = np.asarray(mo.amplitude) * om * math.cos(mo.phase_rad)
+                else:
+                    vel[b] = 0.0
+        self.x = wp.array(pos.astype(np.float32), dtype=wp.vec3, device=d)
+        self.q = wp.array(quats.astype(np.float32), dtype=wp.quat, device=d)
+        self.v = wp.array(vel.astype(np.float32), dtype=wp.vec3, device=d)
+        self.w = wp.array(ang.astype(np.float32), dtype=wp.vec3, device=d)
+        self.strain = wp.zeros(n, dtype=wp.spatial_vector, device=d)
+        self.strain_rate = wp.zeros(n, dtype=wp.spatial_vector, device=d)
+        self.force = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.torque = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.strain_force = wp.zeros(n, dtype=wp.spatial_vector, device=d)
+        self.ext_force = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.ext_torque = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.contact_count = wp.zeros(n, dtype=int, device=d)
+        self.world_verts = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
+        self.time = 0.0
+        self.tables = [None, None]
+        self.alloc_tables(_next_pow2(4 * (8 * n + 64)))
+
+    def alloc_tables(self, cap: int):
+        d = self.model.device
+        km = K.MAX_CONTACTS
+
+        def make():
+            return dict(
+                keys=wp.full(cap, -1, dtype=int, device=d),
+                normal=wp.zeros(cap, dtype=wp.vec3, device=d),
+                nc=wp.zeros(cap, dtype=int, device=d),
+                ckey=wp.zeros(cap * km, dtype=wp.vec2i, device=d),
+                shear=wp.zeros(cap * km, dtype=wp.vec3, device=d),
+                pos=wp.zeros(cap * km, dtype=wp.vec3, device=d),
+                depth=wp.zeros(cap * km, dtype=wp.float32, device=d),
+                fn=wp.zeros(cap * km, dtype=wp.float32, device=d),
+            )
+
+        old = self.tables[0]
+        self.tables = [make(), make()]
+        self.table_cap = cap
+        if old is not None:  # keep the contact history (rehash into the larger table)
+            t = self.tables[0]
+            wp.launch(
+                K.rehash_table, dim=old["keys"].shape[0],
+                inputs=[old["keys"], old["normal"], old["nc"], old["ckey"], old["shear"],
+                        t["keys"], t["normal"], t["nc"], t["ckey"], t["shear"]],
+                device=d,
+            )
+
+    # ---- read-back helpers (host sync) ----
+    def positions_numpy(self) -> np.ndarray:
+        return self.x.numpy().astype(np.float64)
+
+    def orientations_numpy(self) -> np.ndarray:
+        return self.q.numpy().astype(np.float64)
+
+    def velocities_numpy(self) -> np.ndarray:
+        return self.v.numpy().astype(np.float64)
+
+    def angular_velocities_numpy(self) -> np.ndarray:
+        return self.w.numpy().astype(np.float64)
+
+    def strains_numpy(self) -> np.ndarray:
+        return self.strain.numpy().astype(np.float64)
+
+    def contact_counts(self) -> np.ndarray:
+        """Contact points per block found in the last step."""
+        return self.contact_count.numpy().copy()
+
+    def world_vertices(self) -> list:
+        """World-space vertices per block (list of (V_b, 3) arrays) at the current pose and strain."""
+        m = self.model
+        wp.launch(K.world_vertices, dim=m.num_vertices,
+                  inputs=[m.body_verts, m.vert_block, self.x, self.q, self.strain, m.kinds, self.world_verts],
+                  device=m.device)
+        wv = self.world_verts.numpy().astype(np.float64)
+        s, c = m.np["vert_start"], m.np["vert_count"]
+        return [wv[s[b]: s[b] + c[b]] for b in range(m.num_blocks)]
+
+    def linear_momentum(self) -> np.ndarray:
+        """Sum of m v over movable blocks (kg m/s)."""
+        m = self.model
+        mv = m.np["mass"][:, None] * self.velocities_numpy()
+        return mv[m.movable].sum(axis=0)
+
+    def kinetic_energy(self) -> float:
+        """Translational + rotational (+ strain-rate) kinetic energy of movable blocks (J)."""
+        m = self.model
+        v = self.velocities_numpy()
+        w = self.angular_velocities_numpy()
+        q = self.orientations_numpy()
+        sr = self.strain_rate.numpy().astype(np.float64)
+        e = 0.0
+        for b in np.nonzero(m.movable)[0]:
+            R = quat_to_matrix(q[b])
+            Iw = R @ m.np["inertia"][b] @ R.T
+            e += 0.5 * m.np["mass"][b] * v[b] @ v[b] + 0.5 * w[b] @ Iw @ w[b]
+            if m.np["kinds"][b] == 1:
+                e += 0.5 * sr[b] @ m.strain_mass[b] @ sr[b]
+        return float(e)
+
+
+def _sat_overlap(va: np.ndarray, ga: ConvexPolyhedron, Ra, vb: np.ndarray, gb: ConvexPolyhedron, Rb) -> float:
+    """Penetration depth of two convex polyhedra by the separating-axis test (<= 0: apart)."""
+    axes = [ga.face_normals @ Ra.T, gb.face_normals @ Rb.T]
+    ea = ga.edges()
+    eb = gb.edges()
+    da = va[ea[:, 1]] - va[ea[:, 0]]
+    db = vb[eb[:, 1]] - vb[eb[:, 0]]
+    cr = np.cross(da[:, None, :], db[None, :, :]).reshape(-1, 3)
+    ln = np.linalg.norm(cr, axis=1)
+    keep = ln > 1e-9 * max(1.0, ln.max(initial=0.0))
+    axes.append(cr[keep] / ln[keep, None])
+    ax = np.concatenate(axes)
+    pa = va @ ax.T
+    pb = vb @ ax.T
+    ov = np.minimum(pa.max(0) - pb.min(0), pb.max(0) - pa.min(0))
+    return float(ov.min())
+
+
+def check_initial_overlap(model: BlockModel, positions=None, quats=None, tol: float | None = None):
+    """Raise BlockOverlapError naming the first pair (with a movable block) that overlaps by more than tol.
+
+    tol defaults to 1e-3 x the smallest block size.  Pairs of two fixed/kinematic blocks are skipped
+    (they never interact).  Exact separating-axis test on the host (numpy).
+    """
+    from scipy.spatial import cKDTree
+
+    if positions is None or quats is None:
+        positions, quats = model.initial_poses()
+    sizes = model.np["size"]
+    if tol is None:
+        tol = 1e-3 * float(sizes.min())
+    rad = model.np["radius"]
+    n = model.num_blocks
+    if n < 2:
+        return
+    tree = cKDTree(positions)
+    cand = tree.query_pairs(r=2.0 * float(rad.max()) + 1e-9, output_type="ndarray")
+    Rs = [quat_to_matrix(q) for q in quats]
+    worst = None
+    for i, j in cand:
+        if not (model.movable[i] or model.movable[j]):
+            continue
+        if np.linalg.norm(positions[i] - positions[j]) > rad[i] + rad[j]:
+            continue
+        gi, gj = model.specs[i].geometry, model.specs[j].geometry
+        vi = gi.vertices @ Rs[i].T + positions[i]
+        vj = gj.vertices @ Rs[j].T + positions[j]
+        depth = _sat_overlap(vi, gi, Rs[i], vj, gj, Rs[j])
+        if depth > tol and (worst is None or depth > worst[2]):
+            worst = (i, j, depth)
+    if worst is not None:
+        i, j, depth = worst
+        raise BlockOverlapError(
+            f"blocks '{model.names[i]}' (#{i}) and '{model.names[j]}' (#{j}) overlap by {depth:.6g} m at the start "
+            f"(tolerance {tol:.3g} m); move them apart"
+        )
+
+
+class BlockSolver:
+    """Explicit DDA solver: ``step(state, dt, t)`` = broad phase, FCP, contact forces, integration.
+
+    cell_factor: broad-phase cell size S = cell_factor x median block bounding size (Nezami: 1.5).
+    cell_size: explicit S (m), overrides cell_factor.  aabb_margin: AABB inflation (m), default 0.05 D50.
+    contact_points_for_dt: contact points assumed on one block in the critical-step estimate.
+    """
+
+    def __init__(self, model: BlockModel, device=None, cell_factor: float = 1.5, cell_size: float | None = None,
+                 aabb_margin: float | None = None, contact_points_for_dt: int = 8):
+        self.model = model
+        self.device = wp.get_device(device) if device is not None else model.device
+        if self.device != model.device:
+            raise ValueError(f"solver device {self.device} differs from model device {model.device}")
+        self.cell_size = float(cell_size) if cell_size else cell_factor * model.d50
+        self.margin = 0.05 * model.d50 if aabb_margin is None else float(aabb_margin)
+        self.contact_points_for_dt = contact_points_for_dt
+        self.large_cells = 27
+        n = model.num_blocks
+        d = self.device
+        self.lo = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.hi = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.is_large = wp.zeros(n, dtype=int, device=d)
+        self.counters = wp.zeros(4, dtype=int, device=d)
+        self._alloc_large(min(n, 16))
+        self._alloc_entries(8 * n + 64)
+        self._alloc_pairs(8 * n + 64)
+        self.pair_count = 0
+        self._dt_crit = None
+
+    # ---- capacity management ----
+    def _alloc_large(self, cap):
+        self.large_list = wp.zeros(max(1, cap), dtype=int, device=self.device)
+
+    def _alloc_entries(self, cap):
+        d = self.device
+        self.entry_cap = cap
+        self.nbuckets = _next_pow2(2 * cap)
+        self.entry_block = wp.zeros(cap, dtype=int, device=d)
+        self.entry_cell = wp.zeros(cap, dtype=wp.vec3i, device=d)
+        self.bucket_count = wp.zeros(self.nbuckets, dtype=int, device=d)
+        self.bucket_start = wp.zeros(self.nbuckets, dtype=int, device=d)
+        self.bucket_fill = wp.zeros(self.nbuckets, dtype=int, device=d)
+
+    def _alloc_pairs(self, cap):
+        d = self.device
+        self.pair_cap = cap
+        self.pairs = wp.zeros(cap, dtype=wp.vec2i, device=d)
+        self.pair_gap = wp.zeros(cap, dtype=wp.float32, device=d)
+        self.pair_slot = wp.zeros(cap, dtype=int, device=d)
+
+    # ---- time step limits ----
+    def critical_dt(self) -> float:
+        """dt_crit = min over movable blocks of 2/omega (sqrt(1+zeta^2) - zeta), omega from
+        translation sqrt(k_n n_c / m), rotation sqrt(k_n n_c r^2 / I_min) (r = bounding radius) and,
+        for deformable blocks, the largest strain-mode frequency of M_e^-1 V D (~ 3.5 c / L)."""
+        if self._dt_crit is None:
+            m = self.model
+            nc = self.contact_points_for_dt
+            best = math.inf
+            for b in np.nonzero(m.movable)[0]:
+                kn = m.np["k_n"][b]
+                z = m.np["zeta"][b]
+                fac = math.sqrt(1.0 + z * z) - z
+                mass = m.np["mass"][b]
+                imin = float(np.linalg.eigvalsh(m.np["inertia"][b]).min())
+                r = m.np["radius"][b]
+                om = max(math.sqrt(kn * nc / mass), math.sqrt(kn * nc * r * r / imin))
+                best = min(best, 2.0 / om * fac)
+                if m.np["kinds"][b] == 1:
+                    zs = m.specs[b].strain_damping_ratio
+                    best = min(best, 2.0 / m.strain_omega[b] * (math.sqrt(1 + zs * zs) - zs))
+            self._dt_crit = best
+        return self._dt_crit
+
+    def stable_dt(self, safety: float = 0.5) -> float:
+        return safety * self.critical_dt()
+
+    # ---- pipeline ----
+    def _prepare(self, state: BlockState):
+        m, d = self.model, self.device
+        wp.launch(K.world_vertices, dim=m.num_vertices,
+                  inputs=[m.body_verts, m.vert_block, state.x, state.q, state.strain, m.kinds, state.world_verts],
+                  device=d)
+        wp.launch(K.block_aabbs, dim=m.num_blocks,
+                  inputs=[state.world_verts, m.vert_start, m.vert_count, self.margin, self.lo, self.hi,
+                          state.contact_count], device=d)
+
+    def _broad_phase(self):
+        m, d = self.model, self.device
+        inv_s = 1.0 / self.cell_size
+        while True:
+            self.counters.zero_()
+            self.bucket_count.zero_()
+            self.bucket_fill.zero_()
+            wp.launch(K.bp_count, dim=m.num_blocks,
+                      inputs=[self.lo, self.hi, inv_s, self.large_cells, self.nbuckets, self.bucket_count,
+                              self.is_large, self.large_list, self.counters], device=d)
+            wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
+            wp.launch(K.bp_fill, dim=m.num_blocks,
+                      inputs=[self.lo, self.hi, inv_s, self.nbuckets, self.is_large, self.bucket_start,
+                              self.bucket_fill, self.entry_block, self.entry_cell, self.counters], device=d)
+            wp.launch(K.bp_pairs, dim=self.nbuckets,
+                      inputs=[self.lo, self.hi, inv_s, m.kinds, self.bucket_start, self.bucket_count,
+                              self.entry_block, self.entry_cell, self.pairs, self.counters], device=d)
+            wp.launch(K.bp_large_pairs, dim=(self.large_list.shape[0], m.num_blocks),
+                      inputs=[self.lo, self.hi, m.kinds, self.is_large, self.large_list, self.pairs,
+                              self.counters], device=d)
+            c = self.counters.numpy()  # the one host sync per step: capacities
+            flags = int(c[1])
+            if flags == 0:
+                self.pair_count = int(c[0])
+                return
+            if flags & 1:
+                self._alloc_entries(2 * int(self.bucket_count.numpy().sum()))
+            if flags & 2:
+                self._alloc_large(2 * int(c[2]))
+            if flags & 4:
+                self._alloc_pairs(2 * int(c[0]))
+
+    def _narrow_phase(self, state: BlockState, dt: float):
+        m, d = self.model, self.device
+        if 2 * self.pair_cap > state.table_cap:
+            state.alloc_tables(_next_pow2(4 * self.pair_cap))
+        old, new = state.tables
+        new["keys"].fill_(-1)
+        if self.pair_count > 0:
+            wp.launch(K.narrow_phase, dim=self.pair_count,
+                      inputs=[self.pairs, self.counters, m.num_blocks, dt,
+                              state.world_verts, m.vert_start, m.vert_count, m.face_start, m.face_count, m.face_he,
+                              m.vertex_out_he, m.he_vertex, m.he_next, m.he_prev, m.he_twin, m.block_size,
+                              m.kinds, m.inv_mass, state.x, state.q, state.v, state.w, state.strain_rate,
+                              m.k_n, m.k_s, m.tan_phi, m.cohesion, m.tensile, m.zeta,
+                              old["keys"], old["normal"], old["nc"], old["ckey"], old["shear"],
+                              new["keys"], new["normal"], new["nc"], new["ckey"], new["shear"], new["pos"],
+                              new["depth"], new["fn"],
+                              self.pair_gap, self.pair_slot, state.force, state.torque, state.strain_force,
+                              state.contact_count], device=d)
+        state.tables = [new, old]  # tables[0] now holds this step's history
+
+    def detect(self, state: BlockState):
+        """Collision detection only (world vertices, broad + narrow phase), forces discarded."""
+        self._prepare(state)
+        self._broad_phase()
+        self._narrow_phase(state, 0.0)
+        wp.launch(K.clear_forces, dim=self.model.num_blocks,
+                  inputs=[state.force, state.torque, state.strain_force], device=self.device)
+
+    def step(self, state: BlockState, dt: float, t: float | None = None):
+        """Advance state by dt from time t (default state.time); refuses dt above critical_dt()."""
+        if not dt > 0:
+            raise ValueError(f"dt must be > 0, got {dt}")
+        dc = self.critical_dt()
+        if dt > dc:
+            raise ValueError(f"dt = {dt:.4g} s exceeds the critical DDA time step {dc:.4g} s (2/omega_max); "
+                             f"use BlockSolver.stable_dt() = {self.stable_dt():.4g} s")
+        if t is None:
+            t = state.time
+        m, d = self.model, self.device
+        self._prepare(state)
+        self._broad_phase()
+        self._narrow_phase(state, dt)
+        wp.launch(K.integrate_blocks, dim=m.num_blocks,
+                  inputs=[m.kinds, m.inv_mass, m.inertia_body, m.inv_inertia_body, m.strain_minv, m.strain_k,
+                          m.strain_damp, wp.vec3(*m.gravity), float(t + dt), float(dt), m.base_x, m.motion_type,
+                          m.motion_amp, m.motion_freq, m.motion_phase, m.table_start, m.table_count, m.table_t,
+                          m.table_x, state.x, state.q, state.v, state.w, state.strain, state.strain_rate,
+                          state.force, state.torque, state.strain_force, state.ext_force, state.ext_torque],
+                  device=d)
+        state.time = t + dt
+
+    # ---- diagnostics ----
+    def contacts(self, state: BlockState) -> list:
+        """Pairs examined in the last step: dicts with blocks (i, j), normal (i -> j), gap (m,
+        negative = overlap), points (k, 3), depths (k,), normal_forces (k,)."""
+        n = self.pair_count
+        if n == 0:
+            return []
+        pairs = self.pairs.numpy()[:n]
+        gaps = self.pair_gap.numpy()[:n]
+        slots = self.pair_slot.numpy()[:n]
+        t = state.tables[0]
+        normal = t["normal"].numpy()
+        nc = t["nc"].numpy()
+        pos = t["pos"].numpy()
+        dep = t["depth"].numpy()
+        fn = t["fn"].numpy()
+        km = K.MAX_CONTACTS
+        out = []
+        for p in range(n):
+            s = slots[p]
+            k = nc[s] if s >= 0 else 0
+            out.append(dict(blocks=(int(pairs[p][0]), int(pairs[p][1])), normal=normal[s].astype(float),
+                            gap=float(gaps[p]), points=pos[s * km: s * km + k].astype(float),
+                            depths=dep[s * km: s * km + k].astype(float), normal_forces=fn[s * km: s * km + k].astype(float)))
+        return out
