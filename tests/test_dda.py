@@ -1,0 +1,480 @@
+"""DDA block solver: FCP contact detection, friction, toppling, impact, stacks, deformable and
+kinematic blocks, time-step refusal.  Exact solutions from shared/validation/README.md
+("Rock blocks (exact)").  Small scenes so the Warp CPU backend (one thread) runs them quickly;
+set ROCKWAVE_TEST_DEVICE=cuda:0 to run the same tests on a GPU."""
+
+import math
+import os
+
+import numpy as np
+import pytest
+import warp as wp
+from scipy.spatial import ConvexHull
+from scipy.spatial.transform import Rotation
+
+from rockwave import geometry as G
+from rockwave.blocks import (
+    BlockModel,
+    BlockOverlapError,
+    BlockSolver,
+    BlockSpec,
+    ContactMaterial,
+    KinematicMotion,
+)
+
+wp.config.quiet = True
+DEVICE = os.environ.get("ROCKWAVE_TEST_DEVICE", "cpu")
+g = 9.81
+
+
+def quat(rot: Rotation):
+    return tuple(rot.as_quat())  # scipy (x, y, z, w) == Warp order
+
+
+def detect(specs, **kw):
+    model = BlockModel(specs, device=DEVICE, check_overlap=False, **kw)
+    state = model.state()
+    solver = BlockSolver(model)
+    solver.detect(state)
+    return solver.contacts(state)
+
+
+# ------------------------------------------------------------------------------------------------
+# Fast Common Plane on known configurations
+# ------------------------------------------------------------------------------------------------
+
+
+def test_fcp_vertex_face():
+    pen = 5e-4
+    # corner of a unit cube pointing straight down onto a fixed slab
+    rot = Rotation.align_vectors([[0, 0, -1]], [np.ones(3) / math.sqrt(3)])[0]
+    zc = math.sqrt(3) / 2 - pen
+    specs = [
+        BlockSpec(G.box((4, 4, 1)), position=(0, 0, -0.5), kind="fixed", name="slab"),
+        BlockSpec(G.box((1, 1, 1)), position=(0.3, -0.2, zc), orientation=quat(rot), name="corner"),
+    ]
+    (c,) = detect(specs)
+    assert c["blocks"] == (0, 1)
+    assert np.allclose(c["normal"], [0, 0, 1], atol=1e-5)
+    assert c["gap"] == pytest.approx(-pen, abs=2e-6)
+    assert len(c["points"]) == 1
+    assert np.allclose(c["points"][0][:2], [0.3, -0.2], atol=1e-5)
+    assert c["depths"][0] == pytest.approx(pen, abs=2e-6)
+
+
+def _edge_edge_specs(pen, R=Rotation.identity(), shift=np.zeros(3)):
+    a = 1.0
+    h = a / math.sqrt(2)
+    ra = R * Rotation.from_euler("x", 45, degrees=True)  # top edge along x
+    rb = R * Rotation.from_euler("y", 45, degrees=True)  # bottom edge along y
+    pa = R.apply([0, 0, 0]) + shift
+    pb = R.apply([0.1, 0.2, 2 * h - pen]) + shift
+    return [
+        BlockSpec(G.box((a, a, a)), position=tuple(pa), orientation=quat(ra), kind="fixed", name="lower"),
+        BlockSpec(G.box((a, a, a)), position=tuple(pb), orientation=quat(rb), name="upper"),
+    ]
+
+
+def test_fcp_edge_edge():
+    pen = 1e-3
+    (c,) = detect(_edge_edge_specs(pen))
+    assert np.allclose(c["normal"], [0, 0, 1], atol=1e-5)
+    assert c["gap"] == pytest.approx(-pen, abs=3e-6)
+    assert len(c["points"]) == 1  # one point at the crossing of the two edges
+    assert np.allclose(c["points"][0], [0.1, 0.0, 1 / math.sqrt(2) - pen / 2], atol=1e-4)
+    assert c["depths"][0] == pytest.approx(pen, abs=3e-6)
+
+
+def test_fcp_rotated_configuration_is_frame_independent():
+    pen = 1e-3
+    R = Rotation.from_euler("zyx", [37, -21, 63], degrees=True)
+    shift = np.array([1.5, -2.0, 0.7])
+    (c,) = detect(_edge_edge_specs(pen, R, shift))
+    assert np.allclose(c["normal"], R.apply([0, 0, 1]), atol=1e-4)
+    assert c["gap"] == pytest.approx(-pen, abs=1e-5)
+    assert len(c["points"]) == 1
+    expect = R.apply([0.1, 0.0, 1 / math.sqrt(2) - pen / 2]) + shift
+    assert np.allclose(c["points"][0], expect, atol=2e-4)
+
+
+def _patch_area(points, normal):
+    t1 = np.cross(normal, [1, 0, 0] if abs(normal[0]) < 0.6 else [0, 1, 0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(normal, t1)
+    p2 = np.stack([points @ t1, points @ t2], axis=1)
+    return ConvexHull(p2).volume
+
+
+def test_fcp_face_face_offset_and_rotated():
+    pen = 1e-3
+    cube = G.box((1, 1, 1))
+    # offset by (0.3, 0.2): overlap rectangle 0.7 x 0.8, four points
+    specs = [
+        BlockSpec(cube, position=(0, 0, 0), kind="fixed", name="lower"),
+        BlockSpec(cube, position=(0.3, 0.2, 1 - pen), name="upper"),
+    ]
+    (c,) = detect(specs)
+    assert np.allclose(c["normal"], [0, 0, 1], atol=1e-6)
+    assert c["gap"] == pytest.approx(-pen, abs=2e-6)
+    assert len(c["points"]) == 4
+    assert np.allclose(c["depths"], pen, atol=2e-6)
+    assert _patch_area(c["points"], c["normal"]) == pytest.approx(0.7 * 0.8, rel=1e-4)
+    # upper cube turned 45 deg about z: octagonal overlap, 8 points, area 1 - 4 * 0.2071^2 = 0.8284
+    specs[1] = BlockSpec(cube, position=(0, 0, 1 - pen), orientation=quat(Rotation.from_euler("z", 45, degrees=True)))
+    (c,) = detect(specs)
+    assert len(c["points"]) == 8
+    assert np.allclose(c["depths"], pen, atol=2e-6)
+    assert _patch_area(c["points"], c["normal"]) == pytest.approx(2 * math.sqrt(2) - 2, rel=1e-4)
+
+
+def test_fcp_separated_gap():
+    cube = G.box((1, 1, 1))
+    specs = [
+        BlockSpec(cube, position=(0, 0, 0), kind="fixed", name="a"),
+        BlockSpec(cube, position=(1.1, 0, 0), name="b"),
+    ]
+    (c,) = detect(specs)
+    assert np.allclose(c["normal"], [1, 0, 0], atol=1e-5)
+    assert c["gap"] == pytest.approx(0.1, abs=1e-6)
+    assert len(c["points"]) == 0
+    # rotated 30 deg about z: its x-extent is 0.5 (cos 30 + sin 30) -> gap 1.2 - 0.5 - 0.6830
+    specs[1] = BlockSpec(cube, position=(1.2, 0.1, 0.2), orientation=quat(Rotation.from_euler("z", 30, degrees=True)))
+    (c,) = detect(specs)
+    assert np.allclose(c["normal"], [1, 0, 0], atol=1e-5)
+    assert c["gap"] == pytest.approx(1.2 - 0.5 - 0.5 * (math.cos(math.pi / 6) + math.sin(math.pi / 6)), abs=1e-5)
+    assert len(c["points"]) == 0
+
+
+def test_broad_phase_pairs_unique_and_complete():
+    # 3 x 3 x 2 grid of cubes overlapping by 0.5 mm: every pair of neighbours (face, edge or corner
+    # neighbours all overlap) exactly once, no far pairs
+    cube = G.box((1, 1, 1))
+    specs = []
+    for i in range(3):
+        for j in range(3):
+            for k in range(2):
+                specs.append(BlockSpec(cube, position=(i * 0.9995, j * 0.9995, k * 0.9995), name=f"c{i}{j}{k}"))
+    model = BlockModel(specs, device=DEVICE, check_overlap=False)
+    state = model.state()
+    solver = BlockSolver(model)
+    solver.detect(state)
+    cs = solver.contacts(state)
+    pairs = [c["blocks"] for c in cs]
+    assert len(pairs) == len(set(pairs))
+    touching = {c["blocks"] for c in cs if len(c["points"]) > 0}
+    pos = model.base_position
+    expect = {(a, b) for a in range(len(specs)) for b in range(a + 1, len(specs))
+              if np.abs(pos[a] - pos[b]).max() < 1.0}
+    assert touching == expect
+
+
+# ------------------------------------------------------------------------------------------------
+# friction on an incline (exact: d = 1/2 g (sin a - cos a tan phi) t^2)
+# ------------------------------------------------------------------------------------------------
+
+
+def incline_specs(alpha_deg, blocks, slope_phi=60.0, kn=1e7, slope_size=(6.0, 4.0, 0.5)):
+    """Fixed slope tilted by alpha about y (downhill = +x'); blocks = list of (size, phi, s, y, kind, extra)."""
+    R = Rotation.from_euler("y", alpha_deg, degrees=True)
+    n = R.apply([0, 0, 1])
+    d = R.apply([1, 0, 0])
+    yv = R.apply([0, 1, 0])
+    specs = [BlockSpec(G.box(slope_size), kind="fixed", orientation=quat(R), name="slope",
+                       material=ContactMaterial(friction_angle_deg=slope_phi, normal_stiffness=kn))]
+    for k, (size, phi, s, y, kind, extra) in enumerate(blocks):
+        rho = 2500.0
+        m = rho * np.prod(size)
+        pen = m * g * math.cos(math.radians(alpha_deg)) / (4 * kn)
+        c = (slope_size[2] / 2 + size[2] / 2 - pen) * n + s * d + y * yv
+        specs.append(BlockSpec(G.box(size), position=tuple(c), orientation=quat(R), density=rho, kind=kind,
+                               name=f"block{k}", material=ContactMaterial(friction_angle_deg=phi, normal_stiffness=kn),
+                               **extra))
+    return specs, d, n
+
+
+def run(model, t_end, dt=None, record=None):
+    state = model.state()
+    solver = BlockSolver(model)
+    dt = dt or solver.stable_dt(0.5)
+    nsteps = int(round(t_end / dt))
+    for k in range(nsteps):
+        solver.step(state, dt)
+        if record is not None:
+            record(k, state)
+    return state, solver, nsteps * dt
+
+
+def test_block_slides_down_incline_exact():
+    alpha, phi = 30.0, 20.0
+    specs, d, n = incline_specs(alpha, [((0.5, 0.5, 0.5), phi, -2.0, 0.0, "rigid", {})])
+    model = BlockModel(specs, device=DEVICE)
+    x0 = model.base_position[1]
+    state, solver, T = run(model, 1.0)
+    disp = (state.positions_numpy()[1] - x0) @ d
+    a = g * (math.sin(math.radians(alpha)) - math.cos(math.radians(alpha)) * math.tan(math.radians(phi)))
+    assert disp == pytest.approx(0.5 * a * T * T, rel=0.01)
+    # stays on the plane, does not rotate
+    assert abs((state.positions_numpy()[1] - x0) @ n) < 1e-4
+    assert np.linalg.norm(state.angular_velocities_numpy()[1]) < 1e-2
+    assert state.contact_counts()[1] == 4
+
+
+def test_block_at_rest_when_friction_exceeds_slope():
+    alpha, phi = 20.0, 30.0
+    specs, d, n = incline_specs(alpha, [((0.5, 0.5, 0.5), phi, 0.0, 0.0, "rigid", {})])
+    model = BlockModel(specs, device=DEVICE)
+    x0 = model.base_position[1]
+    state, solver, T = run(model, 2.0)
+    creep = (state.positions_numpy()[1] - x0) @ d
+    assert abs(creep) < 1e-3
+    assert np.linalg.norm(state.velocities_numpy()[1]) < 1e-3
+
+
+def test_sliding_versus_toppling_chart():
+    # alpha = 30 deg (tan = 0.577); b/h = 1.0 (squat) or 0.1 (slender); phi = 40 or 8 deg.
+    # Dynamic margins: a sliding block also topples only if tan(phi) > b/h (friction moment), and a
+    # pivoting block also slides only if mu N < m (g sin a - theta'' h / 2); b/h = 0.1 with phi = 8
+    # deg meets both clearly (with b/h = 0.3, phi = 20 deg sits on the boundary and only topples).
+    alpha = 30.0
+    squat, slender = (0.4, 0.4, 0.4), (0.05, 0.4, 0.5)
+    cases = {  # name: (size, phi, expected slides, expected topples)
+        "stable": (squat, 40.0, False, False),
+        "topples": (slender, 40.0, False, True),
+        "slides": (squat, 8.0, True, False),
+        "slides_and_topples": (slender, 8.0, True, True),
+    }
+    blocks = [(size, phi, -1.0, -1.5 + k, "rigid", {}) for k, (size, phi, _, _) in enumerate(cases.values())]
+    specs, d, n = incline_specs(alpha, blocks, kn=2e6)
+    model = BlockModel(specs, device=DEVICE)
+    q0 = model.initial_poses()[1]
+    hist = []
+    run(model, 0.6, record=lambda k, s: hist.append((s.positions_numpy(), s.orientations_numpy())))
+    for k, (name, (size, phi, slides, topples)) in enumerate(cases.items()):
+        b = k + 1
+        # slide = motion of the downhill bottom edge (the toppling pivot) along the slope, measured
+        # while the block is still on its base or pivot edge (tilt < 0.5 rad, before it lands)
+        pivot_body = np.array([size[0] / 2, 0.0, -size[2] / 2])
+        p0 = model.base_position[b] + Rotation.from_quat(q0[b]).apply(pivot_body)
+        tilt, slide = 0.0, 0.0
+        for pos, quats in hist:
+            t_k = (Rotation.from_quat(quats[b]) * Rotation.from_quat(q0[b]).inv()).magnitude()
+            if t_k > 0.5:
+                break
+            tilt = t_k
+            slide = (pos[b] + Rotation.from_quat(quats[b]).apply(pivot_body) - p0) @ d
+        assert (slide > 0.05) == slides, (name, slide, tilt)
+        assert (tilt > 0.2) == topples, (name, slide, tilt)
+        if not slides:
+            assert abs(slide) < 5e-3, (name, slide)
+        if not topples:
+            assert tilt < 0.02, (name, tilt)
+
+
+# ------------------------------------------------------------------------------------------------
+# impact, stack, deformable, kinematic, limits
+# ------------------------------------------------------------------------------------------------
+
+
+def test_frictionless_elastic_impact_conserves_momentum_and_energy():
+    mat = ContactMaterial(friction_angle_deg=0.0, normal_stiffness=1e7, restitution=1.0)
+    cube = G.box((1, 1, 1))
+    specs = [
+        BlockSpec(cube, position=(0, 0, 0), velocity=(1.0, 0.0, 0.0), material=mat, density=2500, name="a"),
+        BlockSpec(cube, position=(1.05, 0.0, 0.0), material=mat, density=2500, name="b"),
+    ]
+    model = BlockModel(specs, device=DEVICE, gravity=(0, 0, 0))
+    s0 = model.state()
+    p0, e0 = s0.linear_momentum(), s0.kinetic_energy()
+    touched = []
+    state, solver, T = run(model, 0.12, dt=2e-4, record=lambda k, s: touched.append(int(s.contact_counts()[0])))
+    assert max(touched) == 4 and touched[-1] == 0  # face-face impact happened and ended
+    p1, e1 = state.linear_momentum(), state.kinetic_energy()
+    assert np.allclose(p1, p0, atol=0.01 * np.linalg.norm(p0))
+    assert e1 == pytest.approx(e0, rel=0.01)
+    v = state.velocities_numpy()
+    # equal masses exchange velocities
+    assert v[0][0] == pytest.approx(0.0, abs=0.02) and v[1][0] == pytest.approx(1.0, rel=0.02)
+
+
+def test_stack_of_five_stays_at_rest():
+    kn = 1e7
+    a = 0.5
+    m = 2500 * a**3
+    mat = ContactMaterial(friction_angle_deg=35.0, normal_stiffness=kn)
+    specs = [BlockSpec(G.box((3, 3, 0.5)), position=(0, 0, -0.25), kind="fixed", material=mat, name="floor")]
+    z = 0.0
+    for k in range(5):
+        # start at the static penetration of each contact: (5 - k) m g / (4 k_n)
+        z -= (5 - k) * m * g / (4 * kn)
+        specs.append(BlockSpec(G.box((a, a, a)), position=(0.0, 0.0, z + a / 2), material=mat, density=2500, name=f"s{k}"))
+        z += a
+    model = BlockModel(specs, device=DEVICE)
+    x0 = model.base_position.copy()
+    state, solver, T = run(model, 5.0, dt=solver_dt(model, 0.9))
+    x = state.positions_numpy()
+    assert np.abs(x[1:, :2] - x0[1:, :2]).max() < 1e-5  # no lateral drift
+    assert np.abs(x[1:, 2] - x0[1:, 2]).max() < 2e-5  # stays at the static penetration N m g / k_n
+    assert np.abs(state.velocities_numpy()[1:]).max() < 1e-4
+    assert np.abs(state.angular_velocities_numpy()[1:]).max() < 1e-4
+    assert list(state.contact_counts()[1:]) == [8, 8, 8, 8, 4]
+
+
+def solver_dt(model, safety):
+    return BlockSolver(model).stable_dt(safety)
+
+
+def test_rigid_and_stiff_deformable_blocks_agree():
+    alpha, phi = 30.0, 20.0
+    blocks = [
+        ((0.5, 0.5, 0.5), phi, -2.0, -1.0, "rigid", {}),
+        ((0.5, 0.5, 0.5), phi, -2.0, 1.0, "deformable", dict(youngs_modulus=2e9, poisson_ratio=0.25)),
+    ]
+    specs, d, n = incline_specs(alpha, blocks)
+    model = BlockModel(specs, device=DEVICE)
+    x0 = model.base_position
+    state, solver, T = run(model, 0.5)
+    x = state.positions_numpy()
+    dr = (x[1] - x0[1]) @ d
+    dd = (x[2] - x0[2]) @ d
+    assert dr > 0.2
+    assert dd == pytest.approx(dr, rel=0.01)
+    eps = state.strains_numpy()
+    assert np.all(eps[1] == 0.0)
+    # contact pressure ~ m g cos a / A = 2500 * 9.81 * 0.5 * 0.866 ~ 10.6 kPa -> strains ~ 1e-6..1e-5
+    assert 1e-8 < np.abs(eps[2]).max() < 1e-4
+    # deformed vertices exported for USD: same count, close to the rigid shape
+    wv = state.world_vertices()
+    assert wv[2].shape == (8, 3)
+
+
+def test_deformable_block_self_weight_strain():
+    # block resting on a floor: mean vertical stress -rho g h / 2 -> eps_z = -rho g h / (2 E)
+    E, rho, h = 1e8, 2500.0, 0.5
+    # frictionless floor: base friction would hold back the Poisson expansion
+    mat = ContactMaterial(normal_stiffness=1e7, damping_ratio=0.5, friction_angle_deg=0.0)
+    specs = [
+        BlockSpec(G.box((3, 3, 0.5)), position=(0, 0, -0.25), kind="fixed", material=mat, name="floor"),
+        BlockSpec(G.box((0.5, 0.5, h)), position=(0, 0, h / 2 - 2500 * 0.125 * g / 4e7), kind="deformable",
+                  density=rho, youngs_modulus=E, poisson_ratio=0.2, strain_damping_ratio=0.5, material=mat, name="soft"),
+    ]
+    model = BlockModel(specs, device=DEVICE)
+    state, solver, T = run(model, 0.3)
+    eps = state.strains_numpy()[1]
+    assert eps[2] == pytest.approx(-rho * g * h / (2 * E), rel=0.03)
+    # lateral strains from Poisson: eps_x = eps_y = -nu eps_z
+    assert eps[0] == pytest.approx(-0.2 * eps[2], rel=0.05)
+
+
+def test_kinematic_block_follows_sinusoid_exactly():
+    A = np.array([0.1, 0.0, 0.05])
+    f, ph = 2.0, 0.3
+    specs = [
+        BlockSpec(G.box((0.5, 0.5, 0.5)), position=(1.0, 2.0, 3.0), kind="kinematic",
+                  motion=KinematicMotion.sine(A, f, ph), name="piston"),
+        BlockSpec(G.box((0.5, 0.5, 0.5)), position=(0, 0, 10.0), name="faraway",
+                  material=ContactMaterial(normal_stiffness=1e6)),
+    ]
+    model = BlockModel(specs, device=DEVICE, gravity=(0, 0, 0))
+    state = model.state()
+    solver = BlockSolver(model)
+    dt = 1e-3
+    for k in range(1, 301):
+        solver.step(state, dt)
+        t = k * dt
+        if k % 50 == 0:
+            x = state.positions_numpy()[0]
+            v = state.velocities_numpy()[0]
+            assert np.allclose(x, [1, 2, 3] + A * math.sin(2 * math.pi * f * t + ph), atol=2e-6)
+            assert np.allclose(v, A * 2 * math.pi * f * math.cos(2 * math.pi * f * t + ph), atol=1e-5)
+    # a table motion interpolates linearly and reports the segment slope
+    mo = KinematicMotion.table([0.0, 0.1, 0.2], [[0, 0, 0], [0.1, 0, 0], [0.1, 0.2, 0]])
+    specs[0] = BlockSpec(G.box((0.5, 0.5, 0.5)), position=(0, 0, 0), kind="kinematic", motion=mo, name="table")
+    model = BlockModel(specs, device=DEVICE, gravity=(0, 0, 0))
+    state = model.state()
+    solver = BlockSolver(model)
+    for k in range(150):
+        solver.step(state, 1e-3)
+    assert np.allclose(state.positions_numpy()[0], [0.1, 0.1, 0.0], atol=1e-5)
+    assert np.allclose(state.velocities_numpy()[0], [0.0, 2.0, 0.0], atol=1e-4)
+
+
+def test_kinematic_piston_pushes_block():
+    # piston moving +x at 0.5 m/s (table) hits a frictionless free block; restitution e = 0.5 -> the
+    # block leaves at v_p (1 + e) = 0.75 m/s and the piston never catches up
+    mat = ContactMaterial(friction_angle_deg=0.0, normal_stiffness=1e7, restitution=0.5)
+    specs = [
+        BlockSpec(G.box((0.5, 0.5, 0.5)), kind="kinematic", material=mat, name="piston",
+                  motion=KinematicMotion.table([0.0, 10.0], [[0, 0, 0], [5.0, 0, 0]])),
+        BlockSpec(G.box((0.5, 0.5, 0.5)), position=(0.55, 0, 0), material=mat, name="pushed"),
+    ]
+    model = BlockModel(specs, device=DEVICE, gravity=(0, 0, 0))
+    state, solver, T = run(model, 0.4)
+    v = state.velocities_numpy()[1]
+    assert v[0] == pytest.approx(0.75, rel=0.01)
+    assert state.positions_numpy()[1][0] > 0.55 + 0.1
+    assert state.contact_counts()[1] == 0
+
+
+def test_external_force_hook():
+    specs = [BlockSpec(G.box((1, 1, 1)), density=1000.0, name="free", material=ContactMaterial(normal_stiffness=1e6))]
+    model = BlockModel(specs, device=DEVICE, gravity=(0, 0, 0))
+    state = model.state()
+    solver = BlockSolver(model)
+    dt = 1e-3
+    for _ in range(100):
+        state.ext_force.assign(np.array([[1000.0, 0.0, 0.0]], np.float32))
+        state.ext_torque.assign(np.array([[0.0, 0.0, 1000.0 / 6.0]], np.float32))
+        solver.step(state, dt)
+    assert state.velocities_numpy()[0] == pytest.approx([0.1, 0, 0], abs=1e-6)  # F/m t = 1 * 0.1
+    assert state.angular_velocities_numpy()[0][2] == pytest.approx(0.1, rel=1e-4)  # tau / I t
+    assert np.all(state.ext_force.numpy() == 0)  # zeroed after use
+
+
+def test_dt_above_critical_refused():
+    specs, d, n = incline_specs(30.0, [((0.5, 0.5, 0.5), 20.0, 0.0, 0.0, "rigid", {})])
+    model = BlockModel(specs, device=DEVICE)
+    solver = BlockSolver(model)
+    state = model.state()
+    dc = solver.critical_dt()
+    m = 2500 * 0.125
+    om_t = math.sqrt(1e7 * 8 / m)
+    assert dc < 2 / om_t  # rotation and damping make it stricter than the translational bound
+    assert solver.stable_dt() == pytest.approx(0.5 * dc)
+    with pytest.raises(ValueError, match="critical"):
+        solver.step(state, 1.01 * dc)
+    solver.step(state, 0.99 * dc)  # just below is accepted
+
+
+def test_overlapping_initial_blocks_refused_naming_pair():
+    cube = G.box((1, 1, 1))
+    specs = [
+        BlockSpec(cube, position=(0, 0, 0), kind="fixed", name="ground"),
+        BlockSpec(cube, position=(3, 0, 0), name="loner"),
+        BlockSpec(cube, position=(0.2, 0.1, 0.9), name="sunk"),
+    ]
+    with pytest.raises(BlockOverlapError) as ei:
+        BlockModel(specs, device=DEVICE)
+    msg = str(ei.value)
+    assert "'ground'" in msg and "'sunk'" in msg and "loner" not in msg
+    assert "0.1 m" in msg
+
+
+def test_free_fall_bounce_restitution():
+    # rebound height e^2 H for a linear spring-dashpot with zeta from e (validation README)
+    e, H = 0.6, 0.2
+    # stiff contact: gravity during the contact (duration ~ pi sqrt(m / 4k)) biases e by ~ g / (omega v0)
+    mat = ContactMaterial(normal_stiffness=2e7, restitution=e, friction_angle_deg=30.0)
+    specs = [
+        BlockSpec(G.box((3, 3, 0.5)), position=(0, 0, -0.25), kind="fixed", material=mat, name="floor"),
+        BlockSpec(G.box((0.4, 0.4, 0.4)), position=(0, 0, 0.2 + H), material=mat, density=2500, name="ball"),
+    ]
+    model = BlockModel(specs, device=DEVICE)
+    zs = []
+    dt = 5e-5  # omega dt ~ 0.035
+    state, solver, T = run(model, 0.4, dt=dt, record=lambda k, s: zs.append(s.positions_numpy()[1][2]))
+    zs = np.array(zs)
+    t_hit = math.sqrt(2 * H / g)
+    after = zs[int(1.2 * t_hit / dt):]
+    rebound = after.max() - 0.2
+    # the floor is fixed (m_eff = m); zeta is calibrated for the no-pull contact, so e is exact
+    assert rebound == pytest.approx(e * e * H, rel=0.02)
