@@ -26,6 +26,7 @@ MAX_CONTACTS = 16  # contact points kept per pair (host side constant)
 K_MAX = wp.constant(MAX_CONTACTS)
 MAX_VALENCE = wp.constant(64)  # cap on half-edge walks around one vertex
 FCP_MAX_ITER = wp.constant(10)  # Nezami et al.: "usually very small" number of iterations
+SAT_EDGE_PAIRS = wp.constant(2048)  # overlap check over all edge pairs only below this E_A * E_B
 
 FLAG_ENTRY_OVERFLOW = wp.constant(1)
 FLAG_LARGE_OVERFLOW = wp.constant(2)
@@ -607,6 +608,45 @@ def narrow_phase(
     if wp.length(n0) < 1.0e-12:
         n0 = wp.vec3(0.0, 0.0, 1.0)
     n, gap = fcp_plane(wp.normalize(n0), sA, cA, sB, cB, wv, vertex_out_he, he_vertex, he_next, he_prev, he_twin)
+    if gap < 0.0:
+        # FCP is a local search: before accepting an overlap, also try every face normal of both
+        # blocks (separating-axis faces); if one separates better, iterate FCP again from it
+        n1 = n
+        g1 = gap
+        for k in range(face_count[A]):
+            nf, df = face_plane_of_he(face_he[face_start[A] + k], wv, he_vertex, he_next)
+            n1, g1 = try_plane(nf, n1, g1, sA, cA, sB, cB, wv)
+        for k in range(face_count[B]):
+            nf, df = face_plane_of_he(face_he[face_start[B] + k], wv, he_vertex, he_next)
+            n1, g1 = try_plane(nf, n1, g1, sA, cA, sB, cB, wv)
+        # and every edge-pair axis (exact SAT) when the blocks are small enough (E_A E_B <= 2048)
+        if (cA + face_count[A] - 2) * (cB + face_count[B] - 2) <= SAT_EDGE_PAIRS:
+            for ka in range(cA):
+                va = sA + ka
+                h0 = vertex_out_he[va]
+                h = h0
+                for ia in range(MAX_VALENCE):
+                    ua = he_dest(h, he_vertex, he_next)
+                    if va < ua:
+                        ea = wv[ua] - wv[va]
+                        for kb in range(cB):
+                            vb = sB + kb
+                            g0 = vertex_out_he[vb]
+                            gg = g0
+                            for ib in range(MAX_VALENCE):
+                                ub = he_dest(gg, he_vertex, he_next)
+                                if vb < ub:
+                                    ax = wp.cross(ea, wv[ub] - wv[vb])
+                                    if wp.length(ax) > 1.0e-6 * wp.length(ea) * wp.length(wv[ub] - wv[vb]):
+                                        n1, g1 = try_plane(ax, n1, g1, sA, cA, sB, cB, wv)
+                                gg = he_twin[he_prev[gg]]
+                                if gg == g0:
+                                    break
+                    h = he_twin[he_prev[h]]
+                    if h == h0:
+                        break
+        if g1 > gap + 1.0e-7:
+            n, gap = fcp_plane(n1, sA, cA, sB, cB, wv, vertex_out_he, he_vertex, he_next, he_prev, he_twin)
     new_normal[slot] = n
     pair_gap[tid] = gap
     new_nc[slot] = 0

@@ -308,9 +308,8 @@ class BlockModel:
                 S = 0.5 * np.trace(I) * np.eye(3) - I
                 M = _strain_mass(S)
                 Kst = g.volume * _elastic_D(E, nu)
-                from scipy.linalg import eigh
-
-                om2 = eigh(Kst, M, eigvals_only=True)
+                # generalised eigenvalues of (V D, M_e): real and positive for SPD matrices
+                om2 = np.real(np.linalg.eigvals(np.linalg.solve(M, Kst)))
                 self.strain_omega[b] = math.sqrt(max(om2.max(), 0.0))
                 self.strain_mass[b] = M
                 sminv[b] = np.linalg.inv(M)
@@ -552,14 +551,24 @@ def _sat_overlap(va: np.ndarray, ga: ConvexPolyhedron, Ra, vb: np.ndarray, gb: C
     return float(ov.min())
 
 
+def _sweep_pairs(pos: np.ndarray, rad: np.ndarray):
+    """Pairs whose bounding spheres overlap (sort and sweep along x)."""
+    order = np.argsort(pos[:, 0])
+    xs = pos[order, 0]
+    rmax = float(rad.max())
+    for a, i in enumerate(order):
+        end = np.searchsorted(xs, xs[a] + rad[i] + rmax, side="right")
+        for j in order[a + 1: end]:
+            if np.linalg.norm(pos[i] - pos[j]) <= rad[i] + rad[j]:
+                yield (int(min(i, j)), int(max(i, j)))
+
+
 def check_initial_overlap(model: BlockModel, positions=None, quats=None, tol: float | None = None):
     """Raise BlockOverlapError naming the first pair (with a movable block) that overlaps by more than tol.
 
     tol defaults to 1e-3 x the smallest block size.  Pairs of two fixed/kinematic blocks are skipped
     (they never interact).  Exact separating-axis test on the host (numpy).
     """
-    from scipy.spatial import cKDTree
-
     if positions is None or quats is None:
         positions, quats = model.initial_poses()
     sizes = model.np["size"]
@@ -569,14 +578,10 @@ def check_initial_overlap(model: BlockModel, positions=None, quats=None, tol: fl
     n = model.num_blocks
     if n < 2:
         return
-    tree = cKDTree(positions)
-    cand = tree.query_pairs(r=2.0 * float(rad.max()) + 1e-9, output_type="ndarray")
     Rs = [quat_to_matrix(q) for q in quats]
     worst = None
-    for i, j in cand:
+    for i, j in _sweep_pairs(positions, rad):
         if not (model.movable[i] or model.movable[j]):
-            continue
-        if np.linalg.norm(positions[i] - positions[j]) > rad[i] + rad[j]:
             continue
         gi, gj = model.specs[i].geometry, model.specs[j].geometry
         vi = gi.vertices @ Rs[i].T + positions[i]

@@ -9,10 +9,12 @@ import os
 import numpy as np
 import pytest
 import warp as wp
-from scipy.spatial import ConvexHull
-from scipy.spatial.transform import Rotation
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rockwave import geometry as G
+from rockwave.blocks import _sat_overlap
 from rockwave.blocks import (
     BlockModel,
     BlockOverlapError,
@@ -25,6 +27,67 @@ from rockwave.blocks import (
 wp.config.quiet = True
 DEVICE = os.environ.get("ROCKWAVE_TEST_DEVICE", "cpu")
 g = 9.81
+
+
+class Rotation:
+    """Minimal rotation helper (matrix based; quaternions in Warp's x, y, z, w order)."""
+
+    def __init__(self, m):
+        self.m = np.asarray(m, dtype=float)
+
+    @staticmethod
+    def identity():
+        return Rotation(np.eye(3))
+
+    @staticmethod
+    def from_axis_angle(axis, angle):
+        a = np.asarray(axis, float) / np.linalg.norm(axis)
+        K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+        return Rotation(np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K)
+
+    @staticmethod
+    def from_euler(seq, angles, degrees=False):
+        angles = np.atleast_1d(np.asarray(angles, float))
+        if degrees:
+            angles = np.radians(angles)
+        r = Rotation.identity()
+        for ax, ang in zip(seq, angles):  # extrinsic (scipy's lower-case): successive fixed-axis turns
+            r = Rotation.from_axis_angle({"x": (1, 0, 0), "y": (0, 1, 0), "z": (0, 0, 1)}[ax], ang) * r
+        return r
+
+    @staticmethod
+    def from_quat(q):
+        return Rotation(G.quat_to_matrix(q))
+
+    @staticmethod
+    def align(a, b):
+        """Rotation taking unit vector a onto b."""
+        a = np.asarray(a, float) / np.linalg.norm(a)
+        b = np.asarray(b, float) / np.linalg.norm(b)
+        c = np.cross(a, b)
+        if np.linalg.norm(c) < 1e-12:
+            return Rotation.identity()
+        return Rotation.from_axis_angle(c, math.atan2(np.linalg.norm(c), a @ b))
+
+    def __mul__(self, other):
+        return Rotation(self.m @ other.m)
+
+    def inv(self):
+        return Rotation(self.m.T)
+
+    def apply(self, v):
+        return np.asarray(v, float) @ self.m.T
+
+    def magnitude(self):
+        return math.acos(max(-1.0, min(1.0, (np.trace(self.m) - 1) / 2)))
+
+    def as_quat(self):
+        m = self.m
+        w = math.sqrt(max(0.0, 1 + m[0, 0] + m[1, 1] + m[2, 2])) / 2
+        x = math.copysign(math.sqrt(max(0.0, 1 + m[0, 0] - m[1, 1] - m[2, 2])) / 2, m[2, 1] - m[1, 2])
+        y = math.copysign(math.sqrt(max(0.0, 1 - m[0, 0] + m[1, 1] - m[2, 2])) / 2, m[0, 2] - m[2, 0])
+        z = math.copysign(math.sqrt(max(0.0, 1 - m[0, 0] - m[1, 1] + m[2, 2])) / 2, m[1, 0] - m[0, 1])
+        return np.array([x, y, z, w])
 
 
 def quat(rot: Rotation):
@@ -47,7 +110,7 @@ def detect(specs, **kw):
 def test_fcp_vertex_face():
     pen = 5e-4
     # corner of a unit cube pointing straight down onto a fixed slab
-    rot = Rotation.align_vectors([[0, 0, -1]], [np.ones(3) / math.sqrt(3)])[0]
+    rot = Rotation.align(np.ones(3), [0, 0, -1])
     zc = math.sqrt(3) / 2 - pen
     specs = [
         BlockSpec(G.box((4, 4, 1)), position=(0, 0, -0.5), kind="fixed", name="slab"),
@@ -102,7 +165,9 @@ def _patch_area(points, normal):
     t1 /= np.linalg.norm(t1)
     t2 = np.cross(normal, t1)
     p2 = np.stack([points @ t1, points @ t2], axis=1)
-    return ConvexHull(p2).volume
+    c = p2.mean(axis=0)
+    p2 = p2[np.argsort(np.arctan2(p2[:, 1] - c[1], p2[:, 0] - c[0]))]
+    return 0.5 * abs(np.sum(p2[:, 0] * np.roll(p2[:, 1], -1) - np.roll(p2[:, 0], -1) * p2[:, 1]))
 
 
 def test_fcp_face_face_offset_and_rotated():
@@ -143,6 +208,37 @@ def test_fcp_separated_gap():
     assert np.allclose(c["normal"], [1, 0, 0], atol=1e-5)
     assert c["gap"] == pytest.approx(1.2 - 0.5 - 0.5 * (math.cos(math.pi / 6) + math.sin(math.pi / 6)), abs=1e-5)
     assert len(c["points"]) == 0
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([-1e-3, -1e-4, 1e-4, 1e-3]))
+def test_fcp_matches_exact_separating_axis_near_contact(seed, target):
+    """Random rock vs box orientations, placed at a given overlap (-) or gap (+) by bisection on the
+    exact separating-axis depth: the FCP gap equals it, and contact points appear only on overlap."""
+    rng = np.random.default_rng(seed)
+    ga = G.box((1.0, 0.6, 0.8))
+    gb = G.prism(rng.normal(size=(12, 3)) * 0.4, name="rock")
+    ra = Rotation.from_quat(rng.normal(size=4))
+    rb = Rotation.from_quat(rng.normal(size=4))
+    u = rng.normal(size=3)
+    u /= np.linalg.norm(u)
+    va = ga.vertices @ ra.m.T
+
+    def sat_depth(d):
+        return _sat_overlap(va, ga, ra.m, gb.vertices @ rb.m.T + d * u, gb, rb.m)
+
+    lo, hi = 0.0, 5.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if sat_depth(mid) > -target else (lo, mid)
+    d = 0.5 * (lo + hi)
+    specs = [BlockSpec(ga, orientation=tuple(ra.as_quat()), kind="fixed", name="box"),
+             BlockSpec(gb, position=tuple(d * u), orientation=tuple(rb.as_quat()), name="rock")]
+    (c,) = detect(specs)
+    assert c["gap"] == pytest.approx(-sat_depth(d), abs=2e-5)
+    assert (len(c["points"]) > 0) == (target < 0)
+    if target < 0:
+        assert np.all(c["depths"] <= -target + 2e-5)
 
 
 def test_broad_phase_pairs_unique_and_complete():
