@@ -258,31 +258,31 @@ def hash_cell(cx: int, cy: int, cz: int, nbuckets: int):
 
 
 @wp.func
-def hash_key(key: int, cap: int):
-    h = wp.uint32(key) * wp.uint32(73244475)
-    return int((h >> wp.uint32(7)) & wp.uint32(cap - 1))
+def hash_key(key: wp.int64, cap: int):
+    h = wp.uint64(key) * wp.uint64(11400714819323198485)  # Fibonacci hashing
+    return int((h >> wp.uint64(33)) & wp.uint64(cap - 1))
 
 
 @wp.func
-def table_find(key: int, keys: wp.array(dtype=int), cap: int):
+def table_find(key: wp.int64, keys: wp.array(dtype=wp.int64), cap: int):
     # open addressing, linear probing; -1 = empty slot
     s = hash_key(key, cap)
     for k in range(cap):
         kk = keys[s]
         if kk == key:
             return s
-        if kk == -1:
+        if kk == wp.int64(-1):
             return -1
         s = (s + 1) & (cap - 1)
     return -1
 
 
 @wp.func
-def table_insert(key: int, keys: wp.array(dtype=int), cap: int):
+def table_insert(key: wp.int64, keys: wp.array(dtype=wp.int64), cap: int):
     s = hash_key(key, cap)
     for k in range(cap):
-        old = wp.atomic_cas(keys, s, -1, key)
-        if old == -1 or old == key:
+        old = wp.atomic_cas(keys, s, wp.int64(-1), key)
+        if old == wp.int64(-1) or old == key:
             return s
         s = (s + 1) & (cap - 1)
     return -1
@@ -563,12 +563,12 @@ def narrow_phase(
     tensile: wp.array(dtype=float),
     zeta: wp.array(dtype=float),
     # history: previous table (read) and current table (write)
-    old_keys: wp.array(dtype=int),
+    old_keys: wp.array(dtype=wp.int64),
     old_normal: wp.array(dtype=wp.vec3),
     old_nc: wp.array(dtype=int),
     old_ckey: wp.array(dtype=wp.vec2i),
     old_shear: wp.array(dtype=wp.vec3),
-    new_keys: wp.array(dtype=int),
+    new_keys: wp.array(dtype=wp.int64),
     new_normal: wp.array(dtype=wp.vec3),
     new_nc: wp.array(dtype=int),
     new_ckey: wp.array(dtype=wp.vec2i),
@@ -589,7 +589,7 @@ def narrow_phase(
         return
     A = pairs[tid][0]
     B = pairs[tid][1]
-    key = A * nblocks + B
+    key = wp.int64(A) * wp.int64(nblocks) + wp.int64(B)
     cap = new_keys.shape[0]
     slot = table_insert(key, new_keys, cap)
     pair_slot[tid] = slot
@@ -835,12 +835,12 @@ def narrow_phase(
 
 @wp.kernel
 def rehash_table(
-    old_keys: wp.array(dtype=int),
+    old_keys: wp.array(dtype=wp.int64),
     old_normal: wp.array(dtype=wp.vec3),
     old_nc: wp.array(dtype=int),
     old_ckey: wp.array(dtype=wp.vec2i),
     old_shear: wp.array(dtype=wp.vec3),
-    new_keys: wp.array(dtype=int),
+    new_keys: wp.array(dtype=wp.int64),
     new_normal: wp.array(dtype=wp.vec3),
     new_nc: wp.array(dtype=int),
     new_ckey: wp.array(dtype=wp.vec2i),
@@ -849,7 +849,7 @@ def rehash_table(
     # move the contact history into a larger table (capacity growth)
     s = wp.tid()
     key = old_keys[s]
-    if key < 0:
+    if key < wp.int64(0):
         return
     t = table_insert(key, new_keys, new_keys.shape[0])
     if t < 0:

@@ -229,8 +229,6 @@ class BlockModel:
         self.specs = list(specs)
         self.gravity = tuple(float(g) for g in gravity)
         n = len(specs)
-        if n > 46340:
-            raise ValueError("BlockModel: at most 46340 blocks (pair keys are i*N+j in int32)")
         self.num_blocks = n
         self.names = []
         verts, vblock, vstart, vcount = [], [], [], []
@@ -458,7 +456,7 @@ class BlockState:
 
         def make():
             return dict(
-                keys=wp.full(cap, -1, dtype=int, device=d),
+                keys=wp.full(cap, -1, dtype=wp.int64, device=d),
                 normal=wp.zeros(cap, dtype=wp.vec3, device=d),
                 nc=wp.zeros(cap, dtype=int, device=d),
                 ckey=wp.zeros(cap * km, dtype=wp.vec2i, device=d),
