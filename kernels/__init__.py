@@ -1,0 +1,1 @@
+"""Warp kernels of rockwave (installed as ``rockwave.kernels``). Kernels only: no host logic."""

@@ -1,0 +1,418 @@
+"""Weakly compressible SPH kernels (Warp). Same code on CPU and CUDA.
+
+Conventions: particle arrays hold the fluid particles first (indices < n_fluid) and the static
+boundary particles after them. ``particle_mass[j]`` is the mass of a fluid particle, and for a
+boundary particle its Akinci et al. (2012) mass-equivalent ``Psi_b = rho0 * V_b`` with
+``V_b = 1 / sum_k W_bk`` over boundary neighbours. 2D scenes keep z = 0 and use 2D
+normalisations. ``H`` is the kernel support radius; the cubic spline's smoothing length is H/2.
+"""
+
+import warp as wp
+
+KERNEL_MULLER = wp.constant(0)
+KERNEL_CUBIC = wp.constant(1)
+EOS_TAIT = wp.constant(0)
+EOS_LINEAR = wp.constant(1)
+FORCE_MOMENTUM = wp.constant(0)
+FORCE_MULLER = wp.constant(1)
+
+PI = wp.constant(3.14159265358979)
+
+
+@wp.struct
+class SPHParams:
+    dim: int
+    kernel: int  # KERNEL_MULLER or KERNEL_CUBIC
+    H: float  # support radius
+    rest_density: float
+    eos: int
+    eos_b: float  # Tait B (Pa) or linear k (m^2/s^2)
+    eos_gamma: float
+    clamp_negative: int
+    pressure_form: int
+    sound_speed: float
+    mu: float  # Mueller Laplacian viscosity (Pa s)
+    alpha: float  # Monaghan artificial viscosity
+    xsph: float  # XSPH epsilon
+    gravity: wp.vec3
+    n_fluid: int
+    grad_scale: float  # lattice gradient correction (see rockwave.fluid.calibrate_lattice)
+
+
+# ------------------------------------------------------------------ smoothing kernels ------
+
+
+@wp.func
+def poly6(r2: float, H: float, dim: int) -> float:
+    # Mueller 2003: W = 315/(64 pi H^9) (H^2 - r^2)^3 (3D);  4/(pi H^8) (H^2 - r^2)^3 (2D)
+    if r2 >= H * H:
+        return 0.0
+    d = H * H - r2
+    if dim == 3:
+        return 315.0 / (64.0 * PI * wp.pow(H, 9.0)) * d * d * d
+    return 4.0 / (PI * wp.pow(H, 8.0)) * d * d * d
+
+
+@wp.func
+def spiky_grad(rij: wp.vec3, r: float, H: float, dim: int) -> wp.vec3:
+    # Mueller 2003: grad W = -45/(pi H^6) (H - r)^2 r_hat (3D);  -30/(pi H^5) (H - r)^2 r_hat (2D)
+    if r >= H or r < 1.0e-9 * H:
+        return wp.vec3(0.0)
+    d = H - r
+    c = 45.0 / (PI * wp.pow(H, 6.0))
+    if dim == 2:
+        c = 30.0 / (PI * wp.pow(H, 5.0))
+    return (-c * d * d / r) * rij
+
+
+@wp.func
+def viscosity_laplacian(r: float, H: float, dim: int) -> float:
+    # Mueller 2003: lap W = 45/(pi H^6) (H - r) (3D);  40/(pi H^5) (H - r) (2D)
+    if r >= H:
+        return 0.0
+    if dim == 3:
+        return 45.0 / (PI * wp.pow(H, 6.0)) * (H - r)
+    return 40.0 / (PI * wp.pow(H, 5.0)) * (H - r)
+
+
+@wp.func
+def cubic_sigma(h: float, dim: int) -> float:
+    # Monaghan 1992 cubic spline normalisation: 1/(pi h^3) (3D), 10/(7 pi h^2) (2D)
+    if dim == 3:
+        return 1.0 / (PI * h * h * h)
+    return 10.0 / (7.0 * PI * h * h)
+
+
+@wp.func
+def cubic_w(r: float, H: float, dim: int) -> float:
+    # W = sigma (1 - 1.5 q^2 + 0.75 q^3) for q < 1; sigma/4 (2 - q)^3 for 1 <= q < 2; q = r/h, h = H/2
+    h = 0.5 * H
+    q = r / h
+    s = cubic_sigma(h, dim)
+    if q < 1.0:
+        return s * (1.0 - 1.5 * q * q + 0.75 * q * q * q)
+    if q < 2.0:
+        t = 2.0 - q
+        return 0.25 * s * t * t * t
+    return 0.0
+
+
+@wp.func
+def cubic_grad(rij: wp.vec3, r: float, H: float, dim: int) -> wp.vec3:
+    # dW/dr = sigma/h (-3q + 2.25 q^2) for q < 1; -0.75 sigma/h (2 - q)^2 for 1 <= q < 2
+    h = 0.5 * H
+    q = r / h
+    if q >= 2.0 or r < 1.0e-9 * H:
+        return wp.vec3(0.0)
+    s = cubic_sigma(h, dim) / h
+    dw = float(0.0)
+    if q < 1.0:
+        dw = s * (-3.0 * q + 2.25 * q * q)
+    else:
+        t = 2.0 - q
+        dw = -0.75 * s * t * t
+    return (dw / r) * rij
+
+
+@wp.func
+def kernel_w(r2: float, p: SPHParams) -> float:
+    if p.kernel == KERNEL_MULLER:
+        return poly6(r2, p.H, p.dim)
+    return cubic_w(wp.sqrt(r2), p.H, p.dim)
+
+
+@wp.func
+def kernel_grad(rij: wp.vec3, r: float, p: SPHParams) -> wp.vec3:
+    # scaled so that sum_j V_j (x_j - x_i) (x) grad W_ij = -I holds on the initial lattice
+    if p.kernel == KERNEL_MULLER:
+        return p.grad_scale * spiky_grad(rij, r, p.H, p.dim)
+    return p.grad_scale * cubic_grad(rij, r, p.H, p.dim)
+
+
+@wp.func
+def kernel_laplacian(r: float, p: SPHParams) -> float:
+    # Mueller's viscosity Laplacian for both kernel choices (it is positive everywhere: stable viscosity)
+    return viscosity_laplacian(r, p.H, p.dim)
+
+
+@wp.func
+def equation_of_state(rho: float, p: SPHParams) -> float:
+    # Tait: p = B((rho/rho0)^gamma - 1);  linear: p = k (rho - rho0)
+    pr = float(0.0)
+    if p.eos == EOS_TAIT:
+        pr = p.eos_b * (wp.pow(rho / p.rest_density, p.eos_gamma) - 1.0)
+    else:
+        pr = p.eos_b * (rho - p.rest_density)
+    if p.clamp_negative != 0:
+        pr = wp.max(pr, 0.0)
+    return pr
+
+
+# ------------------------------------------------------------------ passes ------
+
+
+@wp.kernel
+def boundary_volume(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    particle_mass: wp.array(dtype=float),
+):
+    """Akinci 2012: Psi_b = rho0 / sum_k W_bk over boundary particles k (launched over boundary particles)."""
+    b = wp.tid() + p.n_fluid
+    xb = x[b]
+    s = float(0.0)
+    q = wp.hash_grid_query(grid, xb, p.H)
+    k = int(0)
+    while wp.hash_grid_query_next(q, k):
+        if k >= p.n_fluid:
+            s += kernel_w(wp.length_sq(xb - x[k]), p)
+    particle_mass[b] = p.rest_density / s
+
+
+@wp.kernel
+def particle_density_summation(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    p: SPHParams,
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+):
+    """rho_i = sum_j m_j W_ij (fluid and boundary neighbours, self included), then p_i = EOS(rho_i)."""
+    i = wp.tid()
+    xi = x[i]
+    s = float(0.0)
+    q = wp.hash_grid_query(grid, xi, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
+    rho[i] = s
+    pressure[i] = equation_of_state(s, p)
+
+
+@wp.kernel
+def lattice_moments(
+    x: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    out: wp.array(dtype=float),
+):
+    """Lattice sums about x[0]: out[0] = sum_j W_0j, out[1] = sum_j (x_j - x_0)_x (dW/dx)_0j
+    (unscaled gradient), for the calibration of particle mass and gradient scale."""
+    j = wp.tid()
+    rij = x[0] - x[j]
+    r = wp.length(rij)
+    wp.atomic_add(out, 0, kernel_w(r * r, p))
+    g = wp.vec3(0.0)
+    if p.kernel == KERNEL_MULLER:
+        g = spiky_grad(rij, r, p.H, p.dim)
+    else:
+        g = cubic_grad(rij, r, p.H, p.dim)
+    wp.atomic_add(out, 1, (x[j][0] - x[0][0]) * g[0])
+
+
+@wp.kernel
+def particle_density_rate(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    p: SPHParams,
+    drho_dt: wp.array(dtype=float),
+):
+    """Continuity: d rho_i/dt = sum_j m_j (v_i - v_j) . grad W_ij (boundary particles at rest)."""
+    i = wp.tid()
+    xi = x[i]
+    vi = v[i]
+    s = float(0.0)
+    q = wp.hash_grid_query(grid, xi, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j != i:
+            rij = xi - x[j]
+            r = wp.length(rij)
+            if r < p.H:
+                vj = wp.vec3(0.0)
+                if j < p.n_fluid:
+                    vj = v[j]
+                s += particle_mass[j] * wp.dot(vi - vj, kernel_grad(rij, r, p))
+    drho_dt[i] = s
+
+
+@wp.kernel
+def equation_of_state_pass(rho: wp.array(dtype=float), p: SPHParams, pressure: wp.array(dtype=float)):
+    i = wp.tid()
+    pressure[i] = equation_of_state(rho[i], p)
+
+
+@wp.kernel
+def integrate_density(
+    drho_dt: wp.array(dtype=float),
+    dt: wp.array(dtype=float),
+    p: SPHParams,
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+):
+    i = wp.tid()
+    r = rho[i] + dt[0] * drho_dt[i]
+    rho[i] = r
+    pressure[i] = equation_of_state(r, p)
+
+
+@wp.kernel
+def particle_acceleration(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    p: SPHParams,
+    accel: wp.array(dtype=wp.vec3),
+    xsph_dv: wp.array(dtype=wp.vec3),
+):
+    """a_i = pressure + viscosity + gravity; also the XSPH correction dv_i = eps sum m_j/rho_ij (v_j - v_i) W_ij."""
+    i = wp.tid()
+    xi = x[i]
+    vi = v[i]
+    rhoi = rho[i]
+    pi = pressure[i]
+    pi_r2 = pi / (rhoi * rhoi)
+    a = wp.vec3(0.0)
+    dv = wp.vec3(0.0)
+    h_s = 0.5 * p.H  # smoothing length for Monaghan's mu_ij
+    q = wp.hash_grid_query(grid, xi, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j == i:
+            continue
+        rij = xi - x[j]
+        r2 = wp.length_sq(rij)
+        if r2 >= p.H * p.H:
+            continue
+        r = wp.sqrt(r2)
+        mj = particle_mass[j]
+        gw = kernel_grad(rij, r, p)
+        if j >= p.n_fluid:
+            # Akinci et al. 2012 boundary pressure: a_i -= Psi_b p_i/rho_i^2 grad W_ib (walls at rest)
+            a -= mj * pi_r2 * gw
+            continue
+        rhoj = rho[j]
+        pj = pressure[j]
+        if p.pressure_form == FORCE_MOMENTUM:
+            # a_i -= sum_j m_j (p_i/rho_i^2 + p_j/rho_j^2) grad W_ij  (Monaghan 1992)
+            a -= mj * (pi_r2 + pj / (rhoj * rhoj)) * gw
+        else:
+            # Mueller 2003 symmetric: a_i -= 1/rho_i sum_j m_j (p_i + p_j)/(2 rho_j) grad W_ij
+            a -= mj * (pi + pj) / (2.0 * rhoj * rhoi) * gw
+        vj = v[j]
+        vij = vi - vj
+        if p.mu > 0.0:
+            # Mueller 2003: a_i += mu/rho_i sum_j m_j (v_j - v_i)/rho_j lap W_ij
+            a += (p.mu * mj / (rhoi * rhoj) * kernel_laplacian(r, p)) * (vj - vi)
+        if p.alpha > 0.0:
+            # Monaghan 1992: Pi_ij = -alpha c mu_ij / rho_ij, mu_ij = h v_ij.r_ij/(r^2 + 0.01 h^2), only when approaching
+            vr = wp.dot(vij, rij)
+            if vr < 0.0:
+                mu_ij = h_s * vr / (r2 + 0.01 * h_s * h_s)
+                a -= mj * (-p.alpha * p.sound_speed * mu_ij / (0.5 * (rhoi + rhoj))) * gw
+        if p.xsph > 0.0:
+            dv += (mj / (0.5 * (rhoi + rhoj)) * kernel_w(r2, p)) * (vj - vi)
+    accel[i] = a + p.gravity
+    xsph_dv[i] = p.xsph * dv
+
+
+@wp.kernel
+def integrate_particles(
+    accel: wp.array(dtype=wp.vec3),
+    xsph_dv: wp.array(dtype=wp.vec3),
+    dt: wp.array(dtype=float),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+):
+    """Semi-implicit (symplectic) Euler: v += a dt; x += (v + dv_xsph) dt."""
+    i = wp.tid()
+    h = dt[0]
+    vn = v[i] + h * accel[i]
+    v[i] = vn
+    x[i] = x[i] + h * (vn + xsph_dv[i])
+
+
+@wp.kernel
+def motion_extrema(
+    v: wp.array(dtype=wp.vec3),
+    accel: wp.array(dtype=wp.vec3),
+    out: wp.array(dtype=float),
+):
+    """out[0] = max |v|^2, out[1] = max |a|^2 (for the CFL and force time-step limits)."""
+    i = wp.tid()
+    wp.atomic_max(out, 0, wp.length_sq(v[i]))
+    wp.atomic_max(out, 1, wp.length_sq(accel[i]))
+
+
+@wp.kernel
+def neighbour_count(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    H: float,
+    count: wp.array(dtype=int),
+):
+    """Number of neighbours within the support radius (self excluded), fluid and boundary."""
+    i = wp.tid()
+    xi = x[i]
+    c = int(0)
+    q = wp.hash_grid_query(grid, xi, H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j != i and wp.length_sq(xi - x[j]) < H * H:
+            c += 1
+    count[i] = c
+
+
+# ------------------------------------------------------------------ probes ------
+
+
+@wp.kernel
+def gauge_height(
+    x: wp.array(dtype=wp.vec3),
+    gauge_pos: wp.array(dtype=wp.vec3),
+    up: int,
+    radius: float,
+    height: wp.array(dtype=float),
+):
+    """Free-surface elevation at each gauge: max up-coordinate of fluid particles within `radius`
+    (horizontally) of the gauge's vertical line (launched over fluid particles x gauges)."""
+    i, g = wp.tid()
+    d = x[i] - gauge_pos[g]
+    d[up] = 0.0
+    if wp.length_sq(d) < radius * radius:
+        wp.atomic_max(height, g, x[i][up])
+
+
+@wp.kernel
+def gauge_pressure(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    gauge_pos: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    out: wp.array(dtype=float),
+):
+    """Shepard-normalised SPH interpolation p(x) = sum V_j p_j W / sum V_j W over fluid particles."""
+    g = wp.tid()
+    xg = gauge_pos[g]
+    num = float(0.0)
+    den = float(0.0)
+    q = wp.hash_grid_query(grid, xg, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j < p.n_fluid:
+            w = particle_mass[j] / rho[j] * kernel_w(wp.length_sq(xg - x[j]), p)
+            num += w * pressure[j]
+            den += w
+    if den > 0.0:
+        out[g] = num / den
+    else:
+        out[g] = 0.0

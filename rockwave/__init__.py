@@ -1,0 +1,7 @@
+"""rockwave: rock masses and water. SPH fluid and explicit 3D DDA rock blocks on NVIDIA Warp."""
+
+from rockwave.scene import Scene, SceneError, load_scene, parse_scene
+from rockwave.simulation import Simulation, SimulationError, resolve_device
+
+__version__ = "0.1.0"
+__all__ = ["Scene", "SceneError", "Simulation", "SimulationError", "load_scene", "parse_scene", "resolve_device"]

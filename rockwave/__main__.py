@@ -1,0 +1,5 @@
+import sys
+
+from rockwave.cli import main
+
+sys.exit(main())

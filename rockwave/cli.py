@@ -1,0 +1,89 @@
+"""Command line: ``python -m rockwave run|validate|info|schema``. A thin layer over the Python API."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+DEFAULT_SCENE = Path(__file__).resolve().parent.parent / "scenes" / "dam_break_3d.toml"
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m rockwave", description="rockwave: rock masses and water (SPH + DDA on NVIDIA Warp)")
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="run a scene and write USD frames, gauges and run.json")
+    r.add_argument("scene", nargs="?", default=None, help=f"scene TOML file (default: {DEFAULT_SCENE.name})")
+    r.add_argument("--device", default=None, help="auto | cpu | cuda | cuda:N (default: the scene's, normally auto)")
+    r.add_argument("--out", default=None, help="output folder (default: runs/<scene name>)")
+    r.add_argument("--duration", type=float, default=None, help="simulated seconds (overrides simulation.duration_s)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    v = sub.add_parser("validate", help="check a scene file without running it")
+    v.add_argument("scene")
+    sub.add_parser("info", help="Warp version and devices")
+    sub.add_parser("schema", help="print the scene format as a Markdown table")
+    return p
+
+
+def _fail(msg: str, code: int = 2) -> int:
+    print(f"error: {msg}", file=sys.stderr)
+    return code
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    from rockwave.scene import SceneError, load_scene, schema_markdown
+
+    if args.command == "schema":
+        print(schema_markdown())
+        return 0
+    if args.command == "info":
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.init()
+        print(f"rockwave {__import__('rockwave').__version__}, warp {wp.__version__}")
+        for d in wp.get_devices():
+            extra = ""
+            if d.is_cuda:
+                extra = f", {d.total_memory / 2**30:.1f} GiB, sm_{d.arch}"
+            print(f"  {d.alias}: {d.name}{extra}")
+        return 0
+    scene_path = args.scene if args.scene else str(DEFAULT_SCENE)
+    try:
+        scene = load_scene(scene_path)
+    except SceneError as e:
+        if args.command == "validate":
+            print(str(e), file=sys.stderr)
+            return 2
+        return _fail(e.one_line())
+    if args.command == "validate":
+        print(f"{scene_path}: ok ({scene.dim}D, {len(scene.fluid.regions)} fluid region(s), duration {scene.simulation.duration_s:g} s)")
+        return 0
+    # run
+    if args.duration is not None and not (args.duration > 0 and args.duration < float("inf")):
+        return _fail(f"--duration must be a positive number of seconds, got {args.duration}")
+    import warp as wp
+
+    wp.config.quiet = True
+    from rockwave.simulation import Simulation, SimulationError
+
+    out = Path(args.out) if args.out else Path("runs") / scene.name
+    try:
+        sim = Simulation(scene, device=args.device)
+        if not args.quiet:
+            print(f"{scene_path}: {sim.fluid.n_fluid:,} fluid + {sim.fluid.n_boundary:,} boundary particles on {sim.device}, "
+                  f"h = {sim.fluid.support_radius:g} m, c0 = {sim.fluid.sound_speed:.3g} m/s, dt = {sim.dt:.3g} s", file=sys.stderr)
+        summary = sim.run(out, duration=args.duration, progress=not args.quiet)
+    except SceneError as e:
+        return _fail(e.one_line())
+    except (SimulationError, ValueError, OSError) as e:
+        return _fail(str(e), 1)
+    except KeyboardInterrupt:
+        print(f"interrupted: frames written so far are in {out}", file=sys.stderr)
+        return 130
+    rate = summary["particle_steps_per_s"]
+    print(f"done: {summary['simulated_s']:.3g} s simulated in {summary['steps']} steps, {summary['wall_s']:.1f} s wall"
+          f" ({rate:.3g} particle-steps/s); outputs in {out}" if rate else f"done; outputs in {out}")
+    return 0

@@ -1,0 +1,388 @@
+"""Scene files: TOML -> validated :class:`Scene`.
+
+Every key is checked against :data:`SCHEMA`. Errors are collected (all at once, not one at a
+time) and raised as one :class:`SceneError` whose lines name the scene file, the key path
+(``fluid.eos.gamma``) and what is allowed. Units are SI and appear in the key names
+(``_m``, ``_s``, ``_kg_m3``, ``_pa`` ...). The README's scene-format table is generated from the
+same schema (``python -m rockwave schema``), so docs and checks cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+
+class SceneError(ValueError):
+    """A scene file that cannot be used. ``errors`` holds one ``(key_path, message)`` per problem."""
+
+    def __init__(self, path: str | os.PathLike | None, errors: list[tuple[str, str]]):
+        self.path = str(path) if path is not None else "<scene>"
+        self.errors = errors
+        lines = [f"{self.path}: {key}: {msg}" if key else f"{self.path}: {msg}" for key, msg in errors]
+        super().__init__("\n".join(lines))
+
+    def one_line(self) -> str:
+        n = len(self.errors)
+        head = f"{self.path}: {self.errors[0][0]}: {self.errors[0][1]}" if self.errors[0][0] else f"{self.path}: {self.errors[0][1]}"
+        return head if n == 1 else f"{head} (and {n - 1} more problem{'s' if n > 2 else ''}: run 'python -m rockwave validate' to list them)"
+
+
+# --------------------------------------------------------------------------------------------
+# Schema description
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Key:
+    """One scene key: its type, default, allowed range or choices and a one-line doc."""
+
+    type: str  # "float", "int", "bool", "str", "path", "vec", "table_list", "section", "floatlist"
+    doc: str = ""
+    default: Any = None
+    required: bool = False
+    min: float | None = None  # inclusive unless min_open
+    max: float | None = None
+    min_open: bool = False
+    choices: tuple | None = None
+    length: int | str | None = None  # vec length, or "dim" for the scene dimension
+    children: dict[str, "Key"] | None = None  # for section / table_list
+
+    def allowed(self) -> str:
+        parts = []
+        if self.choices:
+            parts.append("one of " + ", ".join(repr(c) for c in self.choices))
+        if self.min is not None or self.max is not None:
+            lo = "" if self.min is None else (f"> {self.min:g}" if self.min_open else f">= {self.min:g}")
+            hi = "" if self.max is None else f"<= {self.max:g}"
+            parts.append(" and ".join(p for p in (lo, hi) if p))
+        if self.type == "vec":
+            n = "2 (2D) or 3 (3D)" if self.length == "dim" else str(self.length)
+            parts.append(f"list of {n} numbers")
+        return "; ".join(parts)
+
+
+def _sec(doc: str, **children: Key) -> Key:
+    return Key("section", doc=doc, children=children)
+
+
+def _list(doc: str, **children: Key) -> Key:
+    return Key("table_list", doc=doc, default=[], children=children)
+
+
+_REGION_KEYS = dict(
+    box_min_m=Key("vec", "lower corner of a box region", length="dim"),
+    box_max_m=Key("vec", "upper corner of a box region", length="dim"),
+    mesh=Key("path", "closed mesh file (STL, OBJ, PLY, GLB; through trimesh), path relative to the scene file; 3D only"),
+    mesh_scale=Key("float", "uniform scale applied to the mesh (e.g. 0.001 for a mesh in millimetres)", default=1.0, min=0, min_open=True),
+    mesh_offset_m=Key("vec", "translation applied to the mesh after scaling", length=3, default=[0.0, 0.0, 0.0]),
+)
+
+SCHEMA: dict[str, Key] = {
+    "simulation": _sec(
+        "run control",
+        dimension=Key("int", "2 (x, y with y up; written in the z = 0 plane) or 3 (x, y, z with z up)", default=3, choices=(2, 3)),
+        duration_s=Key("float", "simulated time", required=True, min=0, min_open=True),
+        time_step=Key("str", "'cfl': adaptive step from the CFL, force and viscous limits; 'fixed': dt_s", default="cfl", choices=("cfl", "fixed")),
+        cfl_number=Key("float", "Courant number C in dt <= C h/(c0 + u_max)", default=0.25, min=0, max=1.0, min_open=True),
+        dt_s=Key("float", "fixed time step (time_step = 'fixed'); refused if above the stability limit", min=0, min_open=True),
+        dt_update_interval=Key("int", "steps between adaptive time-step updates (one host read each)", default=10, min=1, max=10000),
+        device=Key("str", "'auto' (first GPU if any, else CPU), 'cpu', 'cuda' or 'cuda:N'; the CLI --device overrides", default="auto"),
+    ),
+    "gravity": _sec(
+        "body force",
+        acceleration_m_s2=Key("vec", "gravitational acceleration (default: -9.81 along the up axis)", length="dim"),
+    ),
+    "fluid": _sec(
+        "weakly compressible SPH water",
+        spacing_m=Key("float", "initial particle spacing", required=True, min=0, min_open=True),
+        rest_density_kg_m3=Key("float", "rest density rho0", default=1000.0, min=0, min_open=True),
+        kernel=Key("str", "'muller': poly6 density, spiky pressure gradient, viscosity Laplacian (Mueller 2003); 'cubic_spline': Monaghan cubic spline for all", default="muller", choices=("muller", "cubic_spline")),
+        support_radius_ratio=Key("float", "kernel support radius / spacing (2.0 gives ~30 neighbours in 3D, ~12 in 2D)", default=2.0, min=1.0, max=5.0),
+        pressure_force=Key("str", "'momentum': -m_i sum m_j (p_i/rho_i^2 + p_j/rho_j^2) gradW; 'muller': -m_i/rho_i sum m_j (p_i+p_j)/(2 rho_j) gradW", default="momentum", choices=("momentum", "muller")),
+        density=Key("str", "'continuity': d rho_i/dt = sum m_j (v_i - v_j).gradW_ij (keeps rho0 at a free surface); 'summation': rho_i = sum m_j W_ij", default="continuity", choices=("continuity", "summation")),
+        clamp_negative_pressure=Key("bool", "clip p < 0 to 0 (prevents tensile clumping at a free surface with summation density)", default=True),
+        eos=_sec(
+            "equation of state: give speed_of_sound_m_s, or the constant itself (b_pa for Tait, k_m2_s2 for linear)",
+            type=Key("str", "'tait': p = B((rho/rho0)^gamma - 1); 'linear': p = k (rho - rho0)", default="tait", choices=("tait", "linear")),
+            speed_of_sound_m_s=Key("float", "c0; sets B = c0^2 rho0/gamma (Tait) or k = c0^2 (linear). Rule: c0 >= 10 u_max", min=0, min_open=True),
+            gamma=Key("float", "Tait exponent", default=7.0, min=1.0, max=10.0),
+            b_pa=Key("float", "Tait stiffness B", min=0, min_open=True),
+            k_m2_s2=Key("float", "linear stiffness k (Pa per kg/m^3)", min=0, min_open=True),
+        ),
+        viscosity=_sec(
+            "viscosity models; any combination (all zero = inviscid)",
+            laplacian_pa_s=Key("float", "dynamic viscosity mu of Mueller's Laplacian viscosity (water: 1e-3)", default=0.0, min=0.0),
+            artificial_alpha=Key("float", "Monaghan artificial viscosity alpha", default=0.0, min=0.0, max=10.0),
+            xsph_epsilon=Key("float", "XSPH velocity smoothing epsilon (0.05 typical)", default=0.0, min=0.0, max=1.0),
+        ),
+        regions=_list("fluid blocks: a box (box_min_m, box_max_m) or a closed mesh filled on the particle lattice",
+                      velocity_m_s=Key("vec", "initial velocity", length="dim"), **_REGION_KEYS),
+    ),
+    "tank": _sec(
+        "container walls, made of boundary particles (Akinci et al. 2012); a box or a closed mesh whose inside holds the water",
+        box_min_m=Key("vec", "inner lower corner of a box tank", length="dim"),
+        box_max_m=Key("vec", "inner upper corner of a box tank", length="dim"),
+        open_top=Key("bool", "no wall on the top face of a box tank", default=True),
+        mesh=_REGION_KEYS["mesh"], mesh_scale=_REGION_KEYS["mesh_scale"], mesh_offset_m=_REGION_KEYS["mesh_offset_m"],
+        boundary_spacing_ratio=Key("float", "boundary particle spacing / fluid spacing", default=1.0, min=0.25, max=2.0),
+        layers=Key("int", "boundary particle layers (default: enough to cover the kernel support)", min=1, max=10),
+    ),
+    "obstacles": _list("solid obstacles inside the tank, made of boundary particles (box or closed mesh)", **_REGION_KEYS),
+    "output": _sec(
+        "what a run writes into its output folder",
+        usd=Key("str", "USD file of the frames ('.usdc' binary or '.usda' text); '' to skip", default="frames.usdc"),
+        frame_rate_hz=Key("float", "frames written per simulated second", default=30.0, min=0, min_open=True, max=10000),
+        chunk_frames=Key("int", "frames per USD clip file (a long run is a stage of value clips)", default=50, min=1),
+        gauges_csv=Key("str", "CSV of gauge readings per frame", default="gauges.csv"),
+        gauges=_list("probes read every frame",
+                     name=Key("str", "column name in the CSV", required=True),
+                     kind=Key("str", "'height': free-surface elevation above position_m's vertical line; 'pressure': SPH-interpolated pressure at position_m", required=True, choices=("height", "pressure")),
+                     position_m=Key("vec", "probe position (for 'height' the vertical coordinate is ignored)", length="dim", required=True)),
+    ),
+}
+
+
+# --------------------------------------------------------------------------------------------
+# Validation
+# --------------------------------------------------------------------------------------------
+
+
+class Node(dict):
+    """A validated section: a dict whose keys also read as attributes (``scene.fluid.eos.type``)."""
+
+    def __getattr__(self, name: str):
+        try:
+            return self[name]
+        except KeyError as e:
+            raise AttributeError(name) from e
+
+
+def _type_name(v: Any) -> str:
+    return {bool: "boolean", int: "integer", float: "number", str: "string", list: "array", dict: "table"}.get(type(v), type(v).__name__)
+
+
+class _Validator:
+    def __init__(self, base_dir: Path, dim: int):
+        self.errors: list[tuple[str, str]] = []
+        self.base_dir = base_dir
+        self.dim = dim
+
+    def err(self, key: str, msg: str) -> None:
+        self.errors.append((key, msg))
+
+    def section(self, data: Any, spec: dict[str, Key], prefix: str) -> Node:
+        out = Node()
+        if not isinstance(data, dict):
+            self.err(prefix, f"expected a table, got {_type_name(data)}")
+            data = {}
+        for k in data:
+            if k not in spec:
+                near = [s for s in spec if s.split("_")[0] == str(k).split("_")[0]]
+                hint = f"; did you mean {near[0]!r}?" if near else ""
+                self.err(f"{prefix}.{k}" if prefix else k, f"unknown key; allowed: {', '.join(spec)}{hint}")
+        for name, key in spec.items():
+            path = f"{prefix}.{name}" if prefix else name
+            if key.type == "section":
+                out[name] = self.section(data.get(name, {}), key.children, path)
+            elif key.type == "table_list":
+                items = data.get(name, [])
+                if not isinstance(items, list) or any(not isinstance(i, dict) for i in items):
+                    self.err(path, f"expected an array of tables ([[{path}]]), got {_type_name(items)}")
+                    items = []
+                out[name] = [self.section(item, key.children, f"{path}[{i}]") for i, item in enumerate(items)]
+            elif name in data:
+                out[name] = self.value(data[name], key, path)
+            else:
+                if key.required:
+                    self.err(path, f"required key is missing ({key.doc})")
+                out[name] = key.default
+        return out
+
+    def value(self, v: Any, key: Key, path: str) -> Any:
+        t = key.type
+        if t == "bool":
+            if not isinstance(v, bool):
+                return self._bad(path, f"expected true or false, got {_type_name(v)} {v!r}")
+        elif t == "int":
+            if isinstance(v, bool) or not isinstance(v, int):
+                return self._bad(path, f"expected an integer, got {_type_name(v)} {v!r}")
+        elif t == "float":
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                return self._bad(path, f"expected a number, got {_type_name(v)} {v!r}")
+            v = float(v)
+            if not math.isfinite(v):
+                return self._bad(path, f"expected a finite number, got {v!r}")
+        elif t in ("str", "path"):
+            if not isinstance(v, str):
+                return self._bad(path, f"expected a string, got {_type_name(v)} {v!r}")
+        elif t == "vec":
+            n = self.dim if key.length == "dim" else key.length
+            if not isinstance(v, list) or any(isinstance(c, bool) or not isinstance(c, (int, float)) for c in v):
+                return self._bad(path, f"expected a list of {n} numbers, got {v!r}")
+            if len(v) != n:
+                what = f" (the scene is {self.dim}D)" if key.length == "dim" else ""
+                return self._bad(path, f"expected {n} numbers{what}, got {len(v)}")
+            if not all(math.isfinite(c) for c in v):
+                return self._bad(path, f"expected finite numbers, got {v!r}")
+            return [float(c) for c in v]
+        if key.choices is not None and v not in key.choices:
+            return self._bad(path, f"{v!r} is not allowed; {key.allowed()}")
+        if t in ("int", "float"):
+            lo_bad = key.min is not None and (v <= key.min if key.min_open else v < key.min)
+            hi_bad = key.max is not None and v > key.max
+            if lo_bad or hi_bad:
+                return self._bad(path, f"{v!r} is out of range; allowed: {key.allowed()}")
+        if t == "path":
+            p = (self.base_dir / v).resolve()
+            if not p.is_file():
+                return self._bad(path, f"file not found: {p}")
+            return str(p)
+        return v
+
+    def _bad(self, path: str, msg: str) -> None:
+        self.err(path, msg)
+        return None
+
+
+@dataclass
+class Scene:
+    """A validated scene. Sections are :class:`Node` dicts with attribute access."""
+
+    path: str
+    simulation: Node
+    gravity: Node
+    fluid: Node
+    tank: Node
+    obstacles: list
+    output: Node
+    raw: dict = field(repr=False, default_factory=dict)
+
+    @property
+    def dim(self) -> int:
+        return int(self.simulation.dimension)
+
+    @property
+    def name(self) -> str:
+        return Path(self.path).stem
+
+
+def _cross_checks(v: _Validator, s: Node) -> None:
+    """Checks that involve several keys."""
+    dim = v.dim
+    sim, fl = s["simulation"], s["fluid"]
+    if sim["time_step"] == "fixed" and sim["dt_s"] is None:
+        v.err("simulation.dt_s", "required when simulation.time_step = 'fixed'")
+    eos = fl["eos"]
+    const_key = "b_pa" if eos["type"] == "tait" else "k_m2_s2"
+    other_key = "k_m2_s2" if eos["type"] == "tait" else "b_pa"
+    if eos[other_key] is not None:
+        v.err(f"fluid.eos.{other_key}", f"does not apply to eos.type = {eos['type']!r} (use {const_key})")
+    if (eos["speed_of_sound_m_s"] is None) == (eos[const_key] is None):
+        v.err("fluid.eos", f"give exactly one of speed_of_sound_m_s or {const_key}")
+
+    def check_region(r: Node, path: str, need: bool = True) -> None:
+        has_box = r.get("box_min_m") is not None or r.get("box_max_m") is not None
+        has_mesh = r.get("mesh") is not None
+        if has_box and has_mesh:
+            v.err(path, "give either box_min_m/box_max_m or mesh, not both")
+        elif has_box:
+            lo, hi = r.get("box_min_m"), r.get("box_max_m")
+            if lo is None or hi is None:
+                v.err(path, "a box needs both box_min_m and box_max_m")
+            elif any(b <= a for a, b in zip(lo, hi)):
+                v.err(f"{path}.box_max_m", f"must exceed box_min_m in every coordinate (box_min_m = {lo}, box_max_m = {hi})")
+        elif has_mesh:
+            if dim == 2:
+                v.err(f"{path}.mesh", "meshes are 3D only; use a box in a 2D scene")
+        elif need and "mesh" not in [e[0].rsplit(".", 1)[-1] for e in v.errors if e[0].startswith(path)]:
+            v.err(path, "needs a box (box_min_m, box_max_m) or a mesh")
+
+    if not fl["regions"]:
+        v.err("fluid.regions", "at least one [[fluid.regions]] entry is needed")
+    for i, r in enumerate(fl["regions"]):
+        check_region(r, f"fluid.regions[{i}]")
+    check_region(s["tank"], "tank")
+    for i, r in enumerate(s["obstacles"]):
+        check_region(r, f"obstacles[{i}]")
+    # fluid boxes must lie inside a box tank
+    t = s["tank"]
+    if t.get("box_min_m") and t.get("box_max_m"):
+        for i, r in enumerate(fl["regions"]):
+            if r.get("box_min_m") and r.get("box_max_m"):
+                if any(a < b - 1e-9 for a, b in zip(r["box_min_m"], t["box_min_m"])) or any(
+                    a > b + 1e-9 for a, b in zip(r["box_max_m"], t["box_max_m"])
+                ):
+                    v.err(f"fluid.regions[{i}]", f"box {r['box_min_m']}..{r['box_max_m']} is not inside the tank {t['box_min_m']}..{t['box_max_m']}")
+                else:
+                    n = 1.0
+                    for a, b in zip(r["box_min_m"], r["box_max_m"]):
+                        n *= (b - a) / fl["spacing_m"] if fl["spacing_m"] else 0
+                    if n < 1:
+                        v.err(f"fluid.regions[{i}]", f"box holds no particle at spacing {fl['spacing_m']} m")
+    names = [g["name"] for g in s["output"]["gauges"] if g.get("name")]
+    for n in set(names):
+        if names.count(n) > 1:
+            v.err("output.gauges", f"gauge name {n!r} is used more than once")
+    usd = s["output"]["usd"]
+    if usd and not (usd.endswith(".usdc") or usd.endswith(".usda") or usd.endswith(".usd")):
+        v.err("output.usd", f"{usd!r}: expected a name ending in .usdc, .usda or .usd")
+
+
+def parse_scene(data: dict, path: str | os.PathLike = "<scene>", base_dir: str | os.PathLike | None = None) -> Scene:
+    """Validate an already-parsed TOML dict. Raises :class:`SceneError` listing every problem."""
+    base = Path(base_dir) if base_dir is not None else (Path(path).parent if path != "<scene>" else Path.cwd())
+    dim = 3
+    sim = data.get("simulation", {}) if isinstance(data, dict) else {}
+    if isinstance(sim, dict) and sim.get("dimension") in (2, 3) and not isinstance(sim.get("dimension"), bool):
+        dim = sim["dimension"]
+    v = _Validator(base, dim)
+    s = v.section(data, SCHEMA, "")
+    if not v.errors or all(not e[0].startswith("simulation.dimension") for e in v.errors):
+        _cross_checks(v, s)
+    if s["gravity"]["acceleration_m_s2"] is None:
+        s["gravity"]["acceleration_m_s2"] = [0.0, -9.81] if dim == 2 else [0.0, 0.0, -9.81]
+    if v.errors:
+        raise SceneError(path, v.errors)
+    return Scene(path=str(path), simulation=s["simulation"], gravity=s["gravity"], fluid=s["fluid"], tank=s["tank"],
+                 obstacles=s["obstacles"], output=s["output"], raw=data)
+
+
+def load_scene(path: str | os.PathLike) -> Scene:
+    """Read and validate a scene file."""
+    p = Path(path)
+    if not p.is_file():
+        raise SceneError(path, [("", "scene file not found")])
+    try:
+        with open(p, "rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(path, [("", f"not valid TOML: {e}")]) from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise SceneError(path, [("", f"cannot read: {e}")]) from None
+    return parse_scene(data, p, p.parent)
+
+
+def schema_markdown() -> str:
+    """The scene format as a Markdown table (used for the README)."""
+    rows = ["| key | type | default | allowed | meaning |", "|---|---|---|---|---|"]
+
+    def walk(spec: dict[str, Key], prefix: str) -> None:
+        for name, k in spec.items():
+            path = f"{prefix}.{name}" if prefix else name
+            if k.type == "section":
+                rows.append(f"| **[{path}]** | table | | | {k.doc} |")
+                walk(k.children, path)
+            elif k.type == "table_list":
+                rows.append(f"| **[[{path}]]** | array of tables | | | {k.doc} |")
+                walk(k.children, path + "[]")
+            else:
+                d = "required" if k.required else ("" if k.default is None else repr(k.default))
+                rows.append(f"| `{path}` | {k.type} | {d} | {k.allowed()} | {k.doc} |")
+
+    walk(SCHEMA, "")
+    return "\n".join(rows)

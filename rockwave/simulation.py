@@ -1,0 +1,357 @@
+"""The clock: builds the model from a scene, chooses the time step, advances the solvers and
+writes frames, gauges and a run summary.
+
+Python API::
+
+    import rockwave
+    sim = rockwave.Simulation(rockwave.load_scene("scenes/dam_break_2d.toml"), device="cpu")
+    sim.advance(0.1)                 # simulate 0.1 s
+    x = sim.positions()              # (n_fluid, dim) numpy array
+    sim.run("runs/dam_break_2d")     # the whole scene, with outputs
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from rockwave import sampling
+from rockwave.fluid import FluidSolver, build_fluid_model, fluid_dt_limit
+from rockwave.kernels import sph
+from rockwave.scene import Scene, SceneError, load_scene
+
+
+class SimulationError(RuntimeError):
+    """The run cannot go on (blow-up, unwritable output); the message says where and why."""
+
+
+def resolve_device(name: str | None) -> str:
+    """'auto' -> 'cuda:0' when a GPU is present, else 'cpu'. Validates explicit names."""
+    wp.init()
+    name = (name or "auto").strip()
+    if name == "auto":
+        return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
+    if name == "cpu":
+        return "cpu"
+    if name == "cuda" or name.startswith("cuda:"):
+        n = wp.get_cuda_device_count()
+        idx = 0 if name == "cuda" else name.split(":", 1)[1]
+        try:
+            idx = int(idx)
+        except ValueError:
+            raise ValueError(f"device {name!r}: expected cuda:N with N an integer") from None
+        if idx >= n:
+            raise ValueError(f"device {name!r}: this machine has {n} CUDA device(s)")
+        return f"cuda:{idx}"
+    raise ValueError(f"device {name!r}: expected auto, cpu, cuda or cuda:N")
+
+
+def hydrostatic_density(model, g_depth: np.ndarray) -> np.ndarray:
+    """Density that makes p = rho0 g d under the EOS (validation/README.md, Hydrostatics):
+    Tait rho = rho0 (1 + rho0 g d / B)^(1/gamma); linear rho = rho0 + rho0 g d / k."""
+    p = model.params
+    rho0 = p.rest_density
+    if p.eos == 0:
+        return rho0 * (1.0 + rho0 * g_depth / p.eos_b) ** (1.0 / p.eos_gamma)
+    return rho0 + rho0 * g_depth / p.eos_b
+
+
+def _pad3(v) -> list[float]:
+    return list(v) + [0.0] * (3 - len(v))
+
+
+def boundary_lattice(scene: Scene) -> tuple[float, int]:
+    """Boundary particle spacing and number of layers for a scene."""
+    t, spacing = scene.tank, scene.fluid.spacing_m
+    bstep = spacing * t.boundary_spacing_ratio
+    H = scene.fluid.support_radius_ratio * spacing
+    return bstep, (t.layers or max(1, int(math.ceil(H / bstep - 1e-9))))
+
+
+def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fluid positions, velocities, depths below their region's top (for the hydrostatic start),
+    and boundary positions for a scene (positions (n, 3), z = 0 in 2D)."""
+    fl, dim = scene.fluid, scene.dim
+    up = dim - 1
+    spacing = fl.spacing_m
+    xs, vs, ds = [], [], []
+    for r in fl.regions:
+        try:
+            p = sampling.fill_region(r, spacing, dim, device)
+        except sampling.MeshInputError as e:
+            raise SceneError(scene.path, [("fluid.regions", str(e))]) from None
+        xs.append(p)
+        ds.append(p[:, up].max() + 0.5 * spacing - p[:, up] if len(p) else np.zeros(0))
+        vel = _pad3(r.velocity_m_s) if r.velocity_m_s is not None else [0.0, 0.0, 0.0]
+        vs.append(np.tile(np.asarray(vel, float), (len(p), 1)))
+    x = np.concatenate(xs) if xs else np.zeros((0, 3))
+    v = np.concatenate(vs) if vs else np.zeros((0, 3))
+    depth = np.concatenate(ds) if ds else np.zeros(0)
+    # Boundary particles: tank walls and obstacles.
+    t = scene.tank
+    bstep, layers = boundary_lattice(scene)
+    parts = []
+    try:
+        if t.box_min_m is not None:
+            parts.append(sampling.box_shell(t.box_min_m, t.box_max_m, bstep, layers, True, t.open_top, up))
+            keep = np.all((x[:, :dim] > np.asarray(t.box_min_m)) & (x[:, :dim] < np.asarray(t.box_max_m)), axis=1)
+        else:
+            parts.append(sampling.mesh_shell(t.mesh, t.mesh_scale, t.mesh_offset_m, bstep, layers, True, device))
+            tm = sampling.load_trimesh(t.mesh, t.mesh_scale, t.mesh_offset_m)
+            keep = sampling.mesh_signed_distance(tm, x, device) < 0
+    except sampling.MeshInputError as e:
+        raise SceneError(scene.path, [("tank.mesh", str(e))]) from None
+    x, v, depth = x[keep], v[keep], depth[keep]
+    for i, ob in enumerate(scene.obstacles):
+        try:
+            if ob.box_min_m is not None:
+                parts.append(sampling.box_shell(ob.box_min_m, ob.box_max_m, bstep, layers, False, False, up))
+            else:
+                parts.append(sampling.mesh_shell(ob.mesh, ob.mesh_scale, ob.mesh_offset_m, bstep, layers, False, device))
+            inside = sampling.inside_obstacle(x, ob, dim, device)
+        except sampling.MeshInputError as e:
+            raise SceneError(scene.path, [(f"obstacles[{i}].mesh", str(e))]) from None
+        x, v, depth = x[~inside], v[~inside], depth[~inside]
+    b = np.concatenate(parts) if parts else np.zeros((0, 3))
+    return x, v, depth, b
+
+
+class Simulation:
+    """A scene made runnable: model, state, solvers and the clock.
+
+    Attributes: ``scene``, ``device``, ``fluid`` (FluidModel), ``state`` (FluidState),
+    ``time`` [s], ``steps``, ``dt`` [s] (the step in use).
+    """
+
+    def __init__(self, scene: Scene | str | os.PathLike, device: str | None = None):
+        if not isinstance(scene, Scene):
+            scene = load_scene(scene)
+        self.scene = scene
+        self.device = resolve_device(device if device is not None else scene.simulation.device)
+        with wp.ScopedDevice(self.device):
+            xf, vf, depth, xb = seed_particles(scene, self.device)
+            bstep, layers = boundary_lattice(scene)
+            self.fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, self.device,
+                                           bstep, layers)
+            self.fluid_solver = FluidSolver(self.fluid)
+            self.state = self.fluid.state()
+            if self.fluid.n_fluid:
+                self.fluid_solver.build_grid(self.state)
+                if self.fluid.density_mode == "summation":
+                    self.fluid_solver.compute_density(self.state)
+                else:
+                    g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
+                    self.fluid_solver.set_density(self.state, hydrostatic_density(self.fluid, g * depth))
+        self.time = 0.0
+        self.steps = 0
+        self.gravity = np.asarray(_pad3(scene.gravity.acceleration_m_s2))
+        sim = scene.simulation
+        self.fixed = sim.time_step == "fixed"
+        g = float(np.linalg.norm(self.gravity))
+        self.dt_limit = fluid_dt_limit(self.fluid, 0.4, 0.0, g)  # stability bound for a fluid at rest
+        if self.fixed:
+            if sim.dt_s > self.dt_limit:
+                raise SceneError(scene.path, [("simulation.dt_s",
+                                               f"{sim.dt_s:g} s is above the stability limit {self.dt_limit:.3g} s "
+                                               f"(0.4 h/c0 with h = {0.5 * self.fluid.support_radius:g} m, c0 = {self.fluid.sound_speed:g} m/s)")])
+            self._dt_target = sim.dt_s
+        else:
+            self._dt_target = fluid_dt_limit(self.fluid, sim.cfl_number, 0.0, g)
+        self.dt = self._dt_target
+        self._dt_dev = wp.array([self.dt], dtype=float, device=self.device)
+        self._up = scene.dim - 1
+        gauges = scene.output.gauges
+        self.gauge_names = [gg.name for gg in gauges]
+        self._gauge_kind = [gg.kind for gg in gauges]
+        self._gauge_pos = wp.array(np.asarray([_pad3(gg.position_m) for gg in gauges] or np.zeros((0, 3)), dtype=np.float32),
+                                   dtype=wp.vec3, device=self.device)
+
+    # ---------------------------------------------------------------- stepping --------------
+    def _set_dt(self, dt: float) -> None:
+        if dt != self.dt:
+            self.dt = dt
+            self._dt_dev.fill_(dt)
+
+    def step(self, dt: float | None = None) -> None:
+        """One step of length ``dt`` (default: the current step)."""
+        if dt is not None:
+            self._set_dt(dt)
+        with wp.ScopedDevice(self.device):
+            self.fluid_solver.step(self.state, self._dt_dev)
+        self.time += self.dt
+        self.steps += 1
+
+    def _update_dt_target(self) -> None:
+        if not self.fixed and self.steps % self.scene.simulation.dt_update_interval == 0 and self.fluid.n_fluid:
+            self._dt_target = self.fluid_solver.stable_dt(self.state, self.scene.simulation.cfl_number)
+
+    def advance(self, duration: float) -> None:
+        """Advance by ``duration`` seconds, landing exactly on the end time."""
+        t_end = self.time + duration
+        while t_end - self.time > 1e-12 * max(1.0, t_end):
+            self._update_dt_target()
+            remaining = t_end - self.time
+            n = max(1, math.ceil(remaining / self._dt_target - 1e-9))
+            self.step(remaining / n)
+        self.time = t_end
+
+    # ---------------------------------------------------------------- reading -----------------
+    def positions(self) -> np.ndarray:
+        """Fluid particle positions, (n_fluid, dim) [m]."""
+        return self.state.x.numpy()[: self.fluid.n_fluid, : self.scene.dim].astype(np.float64)
+
+    def velocities(self) -> np.ndarray:
+        return self.state.v.numpy()[: self.fluid.n_fluid, : self.scene.dim].astype(np.float64)
+
+    def densities(self) -> np.ndarray:
+        return self.state.rho.numpy().astype(np.float64)
+
+    def pressures(self) -> np.ndarray:
+        return self.state.pressure.numpy().astype(np.float64)
+
+    def boundary_positions(self) -> np.ndarray:
+        return self.state.x.numpy()[self.fluid.n_fluid:, : self.scene.dim].astype(np.float64)
+
+    def kinetic_energy(self) -> float:
+        v = self.velocities()
+        return 0.5 * self.fluid.fluid_mass * float((v * v).sum())
+
+    def gauges(self) -> dict[str, float]:
+        """Current gauge readings: 'height' gauges in m (NaN when dry), 'pressure' gauges in Pa."""
+        n = len(self.gauge_names)
+        if n == 0 or self.fluid.n_fluid == 0:
+            return {}
+        m = self.fluid
+        with wp.ScopedDevice(self.device):
+            h = wp.full(n, -1.0e30, dtype=float)
+            wp.launch(sph.gauge_height, dim=(m.n_fluid, n), inputs=[self.state.x, self._gauge_pos, self._up, m.spacing], outputs=[h])
+            self.fluid_solver.build_grid(self.state)
+            pr = wp.zeros(n, dtype=float)
+            wp.launch(sph.gauge_pressure, dim=n, inputs=[self.fluid_solver.grid.id, self.state.x, self.state.rho, self.state.pressure,
+                                                       m.particle_mass, self._gauge_pos, m.params], outputs=[pr])
+        hn, pn = h.numpy(), pr.numpy()
+        out = {}
+        for i, (name, kind) in enumerate(zip(self.gauge_names, self._gauge_kind)):
+            if kind == "height":
+                out[name] = float(hn[i] + 0.5 * m.spacing) if hn[i] > -1e29 else float("nan")
+            else:
+                out[name] = float(pn[i])
+        return out
+
+    def check_health(self, x: np.ndarray, v: np.ndarray) -> int:
+        """Raise SimulationError on NaN/inf or runaway speed; return the count of particles outside the domain."""
+        bad = ~np.isfinite(x).all(axis=1) | ~np.isfinite(v).all(axis=1)
+        speed = np.linalg.norm(np.where(bad[:, None], 0.0, v), axis=1)
+        limit = 5.0 * self.fluid.sound_speed
+        if bad.any() or (speed > limit).any():
+            i = int(np.argmax(bad)) if bad.any() else int(np.argmax(speed))
+            what = "is NaN/inf" if bad.any() else f"moves at {speed[i]:.3g} m/s (> 5 c0 = {limit:.3g} m/s)"
+            raise SimulationError(
+                f"blow-up at step {self.steps}, t = {self.time:.5g} s: fluid particle {i} at {np.round(x[i], 4).tolist()} {what}; "
+                f"try a smaller time step (current {self.dt:.3g} s; e.g. simulation.cfl_number or dt_s halved) or a larger speed of sound")
+        lo = self.fluid.domain_lo[: x.shape[1]] - 2 * self.fluid.support_radius
+        hi = self.fluid.domain_hi[: x.shape[1]] + 2 * self.fluid.support_radius
+        return int((~np.all((x >= lo) & (x <= hi), axis=1)).sum())
+
+    # ---------------------------------------------------------------- running -----------------
+    def run(self, out_dir: str | os.PathLike, duration: float | None = None, progress: bool = True) -> dict:
+        """Run the scene for ``duration`` (default: the scene's), writing outputs into ``out_dir``.
+        Returns the run summary (also written as ``run.json``)."""
+        from rockwave.export.usd import UsdFrameWriter, points_setup
+        from rockwave.progress import Progress
+
+        scene = self.scene
+        out = Path(out_dir)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            probe = out / ".write_test"
+            probe.write_bytes(b"ok")
+            probe.unlink()
+        except OSError as e:
+            raise SimulationError(f"output folder {out} is not writable: {e}") from None
+        duration = scene.simulation.duration_s if duration is None else duration
+        fps = scene.output.frame_rate_hz
+        n_frames = int(math.floor(duration * fps + 1e-9))
+        frame_dt = 1.0 / fps
+        nf, dim = self.fluid.n_fluid, scene.dim
+        writer = None
+        if scene.output.usd:
+            writer = UsdFrameWriter(out / scene.output.usd, fps, "Z" if dim == 3 else "Y",
+                                    points_setup("/World/fluid", nf, self.fluid.spacing), scene.output.chunk_frames)
+        gauge_rows: list[list[float]] = []
+        gauge_path = out / scene.output.gauges_csv if self.gauge_names else None
+        bar = Progress(duration, nf, enabled=progress)
+        wall0 = time.perf_counter()
+        escaped = 0
+        t0 = self.time
+        interrupted = False
+
+        def write_frame(frame: int) -> None:
+            nonlocal escaped
+            x = self.state.x.numpy()[:nf]
+            v = self.state.v.numpy()[:nf]
+            escaped = self.check_health(x[:, :dim], v[:, :dim])
+            if writer is not None:
+                writer.write_frame(frame, {("/World/fluid", "points", "point3f[]"): x, ("/World/fluid", "velocities", "vector3f[]"): v})
+            if gauge_path is not None:
+                g = self.gauges()
+                gauge_rows.append([self.time] + [g[n] for n in self.gauge_names])
+                _write_csv_atomic(gauge_path, ["time_s"] + self.gauge_names, gauge_rows)
+
+        try:
+            write_frame(0)
+            for f in range(1, n_frames + 1):
+                self.advance(t0 + f * frame_dt - self.time)
+                write_frame(f)
+                bar.update(self.time - t0, self.steps)
+            rest = t0 + duration - self.time
+            if rest > 1e-9:
+                self.advance(rest)
+        except KeyboardInterrupt:
+            interrupted = True
+        finally:
+            if writer is not None:
+                writer.close()
+            bar.close()
+        wall = time.perf_counter() - wall0
+        summary = {
+            "scene": str(Path(scene.path).resolve()) if scene.path != "<scene>" else scene.path,
+            "device": self.device,
+            "fluid_particles": nf,
+            "boundary_particles": self.fluid.n_boundary,
+            "simulated_s": self.time - t0,
+            "steps": self.steps,
+            "wall_s": wall,
+            "particle_steps_per_s": nf * self.steps / wall if wall > 0 else None,
+            "particles_outside_domain": escaped,
+            "usd": str(out / scene.output.usd) if writer else None,
+            "interrupted": interrupted,
+        }
+        _write_text_atomic(out / "run.json", json.dumps(summary, indent=2))
+        if interrupted:
+            raise KeyboardInterrupt
+        return summary
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _write_csv_atomic(path: Path, header: list[str], rows: list[list[float]]) -> None:
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(header)
+    for r in rows:
+        w.writerow([f"{c:.6g}" for c in r])
+    _write_text_atomic(path, buf.getvalue())
