@@ -73,8 +73,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         sim = Simulation(scene, device=args.device)
         if not args.quiet:
-            print(f"{scene_path}: {sim.fluid.n_fluid:,} fluid + {sim.fluid.n_boundary:,} boundary particles on {sim.device}, "
-                  f"h = {sim.fluid.support_radius:g} m, c0 = {sim.fluid.sound_speed:.3g} m/s, dt = {sim.dt:.3g} s", file=sys.stderr)
+            parts = []
+            if sim.fluid is not None:
+                parts.append(f"{sim.fluid.n_fluid:,} fluid + {sim.fluid.n_boundary:,} boundary particles "
+                             f"(h = {sim.fluid.support_radius:g} m, c0 = {sim.fluid.sound_speed:.3g} m/s)")
+            if sim.blocks is not None:
+                parts.append(f"{sim.blocks.num_blocks:,} blocks (critical step {sim.block_solver.critical_dt():.3g} s)")
+            print(f"{scene_path}: {' and '.join(parts)} on {sim.device}, dt = {sim.dt:.3g} s", file=sys.stderr)
         summary = sim.run(out, duration=args.duration, progress=not args.quiet)
     except SceneError as e:
         return _fail(e.one_line())
@@ -83,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"interrupted: frames written so far are in {out}", file=sys.stderr)
         return 130
-    rate = summary["particle_steps_per_s"]
+    rates = [f"{summary[k]:.3g} {k.replace('_per_s', '').replace('_', '-')}/s" for k in ("particle_steps_per_s", "block_steps_per_s") if summary.get(k)]
     print(f"done: {summary['simulated_s']:.3g} s simulated in {summary['steps']} steps, {summary['wall_s']:.1f} s wall"
-          f" ({rate:.3g} particle-steps/s); outputs in {out}" if rate else f"done; outputs in {out}")
+          f" ({', '.join(rates)}); outputs in {out}")
     return 0

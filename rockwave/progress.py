@@ -7,9 +7,10 @@ import time
 
 
 class Progress:
-    def __init__(self, duration: float, particles: int, enabled: bool = True, stream=None):
+    def __init__(self, duration: float, particles: int, enabled: bool = True, stream=None, unit: str = "particles"):
         self.duration = duration
         self.particles = particles
+        self.unit = unit
         self.enabled = enabled
         self.stream = stream or sys.stderr
         self.t0 = time.perf_counter()
@@ -30,7 +31,7 @@ class Progress:
         filled = int(frac * width)
         bar = "#" * filled + "-" * (width - filled)
         line = (f"[{bar}] t = {sim_time:.3f}/{self.duration:.3f} s  {steps / wall if wall > 0 else 0:,.0f} steps/s  "
-                f"{self.particles:,} particles  ETA {_fmt(eta)}")
+                f"{self.particles:,} {self.unit}  ETA {_fmt(eta)}")
         self.stream.write(("\r" + line) if self.tty else (line + "\n"))
         self.stream.flush()
 

@@ -51,6 +51,7 @@ class Key:
     choices: tuple | None = None
     length: int | str | None = None  # vec length, or "dim" for the scene dimension
     children: dict[str, "Key"] | None = None  # for section / table_list
+    optional: bool = False  # an optional section is None when the scene leaves it out
 
     def allowed(self) -> str:
         parts = []
@@ -66,8 +67,8 @@ class Key:
         return "; ".join(parts)
 
 
-def _sec(doc: str, **children: Key) -> Key:
-    return Key("section", doc=doc, children=children)
+def _sec(doc: str, optional: bool = False, **children: Key) -> Key:
+    return Key("section", doc=doc, children=children, optional=optional)
 
 
 def _list(doc: str, **children: Key) -> Key:
@@ -90,6 +91,7 @@ SCHEMA: dict[str, Key] = {
         time_step=Key("str", "'cfl': adaptive step from the CFL, force and viscous limits; 'fixed': dt_s", default="cfl", choices=("cfl", "fixed")),
         cfl_number=Key("float", "Courant number C in dt <= C h/(c0 + u_max)", default=0.25, min=0, max=1.0, min_open=True),
         dt_s=Key("float", "fixed time step (time_step = 'fixed'); refused if above the stability limit", min=0, min_open=True),
+        block_dt_safety=Key("float", "block step = this fraction of the critical DDA step 2/omega_max", default=0.5, min=0.0, max=1.0, min_open=True),
         dt_update_interval=Key("int", "steps between adaptive time-step updates (one host read each)", default=10, min=1, max=10000),
         device=Key("str", "'auto' (first GPU if any, else CPU), 'cpu', 'cuda' or 'cuda:N'; the CLI --device overrides", default="auto"),
     ),
@@ -98,7 +100,7 @@ SCHEMA: dict[str, Key] = {
         acceleration_m_s2=Key("vec", "gravitational acceleration (default: -9.81 along the up axis)", length="dim"),
     ),
     "fluid": _sec(
-        "weakly compressible SPH water",
+        "weakly compressible SPH water (leave the section out for a scene of blocks alone)", optional=True,
         spacing_m=Key("float", "initial particle spacing", required=True, min=0, min_open=True),
         rest_density_kg_m3=Key("float", "rest density rho0", default=1000.0, min=0, min_open=True),
         kernel=Key("str", "'muller': poly6 density, spiky pressure gradient, viscosity Laplacian (Mueller 2003); 'cubic_spline': Monaghan cubic spline for all", default="muller", choices=("muller", "cubic_spline")),
@@ -124,7 +126,7 @@ SCHEMA: dict[str, Key] = {
                       velocity_m_s=Key("vec", "initial velocity", length="dim"), **_REGION_KEYS),
     ),
     "tank": _sec(
-        "container walls, made of boundary particles (Akinci et al. 2012); a box or a closed mesh whose inside holds the water",
+        "container walls for the water, made of boundary particles (Akinci et al. 2012); a box or a closed mesh whose inside holds the water", optional=True,
         box_min_m=Key("vec", "inner lower corner of a box tank", length="dim"),
         box_max_m=Key("vec", "inner upper corner of a box tank", length="dim"),
         open_top=Key("bool", "no wall on the top face of a box tank", default=True),
@@ -133,16 +135,66 @@ SCHEMA: dict[str, Key] = {
         layers=Key("int", "boundary particle layers (default: enough to cover the kernel support)", min=1, max=10),
     ),
     "obstacles": _list("solid obstacles inside the tank, made of boundary particles (box or closed mesh)", **_REGION_KEYS),
+    "blocks": _list(
+        "rock blocks (explicit 3D DDA; 3D scenes only): convex polyhedra from a primitive or a mesh file",
+        name=Key("str", "label (entries of an array or a multi-part mesh get _i suffixes)", default="block"),
+        shape=Key("str", "'box' (size_m), 'prism' (convex hull of vertices_m, e.g. a wedge) or 'mesh' (mesh)", required=True, choices=("box", "prism", "mesh")),
+        size_m=Key("vec", "box edge lengths", length=3),
+        vertices_m=Key("points", "prism corner points (their convex hull is the block)", length=3),
+        mesh=Key("path", "convex mesh file (STL, OBJ, PLY, GLB); every part of a multi-part file becomes a block"),
+        mesh_scale=Key("float", "uniform scale for the mesh (0.001 for millimetres)", default=1.0, min=0, min_open=True),
+        position_m=Key("vec", "centroid position (default: where the prism vertices or the mesh file put it)", length=3),
+        orientation_deg=Key("vec", "rotation as successive turns about the fixed x, y, z axes", length=3, default=[0.0, 0.0, 0.0]),
+        density_kg_m3=Key("float", "block density", default=2600.0, min=0, min_open=True),
+        velocity_m_s=Key("vec", "initial velocity", length=3, default=[0.0, 0.0, 0.0]),
+        angular_velocity_rad_s=Key("vec", "initial spin (world frame)", length=3, default=[0.0, 0.0, 0.0]),
+        kind=Key("str", "'rigid' (6 DOF), 'deformable' (Shi's 12 DOF, constant strain), 'fixed' or 'kinematic' (prescribed motion)", default="rigid", choices=("rigid", "deformable", "fixed", "kinematic")),
+        youngs_modulus_pa=Key("float", "Young's modulus E (deformable blocks; also sets the default contact stiffness); default 10 GPa", min=0, min_open=True),
+        poisson_ratio=Key("float", "Poisson ratio", default=0.25, min=0.0, max=0.49),
+        strain_damping_ratio=Key("float", "damping ratio of a deformable block's strain modes", default=0.05, min=0.0, max=2.0),
+        motion=_sec("prescribed motion of a kinematic block: displacement added to position_m",
+                    type=Key("str", "'sine': u = amplitude sin(2 pi f t + phase); 'table': linear in (times_s, displacements_m)", default="sine", choices=("sine", "table")),
+                    amplitude_m=Key("vec", "sine amplitude vector", length=3),
+                    frequency_hz=Key("float", "sine frequency", min=0.0),
+                    phase_rad=Key("float", "sine phase", default=0.0),
+                    times_s=Key("floatlist", "table times (strictly increasing)"),
+                    displacements_m=Key("points", "table displacements, one [x, y, z] per time", length=3)),
+        material=_sec("contact law of the block's surface (a pair uses the weaker of the two; damping the larger)",
+                      friction_angle_deg=Key("float", "Coulomb friction angle phi", default=30.0, min=0.0, max=89.0),
+                      cohesion_pa=Key("float", "cohesion c (times each contact point's area share)", default=0.0, min=0.0),
+                      tensile_strength_pa=Key("float", "tension allowed per unit area before the cut-off", default=0.0, min=0.0),
+                      normal_stiffness_n_m=Key("float", "k_n per contact point (default 0.1 E L, L = volume^(1/3))", min=0, min_open=True),
+                      shear_stiffness_n_m=Key("float", "k_s per contact point (default k_n / (2 (1 + nu)))", min=0, min_open=True),
+                      restitution=Key("float", "normal restitution coefficient e (default 0.5)", min=0.0, max=1.0),
+                      damping_ratio=Key("float", "contact dashpot damping ratio (overrides restitution)", min=0.0, max=10.0)),
+        array=_sec("many blocks from one entry: a regular array of copies along the block's own (rotated) axes",
+                   count=Key("vec", "copies along x, y, z (whole numbers)", length=3, default=[1.0, 1.0, 1.0]),
+                   spacing_m=Key("vec", "centre-to-centre spacing along x, y, z", length=3, default=[0.0, 0.0, 0.0])),
+    ),
     "output": _sec(
         "what a run writes into its output folder",
         usd=Key("str", "USD file of the frames ('.usdc' binary or '.usda' text); '' to skip", default="frames.usdc"),
         frame_rate_hz=Key("float", "frames written per simulated second", default=30.0, min=0, min_open=True, max=10000),
         chunk_frames=Key("int", "frames per USD clip file (a long run is a stage of value clips)", default=50, min=1),
         gauges_csv=Key("str", "CSV of gauge readings per frame", default="gauges.csv"),
+        blocks_csv=Key("str", "CSV of block position, velocity, spin and contact count per frame", default="blocks.csv"),
         gauges=_list("probes read every frame",
                      name=Key("str", "column name in the CSV", required=True),
                      kind=Key("str", "'height': free-surface elevation above position_m's vertical line; 'pressure': SPH-interpolated pressure at position_m", required=True, choices=("height", "pressure")),
                      position_m=Key("vec", "probe position (for 'height' the vertical coordinate is ignored)", length="dim", required=True)),
+        surface=_sec("fluid surface for rendering: a scalar field of the particles on a grid, isosurface by marching cubes (3D mesh /World/fluid_surface) or marching squares (2D contour curves)",
+                     enabled=Key("bool", "write the surface into the USD stage (and the ParaView series)", default=True),
+                     field=Key("str", "'colour': SPH colour field sum (m/rho) W (cubic spline); 'metaball': sum s^d/V_R (1 - (d/R)^2)^2 (Ghost SPH report)", default="colour", choices=("colour", "metaball")),
+                     resolution_m=Key("float", "grid cell size (default: half the particle spacing)", min=0, min_open=True),
+                     radius_ratio=Key("float", "field support radius R / particle spacing", default=2.0, min=1.0, max=5.0),
+                     iso_level=Key("float", "field value at the surface (the field is ~1 in bulk water; 0.5 puts the surface half a spacing past the last particle layer)", default=0.5, min=0, max=1.0, min_open=True),
+                     max_grid_nodes=Key("int", "cap on grid nodes per frame; the cell grows to stay under it", default=20_000_000, min=1000)),
+        vtk=Key("str", "folder for ParaView output (frame_NNNNN.vtu files: fluid with density, pressure, velocity; blocks as polyhedra; the surface) plus a .pvd series; '' to skip", default=""),
+        reference=_list("measured or reference gauge series that 'python -m rockwave plot' overlays on the gauges of the same name",
+                        file=Key("path", "text table, path relative to the scene file: first column time in s, then one column per gauge; a '#' header line names the columns ('H1 (m)' matches gauge 'H1')", required=True),
+                        label=Key("str", "legend label (default: the file name)"),
+                        time_offset_s=Key("float", "added to the reference times", default=0.0),
+                        scale=Key("float", "multiplies the reference values", default=1.0)),
     ),
 }
 
@@ -188,7 +240,10 @@ class _Validator:
         for name, key in spec.items():
             path = f"{prefix}.{name}" if prefix else name
             if key.type == "section":
-                out[name] = self.section(data.get(name, {}), key.children, path)
+                if key.optional and name not in data:
+                    out[name] = None
+                else:
+                    out[name] = self.section(data.get(name, {}), key.children, path)
             elif key.type == "table_list":
                 items = data.get(name, [])
                 if not isinstance(items, list) or any(not isinstance(i, dict) for i in items):
@@ -205,6 +260,16 @@ class _Validator:
 
     def value(self, v: Any, key: Key, path: str) -> Any:
         t = key.type
+        if t in ("points", "floatlist"):
+            rows = v if t == "points" else [[c] for c in v] if isinstance(v, list) else v
+            n = key.length if t == "points" else 1
+            ok = isinstance(v, list) and len(v) > 0 and all(
+                isinstance(r, list) and len(r) == n and all(not isinstance(c, bool) and isinstance(c, (int, float)) and math.isfinite(c) for c in r)
+                for r in rows)
+            if not ok:
+                what = f"a list of [x, y, z] points" if t == "points" else "a non-empty list of numbers"
+                return self._bad(path, f"expected {what}, got {v!r}")
+            return [[float(c) for c in r] for r in v] if t == "points" else [float(c) for c in v]
         if t == "bool":
             if not isinstance(v, bool):
                 return self._bad(path, f"expected true or false, got {_type_name(v)} {v!r}")
@@ -256,10 +321,11 @@ class Scene:
     path: str
     simulation: Node
     gravity: Node
-    fluid: Node
-    tank: Node
+    fluid: Node | None
+    tank: Node | None
     obstacles: list
     output: Node
+    blocks: list = field(default_factory=list)
     raw: dict = field(repr=False, default_factory=dict)
 
     @property
@@ -277,6 +343,16 @@ def _cross_checks(v: _Validator, s: Node) -> None:
     sim, fl = s["simulation"], s["fluid"]
     if sim["time_step"] == "fixed" and sim["dt_s"] is None:
         v.err("simulation.dt_s", "required when simulation.time_step = 'fixed'")
+    _check_blocks(v, s)
+    if fl is None:
+        if not s["blocks"]:
+            v.err("fluid", "the scene has neither water ([fluid] with [[fluid.regions]]) nor [[blocks]]")
+        if s["tank"] is not None or s["obstacles"]:
+            v.err("tank", "a tank or obstacles need water: add a [fluid] section or remove them")
+        return
+    if s["tank"] is None:
+        v.err("tank", "a scene with water needs a [tank] (box_min_m/box_max_m or mesh)")
+        s["tank"] = Node(box_min_m=None, box_max_m=None, mesh=None)
     eos = fl["eos"]
     const_key = "b_pa" if eos["type"] == "tait" else "k_m2_s2"
     other_key = "k_m2_s2" if eos["type"] == "tait" else "b_pa"
@@ -333,6 +409,41 @@ def _cross_checks(v: _Validator, s: Node) -> None:
         v.err("output.usd", f"{usd!r}: expected a name ending in .usdc, .usda or .usd")
 
 
+def _check_blocks(v: _Validator, s: Node) -> None:
+    blocks = s["blocks"]
+    if blocks and v.dim == 2:
+        v.err("blocks", "rock blocks need a 3D scene (simulation.dimension = 3)")
+        return
+    for i, b in enumerate(blocks):
+        path = f"blocks[{i}]"
+        need = {"box": "size_m", "prism": "vertices_m", "mesh": "mesh"}.get(b["shape"])
+        if need and b.get(need) is None and not any(e[0] == f"{path}.{need}" for e in v.errors):
+            v.err(f"{path}.{need}", f"required for shape = {b['shape']!r}")
+        for other in ("size_m", "vertices_m", "mesh"):
+            if other != need and b.get(other) is not None:
+                v.err(f"{path}.{other}", f"does not apply to shape = {b['shape']!r}")
+        if b["shape"] == "box" and b["position_m"] is None:
+            v.err(f"{path}.position_m", "required for a box")
+        if b["shape"] == "prism" and b.get("vertices_m") and len(b["vertices_m"]) < 4:
+            v.err(f"{path}.vertices_m", "a prism needs at least 4 points spanning a volume")
+        m = b["motion"]
+        if b["kind"] == "kinematic":
+            if m["type"] == "sine" and (m["amplitude_m"] is None or m["frequency_hz"] is None):
+                v.err(f"{path}.motion", "a sine motion needs amplitude_m and frequency_hz")
+            if m["type"] == "table":
+                if m["times_s"] is None or m["displacements_m"] is None:
+                    v.err(f"{path}.motion", "a table motion needs times_s and displacements_m")
+                elif len(m["times_s"]) != len(m["displacements_m"]):
+                    v.err(f"{path}.motion.displacements_m", f"{len(m['displacements_m'])} rows for {len(m['times_s'])} times")
+                elif any(t1 <= t0 for t0, t1 in zip(m["times_s"], m["times_s"][1:])):
+                    v.err(f"{path}.motion.times_s", "must be strictly increasing")
+        elif any(m[k] is not None for k in ("amplitude_m", "frequency_hz", "times_s", "displacements_m")):
+            v.err(f"{path}.motion", f"only kinematic blocks take a motion (kind = {b['kind']!r})")
+        cnt = b["array"]["count"]
+        if any(c < 1 or c != int(c) for c in cnt):
+            v.err(f"{path}.array.count", f"expected whole numbers >= 1, got {cnt}")
+
+
 def parse_scene(data: dict, path: str | os.PathLike = "<scene>", base_dir: str | os.PathLike | None = None) -> Scene:
     """Validate an already-parsed TOML dict. Raises :class:`SceneError` listing every problem."""
     base = Path(base_dir) if base_dir is not None else (Path(path).parent if path != "<scene>" else Path.cwd())
@@ -344,12 +455,14 @@ def parse_scene(data: dict, path: str | os.PathLike = "<scene>", base_dir: str |
     s = v.section(data, SCHEMA, "")
     if not v.errors or all(not e[0].startswith("simulation.dimension") for e in v.errors):
         _cross_checks(v, s)
+    if s["fluid"] is not None and s["fluid"]["regions"] is None:
+        s["fluid"]["regions"] = []
     if s["gravity"]["acceleration_m_s2"] is None:
         s["gravity"]["acceleration_m_s2"] = [0.0, -9.81] if dim == 2 else [0.0, 0.0, -9.81]
     if v.errors:
         raise SceneError(path, v.errors)
     return Scene(path=str(path), simulation=s["simulation"], gravity=s["gravity"], fluid=s["fluid"], tank=s["tank"],
-                 obstacles=s["obstacles"], output=s["output"], raw=data)
+                 obstacles=s["obstacles"], output=s["output"], blocks=s["blocks"], raw=data)
 
 
 def load_scene(path: str | os.PathLike) -> Scene:

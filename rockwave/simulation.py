@@ -21,8 +21,11 @@ import sys
 import time
 from pathlib import Path
 
+import re
+
 import numpy as np
 import warp as wp
+from pxr import Gf
 
 from rockwave import sampling
 from rockwave.fluid import FluidSolver, build_fluid_model, fluid_dt_limit
@@ -137,35 +140,44 @@ class Simulation:
             scene = load_scene(scene)
         self.scene = scene
         self.device = resolve_device(device if device is not None else scene.simulation.device)
+        self.fluid = self.fluid_solver = self.state = None
+        self.blocks = self.block_solver = self.block_state = None
+        g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
         with wp.ScopedDevice(self.device):
-            xf, vf, depth, xb = seed_particles(scene, self.device)
-            bstep, layers = boundary_lattice(scene)
-            self.fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, self.device,
-                                           bstep, layers)
-            self.fluid_solver = FluidSolver(self.fluid)
-            self.state = self.fluid.state()
-            if self.fluid.n_fluid:
-                self.fluid_solver.build_grid(self.state)
-                if self.fluid.density_mode == "summation":
-                    self.fluid_solver.compute_density(self.state)
-                else:
-                    g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
-                    self.fluid_solver.set_density(self.state, hydrostatic_density(self.fluid, g * depth))
+            if scene.fluid is not None:
+                xf, vf, depth, xb = seed_particles(scene, self.device)
+                bstep, layers = boundary_lattice(scene)
+                self.fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2,
+                                               self.device, bstep, layers)
+                self.fluid_solver = FluidSolver(self.fluid)
+                self.state = self.fluid.state()
+                if self.fluid.n_fluid:
+                    self.fluid_solver.build_grid(self.state)
+                    if self.fluid.density_mode == "summation":
+                        self.fluid_solver.compute_density(self.state)
+                    else:
+                        self.fluid_solver.set_density(self.state, hydrostatic_density(self.fluid, g * depth))
+            if scene.blocks:
+                self._build_blocks()
         self.time = 0.0
         self.steps = 0
         self.gravity = np.asarray(_pad3(scene.gravity.acceleration_m_s2))
         sim = scene.simulation
         self.fixed = sim.time_step == "fixed"
-        g = float(np.linalg.norm(self.gravity))
-        self.dt_limit = fluid_dt_limit(self.fluid, 0.4, 0.0, g)  # stability bound for a fluid at rest
+        # stability bounds: fluid at rest (0.4 h/c0, force limit from gravity); blocks 2/omega_max
+        limits = []
+        if self.fluid is not None:
+            limits.append((fluid_dt_limit(self.fluid, 0.4, 0.0, g),
+                           f"0.4 h/c0 with h = {0.5 * self.fluid.support_radius:g} m, c0 = {self.fluid.sound_speed:g} m/s"))
+        if self.block_solver is not None:
+            limits.append((self.block_solver.critical_dt(), "the critical DDA step 2/omega_max of the stiffest block contact"))
+        self.dt_limit, why = min(limits)
         if self.fixed:
             if sim.dt_s > self.dt_limit:
-                raise SceneError(scene.path, [("simulation.dt_s",
-                                               f"{sim.dt_s:g} s is above the stability limit {self.dt_limit:.3g} s "
-                                               f"(0.4 h/c0 with h = {0.5 * self.fluid.support_radius:g} m, c0 = {self.fluid.sound_speed:g} m/s)")])
+                raise SceneError(scene.path, [("simulation.dt_s", f"{sim.dt_s:g} s is above the stability limit {self.dt_limit:.3g} s ({why})")])
             self._dt_target = sim.dt_s
         else:
-            self._dt_target = fluid_dt_limit(self.fluid, sim.cfl_number, 0.0, g)
+            self._dt_target = self._adaptive_dt(initial=True)
         self.dt = self._dt_target
         self._dt_dev = wp.array([self.dt], dtype=float, device=self.device)
         self._up = scene.dim - 1
@@ -174,6 +186,34 @@ class Simulation:
         self._gauge_kind = [gg.kind for gg in gauges]
         self._gauge_pos = wp.array(np.asarray([_pad3(gg.position_m) for gg in gauges] or np.zeros((0, 3)), dtype=np.float32),
                                    dtype=wp.vec3, device=self.device)
+
+    def _build_blocks(self) -> None:
+        from rockwave.blocks import BlockModel, BlockOverlapError, BlockSolver
+        from rockwave.geometry import GeometryError
+        from rockwave.rocks import block_specs
+
+        specs = block_specs(self.scene)
+        try:
+            self.blocks = BlockModel(specs, device=self.device, gravity=_pad3(self.scene.gravity.acceleration_m_s2))
+        except BlockOverlapError as e:
+            raise SceneError(self.scene.path, [("blocks", str(e))]) from None
+        except (GeometryError, ValueError) as e:
+            raise SceneError(self.scene.path, [("blocks", str(e))]) from None
+        self.block_solver = BlockSolver(self.blocks)
+        self.block_state = self.blocks.state()
+
+    def _adaptive_dt(self, initial: bool = False) -> float:
+        """The smaller of the fluid's CFL/force/viscous step and half the critical DDA step."""
+        sim = self.scene.simulation
+        dts = []
+        if self.fluid is not None and self.fluid.n_fluid:
+            if initial:
+                dts.append(fluid_dt_limit(self.fluid, sim.cfl_number, 0.0, float(np.linalg.norm(self.scene.gravity.acceleration_m_s2))))
+            else:
+                dts.append(self.fluid_solver.stable_dt(self.state, sim.cfl_number))
+        if self.block_solver is not None:
+            dts.append(self.block_solver.stable_dt(sim.block_dt_safety))
+        return min(dts) if dts else sim.duration_s
 
     # ---------------------------------------------------------------- stepping --------------
     def _set_dt(self, dt: float) -> None:
@@ -186,13 +226,16 @@ class Simulation:
         if dt is not None:
             self._set_dt(dt)
         with wp.ScopedDevice(self.device):
-            self.fluid_solver.step(self.state, self._dt_dev)
+            if self.fluid_solver is not None:
+                self.fluid_solver.step(self.state, self._dt_dev)
+            if self.block_solver is not None:
+                self.block_solver.step(self.block_state, self.dt, self.time)
         self.time += self.dt
         self.steps += 1
 
     def _update_dt_target(self) -> None:
-        if not self.fixed and self.steps % self.scene.simulation.dt_update_interval == 0 and self.fluid.n_fluid:
-            self._dt_target = self.fluid_solver.stable_dt(self.state, self.scene.simulation.cfl_number)
+        if not self.fixed and self.steps % self.scene.simulation.dt_update_interval == 0:
+            self._dt_target = self._adaptive_dt()
 
     def advance(self, duration: float) -> None:
         """Advance by ``duration`` seconds, landing exactly on the end time."""
@@ -205,12 +248,27 @@ class Simulation:
         self.time = t_end
 
     # ---------------------------------------------------------------- reading -----------------
+    @property
+    def n_fluid(self) -> int:
+        return self.fluid.n_fluid if self.fluid is not None else 0
+
     def positions(self) -> np.ndarray:
         """Fluid particle positions, (n_fluid, dim) [m]."""
+        if self.fluid is None:
+            return np.zeros((0, self.scene.dim))
         return self.state.x.numpy()[: self.fluid.n_fluid, : self.scene.dim].astype(np.float64)
 
     def velocities(self) -> np.ndarray:
+        if self.fluid is None:
+            return np.zeros((0, self.scene.dim))
         return self.state.v.numpy()[: self.fluid.n_fluid, : self.scene.dim].astype(np.float64)
+
+    def block_positions(self) -> np.ndarray:
+        """Block centroids, (n_blocks, 3) [m]."""
+        return self.block_state.positions_numpy() if self.blocks is not None else np.zeros((0, 3))
+
+    def block_velocities(self) -> np.ndarray:
+        return self.block_state.velocities_numpy() if self.blocks is not None else np.zeros((0, 3))
 
     def densities(self) -> np.ndarray:
         return self.state.rho.numpy().astype(np.float64)
@@ -222,13 +280,19 @@ class Simulation:
         return self.state.x.numpy()[self.fluid.n_fluid:, : self.scene.dim].astype(np.float64)
 
     def kinetic_energy(self) -> float:
-        v = self.velocities()
-        return 0.5 * self.fluid.fluid_mass * float((v * v).sum())
+        """Kinetic energy of the water (per metre of depth in 2D) plus the blocks [J]."""
+        e = 0.0
+        if self.fluid is not None:
+            v = self.velocities()
+            e += 0.5 * self.fluid.fluid_mass * float((v * v).sum())
+        if self.blocks is not None:
+            e += self.block_state.kinetic_energy()
+        return e
 
     def gauges(self) -> dict[str, float]:
         """Current gauge readings: 'height' gauges in m (NaN when dry), 'pressure' gauges in Pa."""
         n = len(self.gauge_names)
-        if n == 0 or self.fluid.n_fluid == 0:
+        if n == 0 or self.n_fluid == 0:
             return {}
         m = self.fluid
         with wp.ScopedDevice(self.device):
@@ -249,6 +313,16 @@ class Simulation:
 
     def check_health(self, x: np.ndarray, v: np.ndarray) -> int:
         """Raise SimulationError on NaN/inf or runaway speed; return the count of particles outside the domain."""
+        if self.blocks is not None:
+            xb, vb = self.block_positions(), self.block_velocities()
+            badb = ~np.isfinite(xb).all(axis=1) | ~np.isfinite(vb).all(axis=1)
+            if badb.any():
+                i = int(np.argmax(badb))
+                raise SimulationError(f"blow-up at step {self.steps}, t = {self.time:.5g} s: block {self.blocks.names[i]!r} "
+                                      f"has a NaN/inf position or velocity; try a smaller simulation.block_dt_safety "
+                                      f"(current step {self.dt:.3g} s) or softer contacts")
+        if self.fluid is None:
+            return 0
         bad = ~np.isfinite(x).all(axis=1) | ~np.isfinite(v).all(axis=1)
         speed = np.linalg.norm(np.where(bad[:, None], 0.0, v), axis=1)
         limit = 5.0 * self.fluid.sound_speed
@@ -282,14 +356,28 @@ class Simulation:
         fps = scene.output.frame_rate_hz
         n_frames = int(math.floor(duration * fps + 1e-9))
         frame_dt = 1.0 / fps
-        nf, dim = self.fluid.n_fluid, scene.dim
+        nf, dim = self.n_fluid, scene.dim
+        block_prims = block_prim_paths(self.blocks.names) if self.blocks is not None else []
+        deformable = [s.kind == "deformable" for s in self.blocks.specs] if self.blocks is not None else []
         writer = None
+        from rockwave.export.render import RenderOutputs
+
+        render = RenderOutputs(self, out)  # fluid surface, fluid fields, ParaView series (rockwave/export/render.py)
         if scene.output.usd:
-            writer = UsdFrameWriter(out / scene.output.usd, fps, "Z" if dim == 3 else "Y",
-                                    points_setup("/World/fluid", nf, self.fluid.spacing), scene.output.chunk_frames)
+            def setup(stage):
+                render.usd_setup(stage)
+                if self.fluid is not None:
+                    points_setup("/World/fluid", nf, self.fluid.spacing)(stage)
+                if self.blocks is not None:
+                    blocks_setup(stage, self.blocks, block_prims)
+
+            writer = UsdFrameWriter(out / scene.output.usd, fps, "Z" if dim == 3 else "Y", setup, scene.output.chunk_frames)
         gauge_rows: list[list[float]] = []
         gauge_path = out / scene.output.gauges_csv if self.gauge_names else None
-        bar = Progress(duration, nf, enabled=progress)
+        block_rows: list[list] = []
+        block_path = out / scene.output.blocks_csv if self.blocks is not None and scene.output.blocks_csv else None
+        bar = Progress(duration, nf if nf else (self.blocks.num_blocks if self.blocks is not None else 0), enabled=progress,
+                       unit="particles" if nf else "blocks")
         wall0 = time.perf_counter()
         escaped = 0
         t0 = self.time
@@ -297,11 +385,35 @@ class Simulation:
 
         def write_frame(frame: int) -> None:
             nonlocal escaped
-            x = self.state.x.numpy()[:nf]
-            v = self.state.v.numpy()[:nf]
-            escaped = self.check_health(x[:, :dim], v[:, :dim])
+            samples = {}
+            if self.fluid is not None:
+                x = self.state.x.numpy()[:nf]
+                v = self.state.v.numpy()[:nf]
+                escaped = self.check_health(x[:, :dim], v[:, :dim])
+                samples[("/World/fluid", "points", "point3f[]")] = x
+                samples[("/World/fluid", "velocities", "vector3f[]")] = v
+            else:
+                self.check_health(np.zeros((0, dim)), np.zeros((0, dim)))
+            if self.blocks is not None:
+                bx = self.block_state.positions_numpy()
+                bq = self.block_state.orientations_numpy()
+                bv = self.block_state.velocities_numpy()
+                bw = self.block_state.angular_velocities_numpy()
+                nc = self.block_state.contact_counts()
+                verts = self.block_state.world_vertices() if any(deformable) else None
+                for i, prim in enumerate(block_prims):
+                    if deformable[i]:
+                        samples[(prim, "points", "point3f[]")] = verts[i]
+                    else:
+                        samples[(prim, "xformOp:translate", "double3")] = bx[i]
+                        samples[(prim, "xformOp:orient", "quatf")] = Gf.Quatf(float(bq[i, 3]), float(bq[i, 0]), float(bq[i, 1]), float(bq[i, 2]))
+                    block_rows.append([self.time, i, self.blocks.names[i], *map(float, bx[i]), *map(float, bv[i]), *map(float, bw[i]), int(nc[i])])
+                if block_path is not None:
+                    _write_csv_atomic(block_path, ["time_s", "block", "name", "x_m", "y_m", "z_m", "vx_m_s", "vy_m_s", "vz_m_s",
+                                                   "wx_rad_s", "wy_rad_s", "wz_rad_s", "contacts"], block_rows)
+            render.frame(frame, samples)
             if writer is not None:
-                writer.write_frame(frame, {("/World/fluid", "points", "point3f[]"): x, ("/World/fluid", "velocities", "vector3f[]"): v})
+                writer.write_frame(frame, samples)
             if gauge_path is not None:
                 g = self.gauges()
                 gauge_rows.append([self.time] + [g[n] for n in self.gauge_names])
@@ -327,11 +439,13 @@ class Simulation:
             "scene": str(Path(scene.path).resolve()) if scene.path != "<scene>" else scene.path,
             "device": self.device,
             "fluid_particles": nf,
-            "boundary_particles": self.fluid.n_boundary,
+            "boundary_particles": self.fluid.n_boundary if self.fluid is not None else 0,
+            "blocks": self.blocks.num_blocks if self.blocks is not None else 0,
             "simulated_s": self.time - t0,
             "steps": self.steps,
             "wall_s": wall,
-            "particle_steps_per_s": nf * self.steps / wall if wall > 0 else None,
+            "particle_steps_per_s": nf * self.steps / wall if wall > 0 and nf else None,
+            "block_steps_per_s": self.blocks.num_blocks * self.steps / wall if wall > 0 and self.blocks is not None else None,
             "particles_outside_domain": escaped,
             "usd": str(out / scene.output.usd) if writer else None,
             "interrupted": interrupted,
@@ -340,6 +454,41 @@ class Simulation:
         if interrupted:
             raise KeyboardInterrupt
         return summary
+
+
+def block_prim_paths(names: list[str]) -> list[str]:
+    """Valid, unique USD prim paths /World/blocks/<name> for block names."""
+    out, seen = [], set()
+    for n in names:
+        p = re.sub(r"[^A-Za-z0-9_]", "_", n) or "block"
+        if p[0].isdigit():
+            p = "b_" + p
+        base, k = p, 1
+        while p in seen:
+            p = f"{base}_{k}"
+            k += 1
+        seen.add(p)
+        out.append(f"/World/blocks/{p}")
+    return out
+
+
+def blocks_setup(stage, blocks, prims: list[str]) -> None:
+    """Static part of the block meshes: body-frame points and polygon faces; rigid, fixed and
+    kinematic blocks move by time-sampled translate + orient ops, deformable ones by their points."""
+    from pxr import UsdGeom, Vt
+
+    UsdGeom.Scope.Define(stage, "/World/blocks")
+    for spec, prim in zip(blocks.specs, prims):
+        geo = spec.geometry
+        mesh = UsdGeom.Mesh.Define(stage, prim)
+        if spec.kind != "deformable":  # a deformable block's points come from the clips (a default here would hide them)
+            mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(geo.vertices, dtype=np.float32)))
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray([len(f) for f in geo.faces]))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([int(i) for f in geo.faces for i in f]))
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        if spec.kind != "deformable":
+            mesh.AddTranslateOp()
+            mesh.AddOrientOp()
 
 
 def _write_text_atomic(path: Path, text: str) -> None:
@@ -353,5 +502,5 @@ def _write_csv_atomic(path: Path, header: list[str], rows: list[list[float]]) ->
     w = csv.writer(buf)
     w.writerow(header)
     for r in rows:
-        w.writerow([f"{c:.6g}" for c in r])
+        w.writerow([f"{c:.6g}" if isinstance(c, float) else c for c in r])
     _write_text_atomic(path, buf.getvalue())

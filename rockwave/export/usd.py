@@ -33,6 +33,9 @@ _VALUE_TYPES = {
     "float3": (Sdf.ValueTypeNames.Float3, lambda a: tuple(float(c) for c in a)),
     "double3": (Sdf.ValueTypeNames.Double3, lambda a: tuple(float(c) for c in a)),
     "quatf": (Sdf.ValueTypeNames.Quatf, None),
+    "int[]": (Sdf.ValueTypeNames.IntArray, lambda a: Vt.IntArray.FromNumpy(np.ascontiguousarray(a, dtype=np.int32))),
+    "float3[]": (Sdf.ValueTypeNames.Float3Array, lambda a: Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float32))),
+    "normal3f[]": (Sdf.ValueTypeNames.Normal3fArray, lambda a: Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float32))),
 }
 
 

@@ -1,0 +1,95 @@
+"""Scene ``[[blocks]]`` entries -> :class:`rockwave.blocks.BlockSpec` list (host side)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rockwave import geometry
+from rockwave.blocks import BlockSpec, ContactMaterial, KinematicMotion
+from rockwave.scene import Scene, SceneError
+
+
+def _qmul(a, b):
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz)
+
+
+def euler_xyz_deg_to_quat(angles) -> tuple:
+    """Successive turns about the fixed x, then y, then z axes: q = q_z q_y q_x (x, y, z, w)."""
+    q = (0.0, 0.0, 0.0, 1.0)
+    for axis, deg in zip(np.eye(3), angles):
+        h = math.radians(deg) / 2
+        q = _qmul((*(axis * math.sin(h)), math.cos(h)), q)
+    return q
+
+
+def block_specs(scene: Scene) -> list[BlockSpec]:
+    """Expand the scene's block entries (arrays, multi-part meshes) into BlockSpecs."""
+    specs: list[BlockSpec] = []
+    for i, b in enumerate(scene.blocks):
+        path = f"blocks[{i}]"
+        try:
+            if b.shape == "box":
+                parts = [geometry.box(b.size_m, name=b.name)]
+            elif b.shape == "prism":
+                parts = [geometry.prism(b.vertices_m, name=b.name)]
+            else:
+                loaded = geometry.load_mesh(b.mesh)
+                parts = loaded if isinstance(loaded, list) else [loaded]
+                if b.mesh_scale != 1.0:
+                    scaled = []
+                    for part in parts:
+                        tm = part.to_trimesh()
+                        tm.apply_translation(part.origin_offset)
+                        tm.apply_scale(b.mesh_scale)
+                        scaled.append(geometry.from_trimesh(tm, name=part.name))
+                    parts = scaled
+        except (geometry.GeometryError, ValueError) as e:
+            key = f"{path}.mesh" if b.shape == "mesh" else f"{path}.{'vertices_m' if b.shape == 'prism' else 'size_m'}"
+            raise SceneError(scene.path, [(key, str(e))]) from None
+        mat = b.material
+        material = ContactMaterial(
+            friction_angle_deg=mat.friction_angle_deg, cohesion_pa=mat.cohesion_pa, tensile_strength_pa=mat.tensile_strength_pa,
+            normal_stiffness=mat.normal_stiffness_n_m, shear_stiffness=mat.shear_stiffness_n_m,
+            restitution=mat.restitution, damping_ratio=mat.damping_ratio)
+        motion = None
+        if b.kind == "kinematic":
+            mo = b.motion
+            if mo.type == "sine":
+                motion = KinematicMotion.sine(mo.amplitude_m, mo.frequency_hz, mo.phase_rad)
+            else:
+                motion = KinematicMotion.table(mo.times_s, mo.displacements_m)
+        q = euler_xyz_deg_to_quat(b.orientation_deg)
+        nx, ny, nz = (int(c) for c in b.array.count)
+        rot = geometry.quat_to_matrix(q)  # the array's axes turn with the block
+        offsets = [rot @ (np.array([ix, iy, iz]) * np.asarray(b.array.spacing_m))
+                   for iz in range(nz) for iy in range(ny) for ix in range(nx)]
+        many = len(offsets) * len(parts) > 1
+        k = 0
+        for part in parts:
+            base = np.asarray(b.position_m) if b.position_m is not None else np.asarray(part.origin_offset)
+            if b.position_m is not None and len(parts) > 1:
+                base = base + np.asarray(part.origin_offset)  # keep the parts' relative placement
+            for off in offsets:
+                specs.append(BlockSpec(
+                    geometry=part, position=tuple(base + off), orientation=q, density=b.density_kg_m3,
+                    velocity=tuple(b.velocity_m_s), angular_velocity=tuple(b.angular_velocity_rad_s), kind=b.kind,
+                    youngs_modulus=b.youngs_modulus_pa, poisson_ratio=b.poisson_ratio, motion=motion, material=material,
+                    name=f"{b.name}_{k}" if many else b.name, strain_damping_ratio=b.strain_damping_ratio))
+                k += 1
+    names = [s.name for s in specs]
+    dup = {n for n in names if names.count(n) > 1}
+    if dup:
+        # unique names for USD prims and the CSV
+        seen: dict[str, int] = {}
+        for s in specs:
+            if s.name in dup:
+                seen[s.name] = seen.get(s.name, -1) + 1
+                s.name = f"{s.name}_{seen[s.name]}"
+    return specs
