@@ -1,0 +1,208 @@
+"""``python -m rockwave preview RUN_DIR --frame N``: one frame of a run as a PNG, without a 3D package.
+
+What it reads: the run's USD stage (the path in ``RUN_DIR/run.json`` under ``"usd"``, else the one
+``.usdc``/``.usda``/``.usd`` file in RUN_DIR), at time code N (= frame N):
+- ``/World/fluid`` points, velocities and ``primvars:pressure`` (particles coloured by speed or
+  pressure);
+- every ``UsdGeom.Mesh`` under ``/World/blocks`` (points, xform at time N), outlined;
+- ``/World/fluid_surface`` in 2D (the contour, drawn as a line);
+- the root layer's ``customLayerData["rockwave"]`` for the dimension and the particle spacing
+  (a stage without it: 2D when upAxis is Y, spacing from the particle widths).
+
+2D scenes are drawn in their x-y plane. 3D scenes are drawn as an orthographic view along
+``--axis`` (default y: the x-z side view; nearer particles drawn over farther ones), or, with
+``--slice POS``, only the particles within one spacing of the plane at POS along that axis (blocks:
+those the plane cuts).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+
+class PreviewError(ValueError):
+    """The run folder or frame cannot be previewed; the message says why."""
+
+
+def find_stage(run_dir: str | os.PathLike) -> Path:
+    run = Path(run_dir)
+    if not run.is_dir():
+        raise PreviewError(f"{run}: not a folder")
+    info = run / "run.json"
+    if info.is_file():
+        try:
+            usd = json.loads(info.read_text()).get("usd")
+        except (OSError, ValueError):
+            usd = None
+        if usd:
+            for cand in (Path(usd), run / Path(usd).name):
+                if cand.is_file():
+                    return cand
+    found = sorted(p for ext in ("*.usdc", "*.usda", "*.usd") for p in run.glob(ext))
+    if not found:
+        raise PreviewError(f"{run}: no USD stage (run.json names none and there is no .usdc/.usda/.usd file); "
+                           "was the run made with output.usd = ''?")
+    return found[0]
+
+
+def _hull(p: np.ndarray) -> np.ndarray:
+    """Convex hull (Andrew's monotone chain) of 2D points, counter-clockwise."""
+    pts = sorted(set(map(tuple, np.round(p, 12))))
+    if len(pts) <= 2:
+        return np.asarray(pts)
+
+    def half(seq):
+        out = []
+        for q in seq:
+            while len(out) >= 2 and (out[-1][0] - out[-2][0]) * (q[1] - out[-2][1]) - (out[-1][1] - out[-2][1]) * (q[0] - out[-2][0]) <= 0:
+                out.pop()
+            out.append(q)
+        return out
+
+    lo, hi = half(pts), half(pts[::-1])
+    return np.asarray(lo[:-1] + hi[:-1])
+
+
+def load_frame(run_dir: str | os.PathLike, frame: int | None = None) -> dict:
+    """The data of one frame: dict with dim, spacing, frame, time_s, x (n, 3), v (n, 3),
+    pressure (n,) or None, blocks (list of world vertex arrays), contour ((S, 2, 3) or None),
+    frames (first, last)."""
+    from pxr import Usd, UsdGeom
+
+    path = find_stage(run_dir)
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise PreviewError(f"{path}: cannot open the USD stage")
+    first, last = int(stage.GetStartTimeCode()), int(stage.GetEndTimeCode())
+    if frame is None:
+        frame = last
+    if frame < first or frame > last:
+        raise PreviewError(f"frame {frame} is not in the run: frames {first}..{last}")
+    info = dict(stage.GetRootLayer().customLayerData.get("rockwave", {}))
+    dim = int(info.get("dimension") or (2 if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y else 3))
+    t = Usd.TimeCode(frame)
+    fluid_path = info.get("fluid_prim") or "/World/fluid"
+    fluid = stage.GetPrimAtPath(fluid_path)
+    x = v = pr = None
+    spacing = float(info.get("spacing_m") or 0.0)
+    if fluid and fluid.IsValid():
+        pts = fluid.GetAttribute("points").Get(t)
+        x = np.asarray(pts, np.float64).reshape(-1, 3) if pts is not None else np.zeros((0, 3))
+        vel = fluid.GetAttribute("velocities").Get(t)
+        v = np.asarray(vel, np.float64).reshape(-1, 3) if vel is not None and len(vel) == len(x) else np.zeros_like(x)
+        pa = fluid.GetAttribute("primvars:pressure")
+        pv = pa.Get(t) if pa else None
+        pr = np.asarray(pv, np.float64) if pv is not None and len(pv) == len(x) else None
+        if not spacing:
+            w = fluid.GetAttribute("widths").Get()
+            spacing = float(w[0]) if w else 0.0
+    else:
+        x, v = np.zeros((0, 3)), np.zeros((0, 3))
+    blocks = []
+    root = stage.GetPrimAtPath(info.get("blocks_prim") or "/World/blocks")
+    if root and root.IsValid():
+        cache = UsdGeom.XformCache(t)
+        for prim in Usd.PrimRange(root):
+            if not prim.IsA(UsdGeom.Mesh):
+                continue
+            p = UsdGeom.Mesh(prim).GetPointsAttr().Get(t)
+            if p is None or len(p) == 0:
+                continue
+            m = np.asarray(cache.GetLocalToWorldTransform(prim), np.float64)  # row-vector convention
+            local = np.asarray(p, np.float64).reshape(-1, 3)
+            blocks.append(local @ m[:3, :3] + m[3, :3])
+    contour = None
+    sp = stage.GetPrimAtPath(info.get("surface_prim") or "/World/fluid_surface")
+    if dim == 2 and sp and sp.IsValid() and sp.IsA(UsdGeom.BasisCurves):
+        cp = sp.GetAttribute("points").Get(t)
+        if cp is not None:
+            contour = np.asarray(cp, np.float64).reshape(-1, 2, 3)
+    if not spacing and len(x) > 1:
+        spacing = float(np.min(np.ptp(x, axis=0)[:dim]) / max(2.0, len(x) ** (1.0 / dim)))
+    return {"dim": dim, "spacing": spacing or 0.01, "frame": frame, "time_s": frame / stage.GetTimeCodesPerSecond(),
+            "x": x, "v": v, "pressure": pr, "blocks": blocks, "contour": contour, "frames": (first, last), "stage": str(path)}
+
+
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: str = "speed", axis: str = "y",
+                   slice_at: float | None = None, out: str | os.PathLike | None = None, dpi: int = 120) -> Path:
+    """Draw one frame to a PNG (default ``RUN_DIR/preview_NNNNN.png``); returns its path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Polygon
+
+    if color not in ("speed", "pressure"):
+        raise PreviewError(f"--color {color!r}: expected speed or pressure")
+    if axis not in _AXES:
+        raise PreviewError(f"--axis {axis!r}: expected x, y or z")
+    d = load_frame(run_dir, frame)
+    dim, h = d["dim"], d["spacing"]
+    x, v = d["x"], d["v"]
+    if color == "pressure":
+        if d["pressure"] is None:
+            raise PreviewError("the stage has no particle pressure (primvars:pressure); use --color speed")
+        c, clabel = d["pressure"], "pressure (Pa)"
+    else:
+        c, clabel = np.linalg.norm(v, axis=1), "speed (m/s)"
+    if dim == 2:
+        a, b, depth_axis = 0, 1, None
+        view = "x-y plane"
+    else:
+        depth_axis = _AXES[axis]
+        a, b = [k for k in range(3) if k != depth_axis]
+        view = f"view along {axis}" if slice_at is None else f"slice {axis} = {slice_at:g} m (+- {h:g} m)"
+    blocks = d["blocks"]
+    if depth_axis is not None:
+        if slice_at is not None:
+            keep = np.abs(x[:, depth_axis] - slice_at) <= h
+            x, c = x[keep], c[keep]
+            blocks = [bv for bv in blocks if bv[:, depth_axis].min() <= slice_at <= bv[:, depth_axis].max()]
+        order = np.argsort(-x[:, depth_axis])  # looking from the low side: far (high) first, near last
+        x, c = x[order], c[order]
+    pts2 = x[:, [a, b]]
+    allp = [pts2] + [bv[:, [a, b]] for bv in blocks]
+    if d["contour"] is not None and len(d["contour"]):
+        allp.append(d["contour"].reshape(-1, 3)[:, [a, b]])
+    allp = np.concatenate([p for p in allp if len(p)]) if any(len(p) for p in allp) else np.zeros((1, 2))
+    lo, hi = allp.min(axis=0) - 2 * h, allp.max(axis=0) + 2 * h
+    span = np.maximum(hi - lo, 1e-6)
+    width_in = 8.0
+    height_in = float(np.clip(width_in * span[1] / span[0], 2.5, 12.0))
+    fig, ax = plt.subplots(figsize=(width_in + 1.5, height_in + 0.8), dpi=dpi)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    fig.canvas.draw()
+    bbox = ax.get_window_extent()
+    pts_per_m = (bbox.width * 72.0 / fig.dpi) / span[0]
+    size = max((h * pts_per_m) ** 2, 0.5)
+    sc = ax.scatter(pts2[:, 0], pts2[:, 1], c=c, s=size, cmap="viridis", linewidths=0, marker="o")
+    if len(c):
+        fig.colorbar(sc, ax=ax, label=clabel, shrink=0.8)
+    for bv in blocks:
+        hull = _hull(bv[:, [a, b]])
+        if len(hull) >= 3:
+            ax.add_patch(Polygon(hull, closed=True, facecolor=(0.55, 0.5, 0.45, 0.35), edgecolor="k", linewidth=1.2))
+    if d["contour"] is not None and len(d["contour"]):
+        from matplotlib.collections import LineCollection
+
+        ax.add_collection(LineCollection(d["contour"][:, :, [a, b]], colors="tab:blue", linewidths=1.0))
+    names = "xyz"
+    ax.set_xlabel(f"{names[a]} (m)")
+    ax.set_ylabel(f"{names[b]} (m)")
+    ax.set_title(f"frame {d['frame']}, t = {d['time_s']:.4g} s, {len(pts2)} particles, {len(blocks)} blocks ({view})", fontsize=9)
+    out = Path(out) if out else Path(run_dir) / f"preview_{d['frame']:05d}.png"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.tmp.png")
+    fig.savefig(tmp, dpi=dpi)
+    plt.close(fig)
+    os.replace(tmp, out)
+    return out
