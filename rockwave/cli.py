@@ -1,4 +1,4 @@
-"""Command line: ``python -m rockwave run|validate|info|schema``. A thin layer over the Python API."""
+"""Command line: ``python -m rockwave run|validate|info|schema|preview|plot``. A thin layer over the Python API."""
 
 from __future__ import annotations
 
@@ -23,6 +23,17 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("scene")
     sub.add_parser("info", help="Warp version and devices")
     sub.add_parser("schema", help="print the scene format as a Markdown table")
+    pv = sub.add_parser("preview", help="draw one frame of a run as a PNG (particles coloured by speed or pressure, blocks outlined)")
+    pv.add_argument("run_dir", help="a run's output folder (holds run.json and the USD stage)")
+    pv.add_argument("--frame", type=int, default=None, help="frame number (default: the last)")
+    pv.add_argument("--color", choices=("speed", "pressure"), default="speed", help="particle colour (default: speed)")
+    pv.add_argument("--axis", choices=("x", "y", "z"), default="y", help="3D: look along this axis (default: y, the x-z side view)")
+    pv.add_argument("--slice", type=float, default=None, dest="slice_at", help="3D: only particles within one spacing of the plane at this position along --axis")
+    pv.add_argument("--out", default=None, help="PNG path (default: RUN_DIR/preview_NNNNN.png)")
+    pl = sub.add_parser("plot", help="draw a run's gauge time series (with the scene's reference data) as a PNG")
+    pl.add_argument("run_dir", help="a run's output folder (holds gauges.csv / blocks.csv and run.json)")
+    pl.add_argument("--scene", default=None, help="scene file for gauge kinds and references (default: the one in run.json)")
+    pl.add_argument("--out", default=None, help="PNG path (default: RUN_DIR/gauges.png)")
     return p
 
 
@@ -37,6 +48,22 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.command == "schema":
         print(schema_markdown())
+        return 0
+    if args.command in ("preview", "plot"):
+        from rockwave.preview import PreviewError
+
+        try:
+            if args.command == "preview":
+                from rockwave.preview import render_preview
+
+                path = render_preview(args.run_dir, args.frame, args.color, args.axis, args.slice_at, args.out)
+            else:
+                from rockwave.plot import plot_gauges
+
+                path = plot_gauges(args.run_dir, args.out, scene=args.scene)
+        except (PreviewError, SceneError) as e:
+            return _fail(e.one_line() if isinstance(e, SceneError) else str(e))
+        print(path)
         return 0
     if args.command == "info":
         import warp as wp
