@@ -200,6 +200,11 @@ def test_preview_3d_outlines_blocks(tmp_path):
         _png_ok(out)
     with pytest.raises(PreviewError):
         load_frame(tmp_path, 7)
+    panels, _, _ = gauge_series(tmp_path)  # blocks.csv: displacement from the first frame (a fixed block: none)
+    (label, t, disp, _), = panels["block displacement (m)"]
+    assert label == "rock" and len(t) == 2 and np.allclose(disp, 0.0)
+    assert main(["plot", str(tmp_path)]) == 0
+    _png_ok(tmp_path / "gauges.png")
 
 
 def test_reference_table_reads_spheric_headers():

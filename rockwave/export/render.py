@@ -29,7 +29,8 @@ class RenderOutputs:
         fluid = getattr(sim, "fluid", None)
         self.nf = int(fluid.n_fluid) if fluid is not None else 0
         self.spacing = float(fluid.spacing) if fluid is not None else 0.0
-        self.surface = surf.extractor_for(scene, fluid, sim.device) if self.nf else None
+        wanted = bool(scene.output.usd or scene.output.get("vtk"))  # the surface goes nowhere else
+        self.surface = surf.extractor_for(scene, fluid, sim.device) if self.nf and wanted else None
         self.vtk = vtk.VtkSeries(Path(out_dir) / scene.output.vtk) if scene.output.get("vtk") else None
         self.last_surface: surf.SurfaceMesh | None = None
 
