@@ -108,6 +108,15 @@ SCHEMA: dict[str, Key] = {
         pressure_force=Key("str", "'momentum': -m_i sum m_j (p_i/rho_i^2 + p_j/rho_j^2) gradW; 'muller': -m_i/rho_i sum m_j (p_i+p_j)/(2 rho_j) gradW", default="momentum", choices=("momentum", "muller")),
         density=Key("str", "'continuity': d rho_i/dt = sum m_j (v_i - v_j).gradW_ij (keeps rho0 at a free surface); 'summation': rho_i = sum m_j W_ij", default="continuity", choices=("continuity", "summation")),
         clamp_negative_pressure=Key("bool", "clip p < 0 to 0 (prevents tensile clumping at a free surface with summation density)", default=True),
+        method=Key("str", "'basic': WCSPH as above; 'ghost': Ghost SPH free surface (Schechter & Bridson 2012), ghost air particles seeded each step around the free surface ([fluid.ghost])", default="basic", choices=("basic", "ghost")),
+        ghost=_sec(
+            "Ghost SPH settings (used when method = 'ghost')",
+            surface_threshold=Key("float", "free-surface particles have position divergence div x below this (interior: the dimension); default 1.5 in 2D, 2.4 in 3D", min=0, max=3, min_open=True),
+            sample_radius_ratio=Key("float", "Poisson-disk radius r / spacing (default 0.80 in 2D, 0.85 in 3D: surface density ~ rho0)", min=0.5, max=1.5),
+            layer_ratio=Key("float", "ghost layer thickness / kernel support radius", default=1.0, min=0.25, max=2.0),
+            attempts=Key("int", "darts per background cell and round (Bridson's k)", default=8, min=1, max=100),
+            rounds=Key("int", "passes over the 3^dim independent phases of the background grid", default=2, min=1, max=10),
+        ),
         eos=_sec(
             "equation of state: give speed_of_sound_m_s, or the constant itself (b_pa for Tait, k_m2_s2 for linear)",
             type=Key("str", "'tait': p = B((rho/rho0)^gamma - 1); 'linear': p = k (rho - rho0)", default="tait", choices=("tait", "linear")),

@@ -149,7 +149,12 @@ class Simulation:
                 bstep, layers = boundary_lattice(scene)
                 self.fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2,
                                                self.device, bstep, layers)
-                self.fluid_solver = FluidSolver(self.fluid)
+                if scene.fluid.method == "ghost":
+                    from rockwave.ghost import GhostFluidSolver  # basic scenes never load the ghost code
+
+                    self.fluid_solver = GhostFluidSolver(self.fluid, scene.fluid.ghost)
+                else:
+                    self.fluid_solver = FluidSolver(self.fluid)
                 self.state = self.fluid.state()
                 if self.fluid.n_fluid:
                     self.fluid_solver.build_grid(self.state)

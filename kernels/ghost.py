@@ -1,0 +1,269 @@
+"""Ghost SPH kernels (Warp; same code on CPU and CUDA).
+
+Schechter & Bridson, "Ghost SPH for animating water", ACM TOG 31(4), 2012: each step, free-surface
+particles are found, and "ghost" air particles are seeded around them by Poisson-disk sampling out
+to one kernel radius. Ghosts carry the liquid particle mass, the velocity of the nearest liquid
+particle and the rest density (so p = 0). They fill the kernel support of surface particles, which
+removes the density deficiency of SPH at a free surface.
+
+Array layout used here (the "extended" arrays of :class:`rockwave.ghost.GhostFluidSolver`):
+``[0, n_fluid)`` fluid, ``[n_fluid, n_static)`` static boundary particles, ``[n_static, n_static +
+n_ghost)`` ghosts. The SPH kernels of ``sph.py`` treat every index >= n_fluid as a particle without
+pressure of its own (Akinci's boundary term ``-m_j p_i/rho_i^2 grad W_ij``), which is exactly the
+ghost rule p_ghost = 0; they are excluded from viscosity and XSPH there.
+
+Sampling (parallel dart throwing, after Bridson 2007's rejection rule): a background grid of cell
+size r/sqrt(d) holds at most one ghost per cell. Cells near a surface particle are marked active.
+Cells are split into 3^d phases (cell index mod 3 along each axis); two cells of one phase are at
+least two cells apart, i.e. farther than r, so all cells of a phase throw darts at the same time
+without conflicts. A dart is accepted when it lies within ``layer`` of a liquid particle and no
+closer than r to any liquid, boundary or ghost particle.
+"""
+
+import warp as wp
+
+from rockwave.kernels.sph import SPHParams, kernel_grad, kernel_w
+
+
+@wp.struct
+class GhostGrid:
+    """Dense background grid for the sampling (cells of size r/sqrt(dim))."""
+
+    lo: wp.vec3  # lower corner [m]
+    cell: float  # cell width [m]
+    nx: int
+    ny: int
+    nz: int  # 1 in 2D
+    dim: int
+    r: float  # Poisson-disk radius between ghosts [m]
+    r_liquid: float  # no ghost closer than this to a liquid or boundary particle [m]
+    layer: float  # ghosts lie within this distance of a liquid particle [m]
+    liquid_volume: float  # m / rho0 of a liquid particle [m^dim]
+    colour_max: float  # ghosts only where the liquid colour field sum_j V_j W is below this (outside the liquid)
+
+
+@wp.func
+def cell_coord(g: GhostGrid, x: wp.vec3) -> wp.vec3i:
+    c = (x - g.lo) / g.cell
+    k = int(0)
+    if g.dim == 3:
+        k = int(wp.floor(c[2]))
+    return wp.vec3i(int(wp.floor(c[0])), int(wp.floor(c[1])), k)
+
+
+@wp.func
+def cell_index(g: GhostGrid, i: int, j: int, k: int) -> int:
+    return (k * g.ny + j) * g.nx + i
+
+
+@wp.kernel
+def position_divergence(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    p: SPHParams,
+    n_static: int,
+    threshold: float,
+    div: wp.array(dtype=float),
+    surface: wp.array(dtype=int),
+):
+    """div x_i = sum_j V_j (x_j - x_i) . grad_i W_ij over liquid and boundary neighbours (Lee et al. 2008;
+    Schechter & Bridson 2012, sec. 4), V_j = m_j/rho_j (rho0 for boundary particles). It equals the
+    dimension inside the liquid (the kernel gradient is lattice-calibrated) and drops at a free
+    surface; particles below ``threshold`` are surface particles."""
+    i = wp.tid()
+    xi = x[i]
+    s = float(0.0)
+    q = wp.hash_grid_query(grid, xi, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j == i or j >= n_static:
+            continue
+        rij = xi - x[j]
+        r = wp.length(rij)
+        if r < p.H:
+            rj = p.rest_density
+            if j < p.n_fluid:
+                rj = rho[j]
+            s -= particle_mass[j] / rj * wp.dot(rij, kernel_grad(rij, r, p))
+    div[i] = s
+    f = int(0)
+    if s < threshold:
+        f = 1
+    surface[i] = f
+
+
+@wp.kernel
+def mark_active_cells(
+    x: wp.array(dtype=wp.vec3),
+    surface: wp.array(dtype=int),
+    g: GhostGrid,
+    active: wp.array(dtype=int),
+):
+    """Mark the background cells that meet the disc/ball of radius layer + r around each surface particle
+    (the dart tests decide the rest)."""
+    i = wp.tid()
+    if surface[i] == 0:
+        return
+    xi = x[i]
+    reach = g.layer
+    lo = cell_coord(g, xi - wp.vec3(reach))
+    hi = cell_coord(g, xi + wp.vec3(reach))
+    if g.dim == 2:
+        lo = wp.vec3i(lo[0], lo[1], 0)
+        hi = wp.vec3i(hi[0], hi[1], 0)
+    half = 0.5 * g.cell
+    half_diag = half * wp.sqrt(float(g.dim))
+    for k in range(wp.max(lo[2], 0), wp.min(hi[2], g.nz - 1) + 1):
+        for jj in range(wp.max(lo[1], 0), wp.min(hi[1], g.ny - 1) + 1):
+            for ii in range(wp.max(lo[0], 0), wp.min(hi[0], g.nx - 1) + 1):
+                c = g.lo + wp.vec3(float(ii) * g.cell + half, float(jj) * g.cell + half, float(k) * g.cell + half)
+                if g.dim == 2:
+                    c = wp.vec3(c[0], c[1], 0.0)
+                # skip cells wholly inside the disc of radius r around x_i (every dart there is
+                # rejected) or wholly beyond the layer
+                dist = wp.length(c - xi)
+                if dist + half_diag < g.r_liquid or dist - half_diag > reach:
+                    continue
+                active[cell_index(g, ii, jj, k)] = 1
+
+
+@wp.kernel
+def throw_darts(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    n_fluid: int,
+    n_static: int,
+    g: GhostGrid,
+    phase: wp.vec3i,
+    p: SPHParams,
+    seed: int,
+    attempts: int,
+    active: wp.array(dtype=int),
+    cell_ghost: wp.array(dtype=int),
+    count: wp.array(dtype=int),
+    capacity: int,
+    x_ghost: wp.array(dtype=wp.vec3),
+    v_ghost: wp.array(dtype=wp.vec3),
+    ghost_of: wp.array(dtype=int),
+):
+    """One phase of dart throwing: one thread per cell of the phase (cells 3 apart along each axis)
+    tries up to ``attempts`` uniform darts in its cell and keeps the first that passes Bridson's
+    (2007) rejection test against liquid, boundary and ghost particles. Accepted ghosts are appended
+    at ``n_static + count`` (``x_ghost``/``v_ghost`` alias the extended x/v arrays)."""
+    ti, tj, tk = wp.tid()
+    ci = 3 * ti + phase[0]
+    cj = 3 * tj + phase[1]
+    ck = 3 * tk + phase[2]
+    if ci >= g.nx or cj >= g.ny or ck >= g.nz:
+        return
+    c = cell_index(g, ci, cj, ck)
+    if active[c] == 0 or cell_ghost[c] >= 0:
+        return
+    rng = wp.rand_init(seed, c)
+    r2 = g.r * g.r
+    base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
+    reach = 2
+    for t in range(attempts):
+        y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
+        if g.dim == 2:
+            y = wp.vec3(y[0], y[1], 0.0)
+        ok = int(1)
+        # ghosts already placed in the 5^d block of cells around (at most one per cell)
+        k0 = ck
+        k1 = ck
+        if g.dim == 3:
+            k0 = wp.max(ck - reach, 0)
+            k1 = wp.min(ck + reach, g.nz - 1)
+        for k in range(k0, k1 + 1):
+            for jj in range(wp.max(cj - reach, 0), wp.min(cj + reach, g.ny - 1) + 1):
+                for ii in range(wp.max(ci - reach, 0), wp.min(ci + reach, g.nx - 1) + 1):
+                    o = cell_ghost[cell_index(g, ii, jj, k)]
+                    if o >= 0:
+                        if wp.length_sq(x_ghost[o] - y) < r2:
+                            ok = 0
+        if ok == 0:
+            continue
+        # liquid and boundary particles: none closer than r; nearest liquid within the layer
+        best = float(1.0e30)
+        nearest = int(-1)
+        rl2 = g.r_liquid * g.r_liquid
+        colour = float(0.0)
+        q = wp.hash_grid_query(grid, y, g.layer)
+        j = int(0)
+        while wp.hash_grid_query_next(q, j):
+            if j >= n_static:
+                continue
+            d2 = wp.length_sq(x[j] - y)
+            if d2 < rl2:
+                ok = 0
+                break
+            if j < n_fluid:
+                colour += g.liquid_volume * kernel_w(d2, p)
+                if d2 < best:
+                    best = d2
+                    nearest = j
+        # outside the liquid only: a gap inside the liquid wider than r_liquid must not get a ghost
+        # (a ghost there adds density, pushes the gap open and seeds more ghosts: an air bubble that grows)
+        if ok == 0 or nearest < 0 or best > g.layer * g.layer or colour > g.colour_max:
+            continue
+        slot = wp.atomic_add(count, 0, 1)
+        if slot < capacity:
+            o = n_static + slot
+            x_ghost[o] = y
+            v_ghost[o] = v[nearest]
+            ghost_of[slot] = nearest
+            cell_ghost[c] = o
+        return
+
+
+@wp.kernel
+def density_rate_with_ghosts(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    p: SPHParams,
+    drho_dt: wp.array(dtype=float),
+):
+    """Continuity: d rho_i/dt = sum_j m_j (v_i - v_j) . grad W_ij (Monaghan 1992) over liquid, boundary
+    (v = 0) and ghost neighbours (v = the nearest liquid particle's velocity, Schechter & Bridson 2012)."""
+    i = wp.tid()
+    xi = x[i]
+    vi = v[i]
+    s = float(0.0)
+    q = wp.hash_grid_query(grid, xi, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j != i:
+            rij = xi - x[j]
+            r = wp.length(rij)
+            if r < p.H:
+                s += particle_mass[j] * wp.dot(vi - v[j], kernel_grad(rij, r, p))
+    drho_dt[i] = s
+
+
+@wp.kernel
+def ghost_mass(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    n_static: int,
+    particle_mass: wp.array(dtype=float),
+):
+    """Ghost mass from its number density (as Akinci et al. 2012 do for boundary particles):
+    m_g = rho0 / sum_k W_gk over liquid and ghost neighbours (self included). On a lattice of
+    spacing dx this is the liquid particle mass; a ghost that the random sampling placed close to
+    others gets less, which cancels most of the density noise of a random ghost layer.
+    Launched over ghosts."""
+    gi = wp.tid() + n_static
+    xg = x[gi]
+    s = float(0.0)
+    q = wp.hash_grid_query(grid, xg, p.H)
+    k = int(0)
+    while wp.hash_grid_query_next(q, k):
+        if k < p.n_fluid or k >= n_static:
+            s += kernel_w(wp.length_sq(xg - x[k]), p)
+    particle_mass[gi] = p.rest_density / s

@@ -1,0 +1,238 @@
+"""Ghost SPH free surface (Schechter & Bridson 2012) for the weakly compressible SPH solver.
+
+Selected per scene with ``fluid.method = "ghost"`` (settings in ``[fluid.ghost]``); a basic scene
+never imports this module. :class:`GhostFluidSolver` is a :class:`rockwave.fluid.FluidSolver`
+whose step first seeds ghost air particles around the free surface and then runs the same SPH
+kernels on fluid + boundary + ghost particles:
+
+1. copy fluid and boundary positions/velocities into extended arrays, build the hash grid;
+2. free-surface particles: position divergence ``div x_i`` below a threshold;
+3. ghost air particles within one kernel radius of the liquid by parallel Poisson-disk dart
+   throwing (``kernels/ghost.py``); mass = liquid mass, velocity = nearest liquid particle's,
+   density = rho0 (p = 0);
+4. rebuild the grid with the ghosts, density (summation or continuity) and forces. Ghosts count in
+   the density sums; in the pressure force they enter only through the liquid particle's own
+   ``p_i/rho_i^2`` term (their pressure is zero); no viscosity or XSPH with ghosts.
+
+Walls: the tank and obstacle boundary particles are static layers at least one kernel radius thick
+with lattice-calibrated masses, i.e. they already are the "ghost solid particles" of the paper
+(they complete the density sums at walls and push with the Akinci term); they are not resampled.
+
+One host read per step (the ghost count, to size the grid build and grow the buffers).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import warp as wp
+
+from rockwave.fluid import FluidModel, FluidSolver, FluidState
+from rockwave.kernels import ghost as gk
+from rockwave.kernels import sph
+
+# Free-surface threshold on div x (the full value is the dimension). 2D: 1.5 as in the report and
+# Lee et al. (2008). 3D: measured on lattice blocks and spheres (tests/test_ghost.py): interior 3.0,
+# flat face 1.9-2.0, edges/corners below, one layer in 2.7-2.9; 2.4 flags the outer layer only.
+DEFAULT_THRESHOLD = {2: 1.5, 3: 2.4}
+# Poisson-disk radius / spacing. A saturated random disk packing has ~0.70/r^2 points per area
+# (0.73/r^3 per volume in 3D), the liquid lattice 1/dx^d; with finite attempts the packing is not
+# saturated. Calibrated so the summation density of a flat surface layer comes out at rho0
+# within about 2% (tests/test_ghost.py::test_ghosts_complete_surface_density).
+DEFAULT_RADIUS_RATIO = {2: 0.80, 3: 0.85}
+
+
+class GhostFluidSolver(FluidSolver):
+    """FluidSolver with ghost air particles (Schechter & Bridson 2012).
+
+    Attributes (beyond FluidSolver's):
+        threshold: free-surface threshold on div x; r: Poisson-disk radius [m];
+        layer: ghost layer thickness [m]; attempts, rounds: darts per cell per round, rounds.
+        n_ghost: ghosts in use this step; capacity: ghost slots allocated (grows on demand).
+        x_ext, v_ext, mass_ext: wp.array(n_fluid + n_boundary + capacity): fluid, boundary, ghosts.
+        div: wp.array(float, n_fluid) position divergence; surface: wp.array(int, n_fluid) 1 at the surface.
+        sample_seconds: wall time spent in ghost sampling (only counted when ``profile`` is true).
+    """
+
+    def __init__(self, model: FluidModel, cfg=None):
+        super().__init__(model)
+        cfg = cfg or {}
+        d = model.device
+        dim = model.dim
+        self.threshold = float(cfg.get("surface_threshold") or DEFAULT_THRESHOLD[dim])
+        self.r = float(cfg.get("sample_radius_ratio") or DEFAULT_RADIUS_RATIO[dim]) * model.spacing
+        self.layer = float(cfg.get("layer_ratio") or 1.0) * model.support_radius
+        # liquid particles own a cell of width dx, ghosts one of width ~r: keep the centres half of each apart
+        self.r_liquid = 0.5 * (model.spacing + self.r)
+        self.number_density_mass = bool(cfg.get("number_density_mass", True))
+        self.attempts = int(cfg.get("attempts") or 8)
+        self.rounds = int(cfg.get("rounds") or 2)
+        self.profile = False
+        self.sample_seconds = 0.0
+        self.n_ghost = 0
+        self._seed = 0
+        # Darts are drawn from one random stream per background cell that is the same every step
+        # (fresh_darts = False): where the liquid has not moved, the ghosts come out the same, so
+        # the unavoidable density error of a random layer is a fixed offset instead of a new random
+        # force every step (which, with a stiff EOS, heats a resting drop until it flies apart).
+        self.seed = int(cfg.get("seed") or 1)
+        self.fresh_darts = bool(cfg.get("fresh_darts", False))
+        self.ghost_pressure_term = bool(cfg.get("ghost_pressure_term", True))
+        # background grid over the model domain grown by the layer
+        g = gk.GhostGrid()
+        cell = self.r / math.sqrt(dim)
+        lo = np.asarray(model.domain_lo, float) - self.layer
+        hi = np.asarray(model.domain_hi, float) + self.layer
+        n = np.maximum(np.ceil((hi - lo) / cell).astype(int), 1)
+        if dim == 2:
+            lo[2], n[2] = 0.0, 1
+        ncell = int(np.prod(n))
+        if ncell > 400_000_000:
+            raise ValueError(f"ghost background grid of {ncell:,} cells (domain {np.round(hi - lo, 3).tolist()} m at "
+                             f"{cell:.3g} m): reduce the domain or raise fluid.ghost.sample_radius_ratio")
+        g.lo = wp.vec3(*lo.tolist())
+        g.cell, g.nx, g.ny, g.nz, g.dim, g.r, g.layer = cell, int(n[0]), int(n[1]), int(n[2]), dim, self.r, self.layer
+        g.r_liquid = self.r_liquid
+        g.liquid_volume = model.fluid_mass / model.params.rest_density
+        g.colour_max = 0.5
+        self.bg = g
+        self.active = wp.zeros(ncell, dtype=int, device=d)
+        self.cell_ghost = wp.full(ncell, -1, dtype=int, device=d)
+        self.count = wp.zeros(1, dtype=int, device=d)
+        self.div = wp.zeros(model.n_fluid, dtype=float, device=d)
+        self.surface = wp.zeros(model.n_fluid, dtype=int, device=d)
+        self._phase_dims = (-(-g.nx // 3), -(-g.ny // 3), -(-g.nz // 3))
+        self._phases = [wp.vec3i(a, b, c) for c in range(3 if dim == 3 else 1) for b in range(3) for a in range(3)]
+        self._drho = wp.zeros(model.n_fluid, dtype=float, device=d)
+        self._alloc(max(1024, 2 * model.n_fluid))
+
+    # ------------------------------------------------------------------ buffers --------------
+    def _alloc(self, capacity: int) -> None:
+        m, d = self.model, self.model.device
+        ns = m.n_total
+        self.capacity = capacity
+        self.x_ext = wp.zeros(ns + capacity, dtype=wp.vec3, device=d)
+        self.v_ext = wp.zeros(ns + capacity, dtype=wp.vec3, device=d)
+        self.mass_ext = wp.full(ns + capacity, m.fluid_mass, dtype=float, device=d)
+        wp.copy(self.mass_ext, m.particle_mass, 0, 0, ns)
+        # the same masses with ghosts at zero: the force pass when ghosts must add no pressure force
+        self.mass_force = wp.zeros(ns + capacity, dtype=float, device=d)
+        wp.copy(self.mass_force, m.particle_mass, 0, 0, ns)
+        self.ghost_of = wp.zeros(capacity, dtype=int, device=d)
+        self.grid.reserve(ns + capacity)
+
+    # ------------------------------------------------------------------ sampling -------------
+    def sample_ghosts(self, state: FluidState) -> int:
+        """Free-surface detection and ghost seeding for the current positions. Leaves the hash grid
+        built over fluid + boundary + ghosts. Returns the number of ghosts."""
+        m = self.model
+        ns = m.n_total
+        t0 = time.perf_counter() if self.profile else 0.0
+        wp.copy(self.x_ext, state.x, 0, 0, ns)
+        wp.copy(self.v_ext, state.v, 0, 0, ns)
+        self.grid.build(self.x_ext[:ns], m.support_radius)
+        wp.launch(gk.position_divergence, dim=m.n_fluid,
+                  inputs=[self.grid.id, self.x_ext, state.rho, self.mass_ext, m.params, ns, self.threshold],
+                  outputs=[self.div, self.surface], device=m.device)
+        while True:
+            self.active.zero_()
+            self.cell_ghost.fill_(-1)
+            self.count.zero_()
+            wp.launch(gk.mark_active_cells, dim=m.n_fluid, inputs=[self.x_ext, self.surface, self.bg], outputs=[self.active],
+                      device=m.device)
+            for rnd in range(self.rounds):
+                for k, ph in enumerate(self._phases):
+                    seed = self.seed + rnd * len(self._phases) + k
+                    if self.fresh_darts:
+                        self._seed += 1
+                        seed = self.seed + self._seed
+                    wp.launch(gk.throw_darts, dim=self._phase_dims,
+                              inputs=[self.grid.id, self.x_ext, self.v_ext, m.n_fluid, ns, self.bg, ph, m.params, seed,
+                                      self.attempts, self.active, self.cell_ghost, self.count, self.capacity],
+                              outputs=[self.x_ext, self.v_ext, self.ghost_of], device=m.device)
+            n = int(self.count.numpy()[0])
+            if n <= self.capacity:
+                break
+            # more ghosts than slots: grow and sample again (rare; the buffers only grow)
+            x_keep, v_keep = self.x_ext, self.v_ext
+            self._alloc(int(1.5 * n) + 1024)
+            wp.copy(self.x_ext, x_keep, 0, 0, ns)
+            wp.copy(self.v_ext, v_keep, 0, 0, ns)
+            self.grid.build(self.x_ext[:ns], m.support_radius)
+        self.n_ghost = n
+        self.grid.build(self.x_ext[: ns + n], m.support_radius)
+        if n and self.number_density_mass:
+            wp.launch(gk.ghost_mass, dim=n, inputs=[self.grid.id, self.x_ext, m.params, ns], outputs=[self.mass_ext], device=m.device)
+        if self.profile:
+            wp.synchronize_device(m.device)
+            self.sample_seconds += time.perf_counter() - t0
+        return n
+
+    # ------------------------------------------------------------------ solver interface -----
+    def compute_density(self, state: FluidState) -> None:
+        """Summation density with ghosts (initial state in summation mode)."""
+        m = self.model
+        self.sample_ghosts(state)
+        wp.launch(sph.particle_density_summation, dim=m.n_fluid,
+                  inputs=[self.grid.id, self.x_ext, self.mass_ext, m.params], outputs=[state.rho, state.pressure], device=m.device)
+
+    def step(self, state: FluidState, dt: wp.array) -> None:
+        m = self.model
+        if m.n_fluid == 0:
+            return
+        self.sample_ghosts(state)
+        if m.density_mode == "summation":
+            wp.launch(sph.particle_density_summation, dim=m.n_fluid,
+                      inputs=[self.grid.id, self.x_ext, self.mass_ext, m.params], outputs=[state.rho, state.pressure], device=m.device)
+        else:
+            wp.launch(gk.density_rate_with_ghosts, dim=m.n_fluid,
+                      inputs=[self.grid.id, self.x_ext, self.v_ext, self.mass_ext, m.params], outputs=[self._drho], device=m.device)
+            wp.launch(sph.integrate_density, dim=m.n_fluid, inputs=[self._drho, dt, m.params],
+                      outputs=[state.rho, state.pressure], device=m.device)
+        wp.launch(sph.particle_acceleration, dim=m.n_fluid,
+                  inputs=[self.grid.id, self.x_ext, self.v_ext, state.rho, state.pressure,
+                          self.mass_ext if self.ghost_pressure_term else self.mass_force, m.params],
+                  outputs=[state.accel, state.xsph_dv], device=m.device)
+        wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[state.accel, state.xsph_dv, dt],
+                  outputs=[state.x, state.v], device=m.device)
+
+    # ------------------------------------------------------------------ reading --------------
+    def ghost_positions(self) -> np.ndarray:
+        """Positions of the ghosts of the last sampling, (n_ghost, 3) [m]."""
+        ns = self.model.n_total
+        return self.x_ext.numpy()[ns: ns + self.n_ghost].astype(np.float64)
+
+    def ghost_velocities(self) -> np.ndarray:
+        ns = self.model.n_total
+        return self.v_ext.numpy()[ns: ns + self.n_ghost].astype(np.float64)
+
+    def surface_flags(self) -> np.ndarray:
+        return self.surface.numpy().astype(bool)
+
+    def divergence(self) -> np.ndarray:
+        return self.div.numpy().astype(np.float64)
+
+
+def drop_simulation(scene, radius: float, velocity=None, device: str | None = None):
+    """A Simulation of the scene's fluid cut to a disc (2D) or ball (3D) of ``radius`` about the
+    origin, for the drop scenes (scene regions are boxes). ``velocity(x) -> (n, 3)`` sets the initial
+    velocities (default: at rest). Continuity density starts at rho0; summation recomputes it."""
+    import rockwave
+    from rockwave.fluid import build_fluid_model
+    from rockwave.simulation import boundary_lattice, seed_particles
+
+    sim = rockwave.Simulation(scene, device=device)
+    with wp.ScopedDevice(sim.device):
+        xf, _, _, xb = seed_particles(scene, sim.device)
+        xf = xf[np.linalg.norm(xf, axis=1) < radius]
+        vf = np.zeros_like(xf) if velocity is None else np.asarray(velocity(xf), float)
+        bstep, layers = boundary_lattice(scene)
+        sim.fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, sim.device, bstep, layers)
+        sim.fluid_solver = type(sim.fluid_solver)(sim.fluid, scene.fluid.ghost) if scene.fluid.method == "ghost" else type(sim.fluid_solver)(sim.fluid)
+        sim.state = sim.fluid.state()
+        sim.fluid_solver.build_grid(sim.state)
+        if sim.fluid.density_mode == "summation":
+            sim.fluid_solver.compute_density(sim.state)
+    return sim
