@@ -1,0 +1,55 @@
+"""Basic vs Ghost SPH on the same scene: cost per step and the share spent on ghost sampling.
+
+    python benchmarks/ghost_bench.py --device cpu --scene scenes/ghost_dam_break_case1.toml --steps 200
+    python benchmarks/ghost_bench.py --device cuda:0 --spacing 0.0025     # GPU, finer
+"""
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+import rockwave
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run(scene_path, method, device, steps, spacing, warm=20):
+    d = rockwave.load_scene(scene_path).raw
+    d["fluid"]["method"] = method
+    if spacing:
+        d["fluid"]["spacing_m"] = spacing
+    sim = rockwave.Simulation(rockwave.parse_scene(d, str(scene_path), Path(scene_path).parent), device=device)
+    for _ in range(warm):
+        sim.step()
+    wp.synchronize_device(sim.device)
+    s = sim.fluid_solver
+    if method == "ghost":
+        s.profile, s.sample_seconds = True, 0.0
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        sim.step()
+    wp.synchronize_device(sim.device)
+    wall = (time.perf_counter() - t0) / steps
+    share = s.sample_seconds / steps / wall if method == "ghost" else 0.0
+    return sim.fluid.n_fluid, wall, share, getattr(s, "n_ghost", 0)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--scene", default=str(ROOT / "scenes" / "ghost_dam_break_case1.toml"))
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--spacing", type=float, default=None)
+    a = ap.parse_args()
+    wp.config.quiet = True
+    nb, tb, _, _ = run(a.scene, "basic", a.device, a.steps, a.spacing)
+    ng, tg, share, ghosts = run(a.scene, "ghost", a.device, a.steps, a.spacing)
+    print(f"scene {Path(a.scene).name} device {a.device} fluid {nb} ghosts(last step) {ghosts}")
+    print(f"basic {tb * 1e3:.3f} ms/step  ghost {tg * 1e3:.3f} ms/step  ratio {tg / tb:.2f}  sampling share of ghost step {share:.0%}")
+
+
+if __name__ == "__main__":
+    main()
