@@ -1,0 +1,1 @@
+"""rockwave benchmarks: speed and accuracy on CPU and CUDA (python -m benchmarks ...)."""
