@@ -180,6 +180,14 @@ SCHEMA: dict[str, Key] = {
                    count=Key("vec", "copies along x, y, z (whole numbers)", length=3, default=[1.0, 1.0, 1.0]),
                    spacing_m=Key("vec", "centre-to-centre spacing along x, y, z", length=3, default=[0.0, 0.0, 0.0])),
     ),
+    "coupling": _sec(
+        "two-way penalty coupling of water and blocks, f = (K_s d - K_d v_rel.n) n (rockwave/coupling.py); used when a scene has both", optional=True,
+        contact_distance_ratio=Key("float", "contact distance d0 / spacing: water stays this far from block faces (0.5: the particle's half cell, so the water touches the face)", default=0.5, min=0.0, max=2.0, min_open=True),
+        stiffness_factor=Key("float", "K_s = factor m c0^2 / s^2 (the stiffness of the water itself at 1)", default=1.0, min=0.0, max=10.0, min_open=True),
+        damping_ratio=Key("float", "K_d = 2 ratio sqrt(K_s m): damping ratio of the particle-wall spring", default=0.5, min=0.0, max=2.0),
+        stiffness_n_m=Key("float", "explicit K_s (N/m per particle; per metre of depth in 2D), overrides stiffness_factor", min=0, min_open=True),
+        damping_n_s_m=Key("float", "explicit K_d (N s/m), overrides damping_ratio", min=0.0),
+    ),
     "output": _sec(
         "what a run writes into its output folder",
         usd=Key("str", "USD file of the frames ('.usdc' binary or '.usda' text); '' to skip", default="frames.usdc"),
@@ -336,6 +344,7 @@ class Scene:
     output: Node
     blocks: list = field(default_factory=list)
     raw: dict = field(repr=False, default_factory=dict)
+    coupling: Node | None = None  # [coupling] (rockwave/coupling.py); None: defaults
 
     @property
     def dim(self) -> int:
@@ -359,9 +368,8 @@ def _cross_checks(v: _Validator, s: Node) -> None:
         if s["tank"] is not None or s["obstacles"]:
             v.err("tank", "a tank or obstacles need water: add a [fluid] section or remove them")
         return
-    if s["tank"] is None:
-        v.err("tank", "a scene with water needs a [tank] (box_min_m/box_max_m or mesh)")
-        s["tank"] = Node(box_min_m=None, box_max_m=None, mesh=None)
+    if s["tank"] is None and not any(b["kind"] in ("fixed", "kinematic") for b in s["blocks"]):
+        v.err("tank", "the water has no walls: add a [tank] (box_min_m/box_max_m or mesh) or fixed [[blocks]] around it")
     eos = fl["eos"]
     const_key = "b_pa" if eos["type"] == "tait" else "k_m2_s2"
     other_key = "k_m2_s2" if eos["type"] == "tait" else "b_pa"
@@ -391,11 +399,12 @@ def _cross_checks(v: _Validator, s: Node) -> None:
         v.err("fluid.regions", "at least one [[fluid.regions]] entry is needed")
     for i, r in enumerate(fl["regions"]):
         check_region(r, f"fluid.regions[{i}]")
-    check_region(s["tank"], "tank")
+    if s["tank"] is not None:
+        check_region(s["tank"], "tank")
     for i, r in enumerate(s["obstacles"]):
         check_region(r, f"obstacles[{i}]")
     # fluid boxes must lie inside a box tank
-    t = s["tank"]
+    t = s["tank"] or {}
     if t.get("box_min_m") and t.get("box_max_m"):
         for i, r in enumerate(fl["regions"]):
             if r.get("box_min_m") and r.get("box_max_m"):
@@ -421,8 +430,12 @@ def _cross_checks(v: _Validator, s: Node) -> None:
 def _check_blocks(v: _Validator, s: Node) -> None:
     blocks = s["blocks"]
     if blocks and v.dim == 2:
-        v.err("blocks", "rock blocks need a 3D scene (simulation.dimension = 3)")
-        return
+        # 2D: blocks are 3D prisms extruded along z (their z-extent is their depth) moving in the x-y plane
+        for i, b in enumerate(blocks):
+            if any(abs(a) > 0 for a in (b["orientation_deg"] or [0, 0, 0])[:2]):
+                v.err(f"blocks[{i}].orientation_deg", "in a 2D scene a block turns about z only (x and y angles 0)")
+            if b["velocity_m_s"] and b["velocity_m_s"][2] != 0 or b["angular_velocity_rad_s"] and any(b["angular_velocity_rad_s"][:2]):
+                v.err(f"blocks[{i}]", "in a 2D scene a block moves in the x-y plane (velocity z and spin x, y must be 0)")
     for i, b in enumerate(blocks):
         path = f"blocks[{i}]"
         need = {"box": "size_m", "prism": "vertices_m", "mesh": "mesh"}.get(b["shape"])
@@ -471,7 +484,7 @@ def parse_scene(data: dict, path: str | os.PathLike = "<scene>", base_dir: str |
     if v.errors:
         raise SceneError(path, v.errors)
     return Scene(path=str(path), simulation=s["simulation"], gravity=s["gravity"], fluid=s["fluid"], tank=s["tank"],
-                 obstacles=s["obstacles"], output=s["output"], blocks=s["blocks"], raw=data)
+                 obstacles=s["obstacles"], output=s["output"], blocks=s["blocks"], raw=data, coupling=s["coupling"])
 
 
 def load_scene(path: str | os.PathLike) -> Scene:

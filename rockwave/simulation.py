@@ -75,6 +75,8 @@ def _pad3(v) -> list[float]:
 def boundary_lattice(scene: Scene) -> tuple[float, int]:
     """Boundary particle spacing and number of layers for a scene."""
     t, spacing = scene.tank, scene.fluid.spacing_m
+    if t is None:  # water held by fixed blocks only (rockwave/coupling.py): no boundary particles
+        return spacing, 1
     bstep = spacing * t.boundary_spacing_ratio
     H = scene.fluid.support_radius_ratio * spacing
     return bstep, (t.layers or max(1, int(math.ceil(H / bstep - 1e-9))))
@@ -104,7 +106,9 @@ def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, n
     bstep, layers = boundary_lattice(scene)
     parts = []
     try:
-        if t.box_min_m is not None:
+        if t is None:  # walls from fixed blocks (rockwave/coupling.py)
+            keep = np.ones(len(x), bool)
+        elif t.box_min_m is not None:
             parts.append(sampling.box_shell(t.box_min_m, t.box_max_m, bstep, layers, True, t.open_top, up))
             keep = np.all((x[:, :dim] > np.asarray(t.box_min_m)) & (x[:, :dim] < np.asarray(t.box_max_m)), axis=1)
         else:
@@ -143,9 +147,15 @@ class Simulation:
         self.fluid = self.fluid_solver = self.state = None
         self.blocks = self.block_solver = self.block_state = None
         g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
+        self.coupling = None
+        self.removed_inside_blocks = 0
         with wp.ScopedDevice(self.device):
+            if scene.blocks:
+                self._build_blocks()
             if scene.fluid is not None:
                 xf, vf, depth, xb = seed_particles(scene, self.device)
+                if self.blocks is not None:
+                    xf, vf, depth = self._remove_inside_blocks(xf, vf, depth)
                 bstep, layers = boundary_lattice(scene)
                 self.fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2,
                                                self.device, bstep, layers)
@@ -162,8 +172,8 @@ class Simulation:
                         self.fluid_solver.compute_density(self.state)
                     else:
                         self.fluid_solver.set_density(self.state, hydrostatic_density(self.fluid, g * depth))
-            if scene.blocks:
-                self._build_blocks()
+            if self.blocks is not None and self.fluid is not None and self.fluid.n_fluid:
+                self._build_coupling()
         self.time = 0.0
         self.steps = 0
         self.gravity = np.asarray(_pad3(scene.gravity.acceleration_m_s2))
@@ -176,6 +186,8 @@ class Simulation:
                            f"0.4 h/c0 with h = {0.5 * self.fluid.support_radius:g} m, c0 = {self.fluid.sound_speed:g} m/s"))
         if self.block_solver is not None:
             limits.append((self.block_solver.critical_dt(), "the critical DDA step 2/omega_max of the stiffest block contact"))
+        if self.coupling is not None:
+            limits.append((self.coupling.critical_dt(), "the critical step of the fluid-block penalty spring (coupling.stiffness_factor)"))
         self.dt_limit, why = min(limits)
         if self.fixed:
             if sim.dt_s > self.dt_limit:
@@ -206,6 +218,32 @@ class Simulation:
             raise SceneError(self.scene.path, [("blocks", str(e))]) from None
         self.block_solver = BlockSolver(self.blocks)
         self.block_state = self.blocks.state()
+        self._planar = None
+        if self.scene.dim == 2:  # 2D: extruded prisms moving in the x-y plane (rockwave/coupling.py)
+            z0 = wp.array(self.blocks.base_position[:, 2].astype(np.float32), dtype=float, device=self.device)
+            self._planar = (z0, self.blocks.kinds)
+
+    def _remove_inside_blocks(self, xf, vf, depth):
+        """Drop fluid particles inside a block, or closer to its faces than half the contact distance
+        (rockwave/coupling.py); the count is kept in ``removed_inside_blocks`` and run.json."""
+        from rockwave.coupling import DEFAULT_D0_RATIO, block_signed_distance
+
+        c = self.scene.coupling
+        ratio = c.contact_distance_ratio if c is not None and c.contact_distance_ratio is not None else DEFAULT_D0_RATIO
+        dist, _ = block_signed_distance(self.blocks, self.block_state, xf)
+        keep = dist >= 0.5 * ratio * self.scene.fluid.spacing_m
+        self.removed_inside_blocks = int((~keep).sum())
+        return xf[keep], vf[keep], depth[keep]
+
+    def _build_coupling(self) -> None:
+        from rockwave.coupling import Coupling
+
+        c = self.scene.coupling
+        kw = {}
+        if c is not None:
+            kw = dict(stiffness_factor=c.stiffness_factor, damping_ratio=c.damping_ratio, k_s=c.stiffness_n_m, k_d=c.damping_n_s_m,
+                      d0=None if c.contact_distance_ratio is None else c.contact_distance_ratio * self.fluid.spacing)
+        self.coupling = Coupling(self.fluid, self.blocks, self.scene.dim, **kw)
 
     def _adaptive_dt(self, initial: bool = False) -> float:
         """The smaller of the fluid's CFL/force/viscous step and half the critical DDA step."""
@@ -218,6 +256,8 @@ class Simulation:
                 dts.append(self.fluid_solver.stable_dt(self.state, sim.cfl_number))
         if self.block_solver is not None:
             dts.append(self.block_solver.stable_dt(sim.block_dt_safety))
+        if self.coupling is not None:
+            dts.append(0.5 * self.coupling.critical_dt())
         return min(dts) if dts else sim.duration_s
 
     # ---------------------------------------------------------------- stepping --------------
@@ -231,10 +271,18 @@ class Simulation:
         if dt is not None:
             self._set_dt(dt)
         with wp.ScopedDevice(self.device):
+            if self.coupling is not None:  # forces from the state at t (rockwave/coupling.py)
+                self.coupling.compute(self.state, self.block_state, self._dt_dev)
             if self.fluid_solver is not None:
                 self.fluid_solver.step(self.state, self._dt_dev)
+            if self.coupling is not None:
+                self.coupling.apply(self.state, self._dt_dev)
             if self.block_solver is not None:
                 self.block_solver.step(self.block_state, self.dt, self.time)
+                if self._planar is not None:
+                    from rockwave.coupling import planar_constraint
+
+                    planar_constraint(self.block_state, *self._planar)
         self.time += self.dt
         self.steps += 1
 
@@ -446,6 +494,7 @@ class Simulation:
             "fluid_particles": nf,
             "boundary_particles": self.fluid.n_boundary if self.fluid is not None else 0,
             "blocks": self.blocks.num_blocks if self.blocks is not None else 0,
+            "removed_inside_blocks": self.removed_inside_blocks,
             "simulated_s": self.time - t0,
             "steps": self.steps,
             "wall_s": wall,

@@ -1,0 +1,316 @@
+"""Fluid <-> block coupling kernels (Warp): penalty repulsion between SPH particles and the faces
+of convex DDA blocks, after Nezami et al. (SPH-DDA 3D rock-fluid paper, Eq. 22)::
+
+    f_i = (K_s d_i - K_d (v_rel . n)) n ,   d_i = d0 - dist_i > 0
+
+with dist_i the signed distance of particle i to the block (max over the block's face planes:
+exact inside a convex block, a slight under-estimate outside near edges and corners), n the
+outward normal of the face that attains the max, d0 the contact distance and v_rel the particle
+velocity relative to the block surface point. The force is clipped at zero (no suction). The
+equal and opposite force, applied at the projection of the particle onto the face (the same line
+of action, so angular momentum is conserved too), goes to the block's ext_force / ext_torque.
+
+Broad phase ("a scene pays only for what it contains"): each block's AABB, grown by d0, is clipped
+to the AABB of the fluid particles; blocks outside it are skipped entirely. The cells of a uniform
+grid (cell size S) covered by the clipped box are hashed into buckets (counting sort); a particle
+reads only the bucket of its own cell. Blocks covering more than ``max_cells`` cells go to a short
+"large" list that every particle tests.
+"""
+
+import warp as wp
+
+KIND_FIXED = wp.constant(2)
+KIND_KINEMATIC = wp.constant(3)
+BIG = wp.constant(1.0e30)
+
+
+@wp.kernel
+def fluid_bounds(x: wp.array(dtype=wp.vec3), bounds: wp.array(dtype=float)):
+    """bounds[0:3] = min, bounds[3:6] = max of the fluid positions (pre-filled with +-BIG)."""
+    i = wp.tid()
+    p = x[i]
+    for k in range(3):
+        wp.atomic_min(bounds, k, p[k])
+        wp.atomic_max(bounds, 3 + k, p[k])
+
+
+@wp.kernel
+def face_planes(
+    face_block: wp.array(dtype=int),
+    body_normal: wp.array(dtype=wp.vec3),
+    body_offset: wp.array(dtype=float),
+    bx: wp.array(dtype=wp.vec3),
+    bq: wp.array(dtype=wp.quat),
+    n_out: wp.array(dtype=wp.vec3),
+    d_out: wp.array(dtype=float),
+):
+    """World face planes n . x = d of the (rigidly moved) blocks."""
+    f = wp.tid()
+    b = face_block[f]
+    n = wp.quat_rotate(bq[b], body_normal[f])
+    n_out[f] = n
+    d_out[f] = wp.dot(n, bx[b]) + body_offset[f]
+
+
+@wp.func
+def cell_of(p: wp.vec3, inv_s: float):
+    return wp.vec3i(int(wp.floor(p[0] * inv_s)), int(wp.floor(p[1] * inv_s)), int(wp.floor(p[2] * inv_s)))
+
+
+@wp.func
+def bucket_of(c: wp.vec3i, nbuckets: int):
+    h = (c[0] * 73856093) ^ (c[1] * 19349663) ^ (c[2] * 83492791)
+    return (h & 2147483647) % nbuckets
+
+
+@wp.kernel
+def block_cells(
+    wv: wp.array(dtype=wp.vec3),
+    vert_start: wp.array(dtype=int),
+    vert_count: wp.array(dtype=int),
+    bounds: wp.array(dtype=float),
+    reach: float,
+    inv_s: float,
+    max_cells: int,
+    cell_lo: wp.array(dtype=wp.vec3i),
+    cell_hi: wp.array(dtype=wp.vec3i),
+    ncell: wp.array(dtype=int),
+    large: wp.array(dtype=int),
+    counters: wp.array(dtype=int),
+):
+    """Per block: AABB grown by `reach`, clipped to the fluid AABB; cell range and count (0 when the
+    block is away from all water; blocks over max_cells cells go to the large list)."""
+    b = wp.tid()
+    s = vert_start[b]
+    lo = wv[s]
+    hi = wv[s]
+    for k in range(1, vert_count[b]):
+        p = wv[s + k]
+        lo = wp.min(lo, p)
+        hi = wp.max(hi, p)
+    empty = int(0)
+    for k in range(3):
+        l = wp.max(lo[k] - reach, bounds[k])
+        h = wp.min(hi[k] + reach, bounds[3 + k])
+        if l > h:
+            empty = 1
+        lo[k] = l
+        hi[k] = h
+    ncell[b] = 0
+    if empty == 1:
+        return
+    cl = cell_of(lo, inv_s)
+    ch = cell_of(hi, inv_s)
+    cell_lo[b] = cl
+    cell_hi[b] = ch
+    n = (ch[0] - cl[0] + 1) * (ch[1] - cl[1] + 1) * (ch[2] - cl[2] + 1)
+    if n > max_cells or n < 0:
+        slot = wp.atomic_add(counters, 1, 1)
+        large[slot] = b
+        return
+    ncell[b] = n
+    wp.atomic_add(counters, 0, n)
+
+
+@wp.kernel
+def count_buckets(
+    cell_lo: wp.array(dtype=wp.vec3i),
+    cell_hi: wp.array(dtype=wp.vec3i),
+    ncell: wp.array(dtype=int),
+    nbuckets: int,
+    bucket_count: wp.array(dtype=int),
+):
+    b = wp.tid()
+    if ncell[b] == 0:
+        return
+    cl = cell_lo[b]
+    ch = cell_hi[b]
+    for i in range(cl[0], ch[0] + 1):
+        for j in range(cl[1], ch[1] + 1):
+            for k in range(cl[2], ch[2] + 1):
+                wp.atomic_add(bucket_count, bucket_of(wp.vec3i(i, j, k), nbuckets), 1)
+
+
+@wp.kernel
+def fill_buckets(
+    cell_lo: wp.array(dtype=wp.vec3i),
+    cell_hi: wp.array(dtype=wp.vec3i),
+    ncell: wp.array(dtype=int),
+    nbuckets: int,
+    bucket_start: wp.array(dtype=int),
+    bucket_fill: wp.array(dtype=int),
+    entry_block: wp.array(dtype=int),
+    entry_cell: wp.array(dtype=wp.vec3i),
+):
+    b = wp.tid()
+    if ncell[b] == 0:
+        return
+    cl = cell_lo[b]
+    ch = cell_hi[b]
+    for i in range(cl[0], ch[0] + 1):
+        for j in range(cl[1], ch[1] + 1):
+            for k in range(cl[2], ch[2] + 1):
+                c = wp.vec3i(i, j, k)
+                h = bucket_of(c, nbuckets)
+                slot = bucket_start[h] + wp.atomic_add(bucket_fill, h, 1)
+                entry_block[slot] = b
+                entry_cell[slot] = c
+
+
+@wp.struct
+class CouplingParams:
+    k_s: float  # penalty stiffness K_s [N/m per particle; N/m per m of depth in 2D]
+    k_d: float  # penalty damping K_d [N s/m]
+    d0: float  # contact distance [m]
+    inv_s: float  # 1 / broad-phase cell size
+    nbuckets: int
+    n_large: int
+    track_walls: int  # 1: sum the forces of fixed/kinematic blocks on the water (diagnostics)
+
+
+@wp.func
+def block_contact(
+    i: int,
+    b: int,
+    xi: wp.vec3,
+    vi: wp.vec3,
+    p: CouplingParams,
+    face_start: wp.array(dtype=int),
+    face_count: wp.array(dtype=int),
+    plane_n: wp.array(dtype=wp.vec3),
+    plane_d: wp.array(dtype=float),
+    kinds: wp.array(dtype=int),
+    bx: wp.array(dtype=wp.vec3),
+    bv: wp.array(dtype=wp.vec3),
+    bw: wp.array(dtype=wp.vec3),
+    depth_scale: wp.array(dtype=float),
+    ext_force: wp.array(dtype=wp.vec3),
+    ext_torque: wp.array(dtype=wp.vec3),
+    wall_force: wp.array(dtype=wp.vec3),
+):
+    # signed distance to the convex block = max over face planes; n = normal of that face
+    fs = face_start[b]
+    dist = float(-BIG)
+    n = wp.vec3(0.0)
+    for k in range(face_count[b]):
+        e = wp.dot(plane_n[fs + k], xi) - plane_d[fs + k]
+        if e > dist:
+            dist = e
+            n = plane_n[fs + k]
+    f = wp.vec3(0.0)
+    if dist < p.d0:
+        c = bx[b]
+        xc = xi - dist * n  # projection onto the face plane (same line of action as f)
+        vs = bv[b] + wp.cross(bw[b], xc - c)
+        vn = wp.dot(vi - vs, n)
+        mag = p.k_s * (p.d0 - dist) - p.k_d * vn
+        if mag > 0.0:
+            f = mag * n
+            kind = kinds[b]
+            if kind != KIND_FIXED and kind != KIND_KINEMATIC:
+                fb = -depth_scale[b] * f
+                wp.atomic_add(ext_force, b, fb)
+                wp.atomic_add(ext_torque, b, wp.cross(xc - c, fb))
+            elif p.track_walls != 0:
+                wp.atomic_add(wall_force, 0, f)
+    return f
+
+
+@wp.kernel
+def particle_block_forces(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    dt: wp.array(dtype=float),
+    p: CouplingParams,
+    bucket_start: wp.array(dtype=int),
+    bucket_count: wp.array(dtype=int),
+    entry_block: wp.array(dtype=int),
+    entry_cell: wp.array(dtype=wp.vec3i),
+    large: wp.array(dtype=int),
+    face_start: wp.array(dtype=int),
+    face_count: wp.array(dtype=int),
+    plane_n: wp.array(dtype=wp.vec3),
+    plane_d: wp.array(dtype=float),
+    kinds: wp.array(dtype=int),
+    bx: wp.array(dtype=wp.vec3),
+    bv: wp.array(dtype=wp.vec3),
+    bw: wp.array(dtype=wp.vec3),
+    depth_scale: wp.array(dtype=float),
+    ext_force: wp.array(dtype=wp.vec3),
+    ext_torque: wp.array(dtype=wp.vec3),
+    wall_force: wp.array(dtype=wp.vec3),
+    dv: wp.array(dtype=wp.vec3),
+):
+    """Penalty force of every nearby block on fluid particle i, stored as the velocity change
+    dv_i = dt f_i / m_i (applied after the fluid step); reactions go to the blocks."""
+    i = wp.tid()
+    xi = x[i]
+    vi = v[i]
+    f = wp.vec3(0.0)
+    c = cell_of(xi, p.inv_s)
+    h = bucket_of(c, p.nbuckets)
+    s = bucket_start[h]
+    for e in range(s, s + bucket_count[h]):
+        if entry_cell[e] == c:
+            f += block_contact(i, entry_block[e], xi, vi, p, face_start, face_count, plane_n, plane_d, kinds, bx, bv, bw,
+                               depth_scale, ext_force, ext_torque, wall_force)
+    for k in range(p.n_large):
+        f += block_contact(i, large[k], xi, vi, p, face_start, face_count, plane_n, plane_d, kinds, bx, bv, bw,
+                           depth_scale, ext_force, ext_torque, wall_force)
+    dv[i] = (dt[0] / particle_mass[i]) * f
+
+
+@wp.kernel
+def apply_dv(dv: wp.array(dtype=wp.vec3), dt: wp.array(dtype=float), x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3)):
+    """Add the coupling impulse after the fluid step: the same update as including f/m in the
+    semi-implicit Euler acceleration (v += dt a; x += dt v)."""
+    i = wp.tid()
+    d = dv[i]
+    v[i] = v[i] + d
+    x[i] = x[i] + dt[0] * d
+
+
+@wp.kernel
+def planar_blocks(z0: wp.array(dtype=float), kinds: wp.array(dtype=int), x: wp.array(dtype=wp.vec3), q: wp.array(dtype=wp.quat),
+                  v: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.vec3)):
+    """2D scenes: blocks move in the x-y plane only (z fixed, spin about z only)."""
+    b = wp.tid()
+    if kinds[b] == KIND_FIXED:
+        return
+    p = x[b]
+    x[b] = wp.vec3(p[0], p[1], z0[b])
+    u = v[b]
+    v[b] = wp.vec3(u[0], u[1], 0.0)
+    o = w[b]
+    w[b] = wp.vec3(0.0, 0.0, o[2])
+    r = q[b]
+    q[b] = wp.normalize(wp.quat(0.0, 0.0, r[2], r[3]))
+
+
+@wp.kernel
+def signed_distance_to_blocks(
+    x: wp.array(dtype=wp.vec3),
+    n_blocks: int,
+    face_start: wp.array(dtype=int),
+    face_count: wp.array(dtype=int),
+    plane_n: wp.array(dtype=wp.vec3),
+    plane_d: wp.array(dtype=float),
+    out: wp.array(dtype=float),
+    which: wp.array(dtype=int),
+):
+    """Smallest signed distance of each point to any block (brute force: start-up and diagnostics)."""
+    i = wp.tid()
+    xi = x[i]
+    best = float(BIG)
+    bb = int(-1)
+    for b in range(n_blocks):
+        fs = face_start[b]
+        dist = float(-BIG)
+        for k in range(face_count[b]):
+            dist = wp.max(dist, wp.dot(plane_n[fs + k], xi) - plane_d[fs + k])
+        if dist < best:
+            best = dist
+            bb = b
+    out[i] = best
+    which[i] = bb

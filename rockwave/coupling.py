@@ -1,0 +1,254 @@
+"""Two-way coupling between the SPH water and the DDA rock blocks (DESIGN.md §4).
+
+Penalty method of the SPH-DDA paper (Eq. 22): a fluid particle closer than the contact distance
+d0 to a block face (or inside the block) is pushed out along the face's outward normal n by
+
+    f = (K_s d - K_d (v_rel . n)) n,   d = d0 - dist  (penetration past the contact distance),
+
+clipped at zero, and the block receives -f at the particle's projection on the face (force and
+torque about its centroid, through BlockState.ext_force / ext_torque). Fixed and kinematic blocks
+are walls, slopes and pistons for the water: a tank can be built from blocks.
+
+Defaults (from the fluid's speed of sound c0, particle mass m and spacing s):
+
+* d0 = s/2: lattice particles sit half a spacing from the faces of the box they fill, so the water
+  touches the surface (each particle stands for the s^dim cell around it) instead of floating on
+  a gap; this makes the displaced volume, and so the buoyancy, that of the block itself.
+* K_s = m c0^2 / s^2 (= rho0 c0^2 s^(dim-2)): the stiffness of one particle's column of water
+  compressed by d along n, so the wall is exactly as stiff as the water (penetration under a
+  pressure p is d/s = p/(rho0 c0^2) = Mach^2-small); its contact frequency sqrt(K_s/m) = c0/s
+  keeps omega dt = CFL number, inside the fluid's own step.
+* K_d = 2 zeta sqrt(K_s m) with zeta = 0.5: half-critical damping of that particle-wall spring,
+  so a particle hitting a wall does not bounce off (the paper leaves K_s, K_d open).
+
+Order within one step (both solvers on one clock, Simulation.step): forces from the state at t
+are computed first (they only read x(t), v(t) and the block poses); the fluid step runs; the
+coupling impulse dt f/m is then added exactly as if f/m had been part of the semi-implicit Euler
+acceleration (v += dt f/m, x += dt^2 f/m); the block step uses the reactions. The exchange is
+therefore equal and opposite within each step: water + blocks conserve momentum up to the
+external forces (gravity, fixed walls, kinematic blocks, tank particles).
+
+2D scenes: blocks are 3D prisms extruded along z (their z-extent is their depth; they move in the
+x-y plane only, Simulation enforces it). A 2D particle's mass and forces are per metre of depth,
+so the block receives f times its z-extent.
+
+Deformable blocks are coupled through their rigid motion (faces moved rigidly; their strains,
+~1e-5 for rock, are neglected here). Strain rates are not included in v_rel.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from rockwave.kernels import coupling as CK
+
+DEFAULT_D0_RATIO = 0.5
+DEFAULT_STIFFNESS_FACTOR = 1.0
+DEFAULT_DAMPING_RATIO = 0.5
+
+
+def _next_pow2(n: int) -> int:
+    return 1 << max(4, int(math.ceil(math.log2(max(1, n)))))
+
+
+def default_penalty(particle_mass: float, sound_speed: float, spacing: float,
+                    stiffness_factor: float = DEFAULT_STIFFNESS_FACTOR, damping_ratio: float = DEFAULT_DAMPING_RATIO):
+    """(K_s, K_d) = (f m c0^2 / s^2, 2 zeta sqrt(K_s m)); see the module docstring."""
+    ks = stiffness_factor * particle_mass * sound_speed ** 2 / spacing ** 2
+    return ks, 2.0 * damping_ratio * math.sqrt(ks * particle_mass)
+
+
+class Coupling:
+    """Penalty coupling of a FluidModel/FluidState with a BlockModel/BlockState.
+
+    Build it only when a scene has both water and blocks. ``compute(fluid_state, block_state, dt)``
+    before the fluid step, ``apply(fluid_state, dt)`` after it, then the block step.
+    Attributes: k_s [N/m], k_d [N s/m], d0 [m], cell [m] (broad-phase cell), dim.
+    """
+
+    def __init__(self, fluid, blocks, dim: int, d0: float | None = None, k_s: float | None = None, k_d: float | None = None,
+                 stiffness_factor: float = DEFAULT_STIFFNESS_FACTOR, damping_ratio: float = DEFAULT_DAMPING_RATIO,
+                 cell_size: float | None = None, max_cells: int = 4096, track_walls: bool = False):
+        self.fluid, self.blocks, self.dim = fluid, blocks, dim
+        self.device = fluid.device
+        s = fluid.spacing
+        m = fluid.fluid_mass
+        ks0, kd0 = default_penalty(m, fluid.sound_speed, s, stiffness_factor, damping_ratio)
+        self.k_s = float(k_s) if k_s is not None else ks0
+        self.k_d = float(k_d) if k_d is not None else (2.0 * damping_ratio * math.sqrt(self.k_s * m))
+        self.d0 = DEFAULT_D0_RATIO * s if d0 is None else float(d0)
+        self.cell = float(cell_size) if cell_size else max(4.0 * s, fluid.support_radius)
+        self.max_cells = int(max_cells)
+        d = self.device
+        nb = blocks.num_blocks
+        # body-frame face planes (rigid motion) and each face's block
+        normals, offsets, fblock = [], [], []
+        for b, spec in enumerate(blocks.specs):
+            g = spec.geometry
+            normals.append(g.face_normals)
+            offsets.append(g.face_offsets)
+            fblock.append(np.full(g.num_faces, b))
+        self.num_faces = int(sum(len(o) for o in offsets))
+        self.face_block = wp.array(np.concatenate(fblock).astype(np.int32), dtype=int, device=d)
+        self.body_normal = wp.array(np.concatenate(normals).astype(np.float32), dtype=wp.vec3, device=d)
+        self.body_offset = wp.array(np.concatenate(offsets).astype(np.float32), dtype=float, device=d)
+        self.plane_n = wp.zeros(self.num_faces, dtype=wp.vec3, device=d)
+        self.plane_d = wp.zeros(self.num_faces, dtype=float, device=d)
+        # 2D: forces per metre of depth times the block's z-extent
+        scale = np.ones(nb)
+        if dim == 2:
+            for b, spec in enumerate(blocks.specs):
+                from rockwave.geometry import quat_to_matrix
+
+                v = spec.geometry.vertices @ quat_to_matrix(np.asarray(spec.orientation, float)).T
+                scale[b] = float(v[:, 2].max() - v[:, 2].min())
+        self.depth = scale
+        self.depth_scale = wp.array(scale.astype(np.float32), dtype=float, device=d)
+        self.bounds = wp.zeros(6, dtype=float, device=d)
+        self._bounds_init = wp.array(np.array([1e30] * 3 + [-1e30] * 3, np.float32), dtype=float, device=d)
+        self.wv = wp.zeros(blocks.num_vertices, dtype=wp.vec3, device=d)
+        self.cell_lo = wp.zeros(nb, dtype=wp.vec3i, device=d)
+        self.cell_hi = wp.zeros(nb, dtype=wp.vec3i, device=d)
+        self.ncell = wp.zeros(nb, dtype=int, device=d)
+        self.large = wp.zeros(nb, dtype=int, device=d)
+        self.counters = wp.zeros(2, dtype=int, device=d)
+        self._alloc(1024)
+        self.dv = wp.zeros(fluid.n_fluid, dtype=wp.vec3, device=d)
+        self.track_walls = bool(track_walls)
+        self.wall_force = wp.zeros(1, dtype=wp.vec3, device=d)
+        self.wall_impulse = np.zeros(3)  # sum of dt x (force of fixed/kinematic blocks on the water), when tracked
+        self.active_blocks = 0  # blocks near water in the last step (host copy, diagnostics)
+        self.n_large = 0
+
+    def _alloc(self, n_entries: int):
+        d = self.device
+        self.entry_cap = max(16, n_entries)
+        self.nbuckets = _next_pow2(2 * self.entry_cap)
+        self.entry_block = wp.zeros(self.entry_cap, dtype=int, device=d)
+        self.entry_cell = wp.zeros(self.entry_cap, dtype=wp.vec3i, device=d)
+        self.bucket_count = wp.zeros(self.nbuckets, dtype=int, device=d)
+        self.bucket_start = wp.zeros(self.nbuckets, dtype=int, device=d)
+        self.bucket_fill = wp.zeros(self.nbuckets, dtype=int, device=d)
+
+    def critical_dt(self) -> float:
+        """Stability limit of the particle-wall spring-dashpot (a particle touching up to 3 faces):
+        2/omega (sqrt(1 + zeta^2) - zeta), omega = sqrt(3 K_s / m)."""
+        m = self.fluid.fluid_mass
+        om = math.sqrt(3.0 * self.k_s / m)
+        z = self.k_d / (2.0 * math.sqrt(3.0 * self.k_s * m))
+        return 2.0 / om * (math.sqrt(1.0 + z * z) - z)
+
+    # ------------------------------------------------------------------ geometry ----------
+    def update_planes(self, block_state) -> None:
+        wp.launch(CK.face_planes, dim=self.num_faces,
+                  inputs=[self.face_block, self.body_normal, self.body_offset, block_state.x, block_state.q],
+                  outputs=[self.plane_n, self.plane_d], device=self.device)
+
+    def signed_distance(self, points: np.ndarray, block_state) -> tuple[np.ndarray, np.ndarray]:
+        """(smallest signed distance to any block [m], that block's index) for (n, 3) points."""
+        return block_signed_distance(self.blocks, block_state, points)
+
+    def _broad_phase(self, fluid_state, block_state) -> None:
+        m, d, nf = self.blocks, self.device, self.fluid.n_fluid
+        wp.copy(self.bounds, self._bounds_init)
+        wp.launch(CK.fluid_bounds, dim=nf, inputs=[fluid_state.x], outputs=[self.bounds], device=d)
+        wp.launch(K_world_vertices(), dim=m.num_vertices,
+                  inputs=[m.body_verts, m.vert_block, block_state.x, block_state.q, block_state.strain, m.kinds, self.wv], device=d)
+        self.counters.zero_()
+        wp.launch(CK.block_cells, dim=m.num_blocks,
+                  inputs=[self.wv, m.vert_start, m.vert_count, self.bounds, self.d0 + 1e-6, 1.0 / self.cell, self.max_cells],
+                  outputs=[self.cell_lo, self.cell_hi, self.ncell, self.large, self.counters], device=d)
+        total, self.n_large = (int(c) for c in self.counters.numpy())  # one host read per step: capacity
+        if total > self.entry_cap:
+            self._alloc(2 * total)
+        self.bucket_count.zero_()
+        self.bucket_fill.zero_()
+        if total:
+            wp.launch(CK.count_buckets, dim=m.num_blocks, inputs=[self.cell_lo, self.cell_hi, self.ncell, self.nbuckets],
+                      outputs=[self.bucket_count], device=d)
+            wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
+            wp.launch(CK.fill_buckets, dim=m.num_blocks,
+                      inputs=[self.cell_lo, self.cell_hi, self.ncell, self.nbuckets, self.bucket_start, self.bucket_fill],
+                      outputs=[self.entry_block, self.entry_cell], device=d)
+        self._total = total
+
+    def compute(self, fluid_state, block_state, dt: wp.array) -> None:
+        """Penalty forces from the state at t: particle impulses into self.dv, reactions into
+        block_state.ext_force / ext_torque."""
+        nf = self.fluid.n_fluid
+        if nf == 0:
+            return
+        self._broad_phase(fluid_state, block_state)
+        if self._total == 0 and self.n_large == 0:
+            self.dv.zero_()
+            return
+        self.update_planes(block_state)
+        p = CK.CouplingParams()
+        p.k_s, p.k_d, p.d0 = self.k_s, self.k_d, self.d0
+        p.inv_s = 1.0 / self.cell
+        p.nbuckets = self.nbuckets
+        p.n_large = self.n_large
+        p.track_walls = 1 if self.track_walls else 0
+        if self.track_walls:
+            self.wall_force.zero_()
+        m = self.blocks
+        wp.launch(CK.particle_block_forces, dim=nf,
+                  inputs=[fluid_state.x, fluid_state.v, self.fluid.particle_mass, dt, p, self.bucket_start, self.bucket_count,
+                          self.entry_block, self.entry_cell, self.large, m.face_start, m.face_count, self.plane_n, self.plane_d,
+                          m.kinds, block_state.x, block_state.v, block_state.w, self.depth_scale,
+                          block_state.ext_force, block_state.ext_torque, self.wall_force],
+                  outputs=[self.dv], device=self.device)
+        if self.track_walls:
+            self.wall_impulse += float(dt.numpy()[0]) * self.wall_force.numpy()[0].astype(np.float64)
+
+    def apply(self, fluid_state, dt: wp.array) -> None:
+        nf = self.fluid.n_fluid
+        if nf == 0 or (self._total == 0 and self.n_large == 0):
+            return
+        wp.launch(CK.apply_dv, dim=nf, inputs=[self.dv, dt], outputs=[fluid_state.x, fluid_state.v], device=self.device)
+
+    def active_block_count(self) -> int:
+        """Blocks whose grown AABB touches the water's AABB (from the last compute)."""
+        return int((self.ncell.numpy() > 0).sum()) + self.n_large
+
+
+def K_world_vertices():
+    from rockwave.kernels import dda
+
+    return dda.world_vertices
+
+
+def planar_constraint(block_state, z0: wp.array, kinds: wp.array) -> None:
+    """2D scenes: keep blocks in their x-y plane (z fixed, rotation about z only)."""
+    wp.launch(CK.planar_blocks, dim=block_state.x.shape[0], inputs=[z0, kinds],
+              outputs=[block_state.x, block_state.q, block_state.v, block_state.w], device=block_state.model.device)
+
+
+def block_signed_distance(blocks, block_state, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest signed distance (negative inside) of each point to any block, and that block
+    (max over face planes of the rigidly moved block; brute force over blocks: start-up and tests)."""
+    d = blocks.device
+    if len(points) == 0:
+        return np.zeros(0), np.zeros(0, int)
+    normals, offsets, fblock = [], [], []
+    for b, spec in enumerate(blocks.specs):
+        normals.append(spec.geometry.face_normals)
+        offsets.append(spec.geometry.face_offsets)
+        fblock.append(np.full(spec.geometry.num_faces, b))
+    nfaces = int(sum(len(o) for o in offsets))
+    pn = wp.zeros(nfaces, dtype=wp.vec3, device=d)
+    pd = wp.zeros(nfaces, dtype=float, device=d)
+    wp.launch(CK.face_planes, dim=nfaces,
+              inputs=[wp.array(np.concatenate(fblock).astype(np.int32), dtype=int, device=d),
+                      wp.array(np.concatenate(normals).astype(np.float32), dtype=wp.vec3, device=d),
+                      wp.array(np.concatenate(offsets).astype(np.float32), dtype=float, device=d), block_state.x, block_state.q],
+              outputs=[pn, pd], device=d)
+    pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=d)
+    out = wp.zeros(len(points), dtype=float, device=d)
+    which = wp.zeros(len(points), dtype=int, device=d)
+    wp.launch(CK.signed_distance_to_blocks, dim=len(points),
+              inputs=[pts, blocks.num_blocks, blocks.face_start, blocks.face_count, pn, pd], outputs=[out, which], device=d)
+    return out.numpy().astype(np.float64), which.numpy()
