@@ -151,3 +151,11 @@ def test_python_api_steps_and_reads_arrays():
     assert sim.time == pytest.approx(0.01)
     assert sim.positions().shape == x0.shape == (400, 2)
     assert np.isfinite(sim.pressures()).all() and sim.densities().min() > 900
+
+
+def test_scene_format_doc_is_current():
+    """docs/scene_format.md is generated from the schema the loader uses: regenerate it with
+    `python -m rockwave schema > docs/scene_format.md` after changing a key."""
+    from rockwave.scene import scene_format_doc
+
+    assert (ROOT / "docs" / "scene_format.md").read_text() == scene_format_doc()
