@@ -1,0 +1,469 @@
+"""Benchmark harness: error metrics, the run classifier, the Pareto front, and the runners of the
+accuracy matrix and the stability sweeps (driven by ``python -m benchmarks run``).
+
+Error metrics (also defined in the README, "Benchmarks"):
+
+- 2D dam break (Martin & Moyce 1952, n^2 = 2, a = 0.05715 m):
+  ``front_rms`` = RMS over the measured points of (Z_sim - Z_exp) / Z_exp, Z = x_front / a at
+  T = t sqrt(2 g / a) (x_front = the largest particle x); ``height_rms`` = RMS of (H_sim - H_exp) / H_exp,
+  H = h / (2 a) at tau = t sqrt(g / a) (h: the water height at the back wall, gauge ``column_height``),
+  points with tau <= the simulated time; ``error`` = (front_rms + height_rms) / 2. ``front_bias`` = mean
+  signed relative front error (SPH runs ahead: no gate, no floor friction).
+- SPHERIC Test 2 (Kleefsman et al. 2005): ``h_rms`` = mean over H1..H4 of RMS(h_sim - h_exp) / 0.55 m
+  (a dry gauge reads 0), ``p_rms`` = RMS(p_sim - p_exp) / (rho0 g 0.55 m) at P1, both over the
+  simulated window sampled every 10 ms, the measurement averaged over +-5 ms; ``error`` = (h_rms + p_rms) / 2.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT / "benchmarks" / "data"
+G = 9.81
+A_MM = 0.05715  # Martin & Moyce column width a [m] (n^2 = 2)
+SPHERIC_H0 = 0.55  # SPHERIC Test 2 water depth [m]
+
+# classifier bounds (README, "Benchmarks")
+BOUNDS = dict(
+    energy_growth=0.10,     # blown up: mechanical energy above its start by 10% of m g H
+    escaped_fraction=0.01,  # blown up: more than 1% of the water outside the tank
+    density_blowup=0.10,    # blown up: mean |rho/rho0 - 1| above 10%
+    density_inaccurate=0.03,  # inaccurate: mean |rho/rho0 - 1| above 3% (WCSPH aims at ~1%)
+    error_inaccurate=0.15,  # inaccurate: the case's error metric above 15%
+)
+
+
+# ----------------------------------------------------------------------------------- metrics ----
+def martin_moyce(series: str) -> np.ndarray:
+    """(time, value) rows of one series of benchmarks/data/martin_moyce_1952.csv."""
+    rows = [l.split(",") for l in (DATA / "martin_moyce_1952.csv").read_text().splitlines()
+            if l and not l.startswith("#") and not l.startswith("series")]
+    return np.array([[float(t), float(v)] for s, t, v in rows if s == series])
+
+
+def dam_break_times(a: float = A_MM, t_end: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Physical times [s] of the measured front (T) and height (tau) points, optionally cut at t_end."""
+    tf = martin_moyce("front_n2_2")[:, 0] / math.sqrt(2 * G / a)
+    th = martin_moyce("height_n2_2")[:, 0] / math.sqrt(G / a)
+    if t_end is not None:
+        tf, th = tf[tf <= t_end + 1e-12], th[th <= t_end + 1e-12]
+    return tf, th
+
+
+def dam_break_errors(front: dict[float, float], height: dict[float, float], a: float = A_MM) -> dict:
+    """Errors of a 2D dam break against Martin & Moyce (n^2 = 2). ``front``/``height``: time [s] ->
+    front position x [m] / water height at the back wall h [m] at the measured times."""
+    ef = martin_moyce("front_n2_2")
+    eh = martin_moyce("height_n2_2")
+    rf, rh = [], []
+    for T, Z in ef:
+        t = T / math.sqrt(2 * G / a)
+        x = _lookup(front, t)
+        if x is not None:
+            rf.append((x / a - Z) / Z)
+    for tau, H in eh:
+        t = tau / math.sqrt(G / a)
+        h = _lookup(height, t)
+        if h is not None:
+            h = 0.0 if not math.isfinite(h) else h
+            rh.append((h / (2 * a) - H) / H)
+    rf, rh = np.asarray(rf), np.asarray(rh)
+    out = {"front_rms": _rms(rf), "front_bias": float(rf.mean()) if len(rf) else math.nan,
+           "height_rms": _rms(rh), "height_bias": float(rh.mean()) if len(rh) else math.nan,
+           "front_points": int(len(rf)), "height_points": int(len(rh))}
+    parts = [v for v in (out["front_rms"], out["height_rms"]) if math.isfinite(v)]
+    out["error"] = float(np.mean(parts)) if parts else math.nan
+    return out
+
+
+def _lookup(d: dict[float, float], t: float, tol: float = 1e-9):
+    for k, v in d.items():
+        if abs(k - t) <= tol * max(1.0, abs(t)):
+            return v
+    return None
+
+
+def _rms(r: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(r)))) if len(r) else math.nan
+
+
+def load_spheric() -> tuple[np.ndarray, np.ndarray]:
+    """(water_level rows: t, H1..H4), (pressure rows: t, P1..P8) of SPHERIC Test 2."""
+    d = DATA / "spheric_test2"
+    return np.loadtxt(d / "water_level.dat", comments="#"), np.loadtxt(d / "pressure.dat", comments="#")
+
+
+def _window_mean(tab: np.ndarray, col: int, t: np.ndarray, half: float = 0.005) -> np.ndarray:
+    tt, vv = tab[:, 0], tab[:, col]
+    c = np.concatenate([[0.0], np.cumsum(vv)])
+    lo = np.searchsorted(tt, t - half)
+    hi = np.searchsorted(tt, t + half)
+    n = np.maximum(hi - lo, 1)
+    return (c[hi] - c[lo]) / n
+
+
+def spheric_errors(times: np.ndarray, gauges: dict[str, np.ndarray], rho0: float = 1000.0) -> dict:
+    """Errors of SPHERIC Test 2 gauges: ``times`` [s], ``gauges`` name -> readings (H1..H4 in m,
+    NaN = dry; P1 in Pa)."""
+    wl, pr = load_spheric()
+    times = np.asarray(times, float)
+    out = {}
+    hs = []
+    for i, name in enumerate(["H1", "H2", "H3", "H4"]):
+        if name in gauges:
+            sim = np.nan_to_num(np.asarray(gauges[name], float), nan=0.0)
+            e = _rms((sim - _window_mean(wl, 1 + i, times)) / SPHERIC_H0)
+            out[f"{name}_rms"] = e
+            hs.append(e)
+    out["h_rms"] = float(np.mean(hs)) if hs else math.nan
+    if "P1" in gauges:
+        sim = np.nan_to_num(np.asarray(gauges["P1"], float), nan=0.0)
+        out["p_rms"] = _rms((sim - _window_mean(pr, 1, times)) / (rho0 * G * SPHERIC_H0))
+    else:
+        out["p_rms"] = math.nan
+    parts = [v for v in (out["h_rms"], out["p_rms"]) if math.isfinite(v)]
+    out["error"] = float(np.mean(parts)) if parts else math.nan
+    return out
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the non-dominated points (cost, error), both minimised, sorted by cost. Points with
+    a non-finite coordinate are never on the front."""
+    idx = [i for i, (c, e) in enumerate(points) if math.isfinite(c) and math.isfinite(e)]
+    idx.sort(key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], math.inf
+    for i in idx:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def classify(rec: dict, bounds: dict | None = None) -> tuple[str, list[str]]:
+    """'refused', 'blown_up', 'inaccurate' or 'stable', with the reasons. ``rec`` keys (all optional):
+    refused (str), exception (str), finite (bool), energy_growth, escaped_fraction, density_error,
+    error (the case's error metric), error_bound (overrides the default)."""
+    b = dict(BOUNDS, **(bounds or {}))
+    if rec.get("refused"):
+        return "refused", [f"refused: {rec['refused']}"]
+    why = []
+    if rec.get("exception"):
+        why.append(f"exception: {rec['exception']}")
+    if rec.get("finite") is False:
+        why.append("NaN/inf in the state")
+    eg = rec.get("energy_growth")
+    if eg is not None and (not math.isfinite(eg) or eg > b["energy_growth"]):
+        why.append(f"energy growth {eg:.3g} > {b['energy_growth']:g}")
+    ef = rec.get("escaped_fraction")
+    if ef is not None and ef > b["escaped_fraction"]:
+        why.append(f"{100 * ef:.1f}% of the water left the tank")
+    de = rec.get("density_error")
+    if de is not None and (not math.isfinite(de) or de > b["density_blowup"]):
+        why.append(f"density error {de:.3g} > {b['density_blowup']:g}")
+    if why:
+        return "blown_up", why
+    err, eb = rec.get("error"), rec.get("error_bound", b["error_inaccurate"])
+    if err is not None and (not math.isfinite(err) or err > eb):
+        why.append(f"error {err:.3g} > {eb:g}")
+    if de is not None and de > b["density_inaccurate"]:
+        why.append(f"density error {de:.3g} > {b['density_inaccurate']:g}")
+    return ("inaccurate", why) if why else ("stable", [])
+
+
+# ----------------------------------------------------------------------------------- scenes ----
+def set_path(d: dict, path: str, value) -> dict:
+    node = d
+    keys = path.split(".")
+    for k in keys[:-1]:
+        node = node.setdefault(k, {})
+    node[keys[-1]] = value
+    return d
+
+
+# method variants of the accuracy matrix: name -> dotted scene changes
+VARIANTS = {
+    "tait": {},
+    "linear": {"fluid.eos.type": "linear"},
+    "ghost": {"fluid.method": "ghost"},
+    "laplacian": {"fluid.viscosity.artificial_alpha": 0.0, "fluid.viscosity.laplacian_pa_s": 1.0e-3},
+    "xsph": {"fluid.viscosity.xsph_epsilon": 0.05},
+    "fixed_dt": {"simulation.time_step": "fixed"},  # dt_s set from the spacing (see scene_dict)
+}
+FIXED_COURANT = 0.375  # fixed step = 0.375 h / (c0 (1 + 0.6 alpha)): 1.5 x the CFL step at rest, under the 0.4 limit
+
+
+def scene_dict(case: str, spacing: float, variant: dict, c0: float | None = None) -> dict:
+    """Scene dict of a benchmark case ('dam_break_2d' or 'spheric') with a variant's changes."""
+    import rockwave
+
+    name = {"dam_break_2d": "dam_break_2d.toml", "spheric": "dam_break_3d.toml"}[case]
+    d = copy.deepcopy(rockwave.load_scene(ROOT / "scenes" / name).raw)
+    d["fluid"]["spacing_m"] = spacing
+    d["output"]["usd"] = ""
+    d["output"].pop("reference", None)
+    if c0 is not None:
+        d["fluid"]["eos"]["speed_of_sound_m_s"] = c0
+    for k, v in variant.items():
+        set_path(d, k, v)
+    if d["simulation"].get("time_step") == "fixed":
+        c = d["fluid"]["eos"]["speed_of_sound_m_s"]
+        alpha = d["fluid"].get("viscosity", {}).get("artificial_alpha", 0.0)
+        h = spacing * d["fluid"].get("support_radius_ratio", 2.0) / 2
+        d["simulation"]["dt_s"] = FIXED_COURANT * h / (c * (1 + 0.6 * alpha))
+    return d
+
+
+def build(case: str, d: dict, device: str):
+    import rockwave
+
+    return rockwave.Simulation(rockwave.parse_scene(d, f"{case}.toml", ROOT / "scenes"), device=device)
+
+
+# ----------------------------------------------------------------------------------- running ---
+@dataclass
+class Health:
+    """Running health record of a fluid run (energy, escape, density) for the classifier."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    up: int
+    mass: float
+    rho0: float
+    scale: float
+    e0: float | None = None
+    energy_growth: float = 0.0
+    escaped_fraction: float = 0.0
+    density_error: float = 0.0
+    finite: bool = True
+    samples: int = 0
+
+    @staticmethod
+    def of(sim) -> "Health":
+        f = sim.fluid
+        tank = sim.scene.tank
+        dim = sim.scene.dim
+        lo = np.asarray(tank.box_min_m, float) - f.spacing
+        hi = np.asarray(tank.box_max_m, float) + f.spacing
+        hi[dim - 1] = math.inf  # open top: a splash may rise; falling back in is fine
+        x = sim.positions()
+        height = float(x[:, dim - 1].max() - lo[dim - 1])
+        return Health(lo, hi, dim - 1, f.fluid_mass, float(f.params.rest_density), f.fluid_mass * len(x) * G * height)
+
+    def check(self, sim) -> bool:
+        """Update from the current state; False when the run cannot go on (non-finite state)."""
+        x, v = sim.positions(), sim.velocities()
+        self.samples += 1
+        if not (np.isfinite(x).all() and np.isfinite(v).all()):
+            self.finite = False
+            return False
+        e = 0.5 * self.mass * float((v * v).sum()) + self.mass * G * float((x[:, self.up] - self.lo[self.up]).sum())
+        if self.e0 is None:
+            self.e0 = e
+        self.energy_growth = max(self.energy_growth, (e - self.e0) / self.scale)
+        out = np.any((x < self.lo) | (x > self.hi), axis=1)
+        self.escaped_fraction = max(self.escaped_fraction, float(out.mean()))
+        rho = sim.densities()[: len(x)]
+        de = float(np.mean(np.abs(rho / self.rho0 - 1.0))) if len(rho) else 0.0
+        self.density_error = max(self.density_error, de if math.isfinite(de) else math.inf)
+        return math.isfinite(de) and self.energy_growth < 10.0 and self.escaped_fraction < 0.5
+
+    def record(self) -> dict:
+        return {"finite": self.finite, "energy_growth": self.energy_growth, "escaped_fraction": self.escaped_fraction,
+                "density_error": self.density_error}
+
+
+class Clock:
+    """Wall-clock time spent advancing (synchronised), excluding the sampling reads."""
+
+    def __init__(self, device: str):
+        self.device, self.seconds = device, 0.0
+
+    def run(self, fn):
+        import warp as wp
+
+        wp.synchronize_device(self.device)
+        t = time.perf_counter()
+        fn()
+        wp.synchronize_device(self.device)
+        self.seconds += time.perf_counter() - t
+
+
+def _advance_to(sim, t: float, dt: float | None) -> None:
+    """Advance to time t: sim.advance (the scene's stepping), or steps of a forced dt (the stability
+    sweep; sim.step(dt) bypasses the scene's fixed-dt limit check) with a shorter last step."""
+    if dt is None:
+        if t - sim.time > 1e-12:
+            sim.advance(t - sim.time)
+        return
+    while t - sim.time > 1e-12:
+        sim.step(min(dt, t - sim.time))
+
+
+def run_dam_break(device: str, spacing: float, variant: dict, t_end: float, dt: float | None = None,
+                  dt_multiple: float | None = None, c0: float | None = None, sample_dt: float = 0.005) -> dict:
+    """One 2D dam break: errors against Martin & Moyce, wall time per simulated second, health record.
+    ``dt_multiple``: step = this x the scene's initial CFL step (forced; the stability sweep)."""
+    from rockwave import SimulationError
+
+    rec: dict = {"case": "dam_break_2d", "spacing_m": spacing}
+    try:
+        sim = build("dam_break_2d", scene_dict("dam_break_2d", spacing, variant, c0), device)
+    except Exception as e:  # SceneError: a refused set-up
+        rec["refused"] = str(e).splitlines()[-1][:200]
+        return rec
+    rec["particles"] = sim.n_fluid
+    rec["cfl_dt_s"] = sim.dt
+    if dt_multiple is not None:
+        dt = dt_multiple * sim.dt
+    rec["dt_s"] = dt if dt is not None else sim.dt
+    health = Health.of(sim)
+    health.check(sim)
+    tf, th = dam_break_times(t_end=t_end)
+    ts = np.unique(np.round(np.concatenate([tf, th, np.arange(sample_dt, t_end + 1e-12, sample_dt)]), 12))
+    front, height = {}, {}
+    clock = Clock(sim.device)
+    steps0 = sim.steps
+    try:
+        for t in ts:
+            clock.run(lambda: _advance_to(sim, float(t), dt))
+            if not health.check(sim):
+                break
+            if np.any(np.isclose(t, tf, rtol=0, atol=1e-12)):
+                front[float(tf[np.argmin(np.abs(tf - t))])] = float(sim.positions()[:, 0].max())
+            if np.any(np.isclose(t, th, rtol=0, atol=1e-12)):
+                height[float(th[np.argmin(np.abs(th - t))])] = sim.gauges().get("column_height", math.nan)
+    except (SimulationError, ValueError, FloatingPointError) as e:
+        rec["exception"] = str(e).splitlines()[0][:200]
+    rec.update(health.record())
+    rec["simulated_s"] = sim.time
+    rec["steps"] = sim.steps - steps0
+    rec["wall_s"] = clock.seconds
+    rec["wall_per_sim_s"] = clock.seconds / sim.time if sim.time > 0 else math.nan
+    if health.finite and not rec.get("exception") and sim.time >= t_end - 1e-9:
+        rec.update(dam_break_errors(front, height))
+    else:
+        rec["error"] = math.nan
+    return rec
+
+
+def run_spheric(device: str, spacing: float, variant: dict, t_end: float, sample_dt: float = 0.01) -> dict:
+    """One SPHERIC Test 2 run: gauge errors, wall time per simulated second, health record."""
+    from rockwave import SimulationError
+
+    rec: dict = {"case": "spheric", "spacing_m": spacing}
+    try:
+        sim = build("spheric", scene_dict("spheric", spacing, variant), device)
+    except Exception as e:
+        rec["refused"] = str(e).splitlines()[-1][:200]
+        return rec
+    rec["particles"] = sim.n_fluid
+    rec["dt_s"] = sim.dt
+    health = Health.of(sim)
+    ts = np.arange(sample_dt, t_end + 1e-9, sample_dt)
+    g: dict[str, list] = {n: [] for n in sim.gauge_names}
+    clock = Clock(sim.device)
+    steps0 = sim.steps
+    try:
+        for t in ts:
+            clock.run(lambda: _advance_to(sim, float(t), None))
+            if not health.check(sim):
+                break
+            r = sim.gauges()
+            for n in g:
+                g[n].append(r.get(n, math.nan))
+    except (SimulationError, ValueError) as e:
+        rec["exception"] = str(e).splitlines()[0][:200]
+    rec.update(health.record())
+    rec["simulated_s"] = sim.time
+    rec["steps"] = sim.steps - steps0
+    rec["wall_s"] = clock.seconds
+    rec["wall_per_sim_s"] = clock.seconds / sim.time if sim.time > 0 else math.nan
+    if health.finite and not rec.get("exception") and len(g.get("H1", [])) == len(ts):
+        rec.update(spheric_errors(ts, {k: np.asarray(v) for k, v in g.items()}))
+        rec["series"] = {"t": ts.round(4).tolist(), **{k: np.round(np.asarray(v, float), 5).tolist() for k, v in g.items()}}
+    else:
+        rec["error"] = math.nan
+    return rec
+
+
+# ------------------------------------------------------------------------------ block sweep ----
+def block_stack_dict(k_n: float, n: int = 3, size: float = 0.5, gap: float = 0.001) -> dict:
+    """n rock cubes stacked on a fixed base, joints open by ``gap``; contact stiffness k_n per point."""
+    mat = {"friction_angle_deg": 30.0, "normal_stiffness_n_m": k_n}
+    blocks = [{"name": "base", "shape": "box", "size_m": [3.0, 3.0, 0.2], "position_m": [0.0, 0.0, -0.1],
+               "kind": "fixed", "material": dict(mat)}]
+    for i in range(n):
+        blocks.append({"name": f"rock{i}", "shape": "box", "size_m": [size] * 3,
+                       "position_m": [0.0, 0.0, size / 2 + gap + i * (size + gap)], "density_kg_m3": 2600.0,
+                       "material": dict(mat)})
+    return {"simulation": {"dimension": 3, "duration_s": 1.0}, "blocks": blocks, "output": {"usd": ""}}
+
+
+def run_block_stack(device: str, k_n: float, dt_multiple: float, t_end: float, n: int = 3, size: float = 0.5) -> dict:
+    """Stack of n cubes settling under gravity at dt = dt_multiple x the critical DDA step.
+    Classifier record: NaN, energy growth, a block leaving (> size from its column), and the
+    error = the largest of sag / (1% of the block size), lateral drift / 1 mm and final kinetic energy /
+    (1% of m g size), inaccurate above 1."""
+    import rockwave
+    from rockwave import SimulationError
+
+    rec: dict = {"case": "block_stack", "k_n": k_n, "dt_multiple": dt_multiple}
+    try:
+        sim = rockwave.Simulation(rockwave.parse_scene(block_stack_dict(k_n, n, size), "block_stack.toml", ROOT), device=device)
+    except Exception as e:
+        rec["refused"] = str(e).splitlines()[-1][:200]
+        return rec
+    crit = sim.block_solver.critical_dt()
+    dt = dt_multiple * crit
+    rec.update(critical_dt_s=crit, dt_s=dt, blocks=n)
+    m = float(sim.blocks.np["mass"][1])
+    x0 = sim.block_positions()[1:].copy()
+    scale = n * m * G * n * size
+    e0 = sum(m * G * x0[:, 2]) + sim.kinetic_energy()
+    growth, finite, drift = 0.0, True, 0.0
+    clock = Clock(sim.device)
+    nsample = 20
+    try:
+        for k in range(1, nsample + 1):
+            t = t_end * k / nsample
+            clock.run(lambda: _block_advance(sim, t, dt))
+            x = sim.block_positions()[1:]
+            if not np.isfinite(x).all():
+                finite = False
+                break
+            e = float(m * G * x[:, 2].sum()) + sim.kinetic_energy()
+            growth = max(growth, (e - e0) / scale)
+            drift = max(drift, float(np.abs(x[:, :2] - x0[:, :2]).max()))
+            if drift > size:
+                break
+    except ValueError as e:  # BlockSolver.step refuses dt above the critical step
+        rec["refused"] = str(e).splitlines()[0][:200]
+        return rec
+    except SimulationError as e:
+        rec["exception"] = str(e).splitlines()[0][:200]
+    rec["wall_s"] = clock.seconds
+    rec["finite"] = finite
+    rec["energy_growth"] = growth
+    rec["escaped_fraction"] = 1.0 if drift > size else 0.0
+    if finite:
+        top = sim.block_positions()[-1, 2]
+        ideal = size / 2 + (n - 1) * size  # touching, no overlap
+        rec["sag_m"] = float(ideal - top)
+        rec["drift_m"] = drift
+        rec["final_ke_j"] = sim.kinetic_energy()
+        # inaccurate: sag deeper than 1% of the block size, lateral drift above 1 mm, or still moving
+        rec["error"] = max(rec["sag_m"] / (0.01 * size), drift / 1e-3, rec["final_ke_j"] / (0.01 * m * G * size))
+        rec["error_bound"] = 1.0
+    return rec
+
+
+def _block_advance(sim, t: float, dt: float) -> None:
+    while t - sim.time > 1e-12:
+        sim.step(min(dt, t - sim.time))

@@ -1,0 +1,1 @@
+"""Peer codes run side by side with rockwave (benchmarks/peers/splash.py, warp_example.py)."""
