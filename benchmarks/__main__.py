@@ -410,6 +410,38 @@ def summary(res: dict) -> str:
     return "\n".join(L)
 
 
+def markdown(res: dict) -> str:
+    """A benchmarks/RESULTS.md section from a result JSON (python -m benchmarks markdown FILE)."""
+    L = [f"## Benchmark suite `{res['suite']}` ({res['device']}) - python -m benchmarks run", "",
+         f"Machine: {res['device_name']}, warp {res['warp']}. Date: {res['date']} {res.get('time_utc', '')} UTC. "
+         f"Commit: {res['commit']}. Load average at start: {', '.join(f'{x:.1f}' for x in res['load_average'])} "
+         f"(other processes share the 2 cores: timings are upper bounds). Suite wall time {res['suite_wall_s']:.0f} s. "
+         f"Record: `benchmarks/results/{res['date']}-{res['device'].replace(':', '')}.json`.", ""]
+    acc = res.get("accuracy")
+    if acc:
+        for case, title in (("dam_break_2d", "2D dam break vs Martin & Moyce (t <= 0.2 s)"), ("spheric", "SPHERIC Test 2")):
+            L += [f"**{title}** (* = Pareto front)", "", "| variant | resolution | particles | error | parts | wall s / sim s | class |",
+                  "|---|---|---|---|---|---|---|"]
+            for r in acc[case]:
+                parts = (f"front {r.get('front_rms', math.nan):.3f} (bias {r.get('front_bias', math.nan):+.3f}), height {r.get('height_rms', math.nan):.3f}"
+                         if case == "dam_break_2d" else f"H {r.get('h_rms', math.nan):.3f}, P1 {r.get('p_rms', math.nan):.3f}")
+                L.append(f"| {r['variant']} | {r['resolution']} | {r.get('particles', 0)} | {r.get('error', math.nan):.3f}{' *' if r.get('pareto') else ''} "
+                         f"| {parts} | {r.get('wall_per_sim_s', math.nan):.1f} | {r['class']} |")
+            L += [""] + [f"- {x}" for x in acc.get(f"{case}_recommendation", [])] + [""]
+    text = summary(res).split("\n")
+    for head in ("stability", "scaling", "peers"):
+        if head in res:
+            i = next((k for k, l in enumerate(text) if l.startswith(head)), None)
+            if i is not None:
+                block = []
+                for l in text[i:]:
+                    if not l.strip():
+                        break
+                    block.append(l)
+                L += [f"**{block[0]}**", "", "```"] + block[1:] + ["```", ""]
+    return "\n".join(L)
+
+
 def strip_series(res: dict) -> dict:
     """The JSON keeps SPHERIC gauge series only for the finest tait run (to keep the file small)."""
     acc = res.get("accuracy")
@@ -427,14 +459,19 @@ def main(argv=None) -> None:
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run", help="run a suite")
     r.add_argument("--device", default="cpu")
-    r.add_argument("--suite", choices=None, default="quick")
+    r.add_argument("--suite", choices=list(SUITES), default="quick")
     r.add_argument("--only", nargs="+", choices=["accuracy", "stability", "scaling", "peers"], default=None)
     r.add_argument("--out", default=None, help="JSON path (default benchmarks/results/<date>-<device>.json)")
+    md = sub.add_parser("markdown", help="print a RESULTS.md section from a result JSON")
+    md.add_argument("json")
     m = sub.add_parser("_mem", help=argparse.SUPPRESS)
     m.add_argument("kind")
     m.add_argument("size", type=float)
     m.add_argument("--device", default="cpu")
     a = ap.parse_args(argv)
+    if a.cmd == "markdown":
+        print(markdown(json.load(open(a.json))))
+        return
     if a.cmd == "_mem":
         _mem_main(a.kind, a.size, a.device)
         return
