@@ -19,6 +19,10 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--out", default=None, help="output folder (default: runs/<scene name>)")
     r.add_argument("--duration", type=float, default=None, help="simulated seconds (overrides simulation.duration_s)")
     r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--resume", action="store_true", help="continue from the output folder's checkpoint.npz (written every "
+                   "output.checkpoint_interval_s of wall-clock time, on Ctrl-C and on a blow-up)")
+    r.add_argument("--checkpoint-every", type=float, default=None, metavar="SECONDS",
+                   help="wall-clock seconds between checkpoints (overrides output.checkpoint_interval_s; 0: none)")
     v = sub.add_parser("validate", help="check a scene file without running it")
     v.add_argument("scene")
     sub.add_parser("info", help="Warp version and devices")
@@ -86,7 +90,8 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         return _fail(e.one_line())
     if args.command == "validate":
-        print(f"{scene_path}: ok ({scene.dim}D, {len(scene.fluid.regions)} fluid region(s), duration {scene.simulation.duration_s:g} s)")
+        print(f"{scene_path}: ok ({scene.dim}D, {len(scene.fluid.regions) if scene.fluid is not None else 0} fluid region(s), "
+              f"{len(scene.blocks)} block entr{'y' if len(scene.blocks) == 1 else 'ies'}, duration {scene.simulation.duration_s:g} s)")
         return 0
     # run
     if args.duration is not None and not (args.duration > 0 and args.duration < float("inf")):
@@ -94,7 +99,15 @@ def main(argv: list[str] | None = None) -> int:
     import warp as wp
 
     wp.config.quiet = True
+    import warnings
+
+    warnings.formatwarning = lambda msg, *a, **k: f"warning: {msg}\n"
+    from rockwave.checkpoint import CheckpointError
     from rockwave.simulation import Simulation, SimulationError
+
+    if args.checkpoint_every is not None and not (0 <= args.checkpoint_every < float("inf")):
+        return _fail(f"--checkpoint-every must be a number of seconds >= 0, got {args.checkpoint_every}")
+
 
     out = Path(args.out) if args.out else Path("runs") / scene.name
     try:
@@ -107,13 +120,16 @@ def main(argv: list[str] | None = None) -> int:
             if sim.blocks is not None:
                 parts.append(f"{sim.blocks.num_blocks:,} blocks (critical step {sim.block_solver.critical_dt():.3g} s)")
             print(f"{scene_path}: {' and '.join(parts)} on {sim.device}, dt = {sim.dt:.3g} s", file=sys.stderr)
-        summary = sim.run(out, duration=args.duration, progress=not args.quiet)
+        summary = sim.run(out, duration=args.duration, progress=not args.quiet, resume=args.resume,
+                          checkpoint_interval_s=args.checkpoint_every)
     except SceneError as e:
         return _fail(e.one_line())
+    except CheckpointError as e:
+        return _fail(str(e))
     except (SimulationError, ValueError, OSError) as e:
         return _fail(str(e), 1)
     except KeyboardInterrupt:
-        print(f"interrupted: frames written so far are in {out}", file=sys.stderr)
+        print(f"interrupted: frames written so far are in {out}; continue with --resume", file=sys.stderr)
         return 130
     rates = [f"{summary[k]:.3g} {k.replace('_per_s', '').replace('_', '-')}/s" for k in ("particle_steps_per_s", "block_steps_per_s") if summary.get(k)]
     print(f"done: {summary['simulated_s']:.3g} s simulated in {summary['steps']} steps, {summary['wall_s']:.1f} s wall"

@@ -144,6 +144,9 @@ class Simulation:
             scene = load_scene(scene)
         self.scene = scene
         self.device = resolve_device(device if device is not None else scene.simulation.device)
+        from rockwave import preflight  # meshes and the memory estimate, before anything is allocated
+
+        self.estimate = preflight.check_scene(scene, self.device)
         self.fluid = self.fluid_solver = self.state = None
         self.blocks = self.block_solver = self.block_state = None
         g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
@@ -365,39 +368,37 @@ class Simulation:
         return out
 
     def check_health(self, x: np.ndarray, v: np.ndarray) -> int:
-        """Raise SimulationError on NaN/inf or runaway speed; return the count of particles outside the domain."""
-        if self.blocks is not None:
-            xb, vb = self.block_positions(), self.block_velocities()
-            badb = ~np.isfinite(xb).all(axis=1) | ~np.isfinite(vb).all(axis=1)
-            if badb.any():
-                i = int(np.argmax(badb))
-                raise SimulationError(f"blow-up at step {self.steps}, t = {self.time:.5g} s: block {self.blocks.names[i]!r} "
-                                      f"has a NaN/inf position or velocity; try a smaller simulation.block_dt_safety "
-                                      f"(current step {self.dt:.3g} s) or softer contacts")
-        if self.fluid is None:
-            return 0
-        bad = ~np.isfinite(x).all(axis=1) | ~np.isfinite(v).all(axis=1)
-        speed = np.linalg.norm(np.where(bad[:, None], 0.0, v), axis=1)
-        limit = 5.0 * self.fluid.sound_speed
-        if bad.any() or (speed > limit).any():
-            i = int(np.argmax(bad)) if bad.any() else int(np.argmax(speed))
-            what = "is NaN/inf" if bad.any() else f"moves at {speed[i]:.3g} m/s (> 5 c0 = {limit:.3g} m/s)"
-            raise SimulationError(
-                f"blow-up at step {self.steps}, t = {self.time:.5g} s: fluid particle {i} at {np.round(x[i], 4).tolist()} {what}; "
-                f"try a smaller time step (current {self.dt:.3g} s; e.g. simulation.cfl_number or dt_s halved) or a larger speed of sound")
-        lo = self.fluid.domain_lo[: x.shape[1]] - 2 * self.fluid.support_radius
-        hi = self.fluid.domain_hi[: x.shape[1]] + 2 * self.fluid.support_radius
-        return int((~np.all((x >= lo) & (x <= hi), axis=1)).sum())
+        """Blow-up guard (rockwave/guard.py): raise SimulationError on NaN/inf, runaway speed, the water
+        flying apart or an energy jump (the message gives step, time, where and a suggested time step);
+        return the count of fluid particles outside the domain (not fatal)."""
+        from rockwave.guard import BlowUpError, HealthGuard
+
+        if getattr(self, "_guard", None) is None:
+            self._guard = HealthGuard(self)
+        try:
+            return self._guard.check(x, v)
+        except BlowUpError as e:
+            err = SimulationError(str(e))
+            err.__dict__.update(e.__dict__)
+            raise err from None
 
     # ---------------------------------------------------------------- running -----------------
-    def run(self, out_dir: str | os.PathLike, duration: float | None = None, progress: bool = True) -> dict:
+    def run(self, out_dir: str | os.PathLike, duration: float | None = None, progress: bool = True,
+            resume: bool = False, checkpoint_interval_s: float | None = None) -> dict:
         """Run the scene for ``duration`` (default: the scene's), writing outputs into ``out_dir``.
-        Returns the run summary (also written as ``run.json``)."""
+        Returns the run summary (also written as ``run.json``).
+
+        ``resume``: continue from ``out_dir/checkpoint.npz`` (rockwave/checkpoint.py) with the outputs
+        written so far. ``checkpoint_interval_s``: wall-clock seconds between checkpoints (default
+        ``output.checkpoint_interval_s``; 0: none, except on a blow-up or Ctrl-C). Ctrl-C finishes the
+        current frame, writes a checkpoint, closes the USD stage and raises KeyboardInterrupt."""
+        from rockwave import checkpoint as ckpt
         from rockwave.export.usd import UsdFrameWriter, points_setup
         from rockwave.progress import Progress
 
         scene = self.scene
         out = Path(out_dir)
+        resumed = ckpt.read_file(out / ckpt.FILE_NAME) if resume else None
         try:
             out.mkdir(parents=True, exist_ok=True)
             probe = out / ".write_test"
@@ -407,6 +408,10 @@ class Simulation:
             raise SimulationError(f"output folder {out} is not writable: {e}") from None
         duration = scene.simulation.duration_s if duration is None else duration
         fps = scene.output.frame_rate_hz
+        if resumed is not None:
+            ckpt.restore(self, *resumed)
+        else:
+            ckpt.clear(out)
         n_frames = int(math.floor(duration * fps + 1e-9))
         frame_dt = 1.0 / fps
         nf, dim = self.n_fluid, scene.dim
@@ -435,6 +440,27 @@ class Simulation:
         escaped = 0
         t0 = self.time
         interrupted = False
+        first, steps0 = 0, self.steps
+        if resumed is not None:  # outputs continue where the checkpoint was taken
+            meta = resumed[1]
+            t0, first, escaped = meta["t0"], meta["frame"] + 1, meta["escaped"]
+            try:
+                if writer is not None and meta["usd"] is not None:
+                    writer.restore_checkpoint_state(meta["usd"])
+                gauge_rows[:] = ckpt.csv_restore(gauge_path, meta["csv"].get("gauges"), ["time_s"] + self.gauge_names)
+                block_rows[:] = ckpt.csv_restore(block_path, meta["csv"].get("blocks"), BLOCK_CSV_HEADER)
+            except (OSError, ValueError) as e:
+                raise ckpt.CheckpointError(f"cannot resume in {out}: {e}") from None
+            if getattr(render, "vtk", None) is not None and meta.get("vtk") is not None:
+                render.vtk.entries = [tuple(e) for e in meta["vtk"]]
+        else:
+            from rockwave import preflight
+
+            preflight.check_disk(self, out, n_frames)
+        interval = scene.output.get("checkpoint_interval_s", 600.0) if checkpoint_interval_s is None else checkpoint_interval_s
+        checkpointer = ckpt.RunCheckpointer(self, out, interval, t0, lambda: {
+            "usd": writer, "escaped": escaped, "vtk": getattr(render, "vtk", None),
+            "csv": {"gauges": (gauge_path, gauge_rows), "blocks": (block_path, block_rows)}})
 
         def write_frame(frame: int) -> None:
             nonlocal escaped
@@ -462,8 +488,7 @@ class Simulation:
                         samples[(prim, "xformOp:orient", "quatf")] = Gf.Quatf(float(bq[i, 3]), float(bq[i, 0]), float(bq[i, 1]), float(bq[i, 2]))
                     block_rows.append([self.time, i, self.blocks.names[i], *map(float, bx[i]), *map(float, bv[i]), *map(float, bw[i]), int(nc[i])])
                 if block_path is not None:
-                    _write_csv_atomic(block_path, ["time_s", "block", "name", "x_m", "y_m", "z_m", "vx_m_s", "vy_m_s", "vz_m_s",
-                                                   "wx_rad_s", "wy_rad_s", "wz_rad_s", "contacts"], block_rows)
+                    _write_csv_atomic(block_path, BLOCK_CSV_HEADER, block_rows)
             render.frame(frame, samples)
             if writer is not None:
                 writer.write_frame(frame, samples)
@@ -472,20 +497,67 @@ class Simulation:
                 gauge_rows.append([self.time] + [g[n] for n in self.gauge_names])
                 _write_csv_atomic(gauge_path, ["time_s"] + self.gauge_names, gauge_rows)
 
+        import signal
+        import threading
+
+        stop = []
+
+        def on_sigint(signum, frm):
+            if stop:  # a second Ctrl-C stops at once
+                raise KeyboardInterrupt
+            stop.append(True)
+            print("\ninterrupted: finishing the current frame, then writing a checkpoint (Ctrl-C again to stop at once)",
+                  file=sys.stderr)
+
+        old_handler = signal.signal(signal.SIGINT, on_sigint) if threading.current_thread() is threading.main_thread() else None
+        failed = False
         try:
-            write_frame(0)
-            for f in range(1, n_frames + 1):
+            if first == 0:
+                write_frame(0)
+                checkpointer.frame_done(0)
+            for f in range(max(first, 1), n_frames + 1):
+                if stop:
+                    break
                 self.advance(t0 + f * frame_dt - self.time)
                 write_frame(f)
+                checkpointer.frame_done(f)
                 bar.update(self.time - t0, self.steps)
-            rest = t0 + duration - self.time
-            if rest > 1e-9:
-                self.advance(rest)
+            if stop:
+                interrupted = True
+                checkpointer.write("interrupt")
+            else:
+                rest = t0 + duration - self.time
+                if rest > 1e-9:
+                    self.advance(rest)
+                if checkpointer.interval > 0:
+                    checkpointer.write("end")
         except KeyboardInterrupt:
             interrupted = True
+        except SimulationError as e:  # blow-up: the outputs end at the last good frame, which is checkpointed
+            failed = True
+            try:
+                path = checkpointer.write("blow-up")
+                kept = f"; frames up to {checkpointer.frame} are kept in {out}" if checkpointer.frame >= 0 else ""
+                more = f"; checkpoint of frame {checkpointer.frame} written to {path} (continue with --resume)" if path else ""
+            except OSError as we:
+                kept, more = "", f"; no checkpoint written ({we})"
+            err = SimulationError(f"{e}{kept}{more}")
+            err.__dict__.update(e.__dict__)
+            raise err from None
+        except OSError as e:  # full disk, folder removed: what was written stays as it was
+            failed = True
+            raise SimulationError(f"cannot write the outputs in {out}: {e}; the files written before are intact "
+                                  f"(last frame computed {checkpointer.frame}"
+                                  f"{', last checkpoint frame ' + str(checkpointer.written_frame) if checkpointer.written_frame is not None else ''})") from None
         finally:
+            if old_handler is not None:
+                signal.signal(signal.SIGINT, old_handler)
             if writer is not None:
-                writer.close()
+                try:
+                    writer.close()
+                except OSError:
+                    if not failed:
+                        raise
             bar.close()
         wall = time.perf_counter() - wall0
         summary = {
@@ -498,11 +570,13 @@ class Simulation:
             "simulated_s": self.time - t0,
             "steps": self.steps,
             "wall_s": wall,
-            "particle_steps_per_s": nf * self.steps / wall if wall > 0 and nf else None,
-            "block_steps_per_s": self.blocks.num_blocks * self.steps / wall if wall > 0 and self.blocks is not None else None,
+            "particle_steps_per_s": nf * (self.steps - steps0) / wall if wall > 0 and nf else None,
+            "block_steps_per_s": self.blocks.num_blocks * (self.steps - steps0) / wall if wall > 0 and self.blocks is not None else None,
             "particles_outside_domain": escaped,
             "usd": str(out / scene.output.usd) if writer else None,
             "interrupted": interrupted,
+            "resumed_from_frame": resumed[1]["frame"] if resumed is not None else None,
+            "checkpoint": str(checkpointer.path) if checkpointer.written_frame is not None else None,
         }
         _write_text_atomic(out / "run.json", json.dumps(summary, indent=2))
         if interrupted:
@@ -545,10 +619,15 @@ def blocks_setup(stage, blocks, prims: list[str]) -> None:
             mesh.AddOrientOp()
 
 
+BLOCK_CSV_HEADER = ["time_s", "block", "name", "x_m", "y_m", "z_m", "vx_m_s", "vy_m_s", "vz_m_s",
+                    "wx_rad_s", "wy_rad_s", "wz_rad_s", "contacts"]
+
+
 def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    """Temporary file, fsync, rename (rockwave/checkpoint.py): a failure leaves the old file as it was."""
+    from rockwave.checkpoint import atomic_write
+
+    atomic_write(path, text.encode())
 
 
 def _write_csv_atomic(path: Path, header: list[str], rows: list[list[float]]) -> None:

@@ -21,8 +21,17 @@ from pxr import Sdf, Usd, UsdGeom, Vt
 
 def _atomic_export(layer: Sdf.Layer, path: Path) -> None:
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    if not layer.Export(str(tmp)):
-        raise OSError(f"cannot write {tmp}")
+    try:
+        ok = layer.Export(str(tmp))
+    except Exception:  # pxr raises Tf.ErrorException on a full disk or an unwritable folder
+        ok = False
+    if not ok:
+        why = "disk full, file size limit or folder not writable"
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise OSError(f"cannot write {path} ({why})")
     os.replace(tmp, path)
 
 
@@ -106,6 +115,43 @@ class UsdFrameWriter:
         if not self.chunks:
             self._write_root()
 
+    # -- checkpoint and resume (rockwave/checkpoint.py) -----------------------------------------
+    def checkpoint_state(self, tag: str) -> dict:
+        """What a resumed writer needs; the open (unflushed) chunk is saved as ``open_<tag>`` in the
+        clip folder, so chunk boundaries, and the files, are those of an uninterrupted run."""
+        open_name = None
+        if self._chunk is not None:
+            open_name = f"open_{tag}{self.ext}"
+            _atomic_export(self._chunk, self.clip_dir / open_name)
+        return {"chunks": [list(c) for c in self.chunks], "chunk_first": self._chunk_first, "last_frame": self._last_frame,
+                "attrs": [[p, n, t] for (p, n), t in self._attrs.items()], "open_chunk": open_name, "ext": self.ext}
+
+    def restore_checkpoint_state(self, st: dict) -> None:
+        """Continue from :meth:`checkpoint_state`: chunk files written after it are dropped and the
+        root layer is rewritten, so the stage on disk ends at the checkpoint's frame."""
+        if st["ext"] != self.ext:
+            raise ValueError(f"the checkpoint's USD files are {st['ext']}, this run writes {self.ext}")
+        self.chunks = [tuple(c) for c in st["chunks"]]
+        self._attrs = {(p, n): t for p, n, t in st["attrs"]}
+        self._chunk_first, self._last_frame = st["chunk_first"], st["last_frame"]
+        self._chunk = None
+        if st["open_chunk"]:
+            src = Sdf.Layer.FindOrOpen(str(self.clip_dir / st["open_chunk"]))
+            if src is None:
+                raise OSError(f"cannot resume: {self.clip_dir / st['open_chunk']} is missing or unreadable")
+            self._chunk = Sdf.Layer.CreateAnonymous(".usdc")
+            self._chunk.TransferContent(src)
+        for p in self.clip_dir.glob(f"chunk_*{self.ext}"):
+            try:
+                stale = int(p.stem.split("_")[1]) >= len(self.chunks)
+            except (IndexError, ValueError):
+                stale = False
+            if stale:
+                p.unlink()
+        if self.chunks:
+            self._write_manifest()
+        self._write_root()
+
     # -- layers -------------------------------------------------------------------------------
     def _write_manifest(self) -> None:
         m = Sdf.Layer.CreateAnonymous(".usdc")
@@ -125,8 +171,8 @@ class UsdFrameWriter:
             clips.SetClipManifestAssetPath(Sdf.AssetPath(f"./{rel}/manifest{self.ext}"))
             clips.SetClipActive(Vt.Vec2dArray([(float(a), float(i)) for i, (a, _) in enumerate(self.chunks)]))
             times = []
-            for a, b in self.chunks:
-                times += [(float(a), float(a)), (float(b), float(b))]
+            for a, b in self.chunks:  # identity map; a one-frame chunk gets one entry (a repeated time is a jump)
+                times += [(float(a), float(a))] + ([(float(b), float(b))] if b != a else [])
             clips.SetClipTimes(Vt.Vec2dArray(times))
             st.SetStartTimeCode(self.chunks[0][0])
             st.SetEndTimeCode(self.chunks[-1][1])

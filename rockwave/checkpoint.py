@@ -1,0 +1,396 @@
+"""Checkpoints and resume: the whole state of a run in one file, written atomically.
+
+A checkpoint is ``<out>/checkpoint.npz`` (numpy ``.npz``, uncompressed): arrays named
+``<group>/<field>`` and one ``meta`` entry (UTF-8 JSON) with the format version, the frame it was
+taken after, the clock, the scene (path, SHA-256, particle and block counts) and the state of every
+output writer (USD chunks written and the open chunk saved beside them, rows of the CSVs, the
+ParaView series). Checkpoints are always taken at a frame boundary, after the frame's outputs are
+written, so a resumed run starts at the next frame with outputs that match the state.
+
+What is saved is collected from *providers*, one per state group:
+
+- ``clock``: ``Simulation.time``, ``steps``, ``dt``, ``_dt_target`` (the adaptive step);
+- ``fluid``: every ``wp.array`` field of the :class:`rockwave.fluid.FluidState`;
+- ``blocks``: the :class:`rockwave.blocks.BlockState` arrays, its time, the contact-history hash
+  table (occupied slots only) and the block solver's buffer capacities (they fix the order of the
+  contact pairs and with it the float sums, so a resumed CPU run is bit-identical);
+- anything registered with :func:`register`: a state object added later (ghost particles, the
+  coupling) makes its arrays travel with one call::
+
+      from rockwave import checkpoint
+      checkpoint.register(sim, "ghost", lambda: sim.ghost_state)   # every wp.array attribute
+
+  or with an object that has ``capture()``, ``pack(captured) -> (arrays, meta)`` and
+  ``restore(arrays, meta)`` (see :class:`ArrayGroup`).
+
+During a run the state is captured after every frame (device-side copies with ``wp.clone``), so
+when the blow-up guard stops a run the checkpoint holds the last good frame.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import warp as wp
+
+FORMAT_VERSION = 1
+FILE_NAME = "checkpoint.npz"
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint that cannot be used for this scene or output folder (missing, other scene, torn outputs)."""
+
+
+# --------------------------------------------------------------------------------------------
+# atomic files
+# --------------------------------------------------------------------------------------------
+
+
+def atomic_write(path: str | os.PathLike, data: bytes | Callable[[Any], None]) -> None:
+    """Write ``data`` (bytes, or a function writing to a binary file object) to ``path`` through a
+    temporary file in the same folder, fsync it and rename it into place. On any failure (full
+    disk, unwritable folder) the temporary file is removed and the old ``path`` is left as it was."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            if callable(data):
+                data(f)
+            else:
+                f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise
+
+
+def file_sha256(path: Path, nbytes: int | None = None) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        h.update(f.read() if nbytes is None else f.read(nbytes))
+    return h.hexdigest()
+
+
+# --------------------------------------------------------------------------------------------
+# providers
+# --------------------------------------------------------------------------------------------
+
+
+def _wp_arrays(obj, fields=None) -> dict[str, wp.array]:
+    if obj is None:
+        return {}
+    if fields is not None:
+        return {n: getattr(obj, n) for n in fields}
+    return {k: v for k, v in vars(obj).items() if isinstance(v, wp.array)}
+
+
+def _assign(obj, name: str, arr: wp.array, a: np.ndarray) -> None:
+    """Copy host data into a device array, reallocating it when the length changed."""
+    if arr.shape[0] == a.shape[0]:
+        try:
+            arr.assign(a)
+            return
+        except (ValueError, RuntimeError, TypeError):
+            pass
+    setattr(obj, name, wp.array(a, dtype=arr.dtype, device=arr.device))
+
+
+class ArrayGroup:
+    """Every ``wp.array`` attribute (or the named ``fields``) of the object ``get()`` returns.
+    ``get`` is called each time, so a state object that is replaced (e.g. after particles are
+    removed) is still found. Arrays whose length changed are reallocated on restore."""
+
+    def __init__(self, get: Callable[[], Any], fields: list[str] | None = None):
+        self.get = get
+        self.fields = fields
+
+    def capture(self):
+        return {n: wp.clone(a) for n, a in _wp_arrays(self.get(), self.fields).items()}
+
+    def pack(self, captured) -> tuple[dict, dict]:
+        return {n: a.numpy() for n, a in captured.items()}, {}
+
+    def restore(self, arrays: dict, meta: dict) -> None:
+        obj = self.get()
+        cur = _wp_arrays(obj, self.fields)
+        missing = set(cur) - set(arrays)
+        if missing:
+            raise CheckpointError(f"the checkpoint lacks {sorted(missing)}")
+        for n, a in arrays.items():
+            if n in cur:
+                _assign(obj, n, cur[n], a)
+
+
+class ClockProvider:
+    KEYS = ("time", "steps", "dt", "_dt_target")
+
+    def __init__(self, sim):
+        self.sim = sim
+
+    def capture(self):
+        return {k: getattr(self.sim, k) for k in self.KEYS}
+
+    def pack(self, captured):
+        return {}, dict(captured)
+
+    def restore(self, arrays, meta):
+        sim = self.sim
+        sim.time = float(meta["time"])
+        sim.steps = int(meta["steps"])
+        sim._dt_target = float(meta["_dt_target"])
+        sim.dt = float(meta["dt"])
+        sim._dt_dev.fill_(sim.dt)
+
+
+class BlockProvider:
+    """BlockState arrays + time, the contact history (tables[0], occupied slots) and solver capacities."""
+
+    def __init__(self, sim):
+        self.sim = sim
+
+    def capture(self):
+        st, sol = self.sim.block_state, self.sim.block_solver
+        arrays = {n: wp.clone(a) for n, a in _wp_arrays(st).items()}
+        table = {k: wp.clone(a) for k, a in st.tables[0].items()}
+        meta = {"time": st.time, "table_cap": st.table_cap, "entry_cap": sol.entry_cap,
+                "large_cap": int(sol.large_list.shape[0]), "pair_cap": sol.pair_cap}
+        return arrays, table, meta
+
+    def pack(self, captured):
+        arrays, table, meta = captured
+        out = {n: a.numpy() for n, a in arrays.items()}
+        keys = table["keys"].numpy()
+        occ = np.nonzero(keys >= 0)[0]
+        cap = keys.shape[0]
+        out["table/slots"] = occ.astype(np.int64)
+        for k, a in table.items():
+            h = a.numpy()
+            per = h.shape[0] // cap  # 1 for per-pair fields, MAX_CONTACTS for per-point ones
+            out[f"table/{k}"] = h.reshape(cap, per, *h.shape[1:])[occ]
+        return out, dict(meta)
+
+    def restore(self, arrays, meta):
+        st, sol = self.sim.block_state, self.sim.block_solver
+        if sol.entry_cap != meta["entry_cap"]:
+            sol._alloc_entries(int(meta["entry_cap"]))
+        if sol.large_list.shape[0] != meta["large_cap"]:
+            sol._alloc_large(int(meta["large_cap"]))
+        if sol.pair_cap != meta["pair_cap"]:
+            sol._alloc_pairs(int(meta["pair_cap"]))
+        cap = int(meta["table_cap"])
+        st.tables = [None, None]
+        st.alloc_tables(cap)
+        t = st.tables[0]
+        slots = arrays["table/slots"]
+        for k, a in t.items():
+            h = a.numpy()
+            per = h.shape[0] // cap
+            h = h.reshape(cap, per, *h.shape[1:])
+            h[slots] = arrays[f"table/{k}"]
+            a.assign(h.reshape(a.numpy().shape))
+        plain = {n: a for n, a in arrays.items() if not n.startswith("table/")}
+        ArrayGroup(lambda: st).restore(plain, {})
+        st.time = float(meta["time"])
+
+
+def register(sim, name: str, provider) -> None:
+    """Add a state group to ``sim``'s checkpoints: ``provider`` is a callable returning the state
+    object (all its ``wp.array`` attributes are saved) or a provider object (capture/pack/restore)."""
+    if callable(provider) and not hasattr(provider, "capture"):
+        provider = ArrayGroup(provider)
+    sim.__dict__.setdefault("checkpoint_providers", {})[name] = provider
+
+
+def providers(sim) -> dict:
+    out: dict[str, Any] = {"clock": ClockProvider(sim)}
+    if getattr(sim, "fluid", None) is not None:
+        out["fluid"] = ArrayGroup(lambda: sim.state)
+    if getattr(sim, "blocks", None) is not None:
+        out["blocks"] = BlockProvider(sim)
+    out.update(getattr(sim, "checkpoint_providers", {}))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# scene identity
+# --------------------------------------------------------------------------------------------
+
+
+def scene_identity(sim) -> dict:
+    s = sim.scene
+    sha = None
+    if s.path != "<scene>" and Path(s.path).is_file():
+        sha = file_sha256(Path(s.path))
+    return {"path": str(s.path), "sha256": sha, "dimension": s.dim,
+            "n_fluid": sim.fluid.n_fluid if sim.fluid is not None else 0,
+            "n_boundary": sim.fluid.n_boundary if sim.fluid is not None else 0,
+            "n_blocks": sim.blocks.num_blocks if sim.blocks is not None else 0,
+            "time_step": {k: s.simulation.get(k) for k in ("time_step", "cfl_number", "dt_s", "block_dt_safety", "dt_update_interval")},
+            "frame_rate_hz": s.output.frame_rate_hz, "usd": s.output.usd}
+
+
+# --------------------------------------------------------------------------------------------
+# reading and writing
+# --------------------------------------------------------------------------------------------
+
+
+def write_file(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:
+    payload = dict(arrays)
+    payload["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    atomic_write(path, lambda f: np.savez(f, **payload))
+
+
+def read_file(path: str | os.PathLike) -> tuple[dict, dict]:
+    """(arrays, meta) of a checkpoint file."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint to resume from: {path} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        meta = json.loads(arrays.pop("meta").tobytes().decode())
+    except (OSError, ValueError, KeyError) as e:
+        raise CheckpointError(f"{path}: not a readable checkpoint ({e})") from None
+    if meta.get("format") != FORMAT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint format {meta.get('format')!r}, this rockwave reads {FORMAT_VERSION}")
+    return arrays, meta
+
+
+def capture(sim) -> dict:
+    """Device-side copy of every provider's state (cheap; no host transfer)."""
+    return {name: p.capture() for name, p in providers(sim).items()}
+
+
+def pack(sim, captured: dict) -> tuple[dict, dict]:
+    arrays, metas = {}, {}
+    provs = providers(sim)
+    for name, cap in captured.items():
+        a, m = provs[name].pack(cap)
+        arrays.update({f"{name}/{k}": v for k, v in a.items()})
+        metas[name] = m
+    return arrays, metas
+
+
+def restore(sim, arrays: dict, meta: dict) -> None:
+    """Load a checkpoint's state into ``sim`` (built from the same scene)."""
+    ident, now = meta["scene"], scene_identity(sim)
+    for k in ("dimension", "n_fluid", "n_boundary", "n_blocks"):
+        if ident[k] != now[k]:
+            raise CheckpointError(f"the checkpoint was taken for another scene ({k} = {ident[k]}, this scene gives {now[k]})")
+    provs = providers(sim)
+    for name in meta["groups"]:
+        if name not in provs:
+            raise CheckpointError(f"the checkpoint holds state group {name!r} that this simulation does not have")
+        pre = f"{name}/"
+        provs[name].restore({k[len(pre):]: v for k, v in arrays.items() if k.startswith(pre)}, meta["groups"][name])
+    for name in provs:
+        if name not in meta["groups"]:
+            raise CheckpointError(f"the checkpoint lacks state group {name!r}")
+    if ident["time_step"] != now["time_step"]:
+        # the scene's step settings changed (e.g. a smaller cfl_number after a blow-up): use them now
+        sim._dt_target = sim.scene.simulation.dt_s if sim.fixed else sim._adaptive_dt()
+
+
+# --------------------------------------------------------------------------------------------
+# CSV logs
+# --------------------------------------------------------------------------------------------
+
+
+def csv_state(path: Path | None, rows: list) -> dict | None:
+    if path is None or not path.exists():
+        return None
+    return {"file": path.name, "rows": len(rows), "bytes": path.stat().st_size, "sha256": file_sha256(path)}
+
+
+def csv_restore(path: Path | None, state: dict | None, header: list[str]) -> list[list[str]]:
+    """The rows a CSV log held at the checkpoint (as strings, rewritten unchanged by the writer)."""
+    if state is None or path is None:
+        return []
+    if not path.is_file():
+        raise CheckpointError(f"cannot resume: {path} is missing")
+    if path.stat().st_size < state["bytes"] or file_sha256(path, state["bytes"]) != state["sha256"]:
+        raise CheckpointError(f"cannot resume: {path} does not start with what the checkpoint recorded (was it edited?)")
+    with open(path, "rb") as f:
+        text = f.read(state["bytes"]).decode()
+    rows = list(csv.reader(io.StringIO(text)))
+    if not rows or rows[0] != header:
+        raise CheckpointError(f"cannot resume: {path} has columns {rows[0] if rows else []}, the scene gives {header}")
+    body = rows[1:]
+    if len(body) != state["rows"]:
+        raise CheckpointError(f"cannot resume: {path} holds {len(body)} rows, the checkpoint recorded {state['rows']}")
+    return body
+
+
+# --------------------------------------------------------------------------------------------
+# the checkpointer of a run
+# --------------------------------------------------------------------------------------------
+
+
+class RunCheckpointer:
+    """Captures the state after every frame and writes ``checkpoint.npz`` every ``interval_s``
+    seconds of wall-clock time (0: only on a blow-up, Ctrl-C or at the end when asked)."""
+
+    def __init__(self, sim, out: Path, interval_s: float, t0: float, outputs: Callable[[], dict]):
+        self.sim = sim
+        self.out = Path(out)
+        self.path = self.out / FILE_NAME
+        self.interval = float(interval_s)
+        self.t0 = t0
+        self.outputs = outputs  # -> {"usd": writer|None, "csv": {name: (path, rows)}, "vtk": series|None, "escaped": int}
+        self.snapshot = None
+        self.frame = -1
+        self.next_due = time.monotonic() + self.interval
+        self.written_frame = None
+
+    def frame_done(self, frame: int) -> None:
+        self.snapshot = capture(self.sim)
+        self.frame = frame
+        if self.interval > 0 and time.monotonic() >= self.next_due:
+            self.write()
+
+    def write(self, reason: str = "interval") -> Path | None:
+        """Write the last captured frame; returns the path (None before the first frame)."""
+        if self.snapshot is None:
+            return None
+        arrays, groups = pack(self.sim, self.snapshot)
+        o = self.outputs()
+        writer = o.get("usd")
+        meta = {"format": FORMAT_VERSION, "frame": self.frame, "t0": self.t0, "reason": reason,
+                "written_unix_s": time.time(), "scene": scene_identity(self.sim), "groups": groups,
+                "escaped": int(o.get("escaped", 0)),
+                "usd": writer.checkpoint_state(f"{self.frame:06d}") if writer is not None else None,
+                "csv": {name: csv_state(p, rows) for name, (p, rows) in o.get("csv", {}).items()},
+                "vtk": [list(e) for e in o["vtk"].entries] if o.get("vtk") is not None else None}
+        write_file(self.path, arrays, meta)
+        self.written_frame = self.frame
+        self.next_due = time.monotonic() + self.interval
+        if writer is not None:
+            keep = meta["usd"]["open_chunk"]
+            for p in writer.clip_dir.glob(f"open_*{writer.ext}"):
+                if p.name != keep:
+                    try:
+                        p.unlink()
+                    except OSError:
+                        pass
+        return self.path
+
+
+def clear(out: Path) -> None:
+    """Remove a previous run's checkpoint (a fresh run must not be resumed from a stale one)."""
+    try:
+        (Path(out) / FILE_NAME).unlink()
+    except FileNotFoundError:
+        pass
