@@ -13,10 +13,11 @@ pressure of its own (Akinci's boundary term ``-m_j p_i/rho_i^2 grad W_ij``), whi
 ghost rule p_ghost = 0; they are excluded from viscosity and XSPH there.
 
 Sampling (parallel dart throwing, after Bridson 2007's rejection rule): a background grid of cell
-size r/sqrt(d) holds at most one ghost per cell. Cells near a surface particle are marked active.
-Cells are split into 3^d phases (cell index mod 3 along each axis); two cells of one phase are at
-least two cells apart, i.e. farther than r, so all cells of a phase throw darts at the same time
-without conflicts. A dart is accepted when it lies within ``layer`` of a liquid particle and no
+size r/sqrt(d) holds at most one ghost per cell. Cells near a surface particle are marked active and
+appended to a compact list per phase (3^d phases: cell index mod 3 along each axis; two cells of one
+phase are at least two cells apart, i.e. farther than r, so all cells of a phase throw darts at the
+same time without conflicts). Dart launches run over these lists only, and per-cell stamps replace
+clearing the dense grid: the work scales with the surface, not with the domain. A dart is accepted when it lies within ``layer`` of a liquid particle and no
 closer than r to any liquid, boundary or ghost particle.
 """
 
@@ -94,15 +95,26 @@ def position_divergence(
     surface[i] = f
 
 
+@wp.func
+def phase_of(i: int, j: int, k: int) -> int:
+    return (i % 3) + 3 * (j % 3) + 9 * (k % 3)
+
+
 @wp.kernel
 def mark_active_cells(
     x: wp.array(dtype=wp.vec3),
     surface: wp.array(dtype=int),
     g: GhostGrid,
-    active: wp.array(dtype=int),
+    stamp: int,
+    cell_mark: wp.array(dtype=int),
+    phase_count: wp.array(dtype=int),
+    phase_list: wp.array(dtype=int),
+    phase_cap: int,
 ):
-    """Mark the background cells that meet the disc/ball of radius layer + r around each surface particle
-    (the dart tests decide the rest)."""
+    """Mark the background cells that meet the disc/ball of radius ``layer`` around each surface
+    particle (the dart tests decide the rest) and append each newly marked cell once to the list of
+    its phase (``phase_list[ph * phase_cap + slot]``, ``phase_count[ph]`` slots). ``cell_mark`` holds
+    the stamp of the sampling that last marked a cell, so the dense grid is never cleared."""
     i = wp.tid()
     if surface[i] == 0:
         return
@@ -121,12 +133,16 @@ def mark_active_cells(
                 c = g.lo + wp.vec3(float(ii) * g.cell + half, float(jj) * g.cell + half, float(k) * g.cell + half)
                 if g.dim == 2:
                     c = wp.vec3(c[0], c[1], 0.0)
-                # skip cells wholly inside the disc of radius r around x_i (every dart there is
+                # skip cells wholly inside the disc of radius r_liquid around x_i (every dart there is
                 # rejected) or wholly beyond the layer
                 dist = wp.length(c - xi)
                 if dist + half_diag < g.r_liquid or dist - half_diag > reach:
                     continue
-                active[cell_index(g, ii, jj, k)] = 1
+                ci = cell_index(g, ii, jj, k)
+                if wp.atomic_max(cell_mark, ci, stamp) < stamp:
+                    ph = phase_of(ii, jj, k)
+                    slot = wp.atomic_add(phase_count, ph, 1)
+                    phase_list[ph * phase_cap + slot] = ci
 
 
 @wp.kernel
@@ -137,77 +153,121 @@ def throw_darts(
     n_fluid: int,
     n_static: int,
     g: GhostGrid,
-    phase: wp.vec3i,
     p: SPHParams,
     seed: int,
     attempts: int,
-    active: wp.array(dtype=int),
+    stamp: int,
+    classify: int,
+    phase_count: wp.array(dtype=int),
+    phase_list: wp.array(dtype=int),
+    phase_cap: int,
+    offset: int,
     cell_ghost: wp.array(dtype=int),
+    ghost_stamp: wp.array(dtype=int),
     count: wp.array(dtype=int),
     capacity: int,
     x_ghost: wp.array(dtype=wp.vec3),
     v_ghost: wp.array(dtype=wp.vec3),
     ghost_of: wp.array(dtype=int),
 ):
-    """One phase of dart throwing: one thread per cell of the phase (cells 3 apart along each axis)
-    tries up to ``attempts`` uniform darts in its cell and keeps the first that passes Bridson's
-    (2007) rejection test against liquid, boundary and ghost particles. Accepted ghosts are appended
-    at ``n_static + count`` (``x_ghost``/``v_ghost`` alias the extended x/v arrays)."""
-    ti, tj, tk = wp.tid()
-    ci = 3 * ti + phase[0]
-    cj = 3 * tj + phase[1]
-    ck = 3 * tk + phase[2]
-    if ci >= g.nx or cj >= g.ny or ck >= g.nz:
+    """Dart throwing over the active cells of phases ``offset + tid[0]`` only (thread (ph, t): the
+    t-th listed cell of phase ph). On a GPU it is launched once per phase (dim (1, count)): cells of
+    one phase are 3 apart along each axis, farther than r, so they never conflict. Warp's CPU backend
+    runs a launch on one thread in index order, so there one launch covers all phases in turn
+    (dim (n_phases, max count)), with the same result as phase-by-phase launches. Each thread tries up to ``attempts`` uniform darts in its cell and keeps
+    the first that passes Bridson's (2007) rejection test against liquid, boundary and ghost
+    particles. A cell's ghost is ``cell_ghost[c]`` when ``ghost_stamp[c] == stamp`` (no clearing).
+    Accepted ghosts are appended at ``n_static + count`` (``x_ghost``/``v_ghost`` alias the
+    extended x/v arrays). Tests from cheap to dear: ghosts in the 5^d block of cells, liquid and
+    boundary within r_liquid (a small hash query), then, for a dart that passed, the nearest liquid
+    particle within the layer and the liquid colour field (one query of radius ``layer``).
+    With ``classify`` (first round) a cell that no dart can pass is closed first (``ghost_stamp = -stamp``)."""
+    ph, t_cell = wp.tid()
+    if t_cell >= phase_count[offset + ph]:
         return
-    c = cell_index(g, ci, cj, ck)
-    if active[c] == 0 or cell_ghost[c] >= 0:
+    c = phase_list[(offset + ph) * phase_cap + t_cell]
+    if ghost_stamp[c] == stamp or ghost_stamp[c] == -stamp:  # has a ghost / closed
         return
+    ci = c % g.nx
+    cj = (c // g.nx) % g.ny
+    ck = c // (g.nx * g.ny)
+    half = 0.5 * g.cell
+    if classify != 0:
+        # first visit: close cells where no dart can pass. Inside the liquid: the colour field at the
+        # centre, less |grad colour| times the half diagonal (first order) and a 0.1 margin, still
+        # above colour_max everywhere in the cell. Covered: the whole cell within r_liquid of one
+        # liquid or boundary particle.
+        xc = g.lo + wp.vec3(float(ci) * g.cell + half, float(cj) * g.cell + half, float(ck) * g.cell + half)
+        if g.dim == 2:
+            xc = wp.vec3(xc[0], xc[1], 0.0)
+        half_diag = half * wp.sqrt(float(g.dim))
+        col = float(0.0)
+        grad = wp.vec3(0.0)
+        covered = int(0)
+        qc = wp.hash_grid_query(grid, xc, g.layer)
+        jc = int(0)
+        while wp.hash_grid_query_next(qc, jc):
+            if jc < n_static:
+                rc = xc - x[jc]
+                dc = wp.length(rc)
+                if dc + half_diag < g.r_liquid:
+                    covered = 1
+                if jc < n_fluid and dc < p.H:
+                    col += g.liquid_volume * kernel_w(dc * dc, p)
+                    grad += g.liquid_volume * kernel_grad(rc, dc, p)
+        if covered != 0 or col - wp.length(grad) * half_diag - 0.1 > g.colour_max:
+            ghost_stamp[c] = -stamp
+            return
     rng = wp.rand_init(seed, c)
     r2 = g.r * g.r
+    rl2 = g.r_liquid * g.r_liquid
     base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
     reach = 2
+    k0 = ck
+    k1 = ck
+    if g.dim == 3:
+        k0 = wp.max(ck - reach, 0)
+        k1 = wp.min(ck + reach, g.nz - 1)
     for t in range(attempts):
         y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
         if g.dim == 2:
             y = wp.vec3(y[0], y[1], 0.0)
         ok = int(1)
         # ghosts already placed in the 5^d block of cells around (at most one per cell)
-        k0 = ck
-        k1 = ck
-        if g.dim == 3:
-            k0 = wp.max(ck - reach, 0)
-            k1 = wp.min(ck + reach, g.nz - 1)
         for k in range(k0, k1 + 1):
             for jj in range(wp.max(cj - reach, 0), wp.min(cj + reach, g.ny - 1) + 1):
                 for ii in range(wp.max(ci - reach, 0), wp.min(ci + reach, g.nx - 1) + 1):
-                    o = cell_ghost[cell_index(g, ii, jj, k)]
-                    if o >= 0:
-                        if wp.length_sq(x_ghost[o] - y) < r2:
+                    n = cell_index(g, ii, jj, k)
+                    if ghost_stamp[n] == stamp:
+                        if wp.length_sq(x_ghost[cell_ghost[n]] - y) < r2:
                             ok = 0
         if ok == 0:
             continue
-        # liquid and boundary particles: none closer than r; nearest liquid within the layer
-        best = float(1.0e30)
-        nearest = int(-1)
-        rl2 = g.r_liquid * g.r_liquid
-        colour = float(0.0)
-        q = wp.hash_grid_query(grid, y, g.layer)
+        # liquid and boundary particles: none closer than r_liquid
+        q = wp.hash_grid_query(grid, y, g.r_liquid)
         j = int(0)
         while wp.hash_grid_query_next(q, j):
-            if j >= n_static:
-                continue
-            d2 = wp.length_sq(x[j] - y)
-            if d2 < rl2:
-                ok = 0
-                break
+            if j < n_static:
+                if wp.length_sq(x[j] - y) < rl2:
+                    ok = 0
+                    break
+        if ok == 0:
+            continue
+        # nearest liquid particle within the layer; outside the liquid only: a gap inside the liquid
+        # wider than r_liquid must not get a ghost (a ghost there adds density, pushes the gap open
+        # and seeds more ghosts: an air bubble that grows)
+        best = float(1.0e30)
+        nearest = int(-1)
+        colour = float(0.0)
+        q2 = wp.hash_grid_query(grid, y, g.layer)
+        while wp.hash_grid_query_next(q2, j):
             if j < n_fluid:
+                d2 = wp.length_sq(x[j] - y)
                 colour += g.liquid_volume * kernel_w(d2, p)
                 if d2 < best:
                     best = d2
                     nearest = j
-        # outside the liquid only: a gap inside the liquid wider than r_liquid must not get a ghost
-        # (a ghost there adds density, pushes the gap open and seeds more ghosts: an air bubble that grows)
-        if ok == 0 or nearest < 0 or best > g.layer * g.layer or colour > g.colour_max:
+        if nearest < 0 or best > g.layer * g.layer or colour > g.colour_max:
             continue
         slot = wp.atomic_add(count, 0, 1)
         if slot < capacity:
@@ -216,6 +276,7 @@ def throw_darts(
             v_ghost[o] = v[nearest]
             ghost_of[slot] = nearest
             cell_ghost[c] = o
+            ghost_stamp[c] = stamp
         return
 
 

@@ -56,6 +56,8 @@ class GhostFluidSolver(FluidSolver):
         sample_seconds: wall time spent in ghost sampling (only counted when ``profile`` is true).
     """
 
+    reorder_interval = 0  # the grid also holds the ghosts: particles keep their order
+
     def __init__(self, model: FluidModel, cfg=None):
         super().__init__(model)
         cfg = cfg or {}
@@ -79,7 +81,10 @@ class GhostFluidSolver(FluidSolver):
         # force every step (which, with a stiff EOS, heats a resting drop until it flies apart).
         self.seed = int(cfg.get("seed") or 1)
         self.fresh_darts = bool(cfg.get("fresh_darts", False))
-        self.ghost_pressure_term = bool(cfg.get("ghost_pressure_term", True))
+        # pressure_term: ghosts (p = 0) enter the force only through the liquid particle's own
+        # p_i/rho_i^2 term (true), or add no pressure force at all (false; the elliptical drop)
+        pt = cfg.get("pressure_term")
+        self.ghost_pressure_term = True if pt is None else bool(pt)
         # background grid over the model domain grown by the layer
         g = gk.GhostGrid()
         cell = self.r / math.sqrt(dim)
@@ -98,13 +103,20 @@ class GhostFluidSolver(FluidSolver):
         g.liquid_volume = model.fluid_mass / model.params.rest_density
         g.colour_max = 0.5
         self.bg = g
-        self.active = wp.zeros(ncell, dtype=int, device=d)
-        self.cell_ghost = wp.full(ncell, -1, dtype=int, device=d)
+        # dense per-cell arrays are stamped, never cleared: cell_mark (active this sampling),
+        # ghost_stamp/cell_ghost (the cell's ghost); the active cells go to compact per-phase lists
+        self._stamp = 0
+        self.cell_mark = wp.zeros(ncell, dtype=int, device=d)
+        self.ghost_stamp = wp.zeros(ncell, dtype=int, device=d)
+        self.cell_ghost = wp.zeros(ncell, dtype=int, device=d)
         self.count = wp.zeros(1, dtype=int, device=d)
         self.div = wp.zeros(model.n_fluid, dtype=float, device=d)
         self.surface = wp.zeros(model.n_fluid, dtype=int, device=d)
-        self._phase_dims = (-(-g.nx // 3), -(-g.ny // 3), -(-g.nz // 3))
-        self._phases = [wp.vec3i(a, b, c) for c in range(3 if dim == 3 else 1) for b in range(3) for a in range(3)]
+        self.n_phases = 27 if dim == 3 else 9
+        self.phase_cap = int(np.prod([-(-g.nx // 3), -(-g.ny // 3), -(-g.nz // 3)]))  # cells of one phase
+        self.phase_count = wp.zeros(self.n_phases, dtype=int, device=d)
+        self.phase_list = wp.zeros(self.n_phases * self.phase_cap, dtype=int, device=d)
+        self.n_active = 0
         self._drho = wp.zeros(model.n_fluid, dtype=float, device=d)
         self._alloc(max(1024, 2 * model.n_fluid))
 
@@ -137,20 +149,29 @@ class GhostFluidSolver(FluidSolver):
                   inputs=[self.grid.id, self.x_ext, state.rho, self.mass_ext, m.params, ns, self.threshold],
                   outputs=[self.div, self.surface], device=m.device)
         while True:
-            self.active.zero_()
-            self.cell_ghost.fill_(-1)
+            self._stamp += 1
+            self.phase_count.zero_()
             self.count.zero_()
-            wp.launch(gk.mark_active_cells, dim=m.n_fluid, inputs=[self.x_ext, self.surface, self.bg], outputs=[self.active],
-                      device=m.device)
+            wp.launch(gk.mark_active_cells, dim=m.n_fluid,
+                      inputs=[self.x_ext, self.surface, self.bg, self._stamp, self.cell_mark, self.phase_count,
+                              self.phase_list, self.phase_cap], device=m.device)
+            counts = self.phase_count.numpy()
+            self.n_active = int(counts.sum())
+            serial = not m.device.is_cuda  # Warp's CPU backend runs a launch in index order on one thread
             for rnd in range(self.rounds):
-                for k, ph in enumerate(self._phases):
-                    seed = self.seed + rnd * len(self._phases) + k
-                    if self.fresh_darts:
-                        self._seed += 1
-                        seed = self.seed + self._seed
-                    wp.launch(gk.throw_darts, dim=self._phase_dims,
-                              inputs=[self.grid.id, self.x_ext, self.v_ext, m.n_fluid, ns, self.bg, ph, m.params, seed,
-                                      self.attempts, self.active, self.cell_ghost, self.count, self.capacity],
+                seed = self.seed + rnd
+                if self.fresh_darts:
+                    self._seed += 1
+                    seed = self.seed + self._seed
+                # one launch for all phases in turn (CPU), or one per phase (GPU), over the active cells only
+                launches = [(0, self.n_phases, int(counts.max()))] if serial else [(k, 1, int(counts[k])) for k in range(self.n_phases)]
+                for k, nph, ncell in launches:
+                    if ncell == 0:
+                        continue
+                    wp.launch(gk.throw_darts, dim=(nph, ncell),
+                              inputs=[self.grid.id, self.x_ext, self.v_ext, m.n_fluid, ns, self.bg, m.params, seed,
+                                      self.attempts, self._stamp, int(rnd == 0), self.phase_count, self.phase_list,
+                                      self.phase_cap, k, self.cell_ghost, self.ghost_stamp, self.count, self.capacity],
                               outputs=[self.x_ext, self.v_ext, self.ghost_of], device=m.device)
             n = int(self.count.numpy()[0])
             if n <= self.capacity:
@@ -215,10 +236,11 @@ class GhostFluidSolver(FluidSolver):
         return self.div.numpy().astype(np.float64)
 
 
-def drop_simulation(scene, radius: float, velocity=None, device: str | None = None):
+def drop_simulation(scene, radius: float, velocity=None, device: str | None = None, pressure=None):
     """A Simulation of the scene's fluid cut to a disc (2D) or ball (3D) of ``radius`` about the
     origin, for the drop scenes (scene regions are boxes). ``velocity(x) -> (n, 3)`` sets the initial
-    velocities (default: at rest). Continuity density starts at rho0; summation recomputes it."""
+    velocities (default: at rest). Continuity density starts at rho0, or, with ``pressure(x) -> (n,)``
+    [Pa], at the density that the EOS maps to that pressure; summation recomputes it."""
     import rockwave
     from rockwave.fluid import build_fluid_model
     from rockwave.simulation import boundary_lattice, seed_particles
@@ -235,4 +257,31 @@ def drop_simulation(scene, radius: float, velocity=None, device: str | None = No
         sim.fluid_solver.build_grid(sim.state)
         if sim.fluid.density_mode == "summation":
             sim.fluid_solver.compute_density(sim.state)
+        elif pressure is not None:
+            sim.fluid_solver.set_density(sim.state, density_for_pressure(sim.fluid.params, np.asarray(pressure(xf), float)))
     return sim
+
+
+def density_for_pressure(params, p: np.ndarray) -> np.ndarray:
+    """Inverse EOS: Tait rho = rho0 (1 + p/B)^(1/gamma); linear rho = rho0 + p/k."""
+    rho0 = params.rest_density
+    if params.eos == 0:
+        return rho0 * (1.0 + p / params.eos_b) ** (1.0 / params.eos_gamma)
+    return rho0 + p / params.eos_b
+
+
+def elliptical_drop_simulation(scene, device: str | None = None, a0: float = 100.0):
+    """Monaghan's (1994) elliptical drop: the unit disc with u = -a0 x, v = +a0 y and the exact
+    initial pressure p = rho0 a0^2 (1 - x^2 - y^2)/2 (incompressible Euler for this flow at t = 0,
+    where dA/dt = A^2 (a^4 - b^4)/(a^4 + b^4) = 0), as density through the inverse EOS."""
+    rho0 = scene.fluid.rest_density_kg_m3
+    return drop_simulation(
+        scene, 1.0, device=device,
+        velocity=lambda x: np.stack([-a0 * x[:, 0], a0 * x[:, 1], np.zeros(len(x))], axis=1),
+        pressure=lambda x: 0.5 * rho0 * a0**2 * np.maximum(1.0 - x[:, 0] ** 2 - x[:, 1] ** 2, 0.0))
+
+
+def ellipse_semi_axes(x: np.ndarray) -> tuple[float, float]:
+    """Semi-axes of the uniform ellipse with the particles' second moments: <x^2> = a^2/4, <y^2> = b^2/4
+    (equal-mass particles; centred drop). Less sensitive than max |x| to a single particle at the tip."""
+    return 2.0 * math.sqrt(float(np.mean(x[:, 0] ** 2))), 2.0 * math.sqrt(float(np.mean(x[:, 1] ** 2)))

@@ -116,6 +116,7 @@ SCHEMA: dict[str, Key] = {
             layer_ratio=Key("float", "ghost layer thickness / kernel support radius", default=1.0, min=0.25, max=2.0),
             attempts=Key("int", "darts per background cell and round (Bridson's k)", default=8, min=1, max=100),
             rounds=Key("int", "passes over the 3^dim independent phases of the background grid", default=2, min=1, max=10),
+            pressure_term=Key("bool", "ghosts enter the pressure force through the liquid particle's own p_i/rho_i^2 term (true), or add no pressure force at all (false)", default=True),
         ),
         eos=_sec(
             "equation of state: give speed_of_sound_m_s, or the constant itself (b_pa for Tait, k_m2_s2 for linear)",
