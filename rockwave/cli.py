@@ -48,10 +48,10 @@ def _fail(msg: str, code: int = 2) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    from rockwave.scene import SceneError, load_scene, schema_markdown
+    from rockwave.scene import SceneError, load_scene, scene_format_doc
 
     if args.command == "schema":
-        print(schema_markdown())
+        sys.stdout.write(scene_format_doc())
         return 0
     if args.command in ("preview", "plot"):
         from rockwave.preview import PreviewError
@@ -107,7 +107,6 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.checkpoint_every is not None and not (0 <= args.checkpoint_every < float("inf")):
         return _fail(f"--checkpoint-every must be a number of seconds >= 0, got {args.checkpoint_every}")
-
 
     out = Path(args.out) if args.out else Path("runs") / scene.name
     try:
