@@ -112,49 +112,64 @@ def block_cells(
     wp.atomic_add(counters, 0, n)
 
 
+@wp.func
+def nth_cell(cl: wp.vec3i, ch: wp.vec3i, e: int) -> wp.vec3i:
+    """The e-th cell of the range [cl, ch] (k fastest, as the former nested loops)."""
+    nk = ch[2] - cl[2] + 1
+    nj = ch[1] - cl[1] + 1
+    return wp.vec3i(cl[0] + e / (nj * nk), cl[1] + (e / nk) % nj, cl[2] + e % nk)
+
+
+@wp.func
+def entry_of(t: int, cell_offset: wp.array(dtype=int)):
+    """(block b, cell e of its range) of entry t: the last b with cell_offset[b] <= t."""
+    lo = int(0)
+    hi = cell_offset.shape[0] - 1
+    while lo < hi:
+        mid = (lo + hi + 1) / 2
+        if cell_offset[mid] <= t:
+            lo = mid
+        else:
+            hi = mid - 1
+    return lo, t - cell_offset[lo]
+
+
+@wp.func
+def bucket_count_cell(cl: wp.vec3i, ch: wp.vec3i, e: int, nbuckets: int, bucket_count: wp.array(dtype=int)):
+    wp.atomic_add(bucket_count, bucket_of(nth_cell(cl, ch, e), nbuckets), 1)
+
+
 @wp.kernel
 def count_buckets(
     cell_lo: wp.array(dtype=wp.vec3i),
     cell_hi: wp.array(dtype=wp.vec3i),
-    ncell: wp.array(dtype=int),
+    cell_offset: wp.array(dtype=int),
     nbuckets: int,
     bucket_count: wp.array(dtype=int),
 ):
-    b = wp.tid()
-    if ncell[b] == 0:
-        return
-    cl = cell_lo[b]
-    ch = cell_hi[b]
-    for i in range(cl[0], ch[0] + 1):
-        for j in range(cl[1], ch[1] + 1):
-            for k in range(cl[2], ch[2] + 1):
-                wp.atomic_add(bucket_count, bucket_of(wp.vec3i(i, j, k), nbuckets), 1)
+    # one thread per (block, cell) entry, cell_offset = exclusive scan of ncell (a serial loop per
+    # block made this phase 1.7 ms of a 6.3 ms coupled step at 1.2 M particles on an H100)
+    b, e = entry_of(wp.tid(), cell_offset)
+    bucket_count_cell(cell_lo[b], cell_hi[b], e, nbuckets, bucket_count)
 
 
 @wp.kernel
 def fill_buckets(
     cell_lo: wp.array(dtype=wp.vec3i),
     cell_hi: wp.array(dtype=wp.vec3i),
-    ncell: wp.array(dtype=int),
+    cell_offset: wp.array(dtype=int),
     nbuckets: int,
     bucket_start: wp.array(dtype=int),
     bucket_fill: wp.array(dtype=int),
     entry_block: wp.array(dtype=int),
     entry_cell: wp.array(dtype=wp.vec3i),
 ):
-    b = wp.tid()
-    if ncell[b] == 0:
-        return
-    cl = cell_lo[b]
-    ch = cell_hi[b]
-    for i in range(cl[0], ch[0] + 1):
-        for j in range(cl[1], ch[1] + 1):
-            for k in range(cl[2], ch[2] + 1):
-                c = wp.vec3i(i, j, k)
-                h = bucket_of(c, nbuckets)
-                slot = bucket_start[h] + wp.atomic_add(bucket_fill, h, 1)
-                entry_block[slot] = b
-                entry_cell[slot] = c
+    b, e = entry_of(wp.tid(), cell_offset)  # as count_buckets
+    c = nth_cell(cell_lo[b], cell_hi[b], e)
+    h = bucket_of(c, nbuckets)
+    slot = bucket_start[h] + wp.atomic_add(bucket_fill, h, 1)
+    entry_block[slot] = b
+    entry_cell[slot] = c
 
 
 @wp.struct

@@ -7,6 +7,8 @@ boundary particle its Akinci et al. (2012) mass-equivalent ``Psi_b = rho0 * V_b`
 normalisations. ``H`` is the kernel support radius; the cubic spline's smoothing length is H/2.
 """
 
+from typing import Any
+
 import warp as wp
 
 KERNEL_MULLER = wp.constant(0)
@@ -37,6 +39,11 @@ class SPHParams:
     gravity: wp.vec3
     n_fluid: int
     grad_scale: float  # lattice gradient correction (see rockwave.fluid.calibrate_lattice)
+    # Mueller kernel constants for H and dim (rockwave.fluid.set_kernel_constants; pow() per
+    # neighbour was a large share of the neighbour loops on a GPU)
+    w_coef: float  # poly6: 315/(64 pi H^9) (3D), 4/(pi H^8) (2D)
+    grad_coef: float  # spiky gradient: 45/(pi H^6) (3D), 30/(pi H^5) (2D)
+    lap_coef: float  # viscosity Laplacian: 45/(pi H^6) (3D), 40/(pi H^5) (2D)
 
 
 # ------------------------------------------------------------------ smoothing kernels ------
@@ -116,23 +123,31 @@ def cubic_grad(rij: wp.vec3, r: float, H: float, dim: int) -> wp.vec3:
 
 @wp.func
 def kernel_w(r2: float, p: SPHParams) -> float:
-    if p.kernel == KERNEL_MULLER:
-        return poly6(r2, p.H, p.dim)
+    if p.kernel == KERNEL_MULLER:  # poly6 with the precomputed constant
+        if r2 >= p.H * p.H:
+            return 0.0
+        d = p.H * p.H - r2
+        return p.w_coef * d * d * d
     return cubic_w(wp.sqrt(r2), p.H, p.dim)
 
 
 @wp.func
 def kernel_grad(rij: wp.vec3, r: float, p: SPHParams) -> wp.vec3:
     # scaled so that sum_j V_j (x_j - x_i) (x) grad W_ij = -I holds on the initial lattice
-    if p.kernel == KERNEL_MULLER:
-        return p.grad_scale * spiky_grad(rij, r, p.H, p.dim)
+    if p.kernel == KERNEL_MULLER:  # spiky gradient with the precomputed constant
+        if r >= p.H or r < 1.0e-9 * p.H:
+            return wp.vec3(0.0)
+        d = p.H - r
+        return (-p.grad_scale * p.grad_coef * d * d / r) * rij
     return p.grad_scale * cubic_grad(rij, r, p.H, p.dim)
 
 
 @wp.func
 def kernel_laplacian(r: float, p: SPHParams) -> float:
     # Mueller's viscosity Laplacian for both kernel choices (it is positive everywhere: stable viscosity)
-    return viscosity_laplacian(r, p.H, p.dim)
+    if r >= p.H:
+        return 0.0
+    return p.lap_coef * (p.H - r)
 
 
 @wp.func
@@ -416,3 +431,45 @@ def gauge_pressure(
         out[g] = num / den
     else:
         out[g] = 0.0
+
+
+# ------------------------------------------------------------------ particle order ------
+# Fluid particles are reordered by hash-grid cell every few steps (rockwave.fluid.FluidSolver.reorder)
+# so that neighbour reads are coherent; boundary particles (indices >= n_fluid) never move.
+
+
+@wp.kernel
+def sorted_fluid_flags(grid: wp.uint64, n_fluid: int, flag: wp.array(dtype=int)):
+    """flag[k] = 1 when the k-th point in the grid's cell order is a fluid particle."""
+    k = wp.tid()
+    if wp.hash_grid_point_id(grid, k) < n_fluid:
+        flag[k] = 1
+    else:
+        flag[k] = 0
+
+
+@wp.kernel
+def sorted_fluid_perm(grid: wp.uint64, n_fluid: int, flag: wp.array(dtype=int), rank: wp.array(dtype=int),
+                      perm: wp.array(dtype=int)):
+    """perm[d] = index of the d-th fluid particle in cell order (stable compaction of the grid order)."""
+    k = wp.tid()
+    if flag[k] == 1:
+        perm[rank[k]] = wp.hash_grid_point_id(grid, k)
+
+
+@wp.kernel
+def gather_by(perm: wp.array(dtype=int), src: wp.array(dtype=Any), dst: wp.array(dtype=Any)):
+    i = wp.tid()
+    dst[i] = src[perm[i]]
+
+
+@wp.kernel
+def scatter_by(ids: wp.array(dtype=int), src: wp.array(dtype=Any), dst: wp.array(dtype=Any)):
+    i = wp.tid()
+    dst[ids[i]] = src[i]
+
+
+@wp.kernel
+def iota(a: wp.array(dtype=int)):
+    i = wp.tid()
+    a[i] = i

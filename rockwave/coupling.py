@@ -113,6 +113,7 @@ class Coupling:
         self.cell_lo = wp.zeros(nb, dtype=wp.vec3i, device=d)
         self.cell_hi = wp.zeros(nb, dtype=wp.vec3i, device=d)
         self.ncell = wp.zeros(nb, dtype=int, device=d)
+        self.cell_offset = wp.zeros(nb, dtype=int, device=d)
         self.large = wp.zeros(nb, dtype=int, device=d)
         self.counters = wp.zeros(2, dtype=int, device=d)
         self._alloc(1024)
@@ -167,11 +168,13 @@ class Coupling:
         self.bucket_count.zero_()
         self.bucket_fill.zero_()
         if total:
-            wp.launch(CK.count_buckets, dim=m.num_blocks, inputs=[self.cell_lo, self.cell_hi, self.ncell, self.nbuckets],
+            # one thread per (block, cell) entry, not a serial loop per block (kernels/coupling.py)
+            wp.utils.array_scan(self.ncell, self.cell_offset, inclusive=False)
+            wp.launch(CK.count_buckets, dim=total, inputs=[self.cell_lo, self.cell_hi, self.cell_offset, self.nbuckets],
                       outputs=[self.bucket_count], device=d)
             wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
-            wp.launch(CK.fill_buckets, dim=m.num_blocks,
-                      inputs=[self.cell_lo, self.cell_hi, self.ncell, self.nbuckets, self.bucket_start, self.bucket_fill],
+            wp.launch(CK.fill_buckets, dim=total,
+                      inputs=[self.cell_lo, self.cell_hi, self.cell_offset, self.nbuckets, self.bucket_start, self.bucket_fill],
                       outputs=[self.entry_block, self.entry_cell], device=d)
         self._total = total
 

@@ -93,6 +93,7 @@ class FluidModel:
             accel=wp.zeros(nf, dtype=wp.vec3, device=d),
             xsph_dv=wp.zeros(nf, dtype=wp.vec3, device=d),
             drho_dt=wp.zeros(nf, dtype=float, device=d),
+            ids=wp.array(np.arange(nf, dtype=np.int32), dtype=int, device=d),
         )
 
 
@@ -103,6 +104,8 @@ class FluidState:
     x: wp.array(vec3, n_total) positions [m]; v: wp.array(vec3, n_total) velocities [m/s]
     (boundary entries zero); rho, pressure: wp.array(float, n_fluid) [kg/m^3], [Pa];
     accel, xsph_dv: wp.array(vec3, n_fluid) [m/s^2], [m/s]; drho_dt: [kg/m^3/s].
+    ids: wp.array(int, n_fluid): original index of the fluid particle stored at each slot
+    (FluidSolver.reorder sorts the fluid by cell; FluidSolver.unsort restores ids = 0..n-1).
     """
 
     x: wp.array
@@ -112,6 +115,7 @@ class FluidState:
     accel: wp.array
     xsph_dv: wp.array
     drho_dt: wp.array
+    ids: wp.array
 
 
 def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
@@ -136,7 +140,21 @@ def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
     p.gravity = wp.vec3(*g)
     p.n_fluid = n_fluid
     p.grad_scale = 1.0
+    set_kernel_constants(p)
     return p
+
+
+def set_kernel_constants(p: sph.SPHParams) -> None:
+    """Mueller kernel constants for p.H and p.dim (kernels/sph.py poly6, spiky_grad, viscosity_laplacian)."""
+    H = float(p.H)
+    if p.dim == 3:
+        p.w_coef = 315.0 / (64.0 * math.pi * H ** 9)
+        p.grad_coef = 45.0 / (math.pi * H ** 6)
+        p.lap_coef = 45.0 / (math.pi * H ** 6)
+    else:
+        p.w_coef = 4.0 / (math.pi * H ** 8)
+        p.grad_coef = 30.0 / (math.pi * H ** 5)
+        p.lap_coef = 40.0 / (math.pi * H ** 5)
 
 
 def _grid_dims(lo: np.ndarray, hi: np.ndarray, cell: float, dim: int) -> tuple[int, int, int]:
@@ -153,18 +171,73 @@ def _grid_dims(lo: np.ndarray, hi: np.ndarray, cell: float, dim: int) -> tuple[i
 class FluidSolver:
     """Advances a :class:`FluidState` by one step: neighbour grid, density + EOS, forces,
     semi-implicit Euler. Each call launches a fixed set of kernels and never reads back to the
-    host, so the step can be captured in a CUDA graph."""
+    host, so the step can be captured in a CUDA graph.
+
+    Particle order: ``reorder`` (Simulation runs it every ``reorder_interval`` steps in step_many and
+    in advance on a GPU) sorts
+    the fluid particles by hash-grid cell so that neighbour reads are coherent; boundary
+    particles stay after them (build_fluid_model sorts them once). ``state.ids`` keeps each slot's
+    original index and ``unsort`` restores the original order (Simulation does it before any read)."""
+
+    reorder_interval = 10  # steps between reorders; 0: never (the ghost solver's grid also holds ghosts)
+    cell_ratio = 1.0  # hash-grid cell width / support radius (queries visit ceil(2/ratio + 1)^dim cells)
 
     def __init__(self, model: FluidModel):
         self.model = model
         d = model.device
-        dims = _grid_dims(model.domain_lo, model.domain_hi, model.support_radius, model.dim)
+        self.cell = model.support_radius * self.cell_ratio
+        dims = _grid_dims(model.domain_lo, model.domain_hi, self.cell, model.dim)
         self.grid = wp.HashGrid(*dims, device=d)
         self.grid.reserve(model.n_total)
         self._extrema = wp.zeros(2, dtype=float, device=d)
+        self._in_original_order = True  # False after a reorder, until unsort
+        self._order_buf = None
+
+    # ---------------------------------------------------------------- particle order ----------
+    def _order_buffers(self):
+        if self._order_buf is None:
+            m, d = self.model, self.model.device
+            nt, nf = m.n_total, m.n_fluid
+            self._order_buf = dict(flag=wp.zeros(nt, dtype=int, device=d), rank=wp.zeros(nt, dtype=int, device=d),
+                                   perm=wp.zeros(nf, dtype=int, device=d), vec=wp.zeros(nf, dtype=wp.vec3, device=d),
+                                   f=wp.zeros(nf, dtype=float, device=d), i=wp.zeros(nf, dtype=int, device=d))
+        return self._order_buf
+
+    def _permute(self, kernel, index: wp.array, arrays) -> None:
+        b, m = self._order_buf, self.model
+        for a in arrays:
+            tmp = b["vec"] if a.dtype == wp.vec3 else (b["i"] if a.dtype == wp.int32 else b["f"])
+            wp.launch(kernel, dim=m.n_fluid, inputs=[index, a, tmp], device=m.device)
+            wp.copy(a, tmp, 0, 0, m.n_fluid)
+
+    def reorder(self, state: FluidState) -> None:
+        """Sort the fluid particles by cell of the last grid build (any permutation is correct; a
+        stale grid only sorts less well). Launches only: capturable in a CUDA graph."""
+        m = self.model
+        b = self._order_buffers()
+        wp.launch(sph.sorted_fluid_flags, dim=m.n_total, inputs=[self.grid.id, m.n_fluid, b["flag"]], device=m.device)
+        wp.utils.array_scan(b["flag"], b["rank"], inclusive=False)
+        wp.launch(sph.sorted_fluid_perm, dim=m.n_total, inputs=[self.grid.id, m.n_fluid, b["flag"], b["rank"], b["perm"]],
+                  device=m.device)
+        # accel, xsph_dv, drho_dt, pressure are recomputed by the next step before they are read
+        # (stable_dt's maxima do not depend on the order)
+        self._permute(sph.gather_by, b["perm"], (state.x, state.v, state.rho, state.ids))
+        self._in_original_order = False
+
+    def unsort(self, state: FluidState) -> None:
+        """Restore the original particle order (ids = 0..n_fluid-1), so that host reads, outputs and
+        checkpoints see the particles as seeded. Cheap when the order is already original."""
+        m = self.model
+        if self._in_original_order or m.n_fluid == 0:
+            return
+        self._order_buffers()
+        self._permute(sph.scatter_by, state.ids, (state.x, state.v, state.rho, state.pressure, state.accel,
+                                                  state.xsph_dv, state.drho_dt))
+        wp.launch(sph.iota, dim=m.n_fluid, inputs=[state.ids], device=m.device)
+        self._in_original_order = True
 
     def build_grid(self, state: FluidState) -> None:
-        self.grid.build(state.x, self.model.support_radius)
+        self.grid.build(state.x, self.cell)
 
     def compute_density(self, state: FluidState) -> None:
         """Summation density and pressure (called before the first step and each step)."""
@@ -260,6 +333,10 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
     energy in a resting tank)."""
     nf, nb = len(fluid_positions), len(boundary_positions)
     params = make_params(scene_fluid, dim, gravity, nf)
+    if nb > 1:  # static boundary particles in cell order (coherent neighbour reads; the fluid is reordered as it moves)
+        bp = np.asarray(boundary_positions, dtype=np.float64)
+        c = np.floor((bp - bp.min(axis=0)) / params.H).astype(np.int64)
+        boundary_positions = bp[np.lexsort((c[:, 0], c[:, 1], c[:, 2]))]
     spacing = scene_fluid["spacing_m"]
     bstep = boundary_spacing or spacing
     full_support = boundary_layers is None or boundary_layers * bstep >= 0.999 * params.H

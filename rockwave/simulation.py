@@ -274,20 +274,86 @@ class Simulation:
         if dt is not None:
             self._set_dt(dt)
         with wp.ScopedDevice(self.device):
-            if self.coupling is not None:  # forces from the state at t (rockwave/coupling.py)
-                self.coupling.compute(self.state, self.block_state, self._dt_dev)
-            if self.fluid_solver is not None:
-                self.fluid_solver.step(self.state, self._dt_dev)
-            if self.coupling is not None:
-                self.coupling.apply(self.state, self._dt_dev)
-            if self.block_solver is not None:
-                self.block_solver.step(self.block_state, self.dt, self.time)
-                if self._planar is not None:
-                    from rockwave.coupling import planar_constraint
-
-                    planar_constraint(self.block_state, *self._planar)
+            self._launch_step()
         self.time += self.dt
         self.steps += 1
+
+    def _launch_step(self, reorder: bool = False) -> None:
+        """The launches of one step at the current dt (device array _dt_dev); ``reorder`` first sorts
+        the fluid particles by cell (FluidSolver.reorder)."""
+        if reorder:
+            self.fluid_solver.reorder(self.state)
+        if self.coupling is not None:  # forces from the state at t (rockwave/coupling.py)
+            self.coupling.compute(self.state, self.block_state, self._dt_dev)
+        if self.fluid_solver is not None:
+            self.fluid_solver.step(self.state, self._dt_dev)
+        if self.coupling is not None:
+            self.coupling.apply(self.state, self._dt_dev)
+        if self.block_solver is not None:
+            self.block_solver.step(self.block_state, self.dt, self.time)
+            if self._planar is not None:
+                from rockwave.coupling import planar_constraint
+
+                planar_constraint(self.block_state, *self._planar)
+
+    # Chunks (step_many; advance on a GPU): a reorder of the fluid by cell, then
+    # fluid_solver.reorder_interval steps. A fluid-only scene on a GPU replays a chunk as one CUDA
+    # graph (dt is read from the device array _dt_dev, so one graph serves every dt); blocks and the
+    # coupling read counters back each step, so their chunks are plain launches.
+    use_graphs = True
+
+    def _chunk_size(self) -> int:
+        fs = self.fluid_solver
+        if fs is None or self.fluid.n_fluid == 0 or fs.reorder_interval <= 0:
+            return 0
+        return fs.reorder_interval
+
+    def _graph_usable(self) -> bool:
+        return (self.use_graphs and not getattr(self, "_graph_failed", False) and self.coupling is None
+                and self.block_solver is None and wp.get_device(self.device).is_cuda
+                and type(self.fluid_solver).step is FluidSolver.step)
+
+    def _run_chunk(self, k: int) -> None:
+        """k steps at the current dt after a reorder: one graph launch (captured on the second use,
+        after a plain chunk has loaded the kernels) or plain launches."""
+        with wp.ScopedDevice(self.device):
+            key = (id(self.state), id(self.fluid_solver), k)
+            done = False
+            if self._graph_usable() and getattr(self, "_chunks_plain", 0) > 0:
+                if getattr(self, "_graph_key", None) != key:
+                    try:
+                        with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                            for j in range(k):
+                                self._launch_step(reorder=j == 0)
+                        self._graph, self._graph_key = cap.graph, key
+                    except Exception:  # capture unsupported here: plain launches from now on
+                        self._graph_failed = True
+                if getattr(self, "_graph_key", None) == key and not getattr(self, "_graph_failed", False):
+                    wp.capture_launch(self._graph)
+                    done = True
+            if not done:
+                for j in range(k):
+                    self._launch_step(reorder=j == 0)
+                self._chunks_plain = getattr(self, "_chunks_plain", 0) + 1
+        self.time += k * self.dt
+        self.steps += k
+
+    def step_many(self, n: int) -> None:
+        """n steps at the current dt, in reorder chunks (CUDA graphs where possible). The state
+        arrays are then in the solver's particle order (state.ids); positions() etc. restore the
+        original order."""
+        k = self._chunk_size()
+        while k and n >= k:
+            self._run_chunk(k)
+            n -= k
+        for _ in range(n):
+            self.step()
+
+    def _canonical(self) -> None:
+        """Put the fluid back in its original particle order before a host read."""
+        if self.fluid_solver is not None and self.state is not None:
+            with wp.ScopedDevice(self.device):
+                self.fluid_solver.unsort(self.state)
 
     def _update_dt_target(self) -> None:
         if not self.fixed and self.steps % self.scene.simulation.dt_update_interval == 0:
@@ -300,8 +366,16 @@ class Simulation:
             self._update_dt_target()
             remaining = t_end - self.time
             n = max(1, math.ceil(remaining / self._dt_target - 1e-9))
+            k = self._chunk_size() if wp.get_device(self.device).is_cuda else 0  # the CPU path steps one by one
+            interval = self.scene.simulation.dt_update_interval
+            # a chunk must not pass a step where the adaptive dt is updated
+            if 0 < k <= n and (self.fixed or (-self.steps) % interval == 0 and interval >= k or (-self.steps) % interval >= k):
+                self._set_dt(remaining / n)
+                self._run_chunk(k)
+                continue
             self.step(remaining / n)
         self.time = t_end
+        self._canonical()
 
     # ---------------------------------------------------------------- reading -----------------
     @property
@@ -312,11 +386,13 @@ class Simulation:
         """Fluid particle positions, (n_fluid, dim) [m]."""
         if self.fluid is None:
             return np.zeros((0, self.scene.dim))
+        self._canonical()
         return self.state.x.numpy()[: self.fluid.n_fluid, : self.scene.dim].astype(np.float64)
 
     def velocities(self) -> np.ndarray:
         if self.fluid is None:
             return np.zeros((0, self.scene.dim))
+        self._canonical()
         return self.state.v.numpy()[: self.fluid.n_fluid, : self.scene.dim].astype(np.float64)
 
     def block_positions(self) -> np.ndarray:
@@ -327,9 +403,11 @@ class Simulation:
         return self.block_state.velocities_numpy() if self.blocks is not None else np.zeros((0, 3))
 
     def densities(self) -> np.ndarray:
+        self._canonical()
         return self.state.rho.numpy().astype(np.float64)
 
     def pressures(self) -> np.ndarray:
+        self._canonical()
         return self.state.pressure.numpy().astype(np.float64)
 
     def boundary_positions(self) -> np.ndarray:

@@ -1,0 +1,210 @@
+"""Issue 7 measurements in one process (few GPU calls): fluid step variants and per-pass times,
+block-step phases, coupled-step split. Writes JSON to --out.
+
+    python -m benchmarks.gpu_issue7 --device cuda:0 --out /tmp/r
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+import rockwave
+from benchmarks.common import ROOT, commit, device_name
+from rockwave.kernels import sph
+
+
+def _sync_time(fn, device, reps=1):
+    wp.synchronize_device(device)
+    t = time.perf_counter()
+    for _ in range(reps):
+        fn()
+    wp.synchronize_device(device)
+    return (time.perf_counter() - t) / reps
+
+
+def fluid_sim(device, spacing, cell_ratio=1.0):
+    from rockwave.fluid import FluidSolver
+
+    FluidSolver.cell_ratio = cell_ratio
+    scene = rockwave.load_scene(ROOT / "scenes" / "dam_break_3d.toml")
+    scene.fluid["spacing_m"] = spacing
+    scene.output["gauges"] = []
+    sim = rockwave.Simulation(scene, device=device)
+    FluidSolver.cell_ratio = 1.0
+    return sim
+
+
+def fluid_variants(device, spacing, steps, variants):
+    out = []
+    for name, cell_ratio, mode in variants:
+        sim = fluid_sim(device, spacing, cell_ratio)
+        n = sim.n_fluid
+        if name.startswith("shuffled"):  # a mixed flow: particle order uncorrelated with position
+            fs = sim.fluid_solver
+            b = fs._order_buffers()
+            b["perm"].assign(np.random.default_rng(0).permutation(n).astype(np.int32))
+            with wp.ScopedDevice(device):
+                fs._permute(sph.gather_by, b["perm"], (sim.state.x, sim.state.v, sim.state.rho, sim.state.ids))
+                fs._in_original_order = False
+                fs.build_grid(sim.state)
+        if mode == "step":
+            for _ in range(20):
+                sim.step()
+            t = _sync_time(lambda: [sim.step() for _ in range(steps)], device)
+        else:
+            sim.use_graphs = mode == "graph"
+            sim.step_many(30)  # loads kernels, captures the graph
+            t = _sync_time(lambda: sim.step_many(steps), device)
+        nb = float(np.mean(sim.fluid_solver.neighbour_counts(sim.state)))
+        r = dict(variant=name, spacing_m=spacing, particles=n, boundary=sim.fluid.n_boundary, neighbours=nb,
+                 cell_ratio=cell_ratio, mode=mode, s_per_step=t / steps, particle_steps_per_s=n * steps / t,
+                 graph=bool(getattr(sim, "_graph_key", None)) and not getattr(sim, "_graph_failed", False))
+        print(json.dumps(r), flush=True)
+        out.append(r)
+        del sim
+    return out
+
+
+def fluid_passes(device, spacing, reps=20, sort=True, cell_ratio=1.0):
+    """ms per pass of one step (each pass timed alone, reps times, after the particles are sorted)."""
+    sim = fluid_sim(device, spacing, cell_ratio)
+    sim.step_many(20 if sort else 0)
+    for _ in range(5):
+        sim.step()
+    fs, st, m, dt = sim.fluid_solver, sim.state, sim.fluid, sim._dt_dev
+    d = device
+    passes = {
+        "grid_build": lambda: fs.build_grid(st),
+        "density_summation": lambda: fs.compute_density(st),
+        "acceleration": lambda: wp.launch(sph.particle_acceleration, dim=m.n_fluid,
+                                          inputs=[fs.grid.id, st.x, st.v, st.rho, st.pressure, m.particle_mass, m.params],
+                                          outputs=[st.accel, st.xsph_dv], device=d),
+        "integrate": lambda: wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[st.accel, st.xsph_dv, dt],
+                                       outputs=[st.x, st.v], device=d),
+        "reorder": lambda: fs.reorder(st),
+        "full_step": lambda: sim.step(),
+    }
+    r = {"spacing_m": spacing, "particles": m.n_fluid, "sorted": sort, "cell_ratio": cell_ratio}
+    with wp.ScopedDevice(d):
+        for k, f in passes.items():
+            f()
+            r[k + "_ms"] = 1e3 * _sync_time(f, d, reps)
+    print(json.dumps(r), flush=True)
+    return r
+
+
+def blocks_phases(device, count, steps=20, settle=300):
+    from benchmarks.blocks_bench import run as _  # noqa: F401 (same scene construction)
+    scene = rockwave.load_scene(ROOT / "scenes" / "rock_slope_10k.toml")
+    nz = 10
+    ny = max(1, int(round(math.sqrt(count / nz / 1.6))))
+    nx = max(1, int(round(count / nz / ny)))
+    scene.blocks[1]["array"]["count"] = [float(nx), float(ny), float(nz)]
+    scene.blocks[0]["size_m"] = [max(40.0, 0.5002 * nx + 25.0), max(16.0, 0.5002 * ny + 4.0), 1.0]
+    scene.blocks[1]["position_m"][1] = -0.5002 * ny / 2
+    t0 = time.perf_counter()
+    sim = rockwave.Simulation(scene, device=device)
+    setup = time.perf_counter() - t0
+    for _ in range(settle):
+        sim.step()
+    bs, st = sim.block_solver, sim.block_state
+    from rockwave.kernels import dda as K
+
+    m = sim.blocks
+    dt = sim.dt
+    times = {"prepare": 0.0, "broad_phase": 0.0, "narrow_phase": 0.0, "integrate": 0.0}
+    wp.synchronize_device(device)
+    full = _sync_time(lambda: [sim.step() for _ in range(steps)], device) / steps
+    with wp.ScopedDevice(device):
+        for _ in range(steps):
+            times["prepare"] += _sync_time(lambda: bs._prepare(st), device)
+            times["broad_phase"] += _sync_time(lambda: bs._broad_phase(), device)
+            times["narrow_phase"] += _sync_time(lambda: bs._narrow_phase(st, dt), device)
+            times["integrate"] += _sync_time(lambda: wp.launch(
+                K.integrate_blocks, dim=m.num_blocks,
+                inputs=[m.kinds, m.inv_mass, m.inertia_body, m.inv_inertia_body, m.strain_minv, m.strain_k,
+                        m.strain_damp, wp.vec3(*m.gravity), float(sim.time + dt), float(dt), m.base_x, m.motion_type,
+                        m.motion_amp, m.motion_freq, m.motion_phase, m.table_start, m.table_count, m.table_t,
+                        m.table_x, st.x, st.q, st.v, st.w, st.strain, st.strain_rate,
+                        st.force, st.torque, st.strain_force, st.ext_force, st.ext_torque]), device)
+    r = {"blocks": m.num_blocks, "pairs": bs.pair_count, "pair_cap": bs.pair_cap, "table_cap": st.table_cap,
+         "contacts_per_block": float(np.mean(st.contact_counts()[1:])), "setup_s": setup,
+         "step_ms": full * 1e3, "block_steps_per_s": m.num_blocks / full,
+         **{k + "_ms": 1e3 * v / steps for k, v in times.items()}}
+    print(json.dumps(r), flush=True)
+    return r
+
+
+def coupled_split(device, scale, steps=50):
+    scene = rockwave.load_scene(ROOT / "scenes" / "sliding_wedge.toml")
+    scene.fluid["spacing_m"] = scene.fluid.spacing_m / scale ** (1.0 / scene.dim)
+    sim = rockwave.Simulation(scene, device=device)
+    for _ in range(5):
+        sim.step()
+    full = _sync_time(lambda: [sim.step() for _ in range(steps)], device) / steps
+    chunked = _sync_time(lambda: sim.step_many(steps), device) / steps  # with reorder chunks
+    c, st, bst, fs = sim.coupling, sim.state, sim.block_state, sim.fluid_solver
+    from rockwave.kernels import coupling as CK
+
+    nf = sim.n_fluid
+    with wp.ScopedDevice(device):
+        parts = {
+            "coupling_compute": lambda: c.compute(st, bst, sim._dt_dev),
+            "coupling_apply": lambda: c.apply(st, sim._dt_dev),
+            "fluid_bounds_old": lambda: wp.launch(CK.fluid_bounds, dim=nf, inputs=[st.x], outputs=[c.bounds]),
+            "broad_phase": lambda: c._broad_phase(st, bst),
+            "fluid_step": lambda: fs.step(st, sim._dt_dev),
+            "block_step": lambda: sim.block_solver.step(bst, sim.dt, sim.time),
+        }
+        r = {"scale": scale, "particles": nf, "blocks": sim.blocks.num_blocks, "step_ms": full * 1e3,
+             "chunked_step_ms": chunked * 1e3, "particle_steps_per_s": nf / full, "particle_steps_per_s_chunked": nf / chunked}
+        for k, f in parts.items():
+            f()
+            r[k + "_ms"] = 1e3 * _sync_time(f, device, 10)
+    print(json.dumps(r), flush=True)
+    return r
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cuda:0")
+    ap.add_argument("--out", default=".")
+    ap.add_argument("--parts", nargs="+", default=["fluid", "passes", "blocks", "coupled"])
+    ap.add_argument("--spacings", type=float, nargs="+", default=[0.02, 0.0085, 0.0068])
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--block-counts", type=int, nargs="+", default=[10000, 100000])
+    ap.add_argument("--coupled-scale", type=float, default=41.0)
+    ap.add_argument("--cell-ratios", type=float, nargs="+", default=[1.0, 0.5])
+    a = ap.parse_args(argv)
+    wp.config.quiet = True
+    res = {"device_name": device_name(a.device), "commit": commit(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+    t0 = time.perf_counter()
+    wp.init()
+    if "fluid" in a.parts:
+        v = [("step_unsorted", 1.0, "step"), ("chunks_sorted", 1.0, "plain"), ("graph_sorted", 1.0, "graph")]
+        v += [(f"graph_sorted_cell{r:g}", r, "graph") for r in a.cell_ratios if r != 1.0]
+        v += [("shuffled_step_unsorted", 1.0, "step"), ("shuffled_graph_sorted", 1.0, "graph")]
+        res["fluid"] = [r for s in a.spacings for r in fluid_variants(a.device, s, a.steps, v)]
+    if "passes" in a.parts:
+        res["passes"] = [fluid_passes(a.device, a.spacings[-1], sort=False), fluid_passes(a.device, a.spacings[-1])]
+        res["passes"] += [fluid_passes(a.device, a.spacings[-1], cell_ratio=r) for r in a.cell_ratios if r != 1.0]
+    if "blocks" in a.parts:
+        res["blocks"] = [blocks_phases(a.device, c) for c in a.block_counts]
+    if "coupled" in a.parts:
+        res["coupled"] = [coupled_split(a.device, a.coupled_scale)]
+    res["wall_s"] = time.perf_counter() - t0
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"issue7-{'-'.join(a.parts)}.json").write_text(json.dumps(res, indent=2))
+    print("wall", res["wall_s"])
+
+
+if __name__ == "__main__":
+    main()
