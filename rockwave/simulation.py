@@ -208,19 +208,23 @@ class Simulation:
                                    dtype=wp.vec3, device=self.device)
 
     def _build_blocks(self) -> None:
-        from rockwave.blocks import BlockModel, BlockOverlapError, BlockSolver
+        from rockwave.blocks import BlockModel, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
         from rockwave.geometry import GeometryError
         from rockwave.rocks import block_specs
 
         specs = block_specs(self.scene)
+        host_check = len(specs) <= 2000  # exact host test for small sets; device FCP for large ones
         try:
-            self.blocks = BlockModel(specs, device=self.device, gravity=_pad3(self.scene.gravity.acceleration_m_s2))
+            self.blocks = BlockModel(specs, device=self.device, gravity=_pad3(self.scene.gravity.acceleration_m_s2),
+                                     check_overlap=host_check)
+            self.block_solver = BlockSolver(self.blocks)
+            self.block_state = self.blocks.state()
+            if not host_check:
+                check_initial_overlap_on_device(self.block_solver, self.block_state)
         except BlockOverlapError as e:
             raise SceneError(self.scene.path, [("blocks", str(e))]) from None
         except (GeometryError, ValueError) as e:
             raise SceneError(self.scene.path, [("blocks", str(e))]) from None
-        self.block_solver = BlockSolver(self.blocks)
-        self.block_state = self.blocks.state()
         self._planar = None
         if self.scene.dim == 2:  # 2D: extruded prisms moving in the x-y plane (rockwave/coupling.py)
             z0 = wp.array(self.blocks.base_position[:, 2].astype(np.float32), dtype=float, device=self.device)
