@@ -287,10 +287,13 @@ def density_rate_with_ghosts(
     v: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     p: SPHParams,
+    n_static: int,
+    ghost_mode: int,
     drho_dt: wp.array(dtype=float),
 ):
     """Continuity: d rho_i/dt = sum_j m_j (v_i - v_j) . grad W_ij (Monaghan 1992) over liquid, boundary
-    (v = 0) and ghost neighbours (v = the nearest liquid particle's velocity, Schechter & Bridson 2012)."""
+    (v = 0) and, with ``ghost_mode`` 1, ghost neighbours (v = the nearest liquid particle's velocity,
+    Schechter & Bridson 2012); index >= ``n_static`` is a ghost."""
     i = wp.tid()
     xi = x[i]
     vi = v[i]
@@ -302,7 +305,11 @@ def density_rate_with_ghosts(
             rij = xi - x[j]
             r = wp.length(rij)
             if r < p.H:
-                s += particle_mass[j] * wp.dot(vi - v[j], kernel_grad(rij, r, p))
+                vj = v[j]
+                if j >= n_static:
+                    if ghost_mode == 0:
+                        continue
+                s += particle_mass[j] * wp.dot(vi - vj, kernel_grad(rij, r, p))
     drho_dt[i] = s
 
 
@@ -328,3 +335,4 @@ def ghost_mass(
         if k < p.n_fluid or k >= n_static:
             s += kernel_w(wp.length_sq(xg - x[k]), p)
     particle_mass[gi] = p.rest_density / s
+
