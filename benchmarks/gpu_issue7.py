@@ -82,20 +82,42 @@ def fluid_passes(device, spacing, reps=20, sort=True, cell_ratio=1.0):
     d = device
     passes = {
         "grid_build": lambda: fs.build_grid(st),
-        "density_summation": lambda: fs.compute_density(st),
-        "acceleration": lambda: wp.launch(sph.particle_acceleration, dim=m.n_fluid,
-                                          inputs=[fs.grid.id, st.x, st.v, st.rho, st.pressure, m.particle_mass, m.params],
-                                          outputs=[st.accel, st.xsph_dv], device=d),
+        "neighbour_list": lambda: fs.build_neighbour_lists(st),
+        "neighbour_list_continuity": lambda: wp.launch(
+            sph.neighbour_list_density, dim=m.n_fluid,
+            inputs=[fs.grid.id, st.x, st.v, m.particle_mass, dt, m.params, sph.DENSITY_CONTINUITY],
+            outputs=[fs._nbr_count, fs._nbr, st.drho_dt, st.rho, st.pressure], device=d),
+        "density_summation_list": lambda: fs.compute_density(st, lists=True),
+        "density_continuity_list": lambda: wp.launch(
+            sph.particle_density_continuity_list, dim=m.n_fluid,
+            inputs=[fs.grid.id, fs._nbr_count, fs._nbr, st.x, st.v, m.particle_mass, dt, m.params],
+            outputs=[st.drho_dt, st.rho, st.pressure], device=d),
+        "acceleration_list": lambda: wp.launch(
+            sph.particle_acceleration_list, dim=m.n_fluid,
+            inputs=[fs.grid.id, fs._nbr_count, fs._nbr, st.x, st.v, st.rho, st.pressure, m.particle_mass, m.params],
+            outputs=[st.accel, st.xsph_dv], device=d),
+        "acceleration_grid_query": lambda: wp.launch(
+            sph.particle_acceleration, dim=m.n_fluid,
+            inputs=[fs.grid.id, st.x, st.v, st.rho, st.pressure, m.particle_mass, m.params],
+            outputs=[st.accel, st.xsph_dv], device=d),
         "integrate": lambda: wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[st.accel, st.xsph_dv, dt],
                                        outputs=[st.x, st.v], device=d),
         "reorder": lambda: fs.reorder(st),
         "full_step": lambda: sim.step(),
+        "full_step_fused": lambda: (setattr(fs, "fused_density", True), sim.step(), setattr(fs, "fused_density", d == "cpu")),
     }
-    r = {"spacing_m": spacing, "particles": m.n_fluid, "sorted": sort, "cell_ratio": cell_ratio}
+    r = {"spacing_m": spacing, "particles": m.n_fluid, "sorted": sort, "cell_ratio": cell_ratio,
+         "list_capacity": fs.neighbour_cap}
     with wp.ScopedDevice(d):
         for k, f in passes.items():
             f()
             r[k + "_ms"] = 1e3 * _sync_time(f, d, reps)
+    fs.build_grid(st)
+    fs.build_neighbour_lists(st)
+    cnt = fs._nbr_count.numpy()
+    r["list_overflow"] = int((cnt > fs.neighbour_cap).sum())
+    r["neighbours_mean"] = float(cnt.mean())
+    r["neighbours_max"] = int(cnt.max())
     print(json.dumps(r), flush=True)
     return r
 

@@ -192,6 +192,23 @@ class FluidSolver:
         self._extrema = wp.zeros(2, dtype=float, device=d)
         self._in_original_order = True  # False after a reorder, until unsort
         self._order_buf = None
+        # neighbour lists (kernels/sph.py build_neighbour_list): count[i] and nbr[k * n_fluid + i]
+        # for k < cap; cap ~1.6x the neighbours of a particle in the initial lattice
+        self.neighbour_cap = self.list_capacity(model)
+        nf = max(model.n_fluid, 1)
+        self._nbr_count = wp.zeros(nf, dtype=int, device=d)
+        self._nbr = wp.zeros(nf * self.neighbour_cap, dtype=int, device=d)
+        self._zero_dt = wp.zeros(1, dtype=float, device=d)
+        # density inside the neighbour-list query (CPU: one traversal fewer, 17.1 vs 19.8 ms/step at 10k
+        # particles) or in its own pass over the list (CUDA: the query's lanes that find a neighbour make
+        # the others wait, 2.16 ms fused vs 1.03 + 0.55 ms apart on an H100 at 2.16 M particles)
+        self.fused_density = not wp.get_device(d).is_cuda
+
+    @staticmethod
+    def list_capacity(model: "FluidModel") -> int:
+        r = model.support_radius / model.spacing
+        lattice = math.pi * r ** 3 * 4.0 / 3.0 if model.dim == 3 else math.pi * r * r
+        return int(8 * math.ceil(1.6 * lattice / 8.0))
 
     # ---------------------------------------------------------------- particle order ----------
     def _order_buffers(self):
@@ -239,11 +256,21 @@ class FluidSolver:
     def build_grid(self, state: FluidState) -> None:
         self.grid.build(state.x, self.cell)
 
-    def compute_density(self, state: FluidState) -> None:
-        """Summation density and pressure (called before the first step and each step)."""
+    def build_neighbour_lists(self, state: FluidState) -> None:
+        """Neighbours within H of each fluid particle (after build_grid)."""
         m = self.model
-        wp.launch(sph.particle_density_summation, dim=m.n_fluid,
-                  inputs=[self.grid.id, state.x, m.particle_mass, m.params], outputs=[state.rho, state.pressure], device=m.device)
+        wp.launch(sph.build_neighbour_list, dim=m.n_fluid, inputs=[self.grid.id, state.x, m.support_radius, self.neighbour_cap],
+                  outputs=[self._nbr_count, self._nbr], device=m.device)
+
+    def compute_density(self, state: FluidState, lists: bool = False) -> None:
+        """Summation density and pressure (before the first step, and each step in summation mode;
+        ``lists``: the neighbour lists are current)."""
+        m = self.model
+        if not lists:
+            self.build_neighbour_lists(state)
+        wp.launch(sph.particle_density_summation_list, dim=m.n_fluid,
+                  inputs=[self.grid.id, self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
+                  outputs=[state.rho, state.pressure], device=m.device)
 
     def set_density(self, state: FluidState, rho: np.ndarray) -> None:
         """Set the fluid densities (continuity mode's initial condition) and their pressures."""
@@ -252,23 +279,35 @@ class FluidSolver:
         wp.launch(sph.equation_of_state_pass, dim=m.n_fluid, inputs=[state.rho, m.params], outputs=[state.pressure], device=m.device)
 
     def step(self, state: FluidState, dt: wp.array) -> None:
-        """One step of length dt[0] (dt is a one-element device array)."""
+        """One step of length dt[0] (dt is a one-element device array): grid, neighbour lists, density
+        (summation, or continuity advanced by dt) and pressure, acceleration and XSPH, semi-implicit Euler."""
         m = self.model
         if m.n_fluid == 0:
             return
         self.build_grid(state)
-        if m.density_mode == "summation":
-            self.compute_density(state)
+        if self.fused_density:
+            mode = sph.DENSITY_SUMMATION if m.density_mode == "summation" else sph.DENSITY_CONTINUITY
+            wp.launch(sph.neighbour_list_density, dim=m.n_fluid,
+                      inputs=[self.grid.id, state.x, state.v, m.particle_mass, dt, m.params, mode],
+                      outputs=[self._nbr_count, self._nbr, state.drho_dt, state.rho, state.pressure], device=m.device)
         else:
-            wp.launch(sph.particle_density_rate, dim=m.n_fluid,
-                      inputs=[self.grid.id, state.x, state.v, m.particle_mass, m.params], outputs=[state.drho_dt], device=m.device)
-            wp.launch(sph.integrate_density, dim=m.n_fluid, inputs=[state.drho_dt, dt, m.params],
-                      outputs=[state.rho, state.pressure], device=m.device)
-        wp.launch(sph.particle_acceleration, dim=m.n_fluid,
-                  inputs=[self.grid.id, state.x, state.v, state.rho, state.pressure, m.particle_mass, m.params],
+            self.build_neighbour_lists(state)
+            if m.density_mode == "summation":
+                self.compute_density(state, lists=True)
+            else:
+                wp.launch(sph.particle_density_continuity_list, dim=m.n_fluid,
+                          inputs=[self.grid.id, self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
+                          outputs=[state.drho_dt, state.rho, state.pressure], device=m.device)
+        wp.launch(sph.particle_acceleration_list, dim=m.n_fluid,
+                  inputs=[self.grid.id, self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure,
+                          m.particle_mass, m.params],
                   outputs=[state.accel, state.xsph_dv], device=m.device)
         wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[state.accel, state.xsph_dv, dt],
                   outputs=[state.x, state.v], device=m.device)
+
+    def list_overflow(self) -> int:
+        """Fluid particles whose last neighbour list overflowed the capacity (summed by a grid query)."""
+        return int((self._nbr_count.numpy() > self.neighbour_cap).sum()) if self.model.n_fluid else 0
 
     def stable_dt(self, state: FluidState, cfl: float) -> float:
         """Largest stable step for the current motion (one host read):
