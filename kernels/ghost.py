@@ -23,7 +23,7 @@ closer than r to any liquid, boundary or ghost particle.
 
 import warp as wp
 
-from rockwave.kernels.sph import SPHParams, kernel_grad, kernel_w
+from rockwave.kernels.sph import SPHParams, equation_of_state, kernel_grad, kernel_w
 
 
 @wp.struct
@@ -166,6 +166,8 @@ def throw_darts(
     ghost_stamp: wp.array(dtype=int),
     count: wp.array(dtype=int),
     capacity: int,
+    keep: wp.array(dtype=int),
+    n_old: int,
     x_ghost: wp.array(dtype=wp.vec3),
     v_ghost: wp.array(dtype=wp.vec3),
     ghost_of: wp.array(dtype=int),
@@ -181,7 +183,9 @@ def throw_darts(
     extended x/v arrays). Tests from cheap to dear: ghosts in the 5^d block of cells, liquid and
     boundary within r_liquid (a small hash query), then, for a dart that passed, the nearest liquid
     particle within the layer and the liquid colour field (one query of radius ``layer``).
-    With ``classify`` (first round) a cell that no dart can pass is closed first (``ghost_stamp = -stamp``)."""
+    With ``classify`` (first round) a cell that no dart can pass is closed first (``ghost_stamp = -stamp``).
+    Persistent ghosts: the ``n_old`` ghosts of the last step sit at ``n_static ..`` (in the hash grid),
+    those with ``keep`` reject darts within r, and new ghosts are appended after them."""
     ph, t_cell = wp.tid()
     if t_cell >= phase_count[offset + ph]:
         return
@@ -243,12 +247,16 @@ def throw_darts(
                             ok = 0
         if ok == 0:
             continue
-        # liquid and boundary particles: none closer than r_liquid
+        # liquid and boundary particles: none closer than r_liquid; kept ghosts: none closer than r
         q = wp.hash_grid_query(grid, y, g.r_liquid)
         j = int(0)
         while wp.hash_grid_query_next(q, j):
             if j < n_static:
                 if wp.length_sq(x[j] - y) < rl2:
+                    ok = 0
+                    break
+            elif j < n_static + n_old:
+                if keep[j - n_static] != 0 and wp.length_sq(x[j] - y) < r2:
                     ok = 0
                     break
         if ok == 0:
@@ -336,3 +344,188 @@ def ghost_mass(
             s += kernel_w(wp.length_sq(xg - x[k]), p)
     particle_mass[gi] = p.rest_density / s
 
+
+
+# ------------------------------------------------------------------ persistent ghosts ----------
+# With ``fluid.ghost.persistent`` the ghosts of the last step are kept: moved with their owner (the
+# liquid particle that was nearest), dropped only when they clearly break the ghost rules (with a
+# margin: hysteresis), and the darts only fill the holes. A resampled layer changes discretely every
+# step (a ghost at 0.9 dx adds ~15% of rho0 to a surface particle's summation density), and that
+# noise heats a drop with summation density until it flies apart; persistent ghosts change only
+# where the liquid really opens or closes a gap.
+
+
+@wp.kernel
+def advect_ghosts(
+    grid: wp.uint64,
+    x_new: wp.array(dtype=wp.vec3),
+    ghost_of: wp.array(dtype=int),
+    n_static: int,
+    p: SPHParams,
+    x: wp.array(dtype=wp.vec3),
+):
+    """Move each ghost with the liquid around it: by the kernel-weighted (Shepard) mean of the
+    liquid displacements over the last step, sum_j W_gj (x_new_j - x_old_j) / sum_j W_gj; by its
+    owner's displacement where no liquid particle lies within the support. ``x_new`` holds the
+    liquid's new positions, ``x[:n_fluid]`` still the old ones and ``grid`` is last step's (built
+    over the old positions). The mean, not the nearest particle's motion: a surface particle that
+    moves relative to its neighbours (e.g. pulled in by a density deficit) must not carry its
+    ghosts along, or the deficit never relaxes and pushes it on for ever. Launched over the
+    previous step's ghosts; x = the extended positions."""
+    g = wp.tid()
+    o = n_static + g
+    y = x[o]
+    num = wp.vec3(0.0)
+    den = float(0.0)
+    q = wp.hash_grid_query(grid, y, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j < p.n_fluid:
+            w = kernel_w(wp.length_sq(x[j] - y), p)
+            num += w * (x_new[j] - x[j])
+            den += w
+    if den > 0.0:
+        x[o] = y + num / den
+    else:
+        k = ghost_of[g]
+        x[o] = y + (x_new[k] - x[k])
+
+
+@wp.kernel
+def keep_ghosts(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    n_fluid: int,
+    n_static: int,
+    g: GhostGrid,
+    p: SPHParams,
+    keep_liquid: float,
+    keep_colour: float,
+    keep_ghost: float,
+    keep: wp.array(dtype=int),
+    count: wp.array(dtype=int),
+    v: wp.array(dtype=wp.vec3),
+    ghost_of: wp.array(dtype=int),
+):
+    """Which of last step's ghosts (advected) stay: the nearest liquid particle within the layer, no
+    liquid or boundary particle closer than ``keep_liquid``, the liquid colour field below
+    ``keep_colour``, no ghost of lower index closer than ``keep_ghost`` (so that of two ghosts pushed
+    together one stays). The thresholds are looser than the seeding rules (r_liquid, colour_max, r):
+    a ghost is not dropped and re-seeded back and forth at the margin. A kept ghost takes the
+    velocity and ownership of its nearest liquid particle. ``count[1]`` counts the dropped ones."""
+    gi = wp.tid()
+    o = n_static + gi
+    y = x[o]
+    best = float(1.0e30)
+    nearest = int(-1)
+    colour = float(0.0)
+    ok = int(1)
+    kl2 = keep_liquid * keep_liquid
+    kg2 = keep_ghost * keep_ghost
+    q = wp.hash_grid_query(grid, y, g.layer)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        d2 = wp.length_sq(x[j] - y)
+        if j < n_static:
+            if d2 < kl2:
+                ok = 0
+            if j < n_fluid:
+                colour += g.liquid_volume * kernel_w(d2, p)
+                if d2 < best:
+                    best = d2
+                    nearest = j
+        elif j < o:
+            if d2 < kg2:
+                ok = 0
+    if nearest < 0 or best > g.layer * g.layer or colour > keep_colour:
+        ok = 0
+    keep[gi] = ok
+    if ok == 0:
+        wp.atomic_add(count, 1, 1)
+    else:
+        v[o] = v[nearest]
+        ghost_of[gi] = nearest
+
+
+@wp.kernel
+def close_kept_cells(
+    x: wp.array(dtype=wp.vec3),
+    keep: wp.array(dtype=int),
+    n_static: int,
+    g: GhostGrid,
+    stamp: int,
+    ghost_stamp: wp.array(dtype=int),
+):
+    """Close the background cell of each kept ghost for the darts (any dart there is within r of it)."""
+    gi = wp.tid()
+    if keep[gi] == 0:
+        return
+    c = cell_coord(g, x[n_static + gi])
+    if c[0] < 0 or c[1] < 0 or c[2] < 0 or c[0] >= g.nx or c[1] >= g.ny or c[2] >= g.nz:
+        return
+    ghost_stamp[cell_index(g, c[0], c[1], c[2])] = -stamp
+
+
+@wp.kernel
+def ghost_flags(keep: wp.array(dtype=int), n_old: int, flag: wp.array(dtype=int)):
+    """flag = 1 for a kept old ghost and for every new ghost (slots >= n_old)."""
+    gi = wp.tid()
+    f = int(1)
+    if gi < n_old:
+        f = keep[gi]
+    flag[gi] = f
+
+
+@wp.kernel
+def compact_ghosts(
+    flag: wp.array(dtype=int),
+    rank: wp.array(dtype=int),
+    n_static: int,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    ghost_of: wp.array(dtype=int),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    owner_out: wp.array(dtype=int),
+):
+    """Stable compaction of the flagged ghosts (rank = exclusive scan of flag) into the out arrays."""
+    gi = wp.tid()
+    if flag[gi] == 0:
+        return
+    k = rank[gi]
+    x_out[k] = x[n_static + gi]
+    v_out[k] = v[n_static + gi]
+    owner_out[k] = ghost_of[gi]
+
+
+@wp.kernel
+def density_summation_capped(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    p: SPHParams,
+    n_static: int,
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+):
+    """Summation density where the ghosts fill the missing part of the kernel support and no more:
+    rho_i = S_i + min(G_i, max(rho0 - S_i, 0)), S_i over liquid and boundary particles (self
+    included), G_i over ghosts. Air at p = 0 completes a surface particle's density up to rho0
+    (no spurious negative pressure: no clumping) but cannot compress it: the random layer's
+    density excess (a new ghost at 0.9 dx adds ~0.12 rho0) would push the particle away from the
+    liquid, and its ghosts, carried with it, keep pushing (ejected surface particles)."""
+    i = wp.tid()
+    xi = x[i]
+    s = float(0.0)
+    gs = float(0.0)
+    q = wp.hash_grid_query(grid, xi, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        w = particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
+        if j < n_static:
+            s += w
+        else:
+            gs += w
+    r = s + wp.min(gs, wp.max(p.rest_density - s, 0.0))
+    rho[i] = r
+    pressure[i] = equation_of_state(r, p)

@@ -14,6 +14,14 @@ kernels on fluid + boundary + ghost particles:
    the summation density (not in the continuity rate: see ``ghost_continuity``); in the pressure force they enter only through the liquid particle's own
    ``p_i/rho_i^2`` term (their pressure is zero); no viscosity or XSPH with ghosts.
 
+Summation density (``[fluid.ghost]``, all off by default; on in scenes/drop_zero_g_2d.toml):
+``density_cap`` lets the ghosts fill a surface particle's density up to rho0 and no further;
+``pressure_term = false`` takes the ghosts out of the pressure force (the paper's rule; the one-sided
+term pumps energy); ``persistent`` keeps last step's ghosts, moved by the kernel-weighted mean
+displacement of the liquid around them, drops them only past looser limits than the seeding rules
+and throws darts only into the holes. Without these a resting drop with summation density flies
+apart (tests/test_ghost.py::test_zero_gravity_drop_keeps_shape_with_ghosts_and_basic_summation_clumps).
+
 Walls: the tank and obstacle boundary particles are static layers at least one kernel radius thick
 with lattice-calibrated masses, i.e. they already are the "ghost solid particles" of the paper
 (they complete the density sums at walls and push with the Akinci term); they are not resampled.
@@ -81,6 +89,12 @@ class GhostFluidSolver(FluidSolver):
         # force every step (which, with a stiff EOS, heats a resting drop until it flies apart).
         self.seed = int(cfg.get("seed") or 1)
         self.fresh_darts = bool(cfg.get("fresh_darts", False))
+        # persistent: keep last step's ghosts (moved with their owner liquid particle) and only fill
+        # the holes; drop a ghost only past looser limits than the seeding rules (hysteresis)
+        self.persistent = bool(cfg.get("persistent", False))
+        # density_cap: in summation density the ghosts fill a surface particle's kernel support up
+        # to rho0 and no further (air at p = 0 cannot compress the liquid)
+        self.density_cap = bool(cfg.get("density_cap", False))
         # pressure_term: ghosts (p = 0) enter the force only through the liquid particle's own
         # p_i/rho_i^2 term (true), or add no pressure force at all (false; the elliptical drop)
         pt = cfg.get("pressure_term")
@@ -105,13 +119,17 @@ class GhostFluidSolver(FluidSolver):
         # 3): their one-sided pressure term pumped energy in (x1.8 in 0.3 s); 0.3 keeps them outside
         g.colour_max = 0.3
         self.bg = g
+        self.keep_liquid = 0.6 * self.r_liquid
+        self.keep_ghost = 0.6 * self.r
+        self.keep_colour = 0.45
         # dense per-cell arrays are stamped, never cleared: cell_mark (active this sampling),
         # ghost_stamp/cell_ghost (the cell's ghost); the active cells go to compact per-phase lists
         self._stamp = 0
         self.cell_mark = wp.zeros(ncell, dtype=int, device=d)
         self.ghost_stamp = wp.zeros(ncell, dtype=int, device=d)
         self.cell_ghost = wp.zeros(ncell, dtype=int, device=d)
-        self.count = wp.zeros(1, dtype=int, device=d)
+        self.count = wp.zeros(2, dtype=int, device=d)  # [0] ghost slots used, [1] ghosts dropped (persistent)
+        self._n_old_arr = None
         self.div = wp.zeros(model.n_fluid, dtype=float, device=d)
         self.surface = wp.zeros(model.n_fluid, dtype=int, device=d)
         self.n_phases = 27 if dim == 3 else 9
@@ -140,28 +158,51 @@ class GhostFluidSolver(FluidSolver):
         self.mass_force = wp.zeros(ns + capacity, dtype=float, device=d)
         wp.copy(self.mass_force, m.particle_mass, 0, 0, ns)
         self.ghost_of = wp.zeros(capacity, dtype=int, device=d)
+        # persistent ghosts: keep flags, compaction scratch
+        self.keep = wp.zeros(capacity, dtype=int, device=d)
+        self._flag = wp.zeros(capacity, dtype=int, device=d)
+        self._rank = wp.zeros(capacity, dtype=int, device=d)
+        self._x_tmp = wp.zeros(capacity, dtype=wp.vec3, device=d)
+        self._v_tmp = wp.zeros(capacity, dtype=wp.vec3, device=d)
+        self._owner_tmp = wp.zeros(capacity, dtype=int, device=d)
         self.grid.reserve(ns + capacity)
 
     # ------------------------------------------------------------------ sampling -------------
     def sample_ghosts(self, state: FluidState) -> int:
-        """Free-surface detection and ghost seeding for the current positions. Leaves the hash grid
-        built over fluid + boundary + ghosts. Returns the number of ghosts."""
+        """Free-surface detection and ghost seeding for the current positions (persistent: last
+        step's ghosts moved with their owners, the ones that break the rules dropped, the holes
+        filled). Leaves the hash grid built over fluid + boundary + ghosts. Returns the number of ghosts."""
         m = self.model
         ns = m.n_total
         t0 = time.perf_counter() if self.profile else 0.0
+        n_old = self.n_ghost if self.persistent else 0
+        if n_old:
+            # x_ext[:n_fluid] still holds the liquid positions of the last sampling
+            # (the grid is still last step's, over these old positions)
+            wp.launch(gk.advect_ghosts, dim=n_old, inputs=[self.grid.id, state.x, self.ghost_of, ns, m.params],
+                      outputs=[self.x_ext], device=m.device)
         wp.copy(self.x_ext, state.x, 0, 0, ns)
         wp.copy(self.v_ext, state.v, 0, 0, ns)
-        self.grid.build(self.x_ext[:ns], m.support_radius)
+        self.grid.build(self.x_ext[: ns + n_old], m.support_radius)
         wp.launch(gk.position_divergence, dim=m.n_fluid,
                   inputs=[self.grid.id, self.x_ext, state.rho, self.mass_ext, m.params, ns, self.threshold],
                   outputs=[self.div, self.surface], device=m.device)
+        self.count.zero_()
+        if n_old:
+            wp.launch(gk.keep_ghosts, dim=n_old,
+                      inputs=[self.grid.id, self.x_ext, m.n_fluid, ns, self.bg, m.params, self.keep_liquid,
+                              self.keep_colour, self.keep_ghost],
+                      outputs=[self.keep, self.count, self.v_ext, self.ghost_of], device=m.device)
         while True:
             self._stamp += 1
             self.phase_count.zero_()
-            self.count.zero_()
+            wp.copy(self.count, self._n_old_dev(n_old), 0, 0, 1)
             wp.launch(gk.mark_active_cells, dim=m.n_fluid,
                       inputs=[self.x_ext, self.surface, self.bg, self._stamp, self.cell_mark, self.phase_count,
                               self.phase_list, self.phase_cap], device=m.device)
+            if n_old:
+                wp.launch(gk.close_kept_cells, dim=n_old, inputs=[self.x_ext, self.keep, ns, self.bg, self._stamp],
+                          outputs=[self.ghost_stamp], device=m.device)
             counts = self.phase_count.numpy()
             self.n_active = int(counts.sum())
             serial = not m.device.is_cuda  # Warp's CPU backend runs a launch in index order on one thread
@@ -178,17 +219,32 @@ class GhostFluidSolver(FluidSolver):
                     wp.launch(gk.throw_darts, dim=(nph, ncell),
                               inputs=[self.grid.id, self.x_ext, self.v_ext, m.n_fluid, ns, self.bg, m.params, seed,
                                       self.attempts, self._stamp, int(rnd == 0), self.phase_count, self.phase_list,
-                                      self.phase_cap, k, self.cell_ghost, self.ghost_stamp, self.count, self.capacity],
+                                      self.phase_cap, k, self.cell_ghost, self.ghost_stamp, self.count, self.capacity,
+                                      self.keep, n_old],
                               outputs=[self.x_ext, self.v_ext, self.ghost_of], device=m.device)
-            n = int(self.count.numpy()[0])
+            n, dropped = (int(c) for c in self.count.numpy())
             if n <= self.capacity:
                 break
             # more ghosts than slots: grow and sample again (rare; the buffers only grow)
-            x_keep, v_keep = self.x_ext, self.v_ext
+            keep = [a for a in (self.x_ext, self.v_ext, self.ghost_of, self.keep)]
             self._alloc(int(1.5 * n) + 1024)
-            wp.copy(self.x_ext, x_keep, 0, 0, ns)
-            wp.copy(self.v_ext, v_keep, 0, 0, ns)
-            self.grid.build(self.x_ext[:ns], m.support_radius)
+            wp.copy(self.x_ext, keep[0], 0, 0, ns + n_old)
+            wp.copy(self.v_ext, keep[1], 0, 0, ns + n_old)
+            if n_old:
+                wp.copy(self.ghost_of, keep[2], 0, 0, n_old)
+                wp.copy(self.keep, keep[3], 0, 0, n_old)
+            self.grid.build(self.x_ext[: ns + n_old], m.support_radius)
+        if dropped:
+            # stable compaction: kept old ghosts first, then the new ones
+            wp.launch(gk.ghost_flags, dim=n, inputs=[self.keep, n_old], outputs=[self._flag], device=m.device)
+            wp.utils.array_scan(self._flag[:n], self._rank[:n], inclusive=False)
+            wp.launch(gk.compact_ghosts, dim=n, inputs=[self._flag, self._rank, ns, self.x_ext, self.v_ext, self.ghost_of],
+                      outputs=[self._x_tmp, self._v_tmp, self._owner_tmp], device=m.device)
+            n -= dropped
+            if n:
+                wp.copy(self.x_ext, self._x_tmp, ns, 0, n)
+                wp.copy(self.v_ext, self._v_tmp, ns, 0, n)
+                wp.copy(self.ghost_of, self._owner_tmp, 0, 0, n)
         self.n_ghost = n
         self.grid.build(self.x_ext[: ns + n], m.support_radius)
         if n and self.number_density_mass:
@@ -198,13 +254,29 @@ class GhostFluidSolver(FluidSolver):
             self.sample_seconds += time.perf_counter() - t0
         return n
 
+    def _n_old_dev(self, n_old: int) -> wp.array:
+        """A device scalar holding n_old (the first ghost slot for the darts)."""
+        if self._n_old_arr is None:
+            self._n_old_arr = wp.zeros(1, dtype=int, device=self.model.device)
+        self._n_old_arr.fill_(n_old)
+        return self._n_old_arr
+
     # ------------------------------------------------------------------ solver interface -----
     def compute_density(self, state: FluidState) -> None:
         """Summation density with ghosts (initial state in summation mode)."""
         m = self.model
         self.sample_ghosts(state)
-        wp.launch(sph.particle_density_summation, dim=m.n_fluid,
-                  inputs=[self.grid.id, self.x_ext, self.mass_ext, m.params], outputs=[state.rho, state.pressure], device=m.device)
+        self._summation_density(state)
+
+    def _summation_density(self, state: FluidState) -> None:
+        m = self.model
+        if self.density_cap:
+            wp.launch(gk.density_summation_capped, dim=m.n_fluid,
+                      inputs=[self.grid.id, self.x_ext, self.mass_ext, m.params, m.n_total],
+                      outputs=[state.rho, state.pressure], device=m.device)
+        else:
+            wp.launch(sph.particle_density_summation, dim=m.n_fluid,
+                      inputs=[self.grid.id, self.x_ext, self.mass_ext, m.params], outputs=[state.rho, state.pressure], device=m.device)
 
     def step(self, state: FluidState, dt: wp.array) -> None:
         m = self.model
@@ -212,8 +284,7 @@ class GhostFluidSolver(FluidSolver):
             return
         self.sample_ghosts(state)
         if m.density_mode == "summation":
-            wp.launch(sph.particle_density_summation, dim=m.n_fluid,
-                      inputs=[self.grid.id, self.x_ext, self.mass_ext, m.params], outputs=[state.rho, state.pressure], device=m.device)
+            self._summation_density(state)
         else:
             wp.launch(gk.density_rate_with_ghosts, dim=m.n_fluid,
                       inputs=[self.grid.id, self.x_ext, self.v_ext, self.mass_ext, m.params, m.n_total, self.ghost_continuity],

@@ -117,6 +117,8 @@ SCHEMA: dict[str, Key] = {
             attempts=Key("int", "darts per background cell and round (Bridson's k)", default=8, min=1, max=100),
             rounds=Key("int", "passes over the 3^dim independent phases of the background grid", default=2, min=1, max=10),
             pressure_term=Key("bool", "ghosts enter the pressure force through the liquid particle's own p_i/rho_i^2 term (true), or add no pressure force at all (false)", default=True),
+            density_cap=Key("bool", "summation density: ghosts fill a surface particle's kernel support up to rho0 and no further, rho_i = S_i + min(G_i, max(rho0 - S_i, 0)) (true); or add their full sum (false)", default=False),
+            persistent=Key("bool", "keep last step's ghosts, moved with the mean motion of the liquid around them, and only fill the holes (true); or resample the whole layer each step (false). Needed with summation density (a resampled layer's density noise heats a resting drop)", default=False),
         ),
         eos=_sec(
             "equation of state: give speed_of_sound_m_s, or the constant itself (b_pa for Tait, k_m2_s2 for linear)",
