@@ -10,7 +10,12 @@ velocity relative to the block surface point. The force is clipped at zero (no s
 equal and opposite force, applied at the projection of the particle onto the face (the same line
 of action, so angular momentum is conserved too), goes to the block's ext_force / ext_torque.
 
-Broad phase ("a scene pays only for what it contains"): each block's AABB, grown by d0, is clipped
+Squeeze-out (rockwave/coupling.py): a particle touching a block face and pinched by an opposing
+solid face within the gap w_s = 2 d0 + H gets its normal force turned to mag (n + lambda t), t the way
+out of the gap (towards the nearest side face of the moving block), lambda = (w_s - w)/(w_s - 2 d0);
+the film drains and a block can settle on a floor or on another block.
+
+Broad phase ("a scene pays only for what it contains"): each block's AABB, grown by max(d0, w_s), is clipped
 to the AABB of the fluid particles; blocks outside it are skipped entirely. The cells of a uniform
 grid (cell size S) covered by the clipped box are hashed into buckets (counting sort); a particle
 reads only the bucket of its own cell. Blocks covering more than ``max_cells`` cells go to a short
@@ -181,6 +186,60 @@ class CouplingParams:
     nbuckets: int
     n_large: int
     track_walls: int  # 1: sum the forces of fixed/kinematic blocks on the water (diagnostics)
+    squeeze_gap: float  # gap w_s between two opposing solid faces below which pinched water is squeezed out (0: off)
+
+
+PINCH_COS = wp.constant(0.7071)  # two faces oppose (pinch a gap) when n_a . n_b < -cos 45 deg
+SIDE_COS = wp.constant(0.7071)  # exit faces of the moving block: |n_k . n| < cos 45 deg (its sides)
+
+
+@wp.func
+def block_distance(
+    b: int,
+    xi: wp.vec3,
+    face_start: wp.array(dtype=int),
+    face_count: wp.array(dtype=int),
+    plane_n: wp.array(dtype=wp.vec3),
+    plane_d: wp.array(dtype=float),
+):
+    """Signed distance of xi to the convex block b (max over its face planes) and that face's normal."""
+    fs = face_start[b]
+    dist = float(-BIG)
+    n = wp.vec3(0.0)
+    for k in range(face_count[b]):
+        e = wp.dot(plane_n[fs + k], xi) - plane_d[fs + k]
+        if e > dist:
+            dist = e
+            n = plane_n[fs + k]
+    return dist, n
+
+
+@wp.func
+def exit_direction(
+    b: int,
+    xi: wp.vec3,
+    n: wp.vec3,
+    face_start: wp.array(dtype=int),
+    face_count: wp.array(dtype=int),
+    plane_n: wp.array(dtype=wp.vec3),
+    plane_d: wp.array(dtype=float),
+):
+    """Unit direction, in the plane of block b's face with normal n, towards the nearest side face of
+    b (the shortest way out of the gap under that face); zero if b has no such side face."""
+    fs = face_start[b]
+    best = float(-BIG)
+    t = wp.vec3(0.0)
+    for k in range(face_count[b]):
+        nk = plane_n[fs + k]
+        c = wp.dot(nk, n)
+        if wp.abs(c) < SIDE_COS:
+            e = wp.dot(nk, xi) - plane_d[fs + k]
+            if e > best:
+                best = e
+                t = nk - c * n
+    if wp.length(t) > 0.0:
+        t = wp.normalize(t)
+    return t
 
 
 @wp.func
@@ -190,6 +249,7 @@ def block_contact(
     xi: wp.vec3,
     vi: wp.vec3,
     p: CouplingParams,
+    squeeze: wp.vec3,
     face_start: wp.array(dtype=int),
     face_count: wp.array(dtype=int),
     plane_n: wp.array(dtype=wp.vec3),
@@ -203,15 +263,9 @@ def block_contact(
     ext_torque: wp.array(dtype=wp.vec3),
     wall_force: wp.array(dtype=wp.vec3),
 ):
-    # signed distance to the convex block = max over face planes; n = normal of that face
-    fs = face_start[b]
-    dist = float(-BIG)
-    n = wp.vec3(0.0)
-    for k in range(face_count[b]):
-        e = wp.dot(plane_n[fs + k], xi) - plane_d[fs + k]
-        if e > dist:
-            dist = e
-            n = plane_n[fs + k]
+    """Penalty force of block b on particle i; ``squeeze`` (lambda t, zero outside a pinch) turns
+    the force to n + lambda t: the squeeze-out push along the gap (module docstring)."""
+    dist, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
     f = wp.vec3(0.0)
     if dist < p.d0:
         c = bx[b]
@@ -220,7 +274,7 @@ def block_contact(
         vn = wp.dot(vi - vs, n)
         mag = p.k_s * (p.d0 - dist) - p.k_d * vn
         if mag > 0.0:
-            f = mag * n
+            f = mag * (n + squeeze)
             kind = kinds[b]
             if kind != KIND_FIXED and kind != KIND_KINEMATIC:
                 fb = -depth_scale[b] * f
@@ -258,20 +312,89 @@ def particle_block_forces(
     dv: wp.array(dtype=wp.vec3),
 ):
     """Penalty force of every nearby block on fluid particle i, stored as the velocity change
-    dv_i = dt f_i / m_i (applied after the fluid step); reactions go to the blocks."""
+    dv_i = dt f_i / m_i (applied after the fluid step); reactions go to the blocks.
+
+    Three passes over the candidate blocks (the bucket of the particle's cell and the large list):
+    the nearest block a; if the particle touches it (dist < d0), the nearest block b whose face
+    opposes a's (a pinch: the particle is in a gap of width w = dist_a + dist_b); then the forces."""
     i = wp.tid()
     xi = x[i]
     vi = v[i]
-    f = wp.vec3(0.0)
     c = cell_of(xi, p.inv_s)
     h = bucket_of(c, p.nbuckets)
     s = bucket_start[h]
+    # pass 1: nearest block
+    ba = int(-1)
+    da = float(BIG)
+    na = wp.vec3(0.0)
     for e in range(s, s + bucket_count[h]):
         if entry_cell[e] == c:
-            f += block_contact(i, entry_block[e], xi, vi, p, face_start, face_count, plane_n, plane_d, kinds, bx, bv, bw,
+            b = entry_block[e]
+            d, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
+            if d < da:
+                ba = b
+                da = d
+                na = n
+    for k in range(p.n_large):
+        b = large[k]
+        d, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
+        if d < da:
+            ba = b
+            da = d
+            na = n
+    if da >= p.d0:
+        dv[i] = wp.vec3(0.0)
+        return
+    # pass 2: a pinch, the nearest opposing solid within the squeeze gap
+    squeeze = wp.vec3(0.0)
+    bb = int(-1)
+    if p.squeeze_gap > 0.0:
+        db = float(p.squeeze_gap - da)
+        nb = wp.vec3(0.0)
+        for e in range(s, s + bucket_count[h]):
+            if entry_cell[e] == c:
+                b = entry_block[e]
+                if b != ba:
+                    d, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
+                    if d < db and wp.dot(n, na) < -PINCH_COS:
+                        bb = b
+                        db = d
+                        nb = n
+        for k in range(p.n_large):
+            b = large[k]
+            if b != ba:
+                d, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
+                if d < db and wp.dot(n, na) < -PINCH_COS:
+                    bb = b
+                    db = d
+                    nb = n
+        if bb >= 0:
+            # the block that moves sets the way out (the nearest edge of its face); two walls: none
+            t = wp.vec3(0.0)
+            if kinds[ba] != KIND_FIXED:
+                t = exit_direction(ba, xi, na, face_start, face_count, plane_n, plane_d)
+            elif kinds[bb] != KIND_FIXED:
+                t = exit_direction(bb, xi, nb, face_start, face_count, plane_n, plane_d)
+            w = wp.max(da + db, 2.0 * p.d0)
+            lam = wp.min(1.0, (p.squeeze_gap - w) / wp.max(p.squeeze_gap - 2.0 * p.d0, 1.0e-12))
+            squeeze = lam * t
+    # pass 3: forces
+    f = wp.vec3(0.0)
+    zero = wp.vec3(0.0)
+    for e in range(s, s + bucket_count[h]):
+        if entry_cell[e] == c:
+            b = entry_block[e]
+            sq = zero
+            if b == ba or b == bb:  # only the two faces of the pinch push along the gap
+                sq = squeeze
+            f += block_contact(i, b, xi, vi, p, sq, face_start, face_count, plane_n, plane_d, kinds, bx, bv, bw,
                                depth_scale, ext_force, ext_torque, wall_force)
     for k in range(p.n_large):
-        f += block_contact(i, large[k], xi, vi, p, face_start, face_count, plane_n, plane_d, kinds, bx, bv, bw,
+        b = large[k]
+        sq = zero
+        if b == ba or b == bb:
+            sq = squeeze
+        f += block_contact(i, b, xi, vi, p, sq, face_start, face_count, plane_n, plane_d, kinds, bx, bv, bw,
                            depth_scale, ext_force, ext_torque, wall_force)
     dv[i] = (dt[0] / particle_mass[i]) * f
 

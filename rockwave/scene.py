@@ -190,6 +190,7 @@ SCHEMA: dict[str, Key] = {
         damping_ratio=Key("float", "K_d = 2 ratio sqrt(K_s m): damping ratio of the particle-wall spring", default=0.5, min=0.0, max=2.0),
         stiffness_n_m=Key("float", "explicit K_s (N/m per particle; per metre of depth in 2D), overrides stiffness_factor", min=0, min_open=True),
         damping_n_s_m=Key("float", "explicit K_d (N s/m), overrides damping_ratio", min=0.0),
+        squeeze_out=Key("bool", "water pinched between a moving block and an opposing solid face closer than 2 d0 + H is pushed out along the gap, so a block can settle onto another (rockwave/coupling.py)", default=True),
     ),
     "output": _sec(
         "what a run writes into its output folder",

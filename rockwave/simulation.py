@@ -249,7 +249,8 @@ class Simulation:
         kw = {}
         if c is not None:
             kw = dict(stiffness_factor=c.stiffness_factor, damping_ratio=c.damping_ratio, k_s=c.stiffness_n_m, k_d=c.damping_n_s_m,
-                      d0=None if c.contact_distance_ratio is None else c.contact_distance_ratio * self.fluid.spacing)
+                      d0=None if c.contact_distance_ratio is None else c.contact_distance_ratio * self.fluid.spacing,
+                      squeeze_out=c.squeeze_out is not False)
         self.coupling = Coupling(self.fluid, self.blocks, self.scene.dim, **kw)
 
     def _adaptive_dt(self, initial: bool = False) -> float:

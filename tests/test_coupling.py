@@ -60,8 +60,13 @@ def test_floating_box_3d_archimedes():
 
 
 def test_sinking_block_reaches_floor_and_water_returns_to_hydrostatic():
+    """A 0.1 m block of density 2000 sinks through 0.3 m of water and lands on the floor block: the
+    water film under it is squeezed out (rockwave/coupling.py, squeeze-out), so the block's bottom
+    touches the floor (DDA contact, the floor carries the block) with no particle left under or
+    inside it, and the water returns to hydrostatic pressure."""
     sim = _sim("sinking_block_small.toml")
-    b = sim.blocks.names.index("block")
+    b, floor = sim.blocks.names.index("block"), sim.blocks.names.index("floor")
+    s = sim.fluid.spacing
     y0 = sim.block_positions()[b][1]
     sim.advance(0.6)
     ratios = []
@@ -70,12 +75,24 @@ def test_sinking_block_reaches_floor_and_water_returns_to_hydrostatic():
         g = sim.gauges()
         for k, y in (("p_left_low", 0.05), ("p_left_mid", 0.15), ("p_right_low", 0.05)):
             ratios.append(g[k] / (1000.0 * 9.81 * (g["level"] - y)))
-    bottom = sim.block_positions()[b][1] - 0.05
-    assert y0 - 0.05 > 0.1 and bottom < 2.5 * sim.fluid.spacing  # down to the last water film the particles resolve
+    xb = sim.block_positions()[b]
+    bottom = xb[1] - 0.05  # the floor's top face is y = 0
+    assert y0 - 0.05 > 0.1  # it started 10 spacings above the floor
+    # on the floor: only the DDA contact overlap (k_n = 5e5 N/m: ~2e-5 m = 0.002 s measured), no water film
+    assert abs(bottom) < 0.05 * s, bottom / s
     assert abs(sim.block_velocities()[b][1]) < 0.02
-    # WCSPH pressure noise and sloshing: +-15% per sample; the mean of 36 samples within 10% of rho g d
+    contact = [c for c in sim.block_solver.contacts(sim.block_state) if set(c["blocks"]) == {b, floor}]
+    assert contact and contact[0]["gap"] <= 0.0 and len(contact[0]["normal_forces"]) >= 2
+    # the floor carries at least the submerged weight (m - rho_w V) g = 9.81 N (measured 37.6 N: with
+    # no water under the block the water above presses it down as well)
+    submerged = (sim.blocks.np["mass"][b] - 1000.0 * 0.1 ** 3) * 9.81
+    assert contact[0]["normal_forces"].sum() > submerged, contact[0]["normal_forces"]
+    x = sim.positions()
+    under = (np.abs(x[:, 0] - xb[0]) < 0.05) & (x[:, 1] < xb[1])
+    assert not under.any(), x[under]
+    assert _min_block_distance(sim) > 0.0  # no particle inside any block
+    # WCSPH pressure noise and sloshing: +-40% per sample; the mean of 36 samples within 10% of rho g d
     assert abs(np.mean(ratios) - 1.0) < 0.1, ratios
-    assert _min_block_distance(sim) > 0.0
 
 
 def test_piston_wave_maker_linear_theory():
