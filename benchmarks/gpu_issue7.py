@@ -20,6 +20,31 @@ from benchmarks.common import ROOT, commit, device_name
 from rockwave.kernels import sph
 
 
+@wp.kernel
+def hashgrid_neighbour_list(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    H: float,
+    cap: int,
+    count: wp.array(dtype=int),
+    nbr: wp.array(dtype=int),
+):
+    """The neighbour list from a 27-cell wp.HashGrid query (the solver's list before the cell grid; kept
+    here for the side-by-side timing)."""
+    i = wp.tid()
+    n = count.shape[0]
+    xi = x[i]
+    c = int(0)
+    q = wp.hash_grid_query(grid, xi, H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j != i and wp.length_sq(xi - x[j]) < H * H:
+            if c < cap:
+                nbr[c * n + i] = j
+            c += 1
+    count[i] = c
+
+
 def _sync_time(fn, device, reps=1):
     wp.synchronize_device(device)
     t = time.perf_counter()
@@ -82,19 +107,24 @@ def fluid_passes(device, spacing, reps=20, sort=True, cell_ratio=1.0):
     d = device
     passes = {
         "grid_build": lambda: fs.build_grid(st),
+        "cell_build": lambda: fs.build_cells(st),
+        "neighbour_list_hashgrid": lambda: wp.launch(
+            hashgrid_neighbour_list, dim=m.n_fluid, inputs=[fs.grid.id, st.x, m.support_radius, fs.neighbour_cap],
+            outputs=[fs._nbr_count, fs._nbr], device=d),
         "neighbour_list": lambda: fs.build_neighbour_lists(st),
         "neighbour_list_continuity": lambda: wp.launch(
             sph.neighbour_list_density, dim=m.n_fluid,
-            inputs=[fs.grid.id, st.x, st.v, m.particle_mass, dt, m.params, sph.DENSITY_CONTINUITY],
+            inputs=[fs.cells, *fs._slot_ranges, st.x, st.v, m.particle_mass, dt, m.params, sph.DENSITY_CONTINUITY],
             outputs=[fs._nbr_count, fs._nbr, st.drho_dt, st.rho, st.pressure], device=d),
         "density_summation_list": lambda: fs.compute_density(st, lists=True),
         "density_continuity_list": lambda: wp.launch(
             sph.particle_density_continuity_list, dim=m.n_fluid,
-            inputs=[fs.grid.id, fs._nbr_count, fs._nbr, st.x, st.v, m.particle_mass, dt, m.params],
+            inputs=[fs.cells, *fs._slot_ranges, fs._nbr_count, fs._nbr, st.x, st.v, m.particle_mass, dt, m.params],
             outputs=[st.drho_dt, st.rho, st.pressure], device=d),
         "acceleration_list": lambda: wp.launch(
             sph.particle_acceleration_list, dim=m.n_fluid,
-            inputs=[fs.grid.id, fs._nbr_count, fs._nbr, st.x, st.v, st.rho, st.pressure, m.particle_mass, m.params],
+            inputs=[fs.cells, *fs._slot_ranges, fs._nbr_count, fs._nbr, st.x, st.v, st.rho, st.pressure,
+                    m.particle_mass, m.params],
             outputs=[st.accel, st.xsph_dv], device=d),
         "acceleration_grid_query": lambda: wp.launch(
             sph.particle_acceleration, dim=m.n_fluid,
@@ -106,13 +136,14 @@ def fluid_passes(device, spacing, reps=20, sort=True, cell_ratio=1.0):
         "full_step": lambda: sim.step(),
         "full_step_fused": lambda: (setattr(fs, "fused_density", True), sim.step(), setattr(fs, "fused_density", d == "cpu")),
     }
+    g = fs.cells
     r = {"spacing_m": spacing, "particles": m.n_fluid, "sorted": sort, "cell_ratio": cell_ratio,
-         "list_capacity": fs.neighbour_cap}
+         "list_capacity": fs.neighbour_cap, "cell_dims": [g.nx, g.ny, g.nz]}
     with wp.ScopedDevice(d):
         for k, f in passes.items():
             f()
             r[k + "_ms"] = 1e3 * _sync_time(f, d, reps)
-    fs.build_grid(st)
+    fs.build_cells(st)
     fs.build_neighbour_lists(st)
     cnt = fs._nbr_count.numpy()
     r["list_overflow"] = int((cnt > fs.neighbour_cap).sum())

@@ -330,6 +330,122 @@ def particle_acceleration(
     xsph_dv[i] = p.xsph * dv
 
 
+# ------------------------------------------------------------------ cell grid ------
+# The fluid solver's own neighbour search (rockwave.fluid.CellGridBuilder builds it each step):
+# particles sorted by cell key, cells H wide in y and z and H/4 in x, keys x-fastest, so the cells
+# of one (y, z) column that lie within H of a particle form one contiguous run of sorted slots.
+# A query visits the 9 columns (3 in 2D) around a particle and, in each, only the x-cells within
+# sqrt(H^2 - d_yz^2) of it (d_yz: distance to the column): ~115 candidates for ~30 neighbours in 3D
+# instead of the ~185 of a 27-cell query. Cell coordinates wrap modulo the grid dimensions (a
+# hashed dense grid, like wp.HashGrid), so any domain fits; aliased cells only add candidates.
+
+
+@wp.struct
+class CellGrid:
+    lo: wp.vec3  # grid origin
+    inv_cx: float  # 1 / x-cell width
+    c: float  # y and z cell width (>= H)
+    nx: int
+    ny: int
+    nz: int
+    first: wp.array(dtype=int)  # first[k] = first sorted slot whose cell key is >= k (nx*ny*nz + 1 entries)
+    order: wp.array(dtype=int)  # sorted slot -> particle index
+
+
+@wp.func
+def wrap(a: int, n: int) -> int:
+    return ((a % n) + n) % n
+
+
+@wp.func
+def cell_of(g: CellGrid, x: wp.vec3):
+    """Unwrapped integer cell coordinates of a point."""
+    d = x - g.lo
+    return int(wp.floor(d[0] * g.inv_cx)), int(wp.floor(d[1] / g.c)), int(wp.floor(d[2] / g.c))
+
+
+@wp.kernel
+def cell_keys(g: CellGrid, x: wp.array(dtype=wp.vec3), keys: wp.array(dtype=int), values: wp.array(dtype=int)):
+    i = wp.tid()
+    ix, iy, iz = cell_of(g, x[i])
+    keys[i] = wrap(ix, g.nx) + g.nx * (wrap(iy, g.ny) + g.ny * wrap(iz, g.nz))
+    values[i] = i
+
+
+@wp.kernel
+def cell_first(keys: wp.array(dtype=int), n: int, n_cells: int, first: wp.array(dtype=int)):
+    """Launched over k = 0..n (sorted keys): first[c] = k for the cells c in (keys[k-1], keys[k]]."""
+    k = wp.tid()
+    c0 = int(0)
+    if k > 0:
+        c0 = keys[k - 1] + 1
+    c1 = n_cells
+    if k < n:
+        c1 = keys[k]
+    for c in range(c0, c1 + 1):
+        first[c] = k
+
+
+@wp.func
+def slot_range(g: CellGrid, xi: wp.vec3, H: float, iy: int, iz: int, r: int):
+    """Sorted-slot range [s, e) number r of a query around xi: column col = r / 2 (dy = col % 3 - 1,
+    dz = col / 3 - 1), part r % 2 (the second part is non-empty only when the column's x-run wraps)."""
+    col = r / 2
+    cy = iy + col % 3 - 1
+    cz = iz + col / 3 - 1
+    y0 = g.lo[1] + float(cy) * g.c
+    z0 = g.lo[2] + float(cz) * g.c
+    dy = wp.max(wp.max(y0 - xi[1], xi[1] - (y0 + g.c)), 0.0)
+    dz = wp.max(wp.max(z0 - xi[2], xi[2] - (z0 + g.c)), 0.0)
+    d2 = dy * dy + dz * dz
+    if d2 >= H * H:
+        return 0, 0
+    w = wp.sqrt(H * H - d2)
+    x0 = int(wp.floor((xi[0] - w - g.lo[0]) * g.inv_cx))
+    x1 = int(wp.floor((xi[0] + w - g.lo[0]) * g.inv_cx))
+    base = g.nx * (wrap(cy, g.ny) + g.ny * wrap(cz, g.nz))
+    a = wrap(x0, g.nx)
+    b = wrap(x1, g.nx)
+    whole = x1 - x0 + 1 >= g.nx  # the run covers the whole (wrapped) row
+    if r % 2 == 0:
+        if whole:
+            return g.first[base], g.first[base + g.nx]
+        if a <= b:
+            return g.first[base + a], g.first[base + b + 1]
+        return g.first[base + a], g.first[base + g.nx]
+    if whole or a <= b:
+        return 0, 0
+    return g.first[base], g.first[base + b + 1]
+
+
+@wp.kernel
+def build_neighbour_list_cells(
+    g: CellGrid,
+    x: wp.array(dtype=wp.vec3),
+    H: float,
+    r_lo: int,
+    r_hi: int,
+    count: wp.array(dtype=int),
+    nbr: wp.array(dtype=int),
+):
+    """build_neighbour_list on the cell grid (slot ranges r_lo..r_hi-1: 0..18 in 3D, 6..12 in 2D)."""
+    i = wp.tid()
+    n = count.shape[0]
+    cap = nbr.shape[0] // n
+    xi = x[i]
+    ix, iy, iz = cell_of(g, xi)
+    c = int(0)
+    for r in range(r_lo, r_hi):
+        s, e = slot_range(g, xi, H, iy, iz, r)
+        for k in range(s, e):
+            j = g.order[k]
+            if j != i and wp.length_sq(xi - x[j]) < H * H:
+                if c < cap:
+                    nbr[c * n + i] = j
+                c += 1
+    count[i] = c
+
+
 # ------------------------------------------------------------------ neighbour lists ------
 # One grid query per particle per step collects the neighbours within H into a list laid out
 # neighbour-major (nbr[k * n_fluid + i], so that consecutive threads read consecutive words); the
@@ -337,35 +453,14 @@ def particle_acceleration(
 # candidates than neighbours in 3D (27 cells of H^3 against a sphere of radius H), and on a GPU the
 # lanes of a warp that find a neighbour make the others wait, so a candidate cost as much as a
 # neighbour when the forces were summed inside the query loop. Particles with more than `cap`
-# neighbours keep count > cap and are summed by a grid query instead (correct, slower).
-
-
-@wp.kernel
-def build_neighbour_list(
-    grid: wp.uint64,
-    x: wp.array(dtype=wp.vec3),
-    H: float,
-    cap: int,
-    count: wp.array(dtype=int),
-    nbr: wp.array(dtype=int),
-):
-    i = wp.tid()
-    n = count.shape[0]
-    xi = x[i]
-    c = int(0)
-    q = wp.hash_grid_query(grid, xi, H)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        if j != i and wp.length_sq(xi - x[j]) < H * H:
-            if c < cap:
-                nbr[c * n + i] = j
-            c += 1
-    count[i] = c
+# neighbours keep count > cap and are summed by a cell-grid query instead (correct, slower).
 
 
 @wp.kernel
 def particle_density_summation_list(
-    grid: wp.uint64,
+    g: CellGrid,
+    r_lo: int,
+    r_hi: int,
     count: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
     x: wp.array(dtype=wp.vec3),
@@ -384,12 +479,14 @@ def particle_density_summation_list(
         for k in range(c):
             j = nbr[k * n + i]
             s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
-    else:
-        q = wp.hash_grid_query(grid, xi, p.H)
-        j = int(0)
-        while wp.hash_grid_query_next(q, j):
-            if j != i:
-                s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
+    else:  # list overflow: query the cell grid
+        ix, iy, iz = cell_of(g, xi)
+        for r in range(r_lo, r_hi):
+            s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
+            for k in range(s0, e0):
+                j = g.order[k]
+                if j != i:
+                    s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
     rho[i] = s
     pressure[i] = equation_of_state(s, p)
 
@@ -407,7 +504,9 @@ def pair_density_rate(xi: wp.vec3, vi: wp.vec3, j: int, x: wp.array(dtype=wp.vec
 
 @wp.kernel
 def particle_density_continuity_list(
-    grid: wp.uint64,
+    g: CellGrid,
+    r_lo: int,
+    r_hi: int,
     count: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
     x: wp.array(dtype=wp.vec3),
@@ -432,16 +531,18 @@ def particle_density_continuity_list(
     if c <= nbr.shape[0] // n:
         for k in range(c):
             s += pair_density_rate(xi, vi, nbr[k * n + i], x, v, particle_mass, p)
-    else:
-        q = wp.hash_grid_query(grid, xi, p.H)
-        j = int(0)
-        while wp.hash_grid_query_next(q, j):
-            if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
-                s += pair_density_rate(xi, vi, j, x, v, particle_mass, p)
+    else:  # list overflow: query the cell grid
+        ix, iy, iz = cell_of(g, xi)
+        for r in range(r_lo, r_hi):
+            s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
+            for k in range(s0, e0):
+                j = g.order[k]
+                if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
+                    s += pair_density_rate(xi, vi, j, x, v, particle_mass, p)
     drho_dt[i] = s
-    r = rho[i] + dt[0] * s
-    rho[i] = r
-    pressure[i] = equation_of_state(r, p)
+    rr = rho[i] + dt[0] * s
+    rho[i] = rr
+    pressure[i] = equation_of_state(rr, p)
 
 
 DENSITY_NONE = wp.constant(0)
@@ -451,7 +552,9 @@ DENSITY_SUMMATION = wp.constant(2)
 
 @wp.kernel
 def neighbour_list_density(
-    grid: wp.uint64,
+    g: CellGrid,
+    r_lo: int,
+    r_hi: int,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
@@ -464,11 +567,9 @@ def neighbour_list_density(
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
 ):
-    """build_neighbour_list and, in the same grid query, the density: DENSITY_CONTINUITY advances
+    """build_neighbour_list_cells and, in the same query, the density: DENSITY_CONTINUITY advances
     rho_i by dt sum_j m_j (v_i - v_j) . grad W_ij; DENSITY_SUMMATION sets rho_i = sum_j m_j W_ij
-    (self included); then p_i = EOS(rho_i). The density is advanced before the forces are evaluated
-    (the forces see the density of the current positions): evaluating both from the start-of-step
-    state is forward Euler for the acoustic (rho, v) oscillator and gained energy in a 2D tank."""
+    (self included); then p_i = EOS(rho_i) (see particle_density_continuity_list for the order)."""
     i = wp.tid()
     n = count.shape[0]
     cap = nbr.shape[0] // n
@@ -478,17 +579,19 @@ def neighbour_list_density(
     if mode == DENSITY_SUMMATION:
         s = particle_mass[i] * kernel_w(0.0, p)
     c = int(0)
-    q = wp.hash_grid_query(grid, xi, p.H)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
-            if c < cap:
-                nbr[c * n + i] = j
-            c += 1
-            if mode == DENSITY_CONTINUITY:
-                s += pair_density_rate(xi, vi, j, x, v, particle_mass, p)
-            elif mode == DENSITY_SUMMATION:
-                s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
+    ix, iy, iz = cell_of(g, xi)
+    for r in range(r_lo, r_hi):
+        s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
+        for k in range(s0, e0):
+            j = g.order[k]
+            if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
+                if c < cap:
+                    nbr[c * n + i] = j
+                c += 1
+                if mode == DENSITY_CONTINUITY:
+                    s += pair_density_rate(xi, vi, j, x, v, particle_mass, p)
+                elif mode == DENSITY_SUMMATION:
+                    s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
     count[i] = c
     if mode == DENSITY_CONTINUITY:
         drho_dt[i] = s
@@ -500,7 +603,9 @@ def neighbour_list_density(
 
 @wp.kernel
 def particle_acceleration_list(
-    grid: wp.uint64,
+    g: CellGrid,
+    r_lo: int,
+    r_hi: int,
     count: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
     x: wp.array(dtype=wp.vec3),
@@ -527,14 +632,16 @@ def particle_acceleration_list(
             da, ddv = pair_acceleration(i, nbr[k * n + i], xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, p)
             a += da
             dv += ddv
-    else:
-        q = wp.hash_grid_query(grid, xi, p.H)
-        j = int(0)
-        while wp.hash_grid_query_next(q, j):
-            if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
-                da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, p)
-                a += da
-                dv += ddv
+    else:  # list overflow: query the cell grid
+        ix, iy, iz = cell_of(g, xi)
+        for r in range(r_lo, r_hi):
+            s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
+            for k in range(s0, e0):
+                j = g.order[k]
+                if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
+                    da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, p)
+                    a += da
+                    dv += ddv
     accel[i] = a + p.gravity
     xsph_dv[i] = p.xsph * dv
 
@@ -641,22 +748,22 @@ def gauge_pressure(
 
 
 @wp.kernel
-def sorted_fluid_flags(grid: wp.uint64, n_fluid: int, flag: wp.array(dtype=int)):
-    """flag[k] = 1 when the k-th point in the grid's cell order is a fluid particle."""
+def sorted_fluid_flags(order: wp.array(dtype=int), n_fluid: int, flag: wp.array(dtype=int)):
+    """flag[k] = 1 when the k-th point in the cell order is a fluid particle."""
     k = wp.tid()
-    if wp.hash_grid_point_id(grid, k) < n_fluid:
+    if order[k] < n_fluid:
         flag[k] = 1
     else:
         flag[k] = 0
 
 
 @wp.kernel
-def sorted_fluid_perm(grid: wp.uint64, n_fluid: int, flag: wp.array(dtype=int), rank: wp.array(dtype=int),
+def sorted_fluid_perm(order: wp.array(dtype=int), n_fluid: int, flag: wp.array(dtype=int), rank: wp.array(dtype=int),
                       perm: wp.array(dtype=int)):
     """perm[d] = index of the d-th fluid particle in cell order (stable compaction of the grid order)."""
     k = wp.tid()
     if flag[k] == 1:
-        perm[rank[k]] = wp.hash_grid_point_id(grid, k)
+        perm[rank[k]] = order[k]
 
 
 @wp.kernel

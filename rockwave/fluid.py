@@ -175,7 +175,7 @@ class FluidSolver:
 
     Particle order: ``reorder`` (Simulation runs it every ``reorder_interval`` steps in step_many and
     in advance on a GPU) sorts
-    the fluid particles by hash-grid cell so that neighbour reads are coherent; boundary
+    the fluid particles by cell so that neighbour reads are coherent; boundary
     particles stay after them (build_fluid_model sorts them once). ``state.ids`` keeps each slot's
     original index and ``unsort`` restores the original order (Simulation does it before any read)."""
 
@@ -198,11 +198,57 @@ class FluidSolver:
         nf = max(model.n_fluid, 1)
         self._nbr_count = wp.zeros(nf, dtype=int, device=d)
         self._nbr = wp.zeros(nf * self.neighbour_cap, dtype=int, device=d)
-        self._zero_dt = wp.zeros(1, dtype=float, device=d)
+        self._init_cells()
         # density inside the neighbour-list query (CPU: one traversal fewer, 17.1 vs 19.8 ms/step at 10k
         # particles) or in its own pass over the list (CUDA: the query's lanes that find a neighbour make
         # the others wait, 2.16 ms fused vs 1.03 + 0.55 ms apart on an H100 at 2.16 M particles)
         self.fused_density = not wp.get_device(d).is_cuda
+
+    cell_subdivision_x = 4  # cell grid: x-cells H/4 wide (y, z cells H wide); see kernels/sph.py CellGrid
+    min_cells = 1 << 20  # the cell grid wraps past max(min_cells, cells_per_particle x particles) cells
+    cells_per_particle = 4
+
+    def _init_cells(self) -> None:
+        """The cell grid of the neighbour lists: dimensions covering the domain (+2H), wrapped (hashed)
+        when that would exceed max(min_cells, cells_per_particle x particles) cells."""
+        m, d = self.model, self.model.device
+        H = m.support_radius
+        c = H * 1.0001  # a neighbour within H is at most one y/z cell away despite rounding
+        cx = H / self.cell_subdivision_x
+        lo = np.asarray(m.domain_lo, float) - 2 * H
+        hi = np.asarray(m.domain_hi, float) + 2 * H
+        dims = np.maximum(np.ceil((hi - lo) / np.array([cx, c, c])).astype(np.int64) + 1, 1)
+        if m.dim == 2:
+            dims[2] = 1
+        limit = min(max(self.min_cells, self.cells_per_particle * m.n_total), 1 << 26)
+        # wrapped y/z rows keep >= 3 cells so the 3 columns around a particle never alias
+        floor = np.array([1, min(3, dims[1]), min(3, dims[2])])
+        while int(np.prod(dims)) > limit and np.any(dims > floor):
+            k = int(np.argmax(np.where(dims > floor, dims, 0)))
+            dims[k] = max(floor[k], (dims[k] + 1) // 2)
+        n_cells = int(np.prod(dims))
+        nt = max(m.n_total, 1)
+        self._cell_keys = wp.zeros(2 * nt, dtype=int, device=d)
+        self._cell_order = wp.zeros(2 * nt, dtype=int, device=d)
+        self._cell_first = wp.zeros(n_cells + 1, dtype=int, device=d)
+        self._cell_bits = max(1, int(n_cells).bit_length())
+        g = sph.CellGrid()
+        g.lo = wp.vec3(*[float(a) for a in lo])
+        g.inv_cx = 1.0 / cx
+        g.c = c
+        g.nx, g.ny, g.nz = (int(a) for a in dims)
+        g.first = self._cell_first
+        g.order = self._cell_order
+        self.cells = g
+        self._slot_ranges = (0, 18) if m.dim == 3 else (6, 12)  # 9 columns (3 in 2D) x 2 parts
+
+    def build_cells(self, state: FluidState) -> None:
+        """Sort all particles (fluid and boundary) by cell: cells.order, cells.first."""
+        m = self.model
+        wp.launch(sph.cell_keys, dim=m.n_total, inputs=[self.cells, state.x, self._cell_keys, self._cell_order], device=m.device)
+        wp.utils.radix_sort_pairs(self._cell_keys, self._cell_order, m.n_total, 0, self._cell_bits)
+        wp.launch(sph.cell_first, dim=m.n_total + 1, inputs=[self._cell_keys, m.n_total, self._cell_first.shape[0] - 1,
+                                                            self._cell_first], device=m.device)
 
     @staticmethod
     def list_capacity(model: "FluidModel") -> int:
@@ -228,13 +274,15 @@ class FluidSolver:
             wp.copy(a, tmp, 0, 0, m.n_fluid)
 
     def reorder(self, state: FluidState) -> None:
-        """Sort the fluid particles by cell of the last grid build (any permutation is correct; a
-        stale grid only sorts less well). Launches only: capturable in a CUDA graph."""
+        """Sort the fluid particles by cell (kernels/sph.py CellGrid order; any permutation is correct).
+        Launches only: capturable in a CUDA graph."""
         m = self.model
         b = self._order_buffers()
-        wp.launch(sph.sorted_fluid_flags, dim=m.n_total, inputs=[self.grid.id, m.n_fluid, b["flag"]], device=m.device)
+        self.build_cells(state)
+        order = self._cell_order
+        wp.launch(sph.sorted_fluid_flags, dim=m.n_total, inputs=[order, m.n_fluid, b["flag"]], device=m.device)
         wp.utils.array_scan(b["flag"], b["rank"], inclusive=False)
-        wp.launch(sph.sorted_fluid_perm, dim=m.n_total, inputs=[self.grid.id, m.n_fluid, b["flag"], b["rank"], b["perm"]],
+        wp.launch(sph.sorted_fluid_perm, dim=m.n_total, inputs=[order, m.n_fluid, b["flag"], b["rank"], b["perm"]],
                   device=m.device)
         # accel, xsph_dv, drho_dt, pressure are recomputed by the next step before they are read
         # (stable_dt's maxima do not depend on the order)
@@ -254,22 +302,26 @@ class FluidSolver:
         self._in_original_order = True
 
     def build_grid(self, state: FluidState) -> None:
+        """wp.HashGrid of all particles, for queries outside the step (gauges, neighbour counts, boundary
+        volumes, the ghost solver); the step itself uses the cell grid (build_cells)."""
         self.grid.build(state.x, self.cell)
 
     def build_neighbour_lists(self, state: FluidState) -> None:
-        """Neighbours within H of each fluid particle (after build_grid)."""
+        """Neighbours within H of each fluid particle (after build_cells)."""
         m = self.model
-        wp.launch(sph.build_neighbour_list, dim=m.n_fluid, inputs=[self.grid.id, state.x, m.support_radius, self.neighbour_cap],
+        wp.launch(sph.build_neighbour_list_cells, dim=m.n_fluid,
+                  inputs=[self.cells, state.x, m.support_radius, *self._slot_ranges],
                   outputs=[self._nbr_count, self._nbr], device=m.device)
 
     def compute_density(self, state: FluidState, lists: bool = False) -> None:
         """Summation density and pressure (before the first step, and each step in summation mode;
-        ``lists``: the neighbour lists are current)."""
+        ``lists``: the cell grid and neighbour lists are current)."""
         m = self.model
         if not lists:
+            self.build_cells(state)
             self.build_neighbour_lists(state)
         wp.launch(sph.particle_density_summation_list, dim=m.n_fluid,
-                  inputs=[self.grid.id, self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
+                  inputs=[self.cells, *self._slot_ranges, self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
                   outputs=[state.rho, state.pressure], device=m.device)
 
     def set_density(self, state: FluidState, rho: np.ndarray) -> None:
@@ -284,11 +336,11 @@ class FluidSolver:
         m = self.model
         if m.n_fluid == 0:
             return
-        self.build_grid(state)
+        self.build_cells(state)
         if self.fused_density:
             mode = sph.DENSITY_SUMMATION if m.density_mode == "summation" else sph.DENSITY_CONTINUITY
             wp.launch(sph.neighbour_list_density, dim=m.n_fluid,
-                      inputs=[self.grid.id, state.x, state.v, m.particle_mass, dt, m.params, mode],
+                      inputs=[self.cells, *self._slot_ranges, state.x, state.v, m.particle_mass, dt, m.params, mode],
                       outputs=[self._nbr_count, self._nbr, state.drho_dt, state.rho, state.pressure], device=m.device)
         else:
             self.build_neighbour_lists(state)
@@ -296,17 +348,18 @@ class FluidSolver:
                 self.compute_density(state, lists=True)
             else:
                 wp.launch(sph.particle_density_continuity_list, dim=m.n_fluid,
-                          inputs=[self.grid.id, self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
+                          inputs=[self.cells, *self._slot_ranges, self._nbr_count, self._nbr, state.x, state.v,
+                                  m.particle_mass, dt, m.params],
                           outputs=[state.drho_dt, state.rho, state.pressure], device=m.device)
         wp.launch(sph.particle_acceleration_list, dim=m.n_fluid,
-                  inputs=[self.grid.id, self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure,
-                          m.particle_mass, m.params],
+                  inputs=[self.cells, *self._slot_ranges, self._nbr_count, self._nbr, state.x, state.v, state.rho,
+                          state.pressure, m.particle_mass, m.params],
                   outputs=[state.accel, state.xsph_dv], device=m.device)
         wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[state.accel, state.xsph_dv, dt],
                   outputs=[state.x, state.v], device=m.device)
 
     def list_overflow(self) -> int:
-        """Fluid particles whose last neighbour list overflowed the capacity (summed by a grid query)."""
+        """Fluid particles whose last neighbour list overflowed the capacity (summed by a cell-grid query)."""
         return int((self._nbr_count.numpy() > self.neighbour_cap).sum()) if self.model.n_fluid else 0
 
     def stable_dt(self, state: FluidState, cfl: float) -> float:
