@@ -437,6 +437,7 @@ def bp_pairs(
     lo: wp.array(dtype=wp.vec3),
     hi: wp.array(dtype=wp.vec3),
     inv_s: float,
+    nbuckets: int,
     kinds: wp.array(dtype=int),
     bucket_start: wp.array(dtype=int),
     bucket_count: wp.array(dtype=int),
@@ -445,31 +446,39 @@ def bp_pairs(
     pairs: wp.array(dtype=wp.vec2i),
     counters: wp.array(dtype=int),
 ):
-    # one thread per bucket; a pair is emitted only from the cell holding the min corner of the
-    # AABB overlap, so it appears exactly once however many cells the two blocks share
-    hb = wp.tid()
-    s = bucket_start[hb]
-    n = bucket_count[hb]
-    if s + n > entry_block.shape[0]:
+    # one thread per (block, cell) entry e1, against the later entries of its bucket (a bucket's
+    # entries are contiguous after the counting sort); a pair is emitted only from the cell holding
+    # the min corner of the AABB overlap, so it appears exactly once however many cells the two
+    # blocks share. (One thread per bucket looped over ~n^2/2 entry pairs serially: few, long threads.)
+    e1 = wp.tid()
+    ntot = bucket_start[nbuckets - 1] + bucket_count[nbuckets - 1]
+    if e1 >= wp.min(ntot, entry_block.shape[0]):
         return
-    for e1 in range(s, s + n):
-        i = entry_block[e1]
-        ci = entry_cell[e1]
-        for e2 in range(e1 + 1, s + n):
-            j = entry_block[e2]
-            if j == i:
-                continue
-            cj = entry_cell[e2]
-            if ci[0] != cj[0] or ci[1] != cj[1] or ci[2] != cj[2]:
-                continue
-            if not (movable(kinds[i]) or movable(kinds[j])):
-                continue
-            if not aabb_overlap(lo[i], hi[i], lo[j], hi[j]):
-                continue
-            m = wp.max(lo[i], lo[j])
-            c0, c1 = cell_range(m, m, inv_s)
-            if c0[0] == ci[0] and c0[1] == ci[1] and c0[2] == ci[2]:
-                emit_pair(i, j, pairs, counters)
+    ci = entry_cell[e1]
+    hb = hash_cell(ci[0], ci[1], ci[2], nbuckets)
+    end = bucket_start[hb] + bucket_count[hb]
+    if end > entry_block.shape[0]:
+        return
+    i = entry_block[e1]
+    li = lo[i]
+    hi_i = hi[i]
+    mov_i = movable(kinds[i])
+    for e2 in range(e1 + 1, end):
+        j = entry_block[e2]
+        if j == i:
+            continue
+        cj = entry_cell[e2]
+        if ci[0] != cj[0] or ci[1] != cj[1] or ci[2] != cj[2]:
+            continue
+        if not (mov_i or movable(kinds[j])):
+            continue
+        lj = lo[j]
+        if not aabb_overlap(li, hi_i, lj, hi[j]):
+            continue
+        m = wp.max(li, lj)
+        c0, c1 = cell_range(m, m, inv_s)
+        if c0[0] == ci[0] and c0[1] == ci[1] and c0[2] == ci[2]:
+            emit_pair(i, j, pairs, counters)
 
 
 @wp.kernel
@@ -529,10 +538,67 @@ def add_contact(
 
 
 @wp.kernel
-def narrow_phase(
+def narrow_screen(
     pairs: wp.array(dtype=wp.vec2i),
     counters: wp.array(dtype=int),
     nblocks: int,
+    screen: int,
+    wv: wp.array(dtype=wp.vec3),
+    vert_start: wp.array(dtype=int),
+    vert_count: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    old_keys: wp.array(dtype=wp.int64),
+    old_normal: wp.array(dtype=wp.vec3),
+    new_keys: wp.array(dtype=wp.int64),
+    new_normal: wp.array(dtype=wp.vec3),
+    new_nc: wp.array(dtype=int),
+    pair_gap: wp.array(dtype=float),
+    pair_slot: wp.array(dtype=int),
+    pair_oslot: wp.array(dtype=int),
+    active: wp.array(dtype=int),
+):
+    # one thread per candidate pair: history slots, then the separation certificate. The warm-start
+    # plane (last step's common plane, else the PB of the centroids) is FCP's step i; if it already
+    # separates the world vertices of both blocks (gap > 0) the pair has no contact this step (FCP only
+    # increases the gap), so FCP and contact generation are skipped: the pair is stored exactly like a
+    # separated pair (plane kept, nc = 0, no shear carried), its gap is a lower bound of FCP's.
+    # The other pairs go to the compact list `active` (count in counters[3]) for narrow_phase.
+    # screen = 0 (diagnostics, detect()): every pair goes to the list and gets FCP's gap.
+    tid = wp.tid()
+    if tid >= wp.min(counters[0], pairs.shape[0]):
+        return
+    A = pairs[tid][0]
+    B = pairs[tid][1]
+    key = wp.int64(A) * wp.int64(nblocks) + wp.int64(B)
+    slot = table_insert(key, new_keys, new_keys.shape[0])
+    pair_slot[tid] = slot
+    if slot < 0:
+        wp.atomic_or(counters, 1, FLAG_CONTACT_OVERFLOW)
+        return
+    oslot = table_find(key, old_keys, old_keys.shape[0])
+    pair_oslot[tid] = oslot
+    if screen != 0:
+        n0 = x[B] - x[A]
+        if oslot >= 0:
+            n0 = old_normal[oslot]
+        if wp.length(n0) < 1.0e-12:
+            n0 = wp.vec3(0.0, 0.0, 1.0)
+        n, gap = signed_gap(wp.normalize(n0), vert_start[A], vert_count[A], vert_start[B], vert_count[B], wv)
+        if gap > 0.0:
+            new_normal[slot] = n
+            pair_gap[tid] = gap
+            new_nc[slot] = 0
+            return
+    k = wp.atomic_add(counters, 3, 1)
+    active[k] = tid
+
+
+@wp.kernel
+def narrow_phase(
+    pairs: wp.array(dtype=wp.vec2i),
+    counters: wp.array(dtype=int),
+    active: wp.array(dtype=int),
+    pair_oslot: wp.array(dtype=int),
     dt: float,
     # geometry
     wv: wp.array(dtype=wp.vec3),
@@ -563,12 +629,10 @@ def narrow_phase(
     tensile: wp.array(dtype=float),
     zeta: wp.array(dtype=float),
     # history: previous table (read) and current table (write)
-    old_keys: wp.array(dtype=wp.int64),
     old_normal: wp.array(dtype=wp.vec3),
     old_nc: wp.array(dtype=int),
     old_ckey: wp.array(dtype=wp.vec2i),
     old_shear: wp.array(dtype=wp.vec3),
-    new_keys: wp.array(dtype=wp.int64),
     new_normal: wp.array(dtype=wp.vec3),
     new_nc: wp.array(dtype=int),
     new_ckey: wp.array(dtype=wp.vec2i),
@@ -584,19 +648,15 @@ def narrow_phase(
     strain_force: wp.array(dtype=wp.spatial_vector),
     contact_count: wp.array(dtype=int),
 ):
-    tid = wp.tid()
-    if tid >= wp.min(counters[0], pairs.shape[0]):
+    # one thread per pair of the compact list from narrow_screen (pairs not certified separated)
+    li = wp.tid()
+    if li >= counters[3]:
         return
+    tid = active[li]
     A = pairs[tid][0]
     B = pairs[tid][1]
-    key = wp.int64(A) * wp.int64(nblocks) + wp.int64(B)
-    cap = new_keys.shape[0]
-    slot = table_insert(key, new_keys, cap)
-    pair_slot[tid] = slot
-    if slot < 0:
-        wp.atomic_or(counters, 1, FLAG_CONTACT_OVERFLOW)
-        return
-    oslot = table_find(key, old_keys, old_keys.shape[0])
+    slot = pair_slot[tid]
+    oslot = pair_oslot[tid]
     sA = vert_start[A]
     cA = vert_count[A]
     sB = vert_start[B]

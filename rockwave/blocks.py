@@ -670,6 +670,8 @@ class BlockSolver:
         self.pairs = wp.zeros(cap, dtype=wp.vec2i, device=d)
         self.pair_gap = wp.zeros(cap, dtype=wp.float32, device=d)
         self.pair_slot = wp.zeros(cap, dtype=int, device=d)
+        self.pair_oslot = wp.zeros(cap, dtype=int, device=d)
+        self.active = wp.zeros(cap, dtype=int, device=d)  # pairs not certified separated (narrow_screen)
 
     # ---- time step limits ----
     def critical_dt(self) -> float:
@@ -722,8 +724,8 @@ class BlockSolver:
             wp.launch(K.bp_fill, dim=m.num_blocks,
                       inputs=[self.lo, self.hi, inv_s, self.nbuckets, self.is_large, self.bucket_start,
                               self.bucket_fill, self.entry_block, self.entry_cell, self.counters], device=d)
-            wp.launch(K.bp_pairs, dim=self.nbuckets,
-                      inputs=[self.lo, self.hi, inv_s, m.kinds, self.bucket_start, self.bucket_count,
+            wp.launch(K.bp_pairs, dim=self.entry_cap,
+                      inputs=[self.lo, self.hi, inv_s, self.nbuckets, m.kinds, self.bucket_start, self.bucket_count,
                               self.entry_block, self.entry_cell, self.pairs, self.counters], device=d)
             wp.launch(K.bp_large_pairs, dim=(self.large_list.shape[0], m.num_blocks),
                       inputs=[self.lo, self.hi, m.kinds, self.is_large, self.large_list, self.pairs,
@@ -740,21 +742,30 @@ class BlockSolver:
             if flags & 4:
                 self._alloc_pairs(2 * int(c[0]))
 
-    def _narrow_phase(self, state: BlockState, dt: float):
+    def _narrow_phase(self, state: BlockState, dt: float, screen: bool = True):
+        """FCP narrow phase + contact forces. screen: pairs whose warm-start plane already separates
+        them (gap > 0) skip FCP and contact generation (narrow_screen); detect() turns it off so that
+        every pair's gap is FCP's."""
         m, d = self.model, self.device
         if 2 * self.pair_cap > state.table_cap:
             state.alloc_tables(_next_pow2(4 * self.pair_cap))
         old, new = state.tables
         new["keys"].fill_(-1)
         if self.pair_count > 0:
-            wp.launch(K.narrow_phase, dim=self.pair_count,
-                      inputs=[self.pairs, self.counters, m.num_blocks, dt,
+            n = self.pair_count
+            self.counters[3:4].zero_()  # length of the active list
+            wp.launch(K.narrow_screen, dim=n,
+                      inputs=[self.pairs, self.counters, m.num_blocks, int(screen), state.world_verts, m.vert_start,
+                              m.vert_count, state.x, old["keys"], old["normal"], new["keys"], new["normal"], new["nc"],
+                              self.pair_gap, self.pair_slot, self.pair_oslot, self.active], device=d)
+            wp.launch(K.narrow_phase, dim=n,
+                      inputs=[self.pairs, self.counters, self.active, self.pair_oslot, dt,
                               state.world_verts, m.vert_start, m.vert_count, m.face_start, m.face_count, m.face_he,
                               m.vertex_out_he, m.he_vertex, m.he_next, m.he_prev, m.he_twin, m.block_size,
                               m.kinds, m.inv_mass, state.x, state.q, state.v, state.w, state.strain_rate,
                               m.k_n, m.k_s, m.tan_phi, m.cohesion, m.tensile, m.zeta,
-                              old["keys"], old["normal"], old["nc"], old["ckey"], old["shear"],
-                              new["keys"], new["normal"], new["nc"], new["ckey"], new["shear"], new["pos"],
+                              old["normal"], old["nc"], old["ckey"], old["shear"],
+                              new["normal"], new["nc"], new["ckey"], new["shear"], new["pos"],
                               new["depth"], new["fn"],
                               self.pair_gap, self.pair_slot, state.force, state.torque, state.strain_force,
                               state.contact_count], device=d)
@@ -764,7 +775,7 @@ class BlockSolver:
         """Collision detection only (world vertices, broad + narrow phase), forces discarded."""
         self._prepare(state)
         self._broad_phase()
-        self._narrow_phase(state, 0.0)
+        self._narrow_phase(state, 0.0, screen=False)
         wp.launch(K.clear_forces, dim=self.model.num_blocks,
                   inputs=[state.force, state.torque, state.strain_force], device=self.device)
 
@@ -794,7 +805,9 @@ class BlockSolver:
     # ---- diagnostics ----
     def contacts(self, state: BlockState) -> list:
         """Pairs examined in the last step: dicts with blocks (i, j), normal (i -> j), gap (m,
-        negative = overlap), points (k, 3), depths (k,), normal_forces (k,)."""
+        negative = overlap), points (k, 3), depths (k,), normal_forces (k,).  After step(), a pair
+        certified separated by its warm-start plane keeps that plane and a positive lower bound of the
+        gap; after detect() every gap is FCP's."""
         n = self.pair_count
         if n == 0:
             return []
