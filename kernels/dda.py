@@ -145,6 +145,31 @@ def face_plane_of_he(
 
 
 @wp.func
+def face_normal(h: int, wv: wp.array(dtype=wp.vec3), he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)):
+    # unit outward normal of the face left of half-edge h (as face_plane_of_he, without the offset)
+    h1 = he_next[h]
+    p0 = wv[he_vertex[h]]
+    p1 = wv[he_vertex[h1]]
+    p2 = wv[he_vertex[he_next[h1]]]
+    return wp.normalize(wp.cross(p1 - p0, p2 - p1))
+
+
+@wp.func
+def minkowski_edge_face(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
+    # do the Gauss-map arcs (a, b) of an edge of A and (c, d) of an edge of -B cross? Only then is the
+    # edge-pair axis a face normal of the Minkowski difference A - B, i.e. a candidate for the SAT
+    # maximum; every other edge-pair axis gives a smaller gap than some face or crossing axis
+    # (Gregorius, "The Separating Axis Test between convex polyhedra", GDC 2013). Unit normals.
+    bxa = wp.cross(b, a)
+    dxc = wp.cross(d, c)
+    cba = wp.dot(c, bxa)
+    dba = wp.dot(d, bxa)
+    adc = wp.dot(a, dxc)
+    bdc = wp.dot(b, dxc)
+    return cba * dba < 0.0 and adc * bdc < 0.0 and cba * bdc > 0.0
+
+
+@wp.func
 def fcp_plane(
     n0: wp.vec3,
     sA: int,
@@ -689,6 +714,9 @@ def narrow_phase(
                     ua = he_dest(h, he_vertex, he_next)
                     if va < ua:
                         ea = wv[ua] - wv[va]
+                        # normals of the two faces at edge (va, ua): its arc on A's Gauss map
+                        fa1 = face_normal(h, wv, he_vertex, he_next)
+                        fa2 = face_normal(he_twin[h], wv, he_vertex, he_next)
                         for kb in range(cB):
                             vb = sB + kb
                             g0 = vertex_out_he[vb]
@@ -698,7 +726,10 @@ def narrow_phase(
                                 if vb < ub:
                                     ax = wp.cross(ea, wv[ub] - wv[vb])
                                     if wp.length(ax) > 1.0e-6 * wp.length(ea) * wp.length(wv[ub] - wv[vb]):
-                                        n1, g1 = try_plane(ax, n1, g1, sA, cA, sB, cB, wv)
+                                        fb1 = face_normal(gg, wv, he_vertex, he_next)
+                                        fb2 = face_normal(he_twin[gg], wv, he_vertex, he_next)
+                                        if minkowski_edge_face(fa1, fa2, -fb1, -fb2):
+                                            n1, g1 = try_plane(ax, n1, g1, sA, cA, sB, cB, wv)
                                 gg = he_twin[he_prev[gg]]
                                 if gg == g0:
                                     break
