@@ -147,6 +147,7 @@ def fluid_passes(device, spacing, reps=20, sort=True, cell_ratio=1.0):
     fs.build_neighbour_lists(st)
     cnt = fs._nbr_count.numpy()
     r["list_overflow"] = int((cnt > fs.neighbour_cap).sum())
+    r["busy"] = gpu_busy(lambda: [sim.step() for _ in range(20)], d, 20)
     r["neighbours_mean"] = float(cnt.mean())
     r["neighbours_max"] = int(cnt.max())
     print(json.dumps(r), flush=True)
@@ -195,6 +196,25 @@ def blocks_phases(device, count, steps=20, settle=300):
     return r
 
 
+def gpu_busy(fn, device, steps):
+    """GPU time per step by activity name (CUDA event timing of every kernel, memcpy, memset) against
+    the wall time per step: their difference is the GPU left idle (host reads, launch latency)."""
+    if not wp.get_device(device).is_cuda:
+        return {}
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+    fn()
+    res = wp.timing_end()
+    wall = (time.perf_counter() - t0) / steps
+    by = {}
+    for r in res:
+        by[r.name] = by.get(r.name, 0.0) + r.elapsed / steps
+    top = dict(sorted(by.items(), key=lambda kv: -kv[1])[:12])
+    return {"wall_ms_timed": 1e3 * wall, "gpu_busy_ms": sum(by.values()), "launches_per_step": len(res) / steps,
+            "top_ms": top}
+
+
 def coupled_split(device, scale, steps=50):
     scene = rockwave.load_scene(ROOT / "scenes" / "sliding_wedge.toml")
     scene.fluid["spacing_m"] = scene.fluid.spacing_m / scale ** (1.0 / scene.dim)
@@ -218,6 +238,7 @@ def coupled_split(device, scale, steps=50):
         }
         r = {"scale": scale, "particles": nf, "blocks": sim.blocks.num_blocks, "step_ms": full * 1e3,
              "chunked_step_ms": chunked * 1e3, "particle_steps_per_s": nf / full, "particle_steps_per_s_chunked": nf / chunked}
+        r["busy"] = gpu_busy(lambda: [sim.step() for _ in range(20)], device, 20)
         for k, f in parts.items():
             f()
             r[k + "_ms"] = 1e3 * _sync_time(f, device, 10)
