@@ -1,5 +1,6 @@
 """Issue 7 experiments on the acceleration pass over neighbour lists (kept as a record of what was
-tried; the solver uses kernels/sph.py particle_acceleration_list). Each variant is timed alone on the
+tried; the solver's kernels/sph.py particle_acceleration_list took the uniform mass, p/rho^2 array,
+no in-kernel fallback and 128-thread blocks from these). Each variant is timed alone on the
 same sorted 3D dam-break state, results as JSON lines.
 
     python -m benchmarks.gpu_fluid_variants --device cuda:0 --spacing 0.0068
@@ -123,14 +124,13 @@ def main(argv=None):
     rows = {}
 
     def base(bd=None):
-        wp.launch(sph.particle_acceleration_list, dim=n, inputs=[fs.cells, *fs._slot_ranges, fs._nbr_count, fs._nbr, st.x, st.v, st.rho,
-                  st.pressure, m.particle_mass, m.params], outputs=[st.accel, st.xsph_dv], device=d, block_dim=bd)
+        wp.launch(sph.particle_acceleration_list, dim=n, inputs=[fs._nbr_count, fs._nbr, st.x, st.v, st.rho, st.pressure,
+                  fs._pr2, m.particle_mass, m.params], outputs=[st.accel, st.xsph_dv], device=d, block_dim=bd)
 
     variants = {
-        "list_fallback_bd256": lambda: base(),
-        "list_fallback_bd128": lambda: base(128),
-        "list_fallback_bd64": lambda: base(64),
-        "list_fallback_bd512": lambda: base(512),
+        "solver_bd256": lambda: base(256),
+        "solver_bd128": lambda: base(128),
+        "solver_bd64": lambda: base(64),
         "clamped": lambda: wp.launch(acc_clamped, dim=n, inputs=[fs._nbr_count, fs._nbr, st.x, st.v, st.rho, st.pressure,
                                                                 m.particle_mass, m.params], outputs=[st.accel, st.xsph_dv], device=d),
         "uniform_mass_pr2": lambda: (wp.launch(pressure_over_rho2, dim=n, inputs=[st.rho, st.pressure, pr2], device=d),

@@ -115,17 +115,17 @@ def fluid_passes(device, spacing, reps=20, sort=True, cell_ratio=1.0):
         "neighbour_list_continuity": lambda: wp.launch(
             sph.neighbour_list_density, dim=m.n_fluid,
             inputs=[fs.cells, *fs._slot_ranges, st.x, st.v, m.particle_mass, dt, m.params, sph.DENSITY_CONTINUITY],
-            outputs=[fs._nbr_count, fs._nbr, st.drho_dt, st.rho, st.pressure], device=d),
+            outputs=[fs._nbr_count, fs._nbr, st.drho_dt, st.rho, st.pressure, fs._pr2], device=d),
         "density_summation_list": lambda: fs.compute_density(st, lists=True),
         "density_continuity_list": lambda: wp.launch(
             sph.particle_density_continuity_list, dim=m.n_fluid,
-            inputs=[fs.cells, *fs._slot_ranges, fs._nbr_count, fs._nbr, st.x, st.v, m.particle_mass, dt, m.params],
-            outputs=[st.drho_dt, st.rho, st.pressure], device=d),
+            inputs=[fs._nbr_count, fs._nbr, st.x, st.v, m.particle_mass, dt, m.params],
+            outputs=[st.drho_dt, st.rho, st.pressure, fs._pr2], device=d),
+        "density_overflow_check": lambda: fs._density_overflow(st, dt, summation=False),
         "acceleration_list": lambda: wp.launch(
             sph.particle_acceleration_list, dim=m.n_fluid,
-            inputs=[fs.cells, *fs._slot_ranges, fs._nbr_count, fs._nbr, st.x, st.v, st.rho, st.pressure,
-                    m.particle_mass, m.params],
-            outputs=[st.accel, st.xsph_dv], device=d),
+            inputs=[fs._nbr_count, fs._nbr, st.x, st.v, st.rho, st.pressure, fs._pr2, m.particle_mass, m.params],
+            outputs=[st.accel, st.xsph_dv], device=d, block_dim=fs._block_dim),
         "acceleration_grid_query": lambda: wp.launch(
             sph.particle_acceleration, dim=m.n_fluid,
             inputs=[fs.grid.id, st.x, st.v, st.rho, st.pressure, m.particle_mass, m.params],
@@ -231,7 +231,9 @@ def coupled_split(device, scale, steps=50):
         parts = {
             "coupling_compute": lambda: c.compute(st, bst, sim._dt_dev),
             "coupling_apply": lambda: c.apply(st, sim._dt_dev),
-            "fluid_bounds_old": lambda: wp.launch(CK.fluid_bounds, dim=nf, inputs=[st.x], outputs=[c.bounds]),
+            "fluid_bounds": lambda: (wp.copy(c.bounds, c._bounds_init),
+                                     wp.launch(CK.fluid_bounds, dim=min(nf, 16384), inputs=[st.x, nf, min(nf, 16384)],
+                                               outputs=[c.bounds])),
             "broad_phase": lambda: c._broad_phase(st, bst),
             "fluid_step": lambda: fs.step(st, sim._dt_dev),
             "block_step": lambda: sim.block_solver.step(bst, sim.dt, sim.time),

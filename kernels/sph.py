@@ -39,6 +39,7 @@ class SPHParams:
     gravity: wp.vec3
     n_fluid: int
     grad_scale: float  # lattice gradient correction (see rockwave.fluid.calibrate_lattice)
+    fluid_mass: float  # mass of every fluid particle (boundary masses vary: particle_mass array)
     # Mueller kernel constants for H and dim (rockwave.fluid.set_kernel_constants; pow() per
     # neighbour was a large share of the neighbour loops on a GPU)
     w_coef: float  # poly6: 315/(64 pi H^9) (3D), 4/(pi H^8) (2D)
@@ -373,17 +374,19 @@ def cell_keys(g: CellGrid, x: wp.array(dtype=wp.vec3), keys: wp.array(dtype=int)
 
 
 @wp.kernel
-def cell_first(keys: wp.array(dtype=int), n: int, n_cells: int, first: wp.array(dtype=int)):
-    """Launched over k = 0..n (sorted keys): first[c] = k for the cells c in (keys[k-1], keys[k]]."""
-    k = wp.tid()
-    c0 = int(0)
-    if k > 0:
-        c0 = keys[k - 1] + 1
-    c1 = n_cells
-    if k < n:
-        c1 = keys[k]
-    for c in range(c0, c1 + 1):
-        first[c] = k
+def cell_first(keys: wp.array(dtype=int), n: int, first: wp.array(dtype=int)):
+    """first[c] = lower bound of cell c in the n sorted keys (launched over every cell and one past the
+    last: a binary search each; a loop over the empty cells after each key serialised the tail)."""
+    c = wp.tid()
+    lo = int(0)
+    hi = n
+    while lo < hi:
+        mid = (lo + hi) / 2
+        if keys[mid] < c:
+            lo = mid + 1
+        else:
+            hi = mid
+    first[c] = lo
 
 
 @wp.func
@@ -458,9 +461,6 @@ def build_neighbour_list_cells(
 
 @wp.kernel
 def particle_density_summation_list(
-    g: CellGrid,
-    r_lo: int,
-    r_hi: int,
     count: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
     x: wp.array(dtype=wp.vec3),
@@ -468,27 +468,24 @@ def particle_density_summation_list(
     p: SPHParams,
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
+    pr2: wp.array(dtype=float),
 ):
-    """rho_i = m_i W(0) + sum_j m_j W_ij over the neighbour list, then p_i = EOS(rho_i)."""
+    """rho_i = m_i W(0) + sum_j m_j W_ij over the neighbour list, then p_i = EOS(rho_i) and
+    pr2_i = p_i / rho_i^2 (particles whose list overflowed: particle_density_overflow)."""
     i = wp.tid()
     n = count.shape[0]
+    c = count[i]
+    if c > nbr.shape[0] // n:
+        return
     xi = x[i]
     s = particle_mass[i] * kernel_w(0.0, p)
-    c = count[i]
-    if c <= nbr.shape[0] // n:
-        for k in range(c):
-            j = nbr[k * n + i]
-            s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
-    else:  # list overflow: query the cell grid
-        ix, iy, iz = cell_of(g, xi)
-        for r in range(r_lo, r_hi):
-            s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
-            for k in range(s0, e0):
-                j = g.order[k]
-                if j != i:
-                    s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
+    for k in range(c):
+        j = nbr[k * n + i]
+        s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
     rho[i] = s
-    pressure[i] = equation_of_state(s, p)
+    pr = equation_of_state(s, p)
+    pressure[i] = pr
+    pr2[i] = pr / (s * s)
 
 
 @wp.func
@@ -504,9 +501,6 @@ def pair_density_rate(xi: wp.vec3, vi: wp.vec3, j: int, x: wp.array(dtype=wp.vec
 
 @wp.kernel
 def particle_density_continuity_list(
-    g: CellGrid,
-    r_lo: int,
-    r_hi: int,
     count: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
     x: wp.array(dtype=wp.vec3),
@@ -517,32 +511,76 @@ def particle_density_continuity_list(
     drho_dt: wp.array(dtype=float),
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
+    pr2: wp.array(dtype=float),
 ):
-    """Continuity density rate over the neighbour list, then rho_i += dt d rho_i/dt and p_i = EOS(rho_i).
-    The density is advanced before the forces are evaluated (the forces then see the density of the
-    current positions): evaluating both from the start-of-step state is forward Euler for the acoustic
-    (rho, v) oscillator and gained energy in the 2D hydrostatic tank."""
+    """Continuity density rate over the neighbour list, then rho_i += dt d rho_i/dt, p_i = EOS(rho_i),
+    pr2_i = p_i / rho_i^2 (overflowed lists: particle_density_overflow). The density is advanced
+    before the forces are evaluated (the forces then see the density of the current positions):
+    evaluating both from the start-of-step state is forward Euler for the acoustic (rho, v)
+    oscillator and gained energy in the 2D hydrostatic tank."""
     i = wp.tid()
     n = count.shape[0]
+    c = count[i]
+    if c > nbr.shape[0] // n:
+        return
     xi = x[i]
     vi = v[i]
     s = float(0.0)
-    c = count[i]
-    if c <= nbr.shape[0] // n:
-        for k in range(c):
-            s += pair_density_rate(xi, vi, nbr[k * n + i], x, v, particle_mass, p)
-    else:  # list overflow: query the cell grid
-        ix, iy, iz = cell_of(g, xi)
-        for r in range(r_lo, r_hi):
-            s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
-            for k in range(s0, e0):
-                j = g.order[k]
-                if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
-                    s += pair_density_rate(xi, vi, j, x, v, particle_mass, p)
+    for k in range(c):
+        s += pair_density_rate(xi, vi, nbr[k * n + i], x, v, particle_mass, p)
     drho_dt[i] = s
     rr = rho[i] + dt[0] * s
     rho[i] = rr
-    pressure[i] = equation_of_state(rr, p)
+    pr = equation_of_state(rr, p)
+    pressure[i] = pr
+    pr2[i] = pr / (rr * rr)
+
+
+@wp.kernel
+def particle_density_overflow(
+    g: CellGrid,
+    r_lo: int,
+    r_hi: int,
+    count: wp.array(dtype=int),
+    cap: int,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    dt: wp.array(dtype=float),
+    p: SPHParams,
+    summation: int,
+    drho_dt: wp.array(dtype=float),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    pr2: wp.array(dtype=float),
+):
+    """The density passes for the particles whose neighbour list overflowed (count > cap): the same
+    sums over a cell-grid query (every other particle returns at once)."""
+    i = wp.tid()
+    if count[i] <= cap:
+        return
+    xi = x[i]
+    vi = v[i]
+    s = float(0.0)
+    if summation != 0:
+        s = particle_mass[i] * kernel_w(0.0, p)
+    ix, iy, iz = cell_of(g, xi)
+    for r in range(r_lo, r_hi):
+        s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
+        for k in range(s0, e0):
+            j = g.order[k]
+            if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
+                if summation != 0:
+                    s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
+                else:
+                    s += pair_density_rate(xi, vi, j, x, v, particle_mass, p)
+    if summation == 0:
+        drho_dt[i] = s
+        s = rho[i] + dt[0] * s
+    rho[i] = s
+    pr = equation_of_state(s, p)
+    pressure[i] = pr
+    pr2[i] = pr / (s * s)
 
 
 DENSITY_NONE = wp.constant(0)
@@ -566,6 +604,7 @@ def neighbour_list_density(
     drho_dt: wp.array(dtype=float),
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
+    pr2: wp.array(dtype=float),
 ):
     """build_neighbour_list_cells and, in the same query, the density: DENSITY_CONTINUITY advances
     rho_i by dt sum_j m_j (v_i - v_j) . grad W_ij; DENSITY_SUMMATION sets rho_i = sum_j m_j W_ij
@@ -598,16 +637,105 @@ def neighbour_list_density(
         s = rho[i] + dt[0] * s
     if mode != DENSITY_NONE:
         rho[i] = s
-        pressure[i] = equation_of_state(s, p)
+        pr = equation_of_state(s, p)
+        pressure[i] = pr
+        pr2[i] = pr / (s * s)
+
+
+@wp.func
+def pair_acceleration_fluid(
+    j: int,
+    xi: wp.vec3,
+    vi: wp.vec3,
+    rhoi: float,
+    pi: float,
+    pi_r2: float,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    pr2: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    p: SPHParams,
+):
+    """pair_acceleration with the fluid mass from p.fluid_mass (no mass read for fluid neighbours) and
+    p_j/rho_j^2 from pr2 (momentum form): ~27% less time in the force pass on an H100."""
+    rij = xi - x[j]
+    r2 = wp.length_sq(rij)
+    r = wp.sqrt(r2)
+    gw = kernel_grad(rij, r, p)
+    dv = wp.vec3(0.0)
+    if j >= p.n_fluid:
+        # Akinci et al. 2012 boundary pressure: a_i -= Psi_b p_i/rho_i^2 grad W_ib (walls at rest)
+        return -(particle_mass[j] * pi_r2) * gw, dv
+    mj = p.fluid_mass
+    rhoj = rho[j]
+    a = wp.vec3(0.0)
+    if p.pressure_form == FORCE_MOMENTUM:
+        # a_i -= sum_j m_j (p_i/rho_i^2 + p_j/rho_j^2) grad W_ij  (Monaghan 1992)
+        a = -(mj * (pi_r2 + pr2[j])) * gw
+    else:
+        # Mueller 2003 symmetric: a_i -= 1/rho_i sum_j m_j (p_i + p_j)/(2 rho_j) grad W_ij
+        a = -(mj * (pi + pressure[j]) / (2.0 * rhoj * rhoi)) * gw
+    vij = vi - v[j]
+    if p.mu > 0.0:
+        # Mueller 2003: a_i += mu/rho_i sum_j m_j (v_j - v_i)/rho_j lap W_ij
+        a -= (p.mu * mj / (rhoi * rhoj) * kernel_laplacian(r, p)) * vij
+    if p.alpha > 0.0:
+        # Monaghan 1992: Pi_ij = -alpha c mu_ij / rho_ij, mu_ij = h v_ij.r_ij/(r^2 + 0.01 h^2), only when approaching
+        vr = wp.dot(vij, rij)
+        if vr < 0.0:
+            h_s = 0.5 * p.H
+            mu_ij = h_s * vr / (r2 + 0.01 * h_s * h_s)
+            a -= mj * (-p.alpha * p.sound_speed * mu_ij / (0.5 * (rhoi + rhoj))) * gw
+    if p.xsph > 0.0:
+        dv = -(mj / (0.5 * (rhoi + rhoj)) * kernel_w(r2, p)) * vij
+    return a, dv
 
 
 @wp.kernel
 def particle_acceleration_list(
+    count: wp.array(dtype=int),
+    nbr: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    pr2: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    p: SPHParams,
+    accel: wp.array(dtype=wp.vec3),
+    xsph_dv: wp.array(dtype=wp.vec3),
+):
+    """particle_acceleration over the neighbour list (overflowed lists: particle_acceleration_overflow)."""
+    i = wp.tid()
+    n = count.shape[0]
+    c = count[i]
+    if c > nbr.shape[0] // n:
+        return
+    xi = x[i]
+    vi = v[i]
+    rhoi = rho[i]
+    pi = pressure[i]
+    pi_r2 = pr2[i]
+    a = wp.vec3(0.0)
+    dv = wp.vec3(0.0)
+    for k in range(c):
+        da, ddv = pair_acceleration_fluid(nbr[k * n + i], xi, vi, rhoi, pi, pi_r2, x, v, rho, pressure, pr2,
+                                          particle_mass, p)
+        a += da
+        dv += ddv
+    accel[i] = a + p.gravity
+    xsph_dv[i] = p.xsph * dv
+
+
+@wp.kernel
+def particle_acceleration_overflow(
     g: CellGrid,
     r_lo: int,
     r_hi: int,
     count: wp.array(dtype=int),
-    nbr: wp.array(dtype=int),
+    cap: int,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     rho: wp.array(dtype=float),
@@ -617,31 +745,25 @@ def particle_acceleration_list(
     accel: wp.array(dtype=wp.vec3),
     xsph_dv: wp.array(dtype=wp.vec3),
 ):
-    """particle_acceleration over the neighbour list."""
+    """particle_acceleration for the particles whose neighbour list overflowed, over a cell-grid query."""
     i = wp.tid()
-    n = count.shape[0]
+    if count[i] <= cap:
+        return
     xi = x[i]
     vi = v[i]
     rhoi = rho[i]
     pi = pressure[i]
     a = wp.vec3(0.0)
     dv = wp.vec3(0.0)
-    c = count[i]
-    if c <= nbr.shape[0] // n:
-        for k in range(c):
-            da, ddv = pair_acceleration(i, nbr[k * n + i], xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, p)
-            a += da
-            dv += ddv
-    else:  # list overflow: query the cell grid
-        ix, iy, iz = cell_of(g, xi)
-        for r in range(r_lo, r_hi):
-            s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
-            for k in range(s0, e0):
-                j = g.order[k]
-                if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
-                    da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, p)
-                    a += da
-                    dv += ddv
+    ix, iy, iz = cell_of(g, xi)
+    for r in range(r_lo, r_hi):
+        s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
+        for k in range(s0, e0):
+            j = g.order[k]
+            if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
+                da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, p)
+                a += da
+                dv += ddv
     accel[i] = a + p.gravity
     xsph_dv[i] = p.xsph * dv
 

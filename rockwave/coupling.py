@@ -187,7 +187,8 @@ class Coupling:
     def _broad_phase(self, fluid_state, block_state) -> None:
         m, d, nf = self.blocks, self.device, self.fluid.n_fluid
         wp.copy(self.bounds, self._bounds_init)
-        wp.launch(CK.fluid_bounds, dim=nf, inputs=[fluid_state.x], outputs=[self.bounds], device=d)
+        stride = min(nf, 16384)
+        wp.launch(CK.fluid_bounds, dim=stride, inputs=[fluid_state.x, nf, stride], outputs=[self.bounds], device=d)
         wp.launch(K_world_vertices(), dim=m.num_vertices,
                   inputs=[m.body_verts, m.vert_block, block_state.x, block_state.q, block_state.strain, m.kinds, self.wv], device=d)
         self.counters.zero_()

@@ -140,6 +140,7 @@ def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
     p.gravity = wp.vec3(*g)
     p.n_fluid = n_fluid
     p.grad_scale = 1.0
+    p.fluid_mass = 0.0  # set by build_fluid_model (calibrated)
     set_kernel_constants(p)
     return p
 
@@ -198,6 +199,9 @@ class FluidSolver:
         nf = max(model.n_fluid, 1)
         self._nbr_count = wp.zeros(nf, dtype=int, device=d)
         self._nbr = wp.zeros(nf * self.neighbour_cap, dtype=int, device=d)
+        self._pr2 = wp.zeros(nf, dtype=float, device=d)  # p / rho^2 of this step (kernels/sph.py pair_acceleration_fluid)
+        self._zero_dt = wp.zeros(1, dtype=float, device=d)
+        self._block_dim = 128 if wp.get_device(d).is_cuda else 256  # force pass: 0.84 vs 0.91 ms at 256 (H100, 2.16 M)
         self._init_cells()
         # density inside the neighbour-list query (CPU: one traversal fewer, 17.1 vs 19.8 ms/step at 10k
         # particles) or in its own pass over the list (CUDA: the query's lanes that find a neighbour make
@@ -247,8 +251,8 @@ class FluidSolver:
         m = self.model
         wp.launch(sph.cell_keys, dim=m.n_total, inputs=[self.cells, state.x, self._cell_keys, self._cell_order], device=m.device)
         wp.utils.radix_sort_pairs(self._cell_keys, self._cell_order, m.n_total, 0, self._cell_bits)
-        wp.launch(sph.cell_first, dim=m.n_total + 1, inputs=[self._cell_keys, m.n_total, self._cell_first.shape[0] - 1,
-                                                            self._cell_first], device=m.device)
+        wp.launch(sph.cell_first, dim=self._cell_first.shape[0], inputs=[self._cell_keys, m.n_total, self._cell_first],
+                  device=m.device)
 
     @staticmethod
     def list_capacity(model: "FluidModel") -> int:
@@ -321,8 +325,16 @@ class FluidSolver:
             self.build_cells(state)
             self.build_neighbour_lists(state)
         wp.launch(sph.particle_density_summation_list, dim=m.n_fluid,
-                  inputs=[self.cells, *self._slot_ranges, self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
-                  outputs=[state.rho, state.pressure], device=m.device)
+                  inputs=[self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
+                  outputs=[state.rho, state.pressure, self._pr2], device=m.device)
+        self._density_overflow(state, None, summation=True)
+
+    def _density_overflow(self, state: FluidState, dt, summation: bool) -> None:
+        m = self.model
+        wp.launch(sph.particle_density_overflow, dim=m.n_fluid,
+                  inputs=[self.cells, *self._slot_ranges, self._nbr_count, self.neighbour_cap, state.x, state.v,
+                          m.particle_mass, dt if dt is not None else self._zero_dt, m.params, 1 if summation else 0],
+                  outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
 
     def set_density(self, state: FluidState, rho: np.ndarray) -> None:
         """Set the fluid densities (continuity mode's initial condition) and their pressures."""
@@ -341,18 +353,23 @@ class FluidSolver:
             mode = sph.DENSITY_SUMMATION if m.density_mode == "summation" else sph.DENSITY_CONTINUITY
             wp.launch(sph.neighbour_list_density, dim=m.n_fluid,
                       inputs=[self.cells, *self._slot_ranges, state.x, state.v, m.particle_mass, dt, m.params, mode],
-                      outputs=[self._nbr_count, self._nbr, state.drho_dt, state.rho, state.pressure], device=m.device)
+                      outputs=[self._nbr_count, self._nbr, state.drho_dt, state.rho, state.pressure, self._pr2],
+                      device=m.device)
         else:
             self.build_neighbour_lists(state)
             if m.density_mode == "summation":
                 self.compute_density(state, lists=True)
             else:
                 wp.launch(sph.particle_density_continuity_list, dim=m.n_fluid,
-                          inputs=[self.cells, *self._slot_ranges, self._nbr_count, self._nbr, state.x, state.v,
-                                  m.particle_mass, dt, m.params],
-                          outputs=[state.drho_dt, state.rho, state.pressure], device=m.device)
+                          inputs=[self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
+                          outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
+                self._density_overflow(state, dt, summation=False)
         wp.launch(sph.particle_acceleration_list, dim=m.n_fluid,
-                  inputs=[self.cells, *self._slot_ranges, self._nbr_count, self._nbr, state.x, state.v, state.rho,
+                  inputs=[self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
+                          m.particle_mass, m.params],
+                  outputs=[state.accel, state.xsph_dv], device=m.device, block_dim=self._block_dim)
+        wp.launch(sph.particle_acceleration_overflow, dim=m.n_fluid,
+                  inputs=[self.cells, *self._slot_ranges, self._nbr_count, self.neighbour_cap, state.x, state.v, state.rho,
                           state.pressure, m.particle_mass, m.params],
                   outputs=[state.accel, state.xsph_dv], device=m.device)
         wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[state.accel, state.xsph_dv, dt],
@@ -438,6 +455,7 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
     lo = x.min(axis=0) - params.H if len(x) else np.zeros(3)
     hi = x.max(axis=0) + params.H if len(x) else np.ones(3)
     mass, params.grad_scale = calibrate_lattice(params, spacing, dim, device)
+    params.fluid_mass = mass
     masses = wp.array(np.full(nf + nb, mass, dtype=np.float32), dtype=float, device=device)
     model = FluidModel(
         dim=dim, up=dim - 1, n_fluid=nf, n_boundary=nb, spacing=spacing, support_radius=params.H,
