@@ -343,6 +343,35 @@ def world_vertices(
 
 
 @wp.kernel
+def pose_motion(
+    wv: wp.array(dtype=wp.vec3),
+    vert_start: wp.array(dtype=int),
+    vert_count: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    wv_ref: wp.array(dtype=wp.vec3),
+    x_ref: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+):
+    # motion of each block since the last narrow phase (the poses of the history table's planes):
+    # every world vertex moved by dx[b] + dev with |dev| <= rho[b] (rotation, strain, and 2 ulps of
+    # the coordinates for float32 round-off); then the reference becomes the current pose
+    b = wp.tid()
+    s = vert_start[b]
+    d = x[b] - x_ref[b]
+    r = float(0.0)
+    amax = float(0.0)
+    for k in range(vert_count[b]):
+        p = wv[s + k]
+        r = wp.max(r, wp.length(p - wv_ref[s + k] - d))
+        amax = wp.max(amax, wp.max(wp.abs(p[0]), wp.max(wp.abs(p[1]), wp.abs(p[2]))))
+        wv_ref[s + k] = p
+    dx[b] = d
+    rho[b] = r + 2.4e-7 * amax
+    x_ref[b] = x[b]
+
+
+@wp.kernel
 def block_aabbs(
     wv: wp.array(dtype=wp.vec3),
     vert_start: wp.array(dtype=int),
@@ -572,10 +601,14 @@ def narrow_screen(
     vert_start: wp.array(dtype=int),
     vert_count: wp.array(dtype=int),
     x: wp.array(dtype=wp.vec3),
+    dx: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
     old_keys: wp.array(dtype=wp.int64),
     old_normal: wp.array(dtype=wp.vec3),
+    old_gapb: wp.array(dtype=float),
     new_keys: wp.array(dtype=wp.int64),
     new_normal: wp.array(dtype=wp.vec3),
+    new_gapb: wp.array(dtype=float),
     new_nc: wp.array(dtype=int),
     pair_gap: wp.array(dtype=float),
     pair_slot: wp.array(dtype=int),
@@ -603,6 +636,18 @@ def narrow_screen(
     oslot = table_find(key, old_keys, old_keys.shape[0])
     pair_oslot[tid] = oslot
     if screen != 0:
+        if oslot >= 0:
+            # last step's plane had gap G at the reference poses (old_gapb, exact or a lower bound);
+            # with vertices moved by dx + dev (|dev| <= rho) its gap is now >= G + n.(dx_B - dx_A)
+            # - rho_A - rho_B: if that is > 0 the pair is still separated, no vertex is read
+            nb = old_normal[oslot]
+            gb = old_gapb[oslot] + wp.dot(nb, dx[B] - dx[A]) - rho[A] - rho[B]
+            if gb > 0.0:
+                new_normal[slot] = nb
+                new_gapb[slot] = gb
+                pair_gap[tid] = gb
+                new_nc[slot] = 0
+                return
         n0 = x[B] - x[A]
         if oslot >= 0:
             n0 = old_normal[oslot]
@@ -611,6 +656,7 @@ def narrow_screen(
         n, gap = signed_gap(wp.normalize(n0), vert_start[A], vert_count[A], vert_start[B], vert_count[B], wv)
         if gap > 0.0:
             new_normal[slot] = n
+            new_gapb[slot] = gap
             pair_gap[tid] = gap
             new_nc[slot] = 0
             return
@@ -659,6 +705,7 @@ def narrow_phase(
     old_ckey: wp.array(dtype=wp.vec2i),
     old_shear: wp.array(dtype=wp.vec3),
     new_normal: wp.array(dtype=wp.vec3),
+    new_gapb: wp.array(dtype=float),
     new_nc: wp.array(dtype=int),
     new_ckey: wp.array(dtype=wp.vec2i),
     new_shear: wp.array(dtype=wp.vec3),
@@ -739,6 +786,7 @@ def narrow_phase(
         if g1 > gap + 1.0e-7:
             n, gap = fcp_plane(n1, sA, cA, sB, cB, wv, vertex_out_he, he_vertex, he_next, he_prev, he_twin)
     new_normal[slot] = n
+    new_gapb[slot] = gap
     pair_gap[tid] = gap
     new_nc[slot] = 0
     if gap > 0.0:
@@ -928,11 +976,13 @@ def narrow_phase(
 def rehash_table(
     old_keys: wp.array(dtype=wp.int64),
     old_normal: wp.array(dtype=wp.vec3),
+    old_gapb: wp.array(dtype=float),
     old_nc: wp.array(dtype=int),
     old_ckey: wp.array(dtype=wp.vec2i),
     old_shear: wp.array(dtype=wp.vec3),
     new_keys: wp.array(dtype=wp.int64),
     new_normal: wp.array(dtype=wp.vec3),
+    new_gapb: wp.array(dtype=float),
     new_nc: wp.array(dtype=int),
     new_ckey: wp.array(dtype=wp.vec2i),
     new_shear: wp.array(dtype=wp.vec3),
@@ -946,6 +996,7 @@ def rehash_table(
     if t < 0:
         return
     new_normal[t] = old_normal[s]
+    new_gapb[t] = old_gapb[s]
     nc = old_nc[s]
     new_nc[t] = nc
     for k in range(nc):

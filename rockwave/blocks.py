@@ -448,6 +448,11 @@ class BlockState:
         self.ext_torque = wp.zeros(n, dtype=wp.vec3, device=d)
         self.contact_count = wp.zeros(n, dtype=int, device=d)
         self.world_verts = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
+        # poses of the history table's planes (last narrow phase) and the motion since (pose_motion)
+        self.wv_ref = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
+        self.x_ref = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.motion_dx = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.motion_rho = wp.zeros(n, dtype=wp.float32, device=d)
         self.time = 0.0
         self.tables = [None, None]
         self.alloc_tables(_next_pow2(4 * (8 * n + 64)))
@@ -460,6 +465,7 @@ class BlockState:
             return dict(
                 keys=wp.full(cap, -1, dtype=wp.int64, device=d),
                 normal=wp.zeros(cap, dtype=wp.vec3, device=d),
+                gapb=wp.zeros(cap, dtype=wp.float32, device=d),  # gap (or lower bound) along normal
                 nc=wp.zeros(cap, dtype=int, device=d),
                 ckey=wp.zeros(cap * km, dtype=wp.vec2i, device=d),
                 shear=wp.zeros(cap * km, dtype=wp.vec3, device=d),
@@ -475,8 +481,8 @@ class BlockState:
             t = self.tables[0]
             wp.launch(
                 K.rehash_table, dim=old["keys"].shape[0],
-                inputs=[old["keys"], old["normal"], old["nc"], old["ckey"], old["shear"],
-                        t["keys"], t["normal"], t["nc"], t["ckey"], t["shear"]],
+                inputs=[old["keys"], old["normal"], old["gapb"], old["nc"], old["ckey"], old["shear"],
+                        t["keys"], t["normal"], t["gapb"], t["nc"], t["ckey"], t["shear"]],
                 device=d,
             )
 
@@ -744,19 +750,24 @@ class BlockSolver:
 
     def _narrow_phase(self, state: BlockState, dt: float, screen: bool = True):
         """FCP narrow phase + contact forces. screen: pairs whose warm-start plane already separates
-        them (gap > 0) skip FCP and contact generation (narrow_screen); detect() turns it off so that
-        every pair's gap is FCP's."""
+        them (gap > 0; first by the bound from last step's gap and the blocks' motion since, else from
+        the world vertices) skip FCP and contact generation (narrow_screen); detect() turns it off so
+        that every pair's gap is FCP's."""
         m, d = self.model, self.device
         if 2 * self.pair_cap > state.table_cap:
             state.alloc_tables(_next_pow2(4 * self.pair_cap))
         old, new = state.tables
         new["keys"].fill_(-1)
+        wp.launch(K.pose_motion, dim=m.num_blocks,
+                  inputs=[state.world_verts, m.vert_start, m.vert_count, state.x, state.wv_ref, state.x_ref,
+                          state.motion_dx, state.motion_rho], device=d)
         if self.pair_count > 0:
             n = self.pair_count
             self.counters[3:4].zero_()  # length of the active list
             wp.launch(K.narrow_screen, dim=n,
                       inputs=[self.pairs, self.counters, m.num_blocks, int(screen), state.world_verts, m.vert_start,
-                              m.vert_count, state.x, old["keys"], old["normal"], new["keys"], new["normal"], new["nc"],
+                              m.vert_count, state.x, state.motion_dx, state.motion_rho, old["keys"], old["normal"],
+                              old["gapb"], new["keys"], new["normal"], new["gapb"], new["nc"],
                               self.pair_gap, self.pair_slot, self.pair_oslot, self.active], device=d)
             wp.launch(K.narrow_phase, dim=n,
                       inputs=[self.pairs, self.counters, self.active, self.pair_oslot, dt,
@@ -765,7 +776,7 @@ class BlockSolver:
                               m.kinds, m.inv_mass, state.x, state.q, state.v, state.w, state.strain_rate,
                               m.k_n, m.k_s, m.tan_phi, m.cohesion, m.tensile, m.zeta,
                               old["normal"], old["nc"], old["ckey"], old["shear"],
-                              new["normal"], new["nc"], new["ckey"], new["shear"], new["pos"],
+                              new["normal"], new["gapb"], new["nc"], new["ckey"], new["shear"], new["pos"],
                               new["depth"], new["fn"],
                               self.pair_gap, self.pair_slot, state.force, state.torque, state.strain_force,
                               state.contact_count], device=d)
