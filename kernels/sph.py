@@ -824,15 +824,36 @@ def gauge_height(
     gauge_pos: wp.array(dtype=wp.vec3),
     up: int,
     radius: float,
-    height: wp.array(dtype=float),
+    cell: float,
+    m: int,
+    top: wp.array2d(dtype=float),
 ):
-    """Free-surface elevation at each gauge: max up-coordinate of fluid particles within `radius`
-    (horizontally) of the gauge's vertical line (launched over fluid particles x gauges)."""
+    """Column tops for the free-surface gauges (launched over fluid particles x gauges).
+
+    Around each gauge's vertical line the horizontal plane is cut into square columns of width `cell`
+    on a (2m)^2 grid centred on the line (2D, up == 1: one row of 2m columns); the columns whose centre
+    lies within `radius` of the line are used whole (no slivers: a clipped column would see only part of
+    its particles and read low). top[g, c] is the highest up-coordinate of the fluid particles in column c
+    (-1e30 where it holds none); Simulation.gauges() reports the median over the wet columns."""
     i, g = wp.tid()
     d = x[i] - gauge_pos[g]
-    d[up] = 0.0
-    if wp.length_sq(d) < radius * radius:
-        wp.atomic_max(height, g, x[i][up])
+    a0 = int(0)
+    a1 = int(2)
+    if up == 0:
+        a0 = 1
+    elif up == 2:
+        a1 = 1
+    n2 = 2 * m
+    ca = int(wp.floor(d[a0] / cell)) + m
+    cb = m
+    oa = (float(ca - m) + 0.5) * cell
+    ob = float(0.0)
+    if up != 1:
+        cb = int(wp.floor(d[a1] / cell)) + m
+        ob = (float(cb - m) + 0.5) * cell
+    if ca >= 0 and ca < n2 and cb >= 0 and cb < n2:
+        if oa * oa + ob * ob < radius * radius:
+            wp.atomic_max(top, g, ca * n2 + cb, x[i][up])
 
 
 @wp.kernel

@@ -429,23 +429,35 @@ class Simulation:
         return e
 
     def gauges(self) -> dict[str, float]:
-        """Current gauge readings: 'height' gauges in m (NaN when dry), 'pressure' gauges in Pa."""
+        """Current gauge readings: 'height' gauges in m (NaN when dry), 'pressure' gauges in Pa.
+
+        A 'height' gauge reads the free surface over a horizontal window of the kernel support radius H
+        around its vertical line (the finest scale the SPH resolves): the plane is cut into columns one
+        particle spacing s wide, those whose centre lies within H are used (2D: 2H/s columns; 3D: 12 at
+        H = 2s), each wet column's top is its highest particle + s/2, and the reading is the median over
+        the wet columns (NaN when none is wet). A splashed particle or a column whose top particle has
+        just drifted into its neighbour does not move it (before: the highest particle within s decided
+        the reading alone, so single splash particles set wave heights).
+        """
         n = len(self.gauge_names)
         if n == 0 or self.n_fluid == 0:
             return {}
         m = self.fluid
+        cols = max(1, int(math.ceil(m.support_radius / m.spacing - 1e-6)))
         with wp.ScopedDevice(self.device):
-            h = wp.full(n, -1.0e30, dtype=float)
-            wp.launch(sph.gauge_height, dim=(m.n_fluid, n), inputs=[self.state.x, self._gauge_pos, self._up, m.spacing], outputs=[h])
+            top = wp.full((n, 4 * cols * cols), -1.0e30, dtype=float)
+            wp.launch(sph.gauge_height, dim=(m.n_fluid, n), inputs=[self.state.x, self._gauge_pos, self._up, m.support_radius, m.spacing, cols],
+                      outputs=[top])
             self.fluid_solver.build_grid(self.state)
             pr = wp.zeros(n, dtype=float)
             wp.launch(sph.gauge_pressure, dim=n, inputs=[self.fluid_solver.grid.id, self.state.x, self.state.rho, self.state.pressure,
                                                        m.particle_mass, self._gauge_pos, m.params], outputs=[pr])
-        hn, pn = h.numpy(), pr.numpy()
+        tn, pn = top.numpy(), pr.numpy()
         out = {}
         for i, (name, kind) in enumerate(zip(self.gauge_names, self._gauge_kind)):
             if kind == "height":
-                out[name] = float(hn[i] + 0.5 * m.spacing) if hn[i] > -1e29 else float("nan")
+                wet = tn[i][tn[i] > -1e29]
+                out[name] = float(np.median(wet) + 0.5 * m.spacing) if len(wet) else float("nan")
             else:
                 out[name] = float(pn[i])
         return out
