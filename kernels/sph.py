@@ -351,6 +351,7 @@ class CellGrid:
     nz: int
     first: wp.array(dtype=int)  # first[k] = first sorted slot whose cell key is >= k (nx*ny*nz + 1 entries)
     order: wp.array(dtype=int)  # sorted slot -> particle index
+    x_sorted: wp.array(dtype=wp.vec3)  # positions in slot order (the list build reads candidates contiguously)
 
 
 @wp.func
@@ -387,6 +388,12 @@ def cell_first(keys: wp.array(dtype=int), n: int, first: wp.array(dtype=int)):
         else:
             hi = mid
     first[c] = lo
+
+
+@wp.kernel
+def gather_sorted_positions(order: wp.array(dtype=int), x: wp.array(dtype=wp.vec3), x_sorted: wp.array(dtype=wp.vec3)):
+    k = wp.tid()
+    x_sorted[k] = x[order[k]]
 
 
 @wp.func
@@ -441,11 +448,12 @@ def build_neighbour_list_cells(
     for r in range(r_lo, r_hi):
         s, e = slot_range(g, xi, H, iy, iz, r)
         for k in range(s, e):
-            j = g.order[k]
-            if j != i and wp.length_sq(xi - x[j]) < H * H:
-                if c < cap:
-                    nbr[c * n + i] = j
-                c += 1
+            if wp.length_sq(xi - g.x_sorted[k]) < H * H:
+                j = g.order[k]
+                if j != i:
+                    if c < cap:
+                        nbr[c * n + i] = j
+                    c += 1
     count[i] = c
 
 
@@ -493,10 +501,10 @@ def pair_density_rate(xi: wp.vec3, vi: wp.vec3, j: int, x: wp.array(dtype=wp.vec
                       particle_mass: wp.array(dtype=float), p: SPHParams):
     # continuity: d rho_i/dt = sum_j m_j (v_i - v_j) . grad W_ij  (boundary particles at rest)
     rij = xi - x[j]
-    vj = wp.vec3(0.0)
+    g = kernel_grad(rij, wp.length(rij), p)
     if j < p.n_fluid:
-        vj = v[j]
-    return particle_mass[j] * wp.dot(vi - vj, kernel_grad(rij, wp.length(rij), p))
+        return p.fluid_mass * wp.dot(vi - v[j], g)
+    return particle_mass[j] * wp.dot(vi, g)
 
 
 @wp.kernel

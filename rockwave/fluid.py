@@ -243,15 +243,19 @@ class FluidSolver:
         g.nx, g.ny, g.nz = (int(a) for a in dims)
         g.first = self._cell_first
         g.order = self._cell_order
+        self._x_sorted = wp.zeros(nt, dtype=wp.vec3, device=d)
+        g.x_sorted = self._x_sorted
         self.cells = g
         self._slot_ranges = (0, 18) if m.dim == 3 else (6, 12)  # 9 columns (3 in 2D) x 2 parts
 
     def build_cells(self, state: FluidState) -> None:
-        """Sort all particles (fluid and boundary) by cell: cells.order, cells.first."""
+        """Sort all particles (fluid and boundary) by cell: cells.order, cells.first, cells.x_sorted."""
         m = self.model
         wp.launch(sph.cell_keys, dim=m.n_total, inputs=[self.cells, state.x, self._cell_keys, self._cell_order], device=m.device)
         wp.utils.radix_sort_pairs(self._cell_keys, self._cell_order, m.n_total, 0, self._cell_bits)
         wp.launch(sph.cell_first, dim=self._cell_first.shape[0], inputs=[self._cell_keys, m.n_total, self._cell_first],
+                  device=m.device)
+        wp.launch(sph.gather_sorted_positions, dim=m.n_total, inputs=[self._cell_order, state.x, self._x_sorted],
                   device=m.device)
 
     @staticmethod

@@ -1,0 +1,74 @@
+"""Piston wave maker against linear wavemaker theory as the resolution grows (issue 4, full size of
+the test tests/test_coupling.py::test_piston_wave_maker_linear_theory): scenes/wave_maker_small.toml
+(2D, h = 0.2 m, S = 0.03 m, f = 1.297 Hz, kh = 1.5) at 16, 32, 64 ... particle layers per depth;
+first-harmonic wave height at gauge_1 (0.35 m) and gauge_2 (0.7 m) over the two periods ending at
+2.6 s, against H/S = 2 (cosh 2kh - 1)/(sinh 2kh + 2kh). JSON lines on stdout.
+
+    python -m benchmarks.wave_maker_accuracy --device cuda:0 --layers 16 32 64 128
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+
+import numpy as np
+import warp as wp
+
+import rockwave
+from benchmarks.common import ROOT, device_name
+
+
+def first_harmonic_height(t, y, omega):
+    """2 |c1| of the least-squares fit y = a + b cos(wt) + c sin(wt) (the test's measure)."""
+    t, y = np.asarray(t, float), np.asarray(y, float)
+    A = np.stack([np.ones_like(t), np.cos(omega * t), np.sin(omega * t)], axis=1)
+    c = np.linalg.lstsq(A, y, rcond=None)[0]
+    return 2.0 * math.hypot(c[1], c[2])
+
+
+def theory(h=0.2, S=0.03, f=1.2970):
+    om = 2 * math.pi * f
+    k = om * om / 9.81
+    for _ in range(50):
+        k = om * om / (9.81 * math.tanh(k * h))
+    return 2 * (math.cosh(2 * k * h) - 1) / (math.sinh(2 * k * h) + 2 * k * h) * S, om
+
+
+def run(device, layers, t_end=2.6):
+    scene = rockwave.load_scene(ROOT / "scenes" / "wave_maker_small.toml")
+    scene.fluid["spacing_m"] = 0.2 / layers
+    H_th, om = theory()
+    sim = rockwave.Simulation(scene, device=device)
+    t0 = time.perf_counter()
+    ts, g1, g2 = [], [], []
+    while sim.time < t_end - 1e-9:
+        sim.advance(0.02)
+        g = sim.gauges()
+        ts.append(sim.time)
+        g1.append(g["gauge_1"])
+        g2.append(g["gauge_2"])
+    wall = time.perf_counter() - t0
+    ts = np.asarray(ts)
+    w = ts > t_end - 2.0 * 2 * math.pi / om - 1e-6
+    h1 = first_harmonic_height(ts[w], np.asarray(g1)[w], om)
+    h2 = first_harmonic_height(ts[w], np.asarray(g2)[w], om)
+    return dict(layers=layers, spacing_m=0.2 / layers, particles=sim.n_fluid, steps=sim.steps, wall_s=wall,
+                H_theory_m=H_th, H_gauge1_m=h1, H_gauge2_m=h2, error_gauge1=h1 / H_th - 1, error_gauge2=h2 / H_th - 1)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--layers", type=int, nargs="+", default=[16, 32])
+    a = ap.parse_args(argv)
+    wp.config.quiet = True
+    print(json.dumps({"device": device_name(a.device), "date": time.strftime("%Y-%m-%d")}), flush=True)
+    for n in a.layers:
+        print(json.dumps(run(a.device, n)), flush=True)
+
+
+if __name__ == "__main__":
+    main()
