@@ -145,6 +145,14 @@ def mark_active_cells(
                     phase_list[ph * phase_cap + slot] = ci
 
 
+# Per-cell candidate lists of throw_darts (local vectors): the ghosts, and the liquid/boundary
+# particles, near enough to the cell to reject one of its darts; on overflow the full tests run.
+GHOST_CAP = 32
+LIQUID_CAP = 48
+ghost_list = wp.types.vector(length=GHOST_CAP, dtype=int)
+liquid_list = wp.types.vector(length=LIQUID_CAP, dtype=int)
+
+
 @wp.kernel
 def throw_darts(
     grid: wp.uint64,
@@ -180,9 +188,16 @@ def throw_darts(
     the first that passes Bridson's (2007) rejection test against liquid, boundary and ghost
     particles. A cell's ghost is ``cell_ghost[c]`` when ``ghost_stamp[c] == stamp`` (no clearing).
     Accepted ghosts are appended at ``n_static + count`` (``x_ghost``/``v_ghost`` alias the
-    extended x/v arrays). Tests from cheap to dear: ghosts in the 5^d block of cells, liquid and
-    boundary within r_liquid (a small hash query), then, for a dart that passed, the nearest liquid
-    particle within the layer and the liquid colour field (one query of radius ``layer``).
+    extended x/v arrays).
+
+    Before the darts, the thread gathers once what can reject a dart of its cell (a dart lies within
+    the half diagonal of the cell centre): the ghosts of the 5^d block of cells and the kept old
+    ghosts within r + half diagonal of the centre, and the liquid and boundary particles within
+    r_liquid + half diagonal (one hash query, in the first round the same as the classification's).
+    Each dart then tests these short lists (up to GHOST_CAP / LIQUID_CAP entries; beyond, the full
+    block scan / hash query of a dart) and, if it passes, the nearest liquid particle within the
+    layer and the liquid colour field (one query of radius ``layer``). The accept decisions are the
+    same as testing every dart against every particle.
     With ``classify`` (first round) a cell that no dart can pass is closed first (``ghost_stamp = -stamp``).
     Persistent ghosts: the ``n_old`` ghosts of the last step sit at ``n_static ..`` (in the hash grid),
     those with ``keep`` reject darts within r, and new ghosts are appended after them."""
@@ -196,69 +211,117 @@ def throw_darts(
     cj = (c // g.nx) % g.ny
     ck = c // (g.nx * g.ny)
     half = 0.5 * g.cell
+    half_diag = half * wp.sqrt(float(g.dim))
+    xc = g.lo + wp.vec3(float(ci) * g.cell + half, float(cj) * g.cell + half, float(ck) * g.cell + half)
+    if g.dim == 2:
+        xc = wp.vec3(xc[0], xc[1], 0.0)
+    r2 = g.r * g.r
+    rl2 = g.r_liquid * g.r_liquid
+    # a dart is within half_diag of xc: only particles within (test radius + half_diag) can reject it
+    # (a small margin against rounding: an extra candidate never changes a decision)
+    eps = 1.0e-4 * g.cell
+    reach_l = g.r_liquid + half_diag + eps
+    reach_g = g.r + half_diag + eps
+    liquid = liquid_list()
+    n_liq = int(0)
+    ghosts = ghost_list()
+    n_gh = int(0)
+    # the gather query: radius max(reach_l, reach_g), and the layer in the first round (classification)
+    rq = wp.max(reach_l, reach_g)
     if classify != 0:
-        # first visit: close cells where no dart can pass. Inside the liquid: the colour field at the
-        # centre, less |grad colour| times the half diagonal (first order) and a 0.1 margin, still
-        # above colour_max everywhere in the cell. Covered: the whole cell within r_liquid of one
-        # liquid or boundary particle.
-        xc = g.lo + wp.vec3(float(ci) * g.cell + half, float(cj) * g.cell + half, float(ck) * g.cell + half)
-        if g.dim == 2:
-            xc = wp.vec3(xc[0], xc[1], 0.0)
-        half_diag = half * wp.sqrt(float(g.dim))
-        col = float(0.0)
-        grad = wp.vec3(0.0)
-        covered = int(0)
-        qc = wp.hash_grid_query(grid, xc, g.layer)
-        jc = int(0)
-        while wp.hash_grid_query_next(qc, jc):
-            if jc < n_static:
-                rc = xc - x[jc]
-                dc = wp.length(rc)
-                if dc + half_diag < g.r_liquid:
-                    covered = 1
-                if jc < n_fluid and dc < p.H:
-                    col += g.liquid_volume * kernel_w(dc * dc, p)
-                    grad += g.liquid_volume * kernel_grad(rc, dc, p)
+        rq = wp.max(rq, g.layer)
+    col = float(0.0)
+    grad = wp.vec3(0.0)
+    covered = int(0)
+    qc = wp.hash_grid_query(grid, xc, rq)
+    jc = int(0)
+    while wp.hash_grid_query_next(qc, jc):
+        rc = xc - x[jc]
+        if jc < n_static:
+            dc = wp.length(rc)
+            if classify != 0:
+                # first visit: close cells where no dart can pass. Inside the liquid: the colour field at the
+                # centre, less |grad colour| times the half diagonal (first order) and a 0.1 margin, still
+                # above colour_max everywhere in the cell. Covered: the whole cell within r_liquid of one
+                # liquid or boundary particle.
+                if dc <= g.layer:
+                    if dc + half_diag < g.r_liquid:
+                        covered = 1
+                    if jc < n_fluid and dc < p.H:
+                        col += g.liquid_volume * kernel_w(dc * dc, p)
+                        grad += g.liquid_volume * kernel_grad(rc, dc, p)
+            if dc < reach_l:
+                if n_liq < LIQUID_CAP:
+                    liquid[n_liq] = jc
+                n_liq += 1
+        elif jc < n_static + n_old:
+            if keep[jc - n_static] != 0:
+                if wp.length(rc) < reach_g:
+                    if n_gh < GHOST_CAP:
+                        ghosts[n_gh] = jc
+                    n_gh += 1
+    if classify != 0:
         if covered != 0 or col - wp.length(grad) * half_diag - 0.1 > g.colour_max:
             ghost_stamp[c] = -stamp
             return
-    rng = wp.rand_init(seed, c)
-    r2 = g.r * g.r
-    rl2 = g.r_liquid * g.r_liquid
-    base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
+    # new ghosts of this sampling in the 5^d block of cells around (at most one per cell)
     reach = 2
     k0 = ck
     k1 = ck
     if g.dim == 3:
         k0 = wp.max(ck - reach, 0)
         k1 = wp.min(ck + reach, g.nz - 1)
+    for k in range(k0, k1 + 1):
+        for jj in range(wp.max(cj - reach, 0), wp.min(cj + reach, g.ny - 1) + 1):
+            for ii in range(wp.max(ci - reach, 0), wp.min(ci + reach, g.nx - 1) + 1):
+                n = cell_index(g, ii, jj, k)
+                if ghost_stamp[n] == stamp:
+                    o = cell_ghost[n]
+                    if wp.length(x_ghost[o] - xc) < reach_g:
+                        if n_gh < GHOST_CAP:
+                            ghosts[n_gh] = o
+                        n_gh += 1
+    rng = wp.rand_init(seed, c)
+    base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
     for t in range(attempts):
         y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
         if g.dim == 2:
             y = wp.vec3(y[0], y[1], 0.0)
         ok = int(1)
-        # ghosts already placed in the 5^d block of cells around (at most one per cell)
-        for k in range(k0, k1 + 1):
-            for jj in range(wp.max(cj - reach, 0), wp.min(cj + reach, g.ny - 1) + 1):
-                for ii in range(wp.max(ci - reach, 0), wp.min(ci + reach, g.nx - 1) + 1):
-                    n = cell_index(g, ii, jj, k)
-                    if ghost_stamp[n] == stamp:
-                        if wp.length_sq(x_ghost[cell_ghost[n]] - y) < r2:
-                            ok = 0
+        # ghosts: none closer than r
+        if n_gh <= GHOST_CAP:
+            for m in range(n_gh):
+                if wp.length_sq(x_ghost[ghosts[m]] - y) < r2:
+                    ok = 0
+                    break
+        else:
+            for k in range(k0, k1 + 1):
+                for jj in range(wp.max(cj - reach, 0), wp.min(cj + reach, g.ny - 1) + 1):
+                    for ii in range(wp.max(ci - reach, 0), wp.min(ci + reach, g.nx - 1) + 1):
+                        n = cell_index(g, ii, jj, k)
+                        if ghost_stamp[n] == stamp:
+                            if wp.length_sq(x_ghost[cell_ghost[n]] - y) < r2:
+                                ok = 0
         if ok == 0:
             continue
-        # liquid and boundary particles: none closer than r_liquid; kept ghosts: none closer than r
-        q = wp.hash_grid_query(grid, y, g.r_liquid)
+        # liquid and boundary particles: none closer than r_liquid (and kept ghosts beyond the list)
         j = int(0)
-        while wp.hash_grid_query_next(q, j):
-            if j < n_static:
-                if wp.length_sq(x[j] - y) < rl2:
+        if n_liq <= LIQUID_CAP and n_gh <= GHOST_CAP:
+            for m in range(n_liq):
+                if wp.length_sq(x[liquid[m]] - y) < rl2:
                     ok = 0
                     break
-            elif j < n_static + n_old:
-                if keep[j - n_static] != 0 and wp.length_sq(x[j] - y) < r2:
-                    ok = 0
-                    break
+        else:
+            q = wp.hash_grid_query(grid, y, g.r_liquid)
+            while wp.hash_grid_query_next(q, j):
+                if j < n_static:
+                    if wp.length_sq(x[j] - y) < rl2:
+                        ok = 0
+                        break
+                elif j < n_static + n_old:
+                    if keep[j - n_static] != 0 and wp.length_sq(x[j] - y) < r2:
+                        ok = 0
+                        break
         if ok == 0:
             continue
         # nearest liquid particle within the layer; outside the liquid only: a gap inside the liquid

@@ -26,7 +26,8 @@ Walls: the tank and obstacle boundary particles are static layers at least one k
 with lattice-calibrated masses, i.e. they already are the "ghost solid particles" of the paper
 (they complete the density sums at walls and push with the Akinci term); they are not resampled.
 
-One host read per step (the ghost count, to size the grid build and grow the buffers).
+One host read per step on a GPU (the ghost count, to size the grid build and grow the buffers); the
+dart launches are sized by a host bound on the active cells (``phase_bound``) instead of a read.
 """
 
 from __future__ import annotations
@@ -65,6 +66,7 @@ class GhostFluidSolver(FluidSolver):
     """
 
     reorder_interval = 0  # the grid also holds the ghosts: particles keep their order
+    phase_launches = False  # True: one dart launch per phase sized by phase_bound on the CPU too (the GPU path)
 
     def __init__(self, model: FluidModel, cfg=None):
         super().__init__(model)
@@ -136,7 +138,12 @@ class GhostFluidSolver(FluidSolver):
         self.phase_cap = int(np.prod([-(-g.nx // 3), -(-g.ny // 3), -(-g.nz // 3)]))  # cells of one phase
         self.phase_count = wp.zeros(self.n_phases, dtype=int, device=d)
         self.phase_list = wp.zeros(self.n_phases * self.phase_cap, dtype=int, device=d)
-        self.n_active = 0
+        # host bound on the active cells of one phase: a surface particle marks the cells of the box
+        # [x - layer, x + layer], at most m per axis, ceil(m/3) per axis in one phase
+        m_axis = int(2.0 * self.layer / cell) + 2
+        self.phase_bound = min(self.phase_cap, model.n_fluid * (-(-m_axis // 3)) ** dim)
+        # GPU: launch over this bound without reading the counts back, up to this many threads a launch
+        self.phase_bound_max = 1 << 19
         self._drho = wp.zeros(model.n_fluid, dtype=float, device=d)
         # Continuity density sums liquid and boundary neighbours only. Ghosts are resampled every
         # step, so (v_i - v_ghost).grad W (v_ghost = nearest liquid particle's) is no rate of any
@@ -203,9 +210,15 @@ class GhostFluidSolver(FluidSolver):
             if n_old:
                 wp.launch(gk.close_kept_cells, dim=n_old, inputs=[self.x_ext, self.keep, ns, self.bg, self._stamp],
                           outputs=[self.ghost_stamp], device=m.device)
-            counts = self.phase_count.numpy()
-            self.n_active = int(counts.sum())
-            serial = not m.device.is_cuda  # Warp's CPU backend runs a launch in index order on one thread
+            # Warp's CPU backend runs a launch in index order on one thread (phase_launches: the GPU's
+            # launch pattern on the CPU too, for tests)
+            serial = not m.device.is_cuda and not self.phase_launches
+            if serial or self.phase_bound > self.phase_bound_max:
+                counts = self.phase_count.numpy()  # host read: launch over the active cells only
+            else:
+                # GPU: no host read; each phase launch covers the bound on its active cells, and
+                # threads past phase_count[k] return at once
+                counts = np.full(self.n_phases, self.phase_bound)
             for rnd in range(self.rounds):
                 seed = self.seed + rnd
                 if self.fresh_darts:
@@ -253,6 +266,11 @@ class GhostFluidSolver(FluidSolver):
             wp.synchronize_device(m.device)
             self.sample_seconds += time.perf_counter() - t0
         return n
+
+    @property
+    def n_active(self) -> int:
+        """Background cells active in the last sampling (a host read)."""
+        return int(self.phase_count.numpy().sum())
 
     def _n_old_dev(self, n_old: int) -> wp.array:
         """A device scalar holding n_old (the first ghost slot for the darts)."""
