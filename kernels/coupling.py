@@ -159,10 +159,14 @@ def count_buckets(
     cell_hi: wp.array(dtype=wp.vec3i),
     cell_offset: wp.array(dtype=int),
     nbuckets: int,
+    counters: wp.array(dtype=int),
     bucket_count: wp.array(dtype=int),
 ):
     # one thread per (block, cell) entry, cell_offset = exclusive scan of ncell (a serial loop per
-    # block made this phase 1.7 ms of a 6.3 ms coupled step at 1.2 M particles on an H100)
+    # block made this phase 1.7 ms of a 6.3 ms coupled step at 1.2 M particles on an H100); launched
+    # over the entry capacity, the threads past the device count (counters[0]) stop
+    if wp.tid() >= counters[0]:
+        return
     b, e = entry_of(wp.tid(), cell_offset)
     bucket_count_cell(cell_lo[b], cell_hi[b], e, nbuckets, bucket_count)
 
@@ -175,9 +179,12 @@ def fill_buckets(
     nbuckets: int,
     bucket_start: wp.array(dtype=int),
     bucket_fill: wp.array(dtype=int),
+    counters: wp.array(dtype=int),
     entry_block: wp.array(dtype=int),
     entry_cell: wp.array(dtype=wp.vec3i),
 ):
+    if wp.tid() >= counters[0]:
+        return
     b, e = entry_of(wp.tid(), cell_offset)  # as count_buckets
     c = nth_cell(cell_lo[b], cell_hi[b], e)
     h = bucket_of(c, nbuckets)
@@ -193,7 +200,6 @@ class CouplingParams:
     d0: float  # contact distance [m]
     inv_s: float  # 1 / broad-phase cell size
     nbuckets: int
-    n_large: int
     track_walls: int  # 1: sum the forces of fixed/kinematic blocks on the water (diagnostics)
     squeeze_gap: float  # gap w_s between two opposing solid faces below which pinched water is squeezed out (0: off)
 
@@ -306,6 +312,7 @@ def particle_block_forces(
     entry_block: wp.array(dtype=int),
     entry_cell: wp.array(dtype=wp.vec3i),
     large: wp.array(dtype=int),
+    counters: wp.array(dtype=int),
     face_start: wp.array(dtype=int),
     face_count: wp.array(dtype=int),
     plane_n: wp.array(dtype=wp.vec3),
@@ -344,7 +351,7 @@ def particle_block_forces(
                 ba = b
                 da = d
                 na = n
-    for k in range(p.n_large):
+    for k in range(counters[1]):
         b = large[k]
         d, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
         if d < da:
@@ -369,7 +376,7 @@ def particle_block_forces(
                         bb = b
                         db = d
                         nb = n
-        for k in range(p.n_large):
+        for k in range(counters[1]):
             b = large[k]
             if b != ba:
                 d, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
@@ -398,7 +405,7 @@ def particle_block_forces(
                 sq = squeeze
             f += block_contact(i, b, xi, vi, p, sq, face_start, face_count, plane_n, plane_d, kinds, bx, bv, bw,
                                depth_scale, ext_force, ext_torque, wall_force)
-    for k in range(p.n_large):
+    for k in range(counters[1]):
         b = large[k]
         sq = zero
         if b == ba or b == bb:

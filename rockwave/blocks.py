@@ -650,11 +650,38 @@ class BlockSolver:
         self.hi = wp.zeros(n, dtype=wp.vec3, device=d)
         self.is_large = wp.zeros(n, dtype=int, device=d)
         self.counters = wp.zeros(4, dtype=int, device=d)
-        self._alloc_large(min(n, 16))
-        self._alloc_entries(8 * n + 64)
-        self._alloc_pairs(8 * n + 64)
-        self.pair_count = 0
+        # Few blocks (the coupled scenes): capacities that cannot overflow (a block in more than
+        # large_cells cells is "large"; each pair is emitted at most twice), so a step reads nothing
+        # back and the GPU never waits for the host; the overflow flags are still checked every
+        # sync_check_interval steps. More blocks: capacities grow on demand (one counter read per step).
+        self.sync_free = n <= self.sync_free_max_blocks
+        if self.sync_free:
+            self._alloc_large(n)
+            self._alloc_entries(self.large_cells * n + 64)
+            self._alloc_pairs(n * n + 64)
+        else:
+            self._alloc_large(min(n, 16))
+            self._alloc_entries(8 * n + 64)
+            self._alloc_pairs(8 * n + 64)
+        self._pair_count = 0
+        self._unchecked_steps = 0
         self._dt_crit = None
+
+    sync_free_max_blocks = 64
+    sync_check_interval = 200
+
+    @property
+    def pair_count(self) -> int:
+        """Candidate pairs of the last broad phase (a host read when the solver runs sync-free)."""
+        if self.sync_free:
+            return min(int(self.counters.numpy()[0]), self.pair_cap)
+        return self._pair_count
+
+    def _check_capacity_flags(self) -> None:
+        flags = int(self.counters.numpy()[1])
+        if flags:
+            raise RuntimeError(f"DDA broad phase overflowed its fixed capacities (flags {flags}) with "
+                               f"{self.model.num_blocks} blocks; this is a bug: please report the scene")
 
     # ---- capacity management ----
     def _alloc_large(self, cap):
@@ -736,10 +763,16 @@ class BlockSolver:
             wp.launch(K.bp_large_pairs, dim=(self.large_list.shape[0], m.num_blocks),
                       inputs=[self.lo, self.hi, m.kinds, self.is_large, self.large_list, self.pairs,
                               self.counters], device=d)
+            if self.sync_free:  # launch dims at capacity; the kernels stop at the device counts
+                self._unchecked_steps += 1
+                if self._unchecked_steps >= self.sync_check_interval:
+                    self._unchecked_steps = 0
+                    self._check_capacity_flags()
+                return
             c = self.counters.numpy()  # the one host sync per step: capacities
             flags = int(c[1])
             if flags == 0:
-                self.pair_count = int(c[0])
+                self._pair_count = int(c[0])
                 return
             if flags & 1:
                 self._alloc_entries(2 * int(self.bucket_count.numpy().sum()))
@@ -761,8 +794,8 @@ class BlockSolver:
         wp.launch(K.pose_motion, dim=m.num_blocks,
                   inputs=[state.world_verts, m.vert_start, m.vert_count, state.x, state.wv_ref, state.x_ref,
                           state.motion_dx, state.motion_rho], device=d)
-        if self.pair_count > 0:
-            n = self.pair_count
+        n = self.pair_cap if self.sync_free else self._pair_count
+        if n > 0:
             self.counters[3:4].zero_()  # length of the active list
             wp.launch(K.narrow_screen, dim=n,
                       inputs=[self.pairs, self.counters, m.num_blocks, int(screen), state.world_verts, m.vert_start,

@@ -98,6 +98,8 @@ class Coupling:
     Attributes: k_s [N/m], k_d [N s/m], d0 [m], cell [m] (broad-phase cell), dim.
     """
 
+    sync_free_max_entries = 1 << 20
+
     def __init__(self, fluid, blocks, dim: int, d0: float | None = None, k_s: float | None = None, k_d: float | None = None,
                  stiffness_factor: float = DEFAULT_STIFFNESS_FACTOR, damping_ratio: float = DEFAULT_DAMPING_RATIO,
                  cell_size: float | None = None, max_cells: int = 4096, track_walls: bool = False, squeeze_out: bool = True):
@@ -147,14 +149,23 @@ class Coupling:
         self.ncell = wp.zeros(nb, dtype=int, device=d)
         self.cell_offset = wp.zeros(nb, dtype=int, device=d)
         self.large = wp.zeros(nb, dtype=int, device=d)
-        self.counters = wp.zeros(2, dtype=int, device=d)
-        self._alloc(1024)
+        self.counters = wp.zeros(2, dtype=int, device=d)  # [0] (block, cell) entries, [1] large blocks
+        # Up to 2^20 possible entries (blocks x max_cells): the entry capacity is allocated whole and the
+        # step reads nothing back (the GPU never waits for the host); more: it grows on a counter read.
+        self.sync_free = nb * self.max_cells <= self.sync_free_max_entries
+        self._alloc(nb * self.max_cells if self.sync_free else 1024)
         self.dv = wp.zeros(fluid.n_fluid, dtype=wp.vec3, device=d)
         self.track_walls = bool(track_walls)
         self.wall_force = wp.zeros(1, dtype=wp.vec3, device=d)
         self.wall_impulse = np.zeros(3)  # sum of dt x (force of fixed/kinematic blocks on the water), when tracked
         self.active_blocks = 0  # blocks near water in the last step (host copy, diagnostics)
-        self.n_large = 0
+        self._n_large = 0
+        self._total = 0
+
+    @property
+    def n_large(self) -> int:
+        """Blocks of the last broad phase that every particle tests (over max_cells cells)."""
+        return int(self.counters.numpy()[1]) if self.sync_free else self._n_large
 
     def _alloc(self, n_entries: int):
         d = self.device
@@ -195,19 +206,23 @@ class Coupling:
         wp.launch(CK.block_cells, dim=m.num_blocks,
                   inputs=[self.wv, m.vert_start, m.vert_count, self.bounds, self.reach + 1e-6, 1.0 / self.cell, self.max_cells],
                   outputs=[self.cell_lo, self.cell_hi, self.ncell, self.large, self.counters], device=d)
-        total, self.n_large = (int(c) for c in self.counters.numpy())  # one host read per step: capacity
-        if total > self.entry_cap:
-            self._alloc(2 * total)
+        if self.sync_free:
+            total = self.entry_cap  # launch dims; the kernels stop at counters[0]
+        else:
+            total, self._n_large = (int(c) for c in self.counters.numpy())  # one host read per step: capacity
+            if total > self.entry_cap:
+                self._alloc(2 * total)
         self.bucket_count.zero_()
         self.bucket_fill.zero_()
         if total:
             # one thread per (block, cell) entry, not a serial loop per block (kernels/coupling.py)
             wp.utils.array_scan(self.ncell, self.cell_offset, inclusive=False)
-            wp.launch(CK.count_buckets, dim=total, inputs=[self.cell_lo, self.cell_hi, self.cell_offset, self.nbuckets],
-                      outputs=[self.bucket_count], device=d)
+            wp.launch(CK.count_buckets, dim=total, inputs=[self.cell_lo, self.cell_hi, self.cell_offset, self.nbuckets,
+                                                          self.counters], outputs=[self.bucket_count], device=d)
             wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
             wp.launch(CK.fill_buckets, dim=total,
-                      inputs=[self.cell_lo, self.cell_hi, self.cell_offset, self.nbuckets, self.bucket_start, self.bucket_fill],
+                      inputs=[self.cell_lo, self.cell_hi, self.cell_offset, self.nbuckets, self.bucket_start, self.bucket_fill,
+                              self.counters],
                       outputs=[self.entry_block, self.entry_cell], device=d)
         self._total = total
 
@@ -218,7 +233,7 @@ class Coupling:
         if nf == 0:
             return
         self._broad_phase(fluid_state, block_state)
-        if self._total == 0 and self.n_large == 0:
+        if not self.sync_free and self._total == 0 and self._n_large == 0:
             self.dv.zero_()
             return
         self.update_planes(block_state)
@@ -226,7 +241,6 @@ class Coupling:
         p.k_s, p.k_d, p.d0 = self.k_s, self.k_d, self.d0
         p.inv_s = 1.0 / self.cell
         p.nbuckets = self.nbuckets
-        p.n_large = self.n_large
         p.track_walls = 1 if self.track_walls else 0
         p.squeeze_gap = self.squeeze_gap
         if self.track_walls:
@@ -234,7 +248,8 @@ class Coupling:
         m = self.blocks
         wp.launch(CK.particle_block_forces, dim=nf,
                   inputs=[fluid_state.x, fluid_state.v, self.fluid.particle_mass, dt, p, self.bucket_start, self.bucket_count,
-                          self.entry_block, self.entry_cell, self.large, m.face_start, m.face_count, self.plane_n, self.plane_d,
+                          self.entry_block, self.entry_cell, self.large, self.counters, m.face_start, m.face_count,
+                          self.plane_n, self.plane_d,
                           m.kinds, block_state.x, block_state.v, block_state.w, self.depth_scale,
                           block_state.ext_force, block_state.ext_torque, self.wall_force],
                   outputs=[self.dv], device=self.device)
@@ -243,7 +258,7 @@ class Coupling:
 
     def apply(self, fluid_state, dt: wp.array) -> None:
         nf = self.fluid.n_fluid
-        if nf == 0 or (self._total == 0 and self.n_large == 0):
+        if nf == 0 or (not self.sync_free and self._total == 0 and self._n_large == 0):
             return
         wp.launch(CK.apply_dv, dim=nf, inputs=[self.dv, dt], outputs=[fluid_state.x, fluid_state.v], device=self.device)
 

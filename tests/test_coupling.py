@@ -221,3 +221,28 @@ def test_scene_rules_and_broad_phase():
     sim2 = rockwave.Simulation(parse_scene(far), device=DEVICE)
     sim2.step()
     assert sim2.coupling.ncell.numpy()[1] == 0 and sim2.coupling.n_large == 0
+
+
+def test_sync_free_step_matches_the_counter_read_path(monkeypatch):
+    """With few blocks the coupling and DDA broad phases run at fixed capacities and read nothing back
+    per step (launch dims at capacity, kernels stop at the device counts); the motion is the same as
+    with the per-step counter reads and grown capacities."""
+    from rockwave.blocks import BlockSolver
+    from rockwave.coupling import Coupling
+
+    def run(sync_free: bool):
+        if not sync_free:
+            monkeypatch.setattr(BlockSolver, "sync_free_max_blocks", 0)
+            monkeypatch.setattr(Coupling, "sync_free_max_entries", 0)
+        sim = _sim("sliding_wedge_small.toml")
+        assert sim.block_solver.sync_free == sync_free and sim.coupling.sync_free == sync_free
+        for _ in range(150):
+            sim.step()
+        return sim
+
+    a = run(True)
+    b = run(False)
+    assert a.block_solver.pair_count == b.block_solver.pair_count > 0
+    assert a.coupling.n_large == b.coupling.n_large
+    assert np.allclose(a.block_positions(), b.block_positions(), atol=1e-6)
+    assert np.allclose(a.positions(), b.positions(), atol=1e-6)
