@@ -1,13 +1,28 @@
 """One command for the benchmark suite (README, "Benchmarks"):
 
     python -m benchmarks run --device cpu --suite quick       # 2-core CPU, < 15 minutes
-    python -m benchmarks run --device cuda:0 --suite full     # one GPU call, < 10 minutes
+    python -m benchmarks run --device cuda:0 --suite full     # all parts in one process (~17 min on an H100)
 
 Writes benchmarks/results/<date>-<device>.json (every run's record), PNG charts
 benchmarks/results/<date>-<device>-*.png, and prints a summary table. Parts: accuracy against speed
 (2D dam break vs Martin & Moyce, SPHERIC Test 2), stability maps (fluid dt x c0, blocks dt x k_n),
 scaling (benchmarks/fluid_bench.py, blocks_bench.py, coupled_bench.py) with peak memory, and the
-peers (SPlisHSPlasH on the CPU, Warp's example_sph.py). ``--only accuracy stability ...`` picks parts.
+peers (SPlisHSPlasH on the CPU, Warp's example_sph.py). ``--only accuracy stability ...`` picks parts;
+a run of some parts writes <date>-<device>-<suite>-<parts>.json unless --out says otherwise.
+
+The JSON is rewritten (temp file + rename) after every finished part, so a run killed part-way keeps
+the parts that finished (``parts_done``; ``parts_pending`` lists the rest). The full suite does not fit
+one 10-minute call on an H100 (accuracy ~385 s, stability ~336 s, scaling + peers ~305 s): on a GPU
+lease run it as three calls, then merge (merge checks the suite and device agree, redraws the charts
+and prints the summary of the whole):
+
+    python -m benchmarks run --device cuda:0 --suite full --only accuracy    # call 1
+    python -m benchmarks run --device cuda:0 --suite full --only stability   # call 2
+    python -m benchmarks run --device cuda:0 --suite full --only scaling peers   # call 3
+    python -m benchmarks merge benchmarks/results/<date>-cuda0-full-*.json --out benchmarks/results/<date>-cuda0-full.json
+
+    python -m benchmarks charts FILE.json      # redraw the PNG charts of any result JSON (next to it)
+    python -m benchmarks markdown FILE.json    # a RESULTS.md section from any result JSON
 """
 
 from __future__ import annotations
@@ -232,11 +247,9 @@ def part_peers(dev: str, cfg: dict) -> dict:
 
     out = {}
     try:
-        out["splash"] = splash.compare(cfg["splash_res"], device="cpu")
-        s, r = out["splash"]["splash"], out["splash"]["rockwave"]
-        log(f"  SPlisHSPlasH: {s.get('skipped') or s.get('error') or ''} rockwave front error {r['front_rms']:.3f} "
-            f"(bias {r['front_bias']:+.3f}), SPlisHSPlasH {s.get('front_rms', math.nan):.3f} (bias {s.get('front_bias', math.nan):+.3f}); "
-            f"throughput ratio rockwave/SPlisHSPlasH {out['splash'].get('throughput_ratio', math.nan):.2f}")
+        out["splash"] = splash.compare(cfg["splash_res"], device=dev)  # runs on the CPU whatever the suite's device
+        log("  " + summary({"peers": {"splash": out["splash"]}, "suite": "", "device": dev, "device_name": "", "date": "", "commit": ""})
+            .split("\n")[3].strip())
     except Exception as e:
         out["splash"] = {"error": f"{type(e).__name__}: {e}"[:300], "trace": traceback.format_exc()[-800:]}
         log(f"  SPlisHSPlasH comparison failed: {out['splash']['error']}")
@@ -256,7 +269,11 @@ def part_peers(dev: str, cfg: dict) -> dict:
 CLASS_COLOURS = {"stable": "#2ca02c", "inaccurate": "#ff7f0e", "blown_up": "#d62728", "refused": "#7f7f7f"}
 
 
-def charts(res: dict, stem: str) -> list[str]:
+def charts(res: dict, stem: str, out_dir=None) -> list[str]:
+    """PNG charts of the parts present in ``res``, written as <out_dir>/<stem>-<chart>.png (default
+    benchmarks/results); returns their paths (relative to the repository where they lie inside it)."""
+    from pathlib import Path
+
     import matplotlib
 
     matplotlib.use("Agg")
@@ -264,11 +281,19 @@ def charts(res: dict, stem: str) -> list[str]:
 
     paths = []
 
+    out_dir = Path(out_dir) if out_dir is not None else RESULTS
+    out_dir.mkdir(parents=True, exist_ok=True)
+
     def save(fig, name):
-        p = RESULTS / f"{stem}-{name}.png"
-        fig.savefig(p, dpi=80, bbox_inches="tight")
+        p = out_dir / f"{stem}-{name}.png"
+        tmp = p.with_name(p.stem + ".tmp.png")
+        fig.savefig(tmp, dpi=80, bbox_inches="tight")
         plt.close(fig)
-        paths.append(str(p.relative_to(ROOT)))
+        os.replace(tmp, p)
+        try:
+            paths.append(str(p.resolve().relative_to(ROOT)))
+        except ValueError:
+            paths.append(str(p))
 
     acc = res.get("accuracy")
     if acc:
@@ -350,8 +375,22 @@ def _map(ax, rows, xk, yk, title, xl, yl):
 
 
 # ---------------------------------------------------------------------------------- summary ----
+def _commits(res: dict) -> str:
+    cs = [m.get("commit") for m in res.get("merged_from", [])] or [res.get("commit")]
+    return ", ".join(dict.fromkeys(c for c in cs if c)) or "unknown"
+
+
+def _machine_note(res: dict) -> str:
+    """What the timings are of: a shared CPU (upper bounds) or a GPU (the load average is the host's)."""
+    if str(res.get("device", "cpu")).startswith("cpu"):
+        return "other processes share the CPU's cores, so timings are upper bounds"
+    return f"timings are of the GPU ({res.get('device_name')}); the load average is the host CPU's"
+
+
 def summary(res: dict) -> str:
-    L = [f"# rockwave benchmarks: suite {res['suite']}, {res['device_name']}, {res['date']}, commit {res['commit']}"]
+    L = [f"# rockwave benchmarks: suite {res['suite']}, {res['device']} ({res['device_name']}), {res['date']}, commit {_commits(res)}"]
+    if res.get("parts_pending"):
+        L.append(f"(incomplete: parts done {', '.join(res.get('parts_done', [])) or 'none'}; not run or not finished: {', '.join(res['parts_pending'])})")
     acc = res.get("accuracy")
     if acc:
         for case in ("dam_break_2d", "spheric"):
@@ -389,16 +428,19 @@ def summary(res: dict) -> str:
     if pe:
         L.append("\npeers")
         s = pe.get("splash", {})
-        if "rockwave" in s:
-            sp, rw = s["splash"], s["rockwave"]
-            if "particles" in sp:
-                L.append(f"  SPlisHSPlasH WCSPH {sp['particles']} particles {sp['s_per_step'] * 1e3:.2f} ms/step, front error {sp['front_rms']:.3f} "
-                         f"(bias {sp['front_bias']:+.3f}); rockwave {rw['particles']} particles {rw['s_per_step'] * 1e3:.2f} ms/step, "
-                         f"front error {rw['front_rms']:.3f} (bias {rw['front_bias']:+.3f}); ratio {s.get('throughput_ratio', math.nan):.2f}")
-            else:
-                L.append(f"  SPlisHSPlasH: {sp.get('skipped') or sp.get('error')}; rockwave front error {rw['front_rms']:.3f}")
+        sp, rw, rc = s.get("splash", {}), s.get("rockwave", {}), s.get("rockwave_continuity", {})
+        if "particles" in sp and "particles" in rw:
+            L.append(f"  SPlisHSPlasH WCSPH {sp['particles']} particles {sp['s_per_step'] * 1e3:.2f} ms/step, front error {sp['front_rms']:.3f} "
+                     f"(bias {sp['front_bias']:+.3f}); rockwave (same EOS, summation density) {rw['particles']} particles "
+                     f"{rw['s_per_step'] * 1e3:.2f} ms/step, front error {rw['front_rms']:.3f} (bias {rw['front_bias']:+.3f}); "
+                     f"ratio {s.get('throughput_ratio', math.nan):.2f}")
+            if "particles" in rc:
+                L.append(f"  rockwave (continuity density, its default) {rc['s_per_step'] * 1e3:.2f} ms/step, front error {rc['front_rms']:.3f} "
+                         f"(bias {rc['front_bias']:+.3f}); ratio {s.get('throughput_ratio_continuity', math.nan):.2f}")
         else:
-            L.append(f"  SPlisHSPlasH: {s.get('error')}")
+            why = sp.get("skipped") or sp.get("error") or s.get("error") or "not run"
+            L.append(f"  SPlisHSPlasH: {why}" + (f"; rockwave front error {rw['front_rms']:.3f}" if "front_rms" in rw else "")
+                     + (f"; rockwave: {rw['error']}" if "error" in rw else ""))
         w = pe.get("warp_example", {})
         if "throughput_ratio" in w:
             L.append(f"  Warp example_sph {w['warp_example']['particles']} particles {w['warp_example']['neighbours']:.1f} nbrs "
@@ -406,7 +448,8 @@ def summary(res: dict) -> str:
                      f"{w['rockwave']['particle_steps_per_s']:.3g}; ratio {w['throughput_ratio']:.2f}")
         else:
             L.append(f"  Warp example: {w.get('error')}")
-    L.append(f"\nwall time of the suite: {res['suite_wall_s']:.0f} s")
+    L.append(f"\nwall time of the suite: {res.get('suite_wall_s', math.nan):.0f} s"
+             + (" (" + ", ".join(f"{k} {v:.0f} s" for k, v in res["part_wall_s"].items()) + ")" if res.get("part_wall_s") else ""))
     return "\n".join(L)
 
 
@@ -414,9 +457,14 @@ def markdown(res: dict) -> str:
     """A benchmarks/RESULTS.md section from a result JSON (python -m benchmarks markdown FILE)."""
     L = [f"## Benchmark suite `{res['suite']}` ({res['device']}) - python -m benchmarks run", "",
          f"Machine: {res['device_name']}, warp {res['warp']}. Date: {res['date']} {res.get('time_utc', '')} UTC. "
-         f"Commit: {res['commit']}. Load average at start: {', '.join(f'{x:.1f}' for x in res['load_average'])} "
-         f"(other processes share the 2 cores: timings are upper bounds). Suite wall time {res['suite_wall_s']:.0f} s. "
-         f"Record: `benchmarks/results/{res['date']}-{res['device'].replace(':', '')}.json`.", ""]
+         f"Commit: {_commits(res)}. Load average at start: {', '.join(f'{x:.1f}' for x in res['load_average'])} "
+         f"({_machine_note(res)}). Suite wall time {res.get('suite_wall_s', math.nan):.0f} s. "
+         f"Record: `{res.get('record') or 'benchmarks/results/' + res['date'] + '-' + res['device'].replace(':', '') + '.json'}`.", ""]
+    for m in res.get("merged_from", []):
+        L.insert(-1, f"Merged part file `{m['file']}`: {', '.join(m['parts'])}; commit {m.get('commit')}, {m.get('date')} "
+                     f"{m.get('time_utc', '')} UTC, {m.get('suite_wall_s', math.nan):.0f} s.")
+    if res.get("parts_pending"):
+        L.insert(-1, f"Incomplete: not run or not finished: {', '.join(res['parts_pending'])}.")
     acc = res.get("accuracy")
     if acc:
         for case, title in (("dam_break_2d", "2D dam break vs Martin & Moyce (t <= 0.2 s)"), ("spheric", "SPHERIC Test 2")):
@@ -454,14 +502,96 @@ def strip_series(res: dict) -> dict:
     return res
 
 
+PARTS = ["accuracy", "stability", "scaling", "peers"]
+HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")
+
+
+def write_json(res: dict, path) -> None:
+    """Write the result JSON atomically (temp file in the same folder, then rename): a run killed while
+    writing leaves the previous complete file, never a truncated one."""
+    import copy
+    from pathlib import Path
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "w") as f:
+        json.dump(strip_series(copy.deepcopy(res)), f, indent=1, default=jdefault)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _rel(path) -> str:
+    from pathlib import Path
+
+    try:
+        return str(Path(path).resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
+def merge(files: list, out, force: bool = False) -> dict:
+    """Merge result JSONs of parts of one suite on one device (python -m benchmarks merge). A part
+    present in several files is taken from the last one that finished it; a part's error is kept only
+    when no file finished that part. Header fields come from the first file; ``merged_from`` records
+    each file's parts, commit, date and wall time; ``suite_wall_s`` is the sum of the files' wall times."""
+    from pathlib import Path
+
+    recs = [(str(f), json.load(open(f))) for f in files]
+    if not recs:
+        raise ValueError("merge: no files")
+    for key in ("suite", "device"):
+        vals = {r.get(key) for _, r in recs}
+        if len(vals) > 1 and not force:
+            raise ValueError(f"merge: the files differ in {key} ({', '.join(map(str, sorted(vals, key=str)))}); "
+                             "merge parts of one suite on one device (or pass --force)")
+    first = recs[0][1]
+    res = {k: first[k] for k in HEADER if k in first}
+    res["merged_from"], res["part_wall_s"], done = [], {}, []
+    for f, r in recs:
+        parts = [p for p in PARTS if p in r]
+        for p in parts:
+            if p in res:
+                log(f"  merge: {p} from {f} replaces the earlier file's")
+            res[p] = r[p]
+            res.pop(p + "_error", None)
+            if p in r.get("part_wall_s", {}):
+                res["part_wall_s"][p] = r["part_wall_s"][p]
+            if p not in done:
+                done.append(p)
+        for p in PARTS:
+            if p + "_error" in r and p not in res:
+                res[p + "_error"] = r[p + "_error"]
+        res["merged_from"].append({"file": _rel(f), "parts": parts, "commit": r.get("commit"), "date": r.get("date"),
+                                   "time_utc": r.get("time_utc"), "suite_wall_s": r.get("suite_wall_s"),
+                                   "load_average": r.get("load_average")})
+    res["parts_done"] = [p for p in PARTS if p in done]
+    res["parts_pending"] = [p for p in PARTS if p not in done]
+    res["suite_wall_s"] = sum(r.get("suite_wall_s") or 0.0 for _, r in recs)
+    out = Path(out)
+    res["record"] = _rel(out)
+    res["charts"] = charts(res, out.stem, out.parent)
+    write_json(res, out)
+    return res
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
-    r = sub.add_parser("run", help="run a suite")
+    r = sub.add_parser("run", help="run a suite (the JSON is rewritten after every finished part)")
     r.add_argument("--device", default="cpu")
     r.add_argument("--suite", choices=list(SUITES), default="quick")
-    r.add_argument("--only", nargs="+", choices=["accuracy", "stability", "scaling", "peers"], default=None)
-    r.add_argument("--out", default=None, help="JSON path (default benchmarks/results/<date>-<device>.json)")
+    r.add_argument("--only", nargs="+", choices=PARTS, default=None)
+    r.add_argument("--out", default=None, help="JSON path (default benchmarks/results/<date>-<device>.json; "
+                                               "with --only, <date>-<device>-<suite>-<parts>.json)")
+    mg = sub.add_parser("merge", help="merge part JSONs of one suite and device; redraw charts, print the summary")
+    mg.add_argument("json", nargs="+")
+    mg.add_argument("--out", required=True, help="merged JSON path; charts go next to it as <stem>-*.png")
+    mg.add_argument("--force", action="store_true", help="merge files of different suites or devices anyway")
+    ch = sub.add_parser("charts", help="redraw the PNG charts of a result JSON")
+    ch.add_argument("json")
+    ch.add_argument("--out-dir", default=None, help="folder for the PNGs (default: the JSON's folder)")
     md = sub.add_parser("markdown", help="print a RESULTS.md section from a result JSON")
     md.add_argument("json")
     m = sub.add_parser("_mem", help=argparse.SUPPRESS)
@@ -471,6 +601,23 @@ def main(argv=None) -> None:
     a = ap.parse_args(argv)
     if a.cmd == "markdown":
         print(markdown(json.load(open(a.json))))
+        return
+    if a.cmd == "charts":
+        from pathlib import Path
+
+        src = Path(a.json)
+        for c in charts(json.load(open(src)), src.stem, a.out_dir or src.parent):
+            print(f"chart {c}")
+        return
+    if a.cmd == "merge":
+        try:
+            res = merge(a.json, a.out, a.force)
+        except ValueError as e:
+            sys.exit(str(e))
+        print(summary(res))
+        print(f"\nsaved {a.out}")
+        for c in res["charts"]:
+            print(f"chart {c}")
         return
     if a.cmd == "_mem":
         _mem_main(a.kind, a.size, a.device)
@@ -483,13 +630,18 @@ def main(argv=None) -> None:
 
     dev = resolve_device(a.device)
     cfg = SUITES[a.suite]
-    parts = a.only or ["accuracy", "stability", "scaling", "peers"]
+    parts = [p for p in PARTS if p in a.only] if a.only else list(PARTS)
     stamp = datetime.date.today().isoformat()
-    stem = f"{stamp}-{dev.replace(':', '')}"
-    RESULTS.mkdir(parents=True, exist_ok=True)
+    stem = f"{stamp}-{dev.replace(':', '')}" + ("" if parts == PARTS else f"-{a.suite}-{'-'.join(parts)}")
+    from pathlib import Path
+
+    path = Path(a.out) if a.out else RESULTS / f"{stem}.json"
+    stem = path.stem
     res = {"suite": a.suite, "device": dev, "device_name": device_name(dev), "date": stamp,
            "time_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%H:%M"), "commit": commit(),
-           "warp": wp.__version__, "load_average": os.getloadavg(), "bounds": H.BOUNDS, "config": cfg}
+           "warp": wp.__version__, "load_average": os.getloadavg(), "bounds": H.BOUNDS, "config": cfg,
+           "record": _rel(path), "parts_done": [], "parts_pending": list(parts), "part_wall_s": {}, "suite_wall_s": 0.0}
+    write_json(res, path)
     t0 = time.perf_counter()
     fns = {"accuracy": part_accuracy, "stability": part_stability, "scaling": part_scaling, "peers": part_peers}
     for p in parts:
@@ -500,12 +652,19 @@ def main(argv=None) -> None:
         except Exception as e:  # a failing part is recorded; the others still run
             res[p + "_error"] = f"{type(e).__name__}: {e}\n{traceback.format_exc()[-1500:]}"
             log(f"  {p} failed: {type(e).__name__}: {e}")
-        log(f"  ({time.perf_counter() - t:.0f} s)")
-    res["suite_wall_s"] = time.perf_counter() - t0
-    res["charts"] = charts(res, stem)
-    path = a.out or RESULTS / f"{stem}.json"
-    with open(path, "w") as f:
-        json.dump(strip_series(res), f, indent=1, default=jdefault)
+        res["part_wall_s"][p] = time.perf_counter() - t
+        res["parts_done"].append(p)
+        res["parts_pending"].remove(p)
+        res["suite_wall_s"] = time.perf_counter() - t0
+        write_json(res, path)  # a run killed in a later part keeps this one
+        log(f"  ({res['part_wall_s'][p]:.0f} s; saved {path})")
+    try:
+        res["charts"] = charts(res, stem, path.parent)
+    except Exception as e:  # the JSON is written; charts can be redrawn with `python -m benchmarks charts`
+        res["charts"] = []
+        res["charts_error"] = f"{type(e).__name__}: {e}"
+        log(f"  charts failed: {res['charts_error']}")
+    write_json(res, path)
     print()
     print(summary(res))
     print(f"\nsaved {path}")

@@ -51,3 +51,93 @@ def test_spheric_errors_of_the_measurement_itself():
     assert e["error"] < 1e-12
     g["P1"] = g["P1"] + 1000.0 * H.G * H.SPHERIC_H0 * 0.2  # offset by 20% of rho g H0
     assert abs(H.spheric_errors(t, g)["p_rms"] - 0.2) < 1e-9
+
+
+# ------------------------------------------------------------- result files: incremental writes, merge ----
+def _acc_rows():
+    rows = [{"variant": v, "resolution": f"a/{n}", "particles": n * n * 2, "error": e, "wall_per_sim_s": w, "class": "stable",
+             "front_rms": e, "front_bias": e, "height_rms": e, "pareto": p}
+            for v, n, e, w, p in (("tait", 10, 0.09, 1.0, True), ("tait", 20, 0.07, 4.0, True), ("linear", 10, 0.1, 2.0, False))]
+    return {"dam_break_2d": rows, "spheric": [], "dam_break_2d_recommendation": ["budget 1 s or more: tait at a/10"],
+            "spheric_recommendation": []}
+
+
+def _peers():
+    return {"splash": {"splash": {"skipped": "pysplishsplash is not installed"}},
+            "warp_example": {"error": "not run in this test"}}
+
+
+def _header(device="cpu", commit="abc1234", wall=10.0, **parts):
+    return {"suite": "full", "device": device, "device_name": "NVIDIA H100" if device != "cpu" else "a CPU",
+            "date": "2026-11-22", "time_utc": "05:00", "commit": commit, "warp": "1.19.0", "load_average": [0.5, 0.5, 0.5],
+            "suite_wall_s": wall, "part_wall_s": {p: wall for p in parts}, "parts_done": list(parts), **parts}
+
+
+def test_run_writes_json_after_each_part_and_keeps_finished_parts_when_killed(tmp_path, monkeypatch):
+    import json
+
+    import benchmarks.__main__ as B
+
+    def killed(dev, cfg):  # a call cut off by its time limit, not an exception the harness would record
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(B, "part_accuracy", lambda dev, cfg: _acc_rows())
+    monkeypatch.setattr(B, "part_stability", killed)
+    out = tmp_path / "part.json"
+    try:
+        B.main(["run", "--device", "cpu", "--suite", "quick", "--only", "accuracy", "stability", "--out", str(out)])
+    except KeyboardInterrupt:
+        pass
+    res = json.loads(out.read_text())
+    assert res["parts_done"] == ["accuracy"] and res["parts_pending"] == ["stability"]
+    assert res["accuracy"]["dam_break_2d"][0]["variant"] == "tait" and "stability" not in res
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]  # the write is atomic: no leftovers
+    assert "incomplete" in B.summary(res)
+
+
+def test_merge_parts_redraws_charts_and_refuses_mixed_devices(tmp_path):
+    import json
+
+    import pytest
+
+    import benchmarks.__main__ as B
+
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text(json.dumps(_header("cuda:0", "aaa1111", 385.0, accuracy=_acc_rows())))
+    b.write_text(json.dumps(_header("cuda:0", "bbb2222", 305.0, peers=_peers())))
+    out = tmp_path / "merged" / "full.json"
+    B.main(["merge", str(a), str(b), "--out", str(out)])
+    res = json.loads(out.read_text())
+    assert res["parts_done"] == ["accuracy", "peers"] and res["parts_pending"] == ["stability", "scaling"]
+    assert res["suite_wall_s"] == 690.0 and [m["commit"] for m in res["merged_from"]] == ["aaa1111", "bbb2222"]
+    assert (out.parent / "full-accuracy-dam_break_2d.png").stat().st_size > 0
+    md = B.markdown(res)
+    assert "NVIDIA H100" in md and "CPU's cores" not in md and "aaa1111, bbb2222" in md
+    assert "pysplishsplash is not installed" in B.summary(res)
+    (tmp_path / "c.json").write_text(json.dumps(_header("cpu", peers=_peers())))
+    with pytest.raises(ValueError, match="device"):
+        B.merge([a, tmp_path / "c.json"], tmp_path / "x.json")
+    B.main(["charts", str(out), "--out-dir", str(tmp_path / "redrawn")])
+    assert (tmp_path / "redrawn" / "full-accuracy-dam_break_2d.png").is_file()
+
+
+def test_splash_scene_matches_rockwave_lattice_and_eos():
+    """SPlisHSPlasH's block sampler (round(L / 2r) - 1 per axis from min + 2r) on the padded block gives
+    rockwave's cell-centred lattice; stiffness is rockwave's Tait B."""
+    from benchmarks.peers import splash as S
+    from rockwave.sampling import box_lattice
+
+    a = H.A_MM
+    sp = a / 10
+    sc = S.splash_scene(sp, 15.0, 1e-4)
+    blk = sc["FluidBlocks"][0]
+    d = 2 * sc["Configuration"]["particleRadius"]
+    axes = []
+    for lo, hi in zip(blk["start"], blk["end"]):
+        n = int(round((hi - lo) / d)) - 1
+        axes.append(lo + d + d * np.arange(n))
+    ours = box_lattice([0, 0, 0], [a, 2 * a, a], sp)  # y up in SPlisHSPlasH
+    assert np.prod([len(x) for x in axes]) == len(ours) == 2000
+    assert np.allclose([x.min() for x in axes], ours.min(axis=0)) and np.allclose([x.max() for x in axes], ours.max(axis=0))
+    assert abs(sc["Configuration"]["WCSPH"]["stiffness"] - 15.0 ** 2 * 1000.0 / 7.0) < 1e-9
+    assert sc["Configuration"]["WCSPH"]["exponent"] == 7.0 and sc["Configuration"]["kernel"] == 0

@@ -2,7 +2,11 @@
 with LD_PRELOAD set for the wheel's GL library; /work/shared/peers.md) and writes a JSON result:
 fluid particles, per-step wall times, and the front (largest x of the fluid) at the sample times.
 
-    python benchmarks/peers/splash_worker.py SCENE.json OUT.json T_END SAMPLE_TIMES_CSV
+    python benchmarks/peers/splash_worker.py SCENE.json OUT.json T_END SAMPLE_TIMES_CSV [SETTINGS_JSON]
+
+SETTINGS_JSON (optional), e.g. {"viscosity": 4.3e-4}: set after initSimulation through the parameter API,
+for values that SPlisHSPlasH 2.19.0's scene loader does not take from the scene file (the standard
+viscosity's "viscosity" in a Materials entry is left at its default 0.01: measured).
 """
 
 import json
@@ -15,6 +19,7 @@ import numpy as np
 
 def main() -> None:
     scene, out, t_end, samples = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]
+    settings = json.loads(sys.argv[5]) if len(sys.argv) > 5 else {}
     ts = [float(s) for s in samples.split(",") if s]
     import pysplishsplash as sph
 
@@ -26,10 +31,40 @@ def main() -> None:
     init_s = time.perf_counter() - t0
     sim = sph.Simulation.getCurrent()
     tm = sph.TimeManager.getCurrent()
+    fm0 = sim.getFluidModel(0)
+    n0 = fm0.numActiveParticles()
+    x0 = np.array(fm0.getFieldBuffer("position"), copy=False)[:n0]
+    bounds0 = [x0.min(axis=0).tolist(), x0.max(axis=0).tolist()]
+
+    def apply_settings():
+        if "viscosity" in settings:
+            sim.getFluidModel(0).getViscosityBase().setValueFloat(sph.Viscosity_Standard.VISCOSITY_COEFFICIENT, float(settings["viscosity"]))
+
+    def parameters():
+        """The parameters SPlisHSPlasH actually uses (a misspelt or unread scene key is silently ignored)."""
+        fm = sim.getFluidModel(0)
+        used = {"initial_bounds": bounds0, "support_radius": float(sim.getSupportRadius()),
+                "particle_radius": float(sim.getParticleRadius()), "kernel": int(sim.getKernel()),
+                "grad_kernel": int(sim.getGradKernel()), "boundary_handling": str(sim.getBoundaryHandlingMethod()),
+                "time_step": float(tm.getTimeStepSize())}
+        for name, get in (("stiffness", lambda: sim.getTimeStep().getValueFloat(sph.TimeStepWCSPH.STIFFNESS)),
+                          ("exponent", lambda: sim.getTimeStep().getValueFloat(sph.TimeStepWCSPH.EXPONENT)),
+                          ("viscosity", lambda: fm.getViscosityBase().getValueFloat(sph.Viscosity_Standard.VISCOSITY_COEFFICIENT)),
+                          ("viscosity_method", lambda: type(fm.getViscosityBase()).__name__)):
+            try:
+                used[name] = get()
+            except Exception as e:  # bindings differ between versions: say so
+                used[name] = f"unread: {type(e).__name__}: {e}"[:120]
+        return used
+
+    apply_settings()
+    seen = {}
     stamps, front, k = [], {}, [0]
 
     def cb():
         stamps.append(time.perf_counter())
+        if len(stamps) == 1:  # after the first step: what the run uses (runSimulation re-reads some parameters)
+            seen["first_step"] = parameters()
         t = tm.getTime()
         while k[0] < len(ts) and t >= ts[k[0]] - 1e-9:
             fm = sim.getFluidModel(0)
@@ -49,7 +84,7 @@ def main() -> None:
            "simulated_s": float(tm.getTime()), "dt_s": float(tm.getTimeStepSize()),
            "s_per_step_median": float(np.median(dts[5:])) if len(dts) > 10 else None,
            "s_per_step_mean": float(dts[5:].mean()) if len(dts) > 10 else None,
-           "front": front}
+           "front": front, "parameters_used": seen.get("first_step"), "parameters_at_end": parameters()}
     try:
         x = np.array(fm.getFieldBuffer("position"), copy=False)[:n]
         res["finite"] = bool(np.isfinite(x).all())
