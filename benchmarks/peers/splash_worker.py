@@ -1,6 +1,7 @@
 """Runs one SPlisHSPlasH scene headless inside its own process (started by benchmarks/peers/splash.py
 with LD_PRELOAD set for the wheel's GL library; /work/shared/peers.md) and writes a JSON result:
-fluid particles, per-step wall times, and the front (largest x of the fluid) at the sample times.
+fluid particles, per-step wall times, and the front at the sample times (benchmarks/peers/front.py
+bulk_front, and the largest x of any particle).
 
     python benchmarks/peers/splash_worker.py SCENE.json OUT.json T_END SAMPLE_TIMES_CSV [SETTINGS_JSON]
 
@@ -15,6 +16,9 @@ import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from front import bulk_front  # noqa: E402  (benchmarks/peers/front.py: the same front measure as rockwave's)
 
 
 def main() -> None:
@@ -65,12 +69,19 @@ def main() -> None:
         stamps.append(time.perf_counter())
         if len(stamps) == 1:  # after the first step: what the run uses (runSimulation re-reads some parameters)
             seen["first_step"] = parameters()
+        if len(stamps) in (1, 10, 100):  # start-up state: density and speed extremes
+            fm = sim.getFluidModel(0)
+            n = fm.numActiveParticles()
+            rho = np.array(fm.getFieldBuffer("density"), copy=False)[:n]
+            v = np.array(fm.getFieldBuffer("velocity"), copy=False)[:n]
+            seen[f"step_{len(stamps)}"] = {"rho_max": float(rho.max()), "rho_min": float(rho.min()),
+                                           "rho_mean": float(rho.mean()), "v_max": float(np.linalg.norm(v, axis=1).max())}
         t = tm.getTime()
         while k[0] < len(ts) and t >= ts[k[0]] - 1e-9:
             fm = sim.getFluidModel(0)
             n = fm.numActiveParticles()
             x = np.array(fm.getFieldBuffer("position"), copy=False)[:n]
-            front[ts[k[0]]] = [t, float(x[:, 0].max())]
+            front[ts[k[0]]] = [t, bulk_front(x, 2.0 * float(sim.getParticleRadius())), float(x[:, 0].max())]
             k[0] += 1
 
     base.setTimeStepCB(cb)
@@ -84,7 +95,8 @@ def main() -> None:
            "simulated_s": float(tm.getTime()), "dt_s": float(tm.getTimeStepSize()),
            "s_per_step_median": float(np.median(dts[5:])) if len(dts) > 10 else None,
            "s_per_step_mean": float(dts[5:].mean()) if len(dts) > 10 else None,
-           "front": front, "parameters_used": seen.get("first_step"), "parameters_at_end": parameters()}
+           "front": front, "parameters_used": seen.get("first_step"), "parameters_at_end": parameters(),
+           "start_up": {k: v for k, v in seen.items() if k.startswith("step_")}}
     try:
         x = np.array(fm.getFieldBuffer("position"), copy=False)[:n]
         res["finite"] = bool(np.isfinite(x).all())
