@@ -74,8 +74,12 @@ def main() -> None:
             n = fm.numActiveParticles()
             rho = np.array(fm.getFieldBuffer("density"), copy=False)[:n]
             v = np.array(fm.getFieldBuffer("velocity"), copy=False)[:n]
+            xs = np.array(fm.getFieldBuffer("position"), copy=False)[:n]
             seen[f"step_{len(stamps)}"] = {"rho_max": float(rho.max()), "rho_min": float(rho.min()),
-                                           "rho_mean": float(rho.mean()), "v_max": float(np.linalg.norm(v, axis=1).max())}
+                                           "rho_mean": float(rho.mean()), "v_max": float(np.linalg.norm(v, axis=1).max()),
+                                           "x_of_rho_max": xs[int(np.argmax(rho))].tolist(),
+                                           "fraction_over_1_02": float((rho > 1020.0).mean()),
+                                           "bounds": [xs.min(axis=0).tolist(), xs.max(axis=0).tolist()]}
         t = tm.getTime()
         while k[0] < len(ts) and t >= ts[k[0]] - 1e-9:
             fm = sim.getFluidModel(0)
