@@ -14,10 +14,15 @@ LD_PRELOAD=/lib/x86_64-linux-gnu/libGLdispatch.so.0 (its wheel's GL library clas
   the first at +spacing/2, i.e. exactly rockwave's positions (checked: the worker reports the bounds).
   The wall: rockwave's boundary layers continue the fluid lattice outside the tank face (the first at
   -spacing/2, one spacing from the first fluid layer). SPlisHSPlasH samples Akinci 2012 boundary particles
-  (boundaryHandlingMethod 0) on the tank mesh (UnitBox) surface and expects them one spacing (2 r) from
-  the fluid, as its own sampler leaves them: so its tank mesh is the tank grown by half a spacing on every
-  side, and its boundary sheet lies where rockwave's first boundary layer lies. (Measured: with the mesh on
-  the tank face, fluid at r from the sheet, the first step's density reaches 1.29 rho0 and the run blows up.)
+  (boundaryHandlingMethod 0) on the tank mesh (UnitBox) surface. Measured at the first step (the worker
+  records the start-up): with the mesh on the tank face (fluid r from the sheet) the density reaches
+  1.29 rho0 and the run blows up; with the mesh grown by half a spacing (sheet one spacing from the
+  fluid, where rockwave's first boundary layer lies) 1.126 rho0 in the tank corner and 28% of the
+  particles above 1.02 rho0 along the walls: a pressure burst throws the column forward (front error
+  0.85); grown by one spacing on every side (sheet 1.5 spacings from the fluid) every particle starts at
+  rho <= rho0 and at rest. So its tank mesh is the tank grown by one spacing on every side: its walls
+  sit about half a spacing further out than rockwave's (front error 0.049 there; 0.109 with the sheet
+  two spacings away).
 - Kernel: cubic spline for values and gradients (kernel = gradKernel = 0), support 4 r = 2 x spacing
   (rockwave kernel 'cubic_spline', support_radius_ratio 2).
 - EOS: SPlisHSPlasH's WCSPH (TimeStepWCSPH.cpp) computes p = stiffness ((rho/rho0)^exponent - 1) after
@@ -92,7 +97,7 @@ def splash_scene(spacing: float, c0: float, dt: float, a: float = H.A_MM, stiffn
                        "viscosityBoundary": 0.0}],
         "RigidBodies": [{
             "geometryFile": unit_box(), "translation": [L / 2, Ht / 2, w / 2], "rotationAxis": [1, 0, 0],
-            "rotationAngle": 0, "scale": [L + spacing, Ht + spacing, w + spacing], "isDynamic": False, "isWall": True, "mapInvert": True,
+            "rotationAngle": 0, "scale": [L + 2 * spacing, Ht + 2 * spacing, w + 2 * spacing], "isDynamic": False, "isWall": True, "mapInvert": True,
             "mapThickness": 0.0, "mapResolution": [40, 30, 15], "samplingMode": 1,
         }],
         "FluidBlocks": [{"denseMode": 0, "start": [-e, -e, -e], "end": [a + e, 2 * a + e, w + e], "translation": [0, 0, 0],
