@@ -142,8 +142,8 @@ def main(argv=None):
                                                      device=d, block_dim=128)),
         "neighbour_list": lambda: fs.build_neighbour_lists(st),
         "neighbour_list_bd128": lambda: wp.launch(sph.build_neighbour_list_cells, dim=n,
-                                                  inputs=[fs.cells, st.x, m.support_radius, *fs._slot_ranges],
-                                                  outputs=[fs._nbr_count, fs._nbr], device=d, block_dim=128),
+                                                  inputs=[fs.cells, st.x, fs.list_radius, *fs._slot_ranges, fs._always],
+                                                  outputs=[fs._nbr_count, fs._nbr, fs._x_build], device=d, block_dim=128),
         "cell_build": lambda: fs.build_cells(st),
     }
     with wp.ScopedDevice(d):

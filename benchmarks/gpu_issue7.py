@@ -2,6 +2,7 @@
 block-step phases, coupled-step split. Writes JSON to --out.
 
     python -m benchmarks.gpu_issue7 --device cuda:0 --out /tmp/r
+    python -m benchmarks.gpu_issue7 --device cpu --parts skin --spacings 0.04 --skins 0 0.05 0.1
 """
 
 from __future__ import annotations
@@ -114,8 +115,9 @@ def fluid_passes(device, spacing, reps=20, sort=True, cell_ratio=1.0):
         "neighbour_list": lambda: fs.build_neighbour_lists(st),
         "neighbour_list_continuity": lambda: wp.launch(
             sph.neighbour_list_density, dim=m.n_fluid,
-            inputs=[fs.cells, *fs._slot_ranges, st.x, st.v, m.particle_mass, dt, m.params, sph.DENSITY_CONTINUITY],
-            outputs=[fs._nbr_count, fs._nbr, st.drho_dt, st.rho, st.pressure, fs._pr2], device=d),
+            inputs=[fs.cells, *fs._slot_ranges, fs.list_radius, st.x, st.v, m.particle_mass, dt, m.params,
+                    sph.DENSITY_CONTINUITY],
+            outputs=[fs._nbr_count, fs._nbr, st.drho_dt, st.rho, st.pressure, fs._pr2, fs._x_build], device=d),
         "density_summation_list": lambda: fs.compute_density(st, lists=True),
         "density_continuity_list": lambda: wp.launch(
             sph.particle_density_continuity_list, dim=m.n_fluid,
@@ -138,6 +140,7 @@ def fluid_passes(device, spacing, reps=20, sort=True, cell_ratio=1.0):
     }
     g = fs.cells
     r = {"spacing_m": spacing, "particles": m.n_fluid, "sorted": sort, "cell_ratio": cell_ratio,
+         "neighbour_skin": fs.neighbour_skin,
          "list_capacity": fs.neighbour_cap, "cell_dims": [g.nx, g.ny, g.nz]}
     with wp.ScopedDevice(d):
         for k, f in passes.items():
@@ -152,6 +155,44 @@ def fluid_passes(device, spacing, reps=20, sort=True, cell_ratio=1.0):
     r["neighbours_max"] = int(cnt.max())
     print(json.dumps(r), flush=True)
     return r
+
+
+def fluid_skin(device, spacing, skins, flow_s=0.3, steps=60):
+    """ms per step of the dam break after flow_s seconds of flow for each neighbour skin (fraction of H),
+    every skin from the same state (plain steps, no reorder chunks), and how many steps a list lasts
+    (counted in a second pass with a host read of the build positions per step)."""
+    sim = fluid_sim(device, spacing)
+    fs, st = sim.fluid_solver, sim.state
+    t0 = time.perf_counter()
+    sim.advance(flow_s)
+    names = ("x", "v", "rho", "pressure", "accel", "xsph_dv", "drho_dt", "ids")
+    snap = {k: wp.clone(getattr(st, k)) for k in names}
+    out = []
+    for skin in skins:
+        res = {}
+        for phase in ("time", "count"):
+            for k in names:
+                wp.copy(getattr(st, k), snap[k])
+            fs.set_neighbour_skin(skin)
+            with wp.ScopedDevice(device):
+                sim.step()
+                if phase == "time":
+                    res["s_per_step"] = _sync_time(lambda: [sim.step() for _ in range(steps)], device) / steps
+                else:
+                    builds, last = 0, fs._x_build.numpy().copy()
+                    for _ in range(steps):
+                        sim.step()
+                        xb = fs._x_build.numpy()
+                        builds += int(not np.array_equal(xb, last))
+                        last = xb.copy()
+                    res["builds"] = builds
+        r = dict(spacing_m=spacing, particles=sim.n_fluid, flow_s=flow_s, skin=skin, steps=steps,
+                 ms_per_step=1e3 * res["s_per_step"], list_builds=res["builds"],
+                 steps_per_list=steps / max(res["builds"], 1), list_capacity=fs.neighbour_cap, dt_s=sim.dt,
+                 advance_s=time.perf_counter() - t0)
+        print(json.dumps(r), flush=True)
+        out.append(r)
+    return out
 
 
 def blocks_phases(device, count, steps=20, settle=300):
@@ -258,6 +299,8 @@ def main(argv=None):
     ap.add_argument("--block-counts", type=int, nargs="+", default=[10000, 100000])
     ap.add_argument("--coupled-scale", type=float, default=41.0)
     ap.add_argument("--cell-ratios", type=float, nargs="+", default=[1.0, 0.5])
+    ap.add_argument("--skins", type=float, nargs="+", default=[0.0, 0.05, 0.1, 0.15])
+    ap.add_argument("--flow-s", type=float, default=0.3)
     a = ap.parse_args(argv)
     wp.config.quiet = True
     res = {"device_name": device_name(a.device), "commit": commit(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
@@ -271,6 +314,8 @@ def main(argv=None):
     if "passes" in a.parts:
         res["passes"] = [fluid_passes(a.device, a.spacings[-1], sort=False), fluid_passes(a.device, a.spacings[-1])]
         res["passes"] += [fluid_passes(a.device, a.spacings[-1], cell_ratio=r) for r in a.cell_ratios if r != 1.0]
+    if "skin" in a.parts:
+        res["skin"] = fluid_skin(a.device, a.spacings[-1], a.skins, a.flow_s, min(a.steps, 60))
     if "blocks" in a.parts:
         res["blocks"] = [blocks_phases(a.device, c) for c in a.block_counts]
     if "coupled" in a.parts:

@@ -367,18 +367,25 @@ def cell_of(g: CellGrid, x: wp.vec3):
 
 
 @wp.kernel
-def cell_keys(g: CellGrid, x: wp.array(dtype=wp.vec3), keys: wp.array(dtype=int), values: wp.array(dtype=int)):
+def cell_keys(g: CellGrid, x: wp.array(dtype=wp.vec3), keys: wp.array(dtype=int), values: wp.array(dtype=int),
+              rebuild: wp.array(dtype=int)):
+    """Cell key of every point (rebuild[0] == 0: the lists are still valid, nothing to do; the cell grid's
+    other kernels and the list build take the same flag, see rockwave.fluid.FluidSolver.neighbour_skin)."""
     i = wp.tid()
+    if rebuild[0] == 0:
+        return
     ix, iy, iz = cell_of(g, x[i])
     keys[i] = wrap(ix, g.nx) + g.nx * (wrap(iy, g.ny) + g.ny * wrap(iz, g.nz))
     values[i] = i
 
 
 @wp.kernel
-def cell_first(keys: wp.array(dtype=int), n: int, first: wp.array(dtype=int)):
+def cell_first(keys: wp.array(dtype=int), n: int, first: wp.array(dtype=int), rebuild: wp.array(dtype=int)):
     """first[c] = lower bound of cell c in the n sorted keys (launched over every cell and one past the
     last: a binary search each; a loop over the empty cells after each key serialised the tail)."""
     c = wp.tid()
+    if rebuild[0] == 0:
+        return
     lo = int(0)
     hi = n
     while lo < hi:
@@ -391,8 +398,11 @@ def cell_first(keys: wp.array(dtype=int), n: int, first: wp.array(dtype=int)):
 
 
 @wp.kernel
-def gather_sorted_positions(order: wp.array(dtype=int), x: wp.array(dtype=wp.vec3), x_sorted: wp.array(dtype=wp.vec3)):
+def gather_sorted_positions(order: wp.array(dtype=int), x: wp.array(dtype=wp.vec3), x_sorted: wp.array(dtype=wp.vec3),
+                            rebuild: wp.array(dtype=int)):
     k = wp.tid()
+    if rebuild[0] == 0:
+        return
     x_sorted[k] = x[order[k]]
 
 
@@ -435,14 +445,21 @@ def build_neighbour_list_cells(
     H: float,
     r_lo: int,
     r_hi: int,
+    rebuild: wp.array(dtype=int),
     count: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
+    x_build: wp.array(dtype=wp.vec3),
 ):
-    """build_neighbour_list on the cell grid (slot ranges r_lo..r_hi-1: 0..18 in 3D, 6..12 in 2D)."""
+    """The neighbours within H (here the list radius: support radius + skin) of each fluid particle on the
+    cell grid (slot ranges r_lo..r_hi-1: 0..18 in 3D, 6..12 in 2D); x_build keeps the positions of the
+    build for the skin's displacement check. rebuild[0] == 0: the list is still valid, nothing to do."""
     i = wp.tid()
+    if rebuild[0] == 0:
+        return
     n = count.shape[0]
     cap = nbr.shape[0] // n
     xi = x[i]
+    x_build[i] = xi
     ix, iy, iz = cell_of(g, xi)
     c = int(0)
     for r in range(r_lo, r_hi):
@@ -455,6 +472,18 @@ def build_neighbour_list_cells(
                         nbr[c * n + i] = j
                     c += 1
     count[i] = c
+
+
+@wp.kernel
+def list_displacement_check(x: wp.array(dtype=wp.vec3), x_build: wp.array(dtype=wp.vec3), limit2: float,
+                            rebuild: wp.array(dtype=int)):
+    """Verlet-list check: rebuild[0] = 1 when a fluid particle has moved limit = skin/2 or more since the
+    list was built (or its position is not finite). A pair closer than H now was then closer than
+    H + skin at the build, so the list (radius H + skin) still holds every neighbour. Boundary
+    particles never move."""
+    i = wp.tid()
+    if not (wp.length_sq(x[i] - x_build[i]) < limit2):
+        rebuild[0] = 1
 
 
 # ------------------------------------------------------------------ neighbour lists ------
@@ -487,9 +516,12 @@ def particle_density_summation_list(
         return
     xi = x[i]
     s = particle_mass[i] * kernel_w(0.0, p)
+    H2 = p.H * p.H
     for k in range(c):
         j = nbr[k * n + i]
-        s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
+        r2 = wp.length_sq(xi - x[j])
+        if r2 < H2:  # a list built with a skin also holds pairs out to H + skin
+            s += particle_mass[j] * kernel_w(r2, p)
     rho[i] = s
     pr = equation_of_state(s, p)
     pressure[i] = pr
@@ -501,7 +533,10 @@ def pair_density_rate(xi: wp.vec3, vi: wp.vec3, j: int, x: wp.array(dtype=wp.vec
                       particle_mass: wp.array(dtype=float), p: SPHParams):
     # continuity: d rho_i/dt = sum_j m_j (v_i - v_j) . grad W_ij  (boundary particles at rest)
     rij = xi - x[j]
-    g = kernel_grad(rij, wp.length(rij), p)
+    r2 = wp.length_sq(rij)
+    if r2 >= p.H * p.H:  # a list built with a skin also holds pairs out to H + skin
+        return 0.0
+    g = kernel_grad(rij, wp.sqrt(r2), p)
     if j < p.n_fluid:
         return p.fluid_mass * wp.dot(vi - v[j], g)
     return particle_mass[j] * wp.dot(vi, g)
@@ -549,6 +584,7 @@ def particle_density_overflow(
     g: CellGrid,
     r_lo: int,
     r_hi: int,
+    R: float,
     count: wp.array(dtype=int),
     cap: int,
     x: wp.array(dtype=wp.vec3),
@@ -563,7 +599,9 @@ def particle_density_overflow(
     pr2: wp.array(dtype=float),
 ):
     """The density passes for the particles whose neighbour list overflowed (count > cap): the same
-    sums over a cell-grid query (every other particle returns at once)."""
+    sums over a cell-grid query of radius R, the list radius (every other particle returns at once).
+    With a skin the grid may be the one of the list build: its points have since moved less than
+    skin/2, so a neighbour within H now lies within H + skin/2 < R of x_i in that grid."""
     i = wp.tid()
     if count[i] <= cap:
         return
@@ -574,7 +612,7 @@ def particle_density_overflow(
         s = particle_mass[i] * kernel_w(0.0, p)
     ix, iy, iz = cell_of(g, xi)
     for r in range(r_lo, r_hi):
-        s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
+        s0, e0 = slot_range(g, xi, R, iy, iz, r)
         for k in range(s0, e0):
             j = g.order[k]
             if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
@@ -601,6 +639,7 @@ def neighbour_list_density(
     g: CellGrid,
     r_lo: int,
     r_hi: int,
+    R: float,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
@@ -613,32 +652,38 @@ def neighbour_list_density(
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
     pr2: wp.array(dtype=float),
+    x_build: wp.array(dtype=wp.vec3),
 ):
-    """build_neighbour_list_cells and, in the same query, the density: DENSITY_CONTINUITY advances
-    rho_i by dt sum_j m_j (v_i - v_j) . grad W_ij; DENSITY_SUMMATION sets rho_i = sum_j m_j W_ij
-    (self included); then p_i = EOS(rho_i) (see particle_density_continuity_list for the order)."""
+    """build_neighbour_list_cells (list radius R = H + skin) and, in the same query, the density
+    over the pairs closer than H: DENSITY_CONTINUITY advances rho_i by dt sum_j m_j (v_i - v_j) . grad W_ij;
+    DENSITY_SUMMATION sets rho_i = sum_j m_j W_ij (self included); then p_i = EOS(rho_i) (see
+    particle_density_continuity_list for the order). Always a rebuild (the host decides when to launch it)."""
     i = wp.tid()
     n = count.shape[0]
     cap = nbr.shape[0] // n
     xi = x[i]
+    x_build[i] = xi
     vi = v[i]
     s = float(0.0)
     if mode == DENSITY_SUMMATION:
         s = particle_mass[i] * kernel_w(0.0, p)
     c = int(0)
+    H2 = p.H * p.H
     ix, iy, iz = cell_of(g, xi)
     for r in range(r_lo, r_hi):
-        s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
+        s0, e0 = slot_range(g, xi, R, iy, iz, r)
         for k in range(s0, e0):
             j = g.order[k]
-            if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
+            r2 = wp.length_sq(xi - x[j])
+            if j != i and r2 < R * R:
                 if c < cap:
                     nbr[c * n + i] = j
                 c += 1
-                if mode == DENSITY_CONTINUITY:
-                    s += pair_density_rate(xi, vi, j, x, v, particle_mass, p)
-                elif mode == DENSITY_SUMMATION:
-                    s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
+                if r2 < H2:
+                    if mode == DENSITY_CONTINUITY:
+                        s += pair_density_rate(xi, vi, j, x, v, particle_mass, p)
+                    elif mode == DENSITY_SUMMATION:
+                        s += particle_mass[j] * kernel_w(r2, p)
     count[i] = c
     if mode == DENSITY_CONTINUITY:
         drho_dt[i] = s
@@ -667,12 +712,15 @@ def pair_acceleration_fluid(
     p: SPHParams,
 ):
     """pair_acceleration with the fluid mass from p.fluid_mass (no mass read for fluid neighbours) and
-    p_j/rho_j^2 from pr2 (momentum form): ~27% less time in the force pass on an H100."""
+    p_j/rho_j^2 from pr2 (momentum form): ~27% less time in the force pass on an H100. Pairs at
+    r >= H (a list built with a skin holds them out to H + skin) add nothing."""
     rij = xi - x[j]
     r2 = wp.length_sq(rij)
+    dv = wp.vec3(0.0)
+    if r2 >= p.H * p.H:
+        return dv, dv
     r = wp.sqrt(r2)
     gw = kernel_grad(rij, r, p)
-    dv = wp.vec3(0.0)
     if j >= p.n_fluid:
         # Akinci et al. 2012 boundary pressure: a_i -= Psi_b p_i/rho_i^2 grad W_ib (walls at rest)
         return -(particle_mass[j] * pi_r2) * gw, dv
@@ -742,6 +790,7 @@ def particle_acceleration_overflow(
     g: CellGrid,
     r_lo: int,
     r_hi: int,
+    R: float,
     count: wp.array(dtype=int),
     cap: int,
     x: wp.array(dtype=wp.vec3),
@@ -753,7 +802,8 @@ def particle_acceleration_overflow(
     accel: wp.array(dtype=wp.vec3),
     xsph_dv: wp.array(dtype=wp.vec3),
 ):
-    """particle_acceleration for the particles whose neighbour list overflowed, over a cell-grid query."""
+    """particle_acceleration for the particles whose neighbour list overflowed, over a cell-grid query of
+    radius R (the list radius; see particle_density_overflow)."""
     i = wp.tid()
     if count[i] <= cap:
         return
@@ -765,7 +815,7 @@ def particle_acceleration_overflow(
     dv = wp.vec3(0.0)
     ix, iy, iz = cell_of(g, xi)
     for r in range(r_lo, r_hi):
-        s0, e0 = slot_range(g, xi, p.H, iy, iz, r)
+        s0, e0 = slot_range(g, xi, R, iy, iz, r)
         for k in range(s0, e0):
             j = g.order[k]
             if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:

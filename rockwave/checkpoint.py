@@ -269,8 +269,17 @@ def read_file(path: str | os.PathLike) -> tuple[dict, dict]:
     return arrays, meta
 
 
+def _invalidate_neighbour_lists(sim) -> None:
+    # a neighbour list kept over steps (FluidSolver.neighbour_skin) is not saved: both the running
+    # simulation and one resumed from this state rebuild it at the next step (bit-identical resume)
+    fs = getattr(sim, "fluid_solver", None)
+    if fs is not None and hasattr(fs, "invalidate_lists"):
+        fs.invalidate_lists()
+
+
 def capture(sim) -> dict:
     """Device-side copy of every provider's state (cheap; no host transfer)."""
+    _invalidate_neighbour_lists(sim)
     return {name: p.capture() for name, p in providers(sim).items()}
 
 
@@ -299,6 +308,7 @@ def restore(sim, arrays: dict, meta: dict) -> None:
     for name in provs:
         if name not in meta["groups"]:
             raise CheckpointError(f"the checkpoint lacks state group {name!r}")
+    _invalidate_neighbour_lists(sim)
     if ident["time_step"] != now["time_step"]:
         # the scene's step settings changed (e.g. a smaller cfl_number after a blow-up): use them now
         sim._dt_target = sim.scene.simulation.dt_s if sim.fixed else sim._adaptive_dt()

@@ -178,14 +178,30 @@ class FluidSolver:
     in advance on a GPU) sorts
     the fluid particles by cell so that neighbour reads are coherent; boundary
     particles stay after them (build_fluid_model sorts them once). ``state.ids`` keeps each slot's
-    original index and ``unsort`` restores the original order (Simulation does it before any read)."""
+    original index and ``unsort`` restores the original order (Simulation does it before any read).
 
+    Neighbour skin (Verlet list): with ``neighbour_skin`` = s > 0 the list holds the pairs within
+    R = (1 + s) H and is kept over several steps; the density and force passes skip its pairs at
+    r >= H. Each step a kernel compares every fluid position with the one stored at the build and sets a
+    device flag when one moved s H / 2 or more (then every pair now closer than H was closer than R at
+    the build). The cell-grid kernels and the list build run every step and return at once while the
+    flag is clear, so no host read is needed (CUDA graphs); on the CPU the host reads the flag and skips
+    the launches (and the radix sort). The check compares positions slot by slot, so it covers every
+    change of x (the coupling's corrections, checkpoint restores, assignments); reorder and unsort set
+    the flag as well (they permute the slots and reorder rebuilds the grid), and so does a checkpoint
+    capture or restore (rockwave/checkpoint.py: a resumed run rebuilds where the running one does, so a
+    resume stays bit-identical). s = 0: rebuild every step."""
+
+    # list radius (1 + skin) H; 0: the list is rebuilt every step (see the class doc). 0.05: a 3D dam break
+    # in flow keeps a list ~3 steps, CPU step 19.6 -> 14.0 ms at 10.9k particles (benchmarks/RESULTS.md)
+    neighbour_skin = 0.05
     reorder_interval = 10  # steps between reorders; 0: never (the ghost solver's grid also holds ghosts)
     cell_ratio = 1.0  # hash-grid cell width / support radius (queries visit ceil(2/ratio + 1)^dim cells)
 
-    def __init__(self, model: FluidModel):
+    def __init__(self, model: FluidModel, neighbour_skin: float | None = None):
         self.model = model
         d = model.device
+        self.neighbour_skin = float(self.neighbour_skin if neighbour_skin is None else neighbour_skin)
         self.cell = model.support_radius * self.cell_ratio
         dims = _grid_dims(model.domain_lo, model.domain_hi, self.cell, model.dim)
         self.grid = wp.HashGrid(*dims, device=d)
@@ -193,16 +209,15 @@ class FluidSolver:
         self._extrema = wp.zeros(2, dtype=float, device=d)
         self._in_original_order = True  # False after a reorder, until unsort
         self._order_buf = None
-        # neighbour lists (kernels/sph.py build_neighbour_list): count[i] and nbr[k * n_fluid + i]
-        # for k < cap; cap ~1.6x the neighbours of a particle in the initial lattice
-        self.neighbour_cap = self.list_capacity(model)
+        self._always = wp.ones(1, dtype=int, device=d)  # the rebuild flag of unconditional builds
+        self._rebuild = wp.ones(1, dtype=int, device=d)  # 1: the list must be rebuilt this step
+        self.host_decides = not wp.get_device(d).is_cuda  # CPU: read the flag, skip the launches
+        self.list_builds = 0  # host-decided builds (CPU), for tests and measurements
         nf = max(model.n_fluid, 1)
-        self._nbr_count = wp.zeros(nf, dtype=int, device=d)
-        self._nbr = wp.zeros(nf * self.neighbour_cap, dtype=int, device=d)
         self._pr2 = wp.zeros(nf, dtype=float, device=d)  # p / rho^2 of this step (kernels/sph.py pair_acceleration_fluid)
         self._zero_dt = wp.zeros(1, dtype=float, device=d)
         self._block_dim = 128 if wp.get_device(d).is_cuda else 256  # force pass: 0.84 vs 0.91 ms at 256 (H100, 2.16 M)
-        self._init_cells()
+        self._init_lists()
         # density inside the neighbour-list query (CPU: one traversal fewer, 17.1 vs 19.8 ms/step at 10k
         # particles) or in its own pass over the list (CUDA: the query's lanes that find a neighbour make
         # the others wait, 2.16 ms fused vs 1.03 + 0.55 ms apart on an H100 at 2.16 M particles)
@@ -212,12 +227,32 @@ class FluidSolver:
     min_cells = 1 << 20  # the cell grid wraps past max(min_cells, cells_per_particle x particles) cells
     cells_per_particle = 4
 
-    def _init_cells(self) -> None:
-        """The cell grid of the neighbour lists: dimensions covering the domain (+2H), wrapped (hashed)
-        when that would exceed max(min_cells, cells_per_particle x particles) cells."""
+    def set_neighbour_skin(self, skin: float) -> None:
+        """Change the skin (fraction of H): reallocates the lists and the cell grid; the next step rebuilds."""
+        self.neighbour_skin = float(skin)
+        self._init_lists()
+
+    def _init_lists(self) -> None:
+        """Neighbour lists (kernels/sph.py build_neighbour_list_cells): count[i] and nbr[k * n_fluid + i]
+        for k < cap; cap ~1.6x the neighbours within the list radius in the initial lattice."""
         m, d = self.model, self.model.device
-        H = m.support_radius
-        c = H * 1.0001  # a neighbour within H is at most one y/z cell away despite rounding
+        if self.neighbour_skin < 0:
+            raise ValueError(f"neighbour_skin {self.neighbour_skin} < 0")
+        self.list_radius = m.support_radius * (1.0 + self.neighbour_skin)
+        self.neighbour_cap = self.list_capacity(m, self.neighbour_skin)
+        nf = max(m.n_fluid, 1)
+        self._nbr_count = wp.zeros(nf, dtype=int, device=d)
+        self._nbr = wp.zeros(nf * self.neighbour_cap, dtype=int, device=d)
+        self._x_build = wp.zeros(nf, dtype=wp.vec3, device=d)
+        self._rebuild.fill_(1)
+        self._init_cells()
+
+    def _init_cells(self) -> None:
+        """The cell grid of the neighbour lists: dimensions covering the domain (+2R, R the list radius),
+        wrapped (hashed) when that would exceed max(min_cells, cells_per_particle x particles) cells."""
+        m, d = self.model, self.model.device
+        H = self.list_radius
+        c = H * 1.0001  # a neighbour within R is at most one y/z cell away despite rounding
         cx = H / self.cell_subdivision_x
         lo = np.asarray(m.domain_lo, float) - 2 * H
         hi = np.asarray(m.domain_hi, float) + 2 * H
@@ -248,19 +283,23 @@ class FluidSolver:
         self.cells = g
         self._slot_ranges = (0, 18) if m.dim == 3 else (6, 12)  # 9 columns (3 in 2D) x 2 parts
 
-    def build_cells(self, state: FluidState) -> None:
-        """Sort all particles (fluid and boundary) by cell: cells.order, cells.first, cells.x_sorted."""
+    def build_cells(self, state: FluidState, rebuild: wp.array | None = None) -> None:
+        """Sort all particles (fluid and boundary) by cell: cells.order, cells.first, cells.x_sorted.
+        ``rebuild``: a device flag; while rebuild[0] == 0 the kernels return at once (the radix sort still
+        runs; on the unchanged sorted keys it keeps the order). None: always."""
         m = self.model
-        wp.launch(sph.cell_keys, dim=m.n_total, inputs=[self.cells, state.x, self._cell_keys, self._cell_order], device=m.device)
-        wp.utils.radix_sort_pairs(self._cell_keys, self._cell_order, m.n_total, 0, self._cell_bits)
-        wp.launch(sph.cell_first, dim=self._cell_first.shape[0], inputs=[self._cell_keys, m.n_total, self._cell_first],
+        f = self._always if rebuild is None else rebuild
+        wp.launch(sph.cell_keys, dim=m.n_total, inputs=[self.cells, state.x, self._cell_keys, self._cell_order, f],
                   device=m.device)
-        wp.launch(sph.gather_sorted_positions, dim=m.n_total, inputs=[self._cell_order, state.x, self._x_sorted],
+        wp.utils.radix_sort_pairs(self._cell_keys, self._cell_order, m.n_total, 0, self._cell_bits)
+        wp.launch(sph.cell_first, dim=self._cell_first.shape[0], inputs=[self._cell_keys, m.n_total, self._cell_first, f],
+                  device=m.device)
+        wp.launch(sph.gather_sorted_positions, dim=m.n_total, inputs=[self._cell_order, state.x, self._x_sorted, f],
                   device=m.device)
 
     @staticmethod
-    def list_capacity(model: "FluidModel") -> int:
-        r = model.support_radius / model.spacing
+    def list_capacity(model: "FluidModel", skin: float = 0.0) -> int:
+        r = model.support_radius * (1.0 + skin) / model.spacing
         lattice = math.pi * r ** 3 * 4.0 / 3.0 if model.dim == 3 else math.pi * r * r
         return int(8 * math.ceil(1.6 * lattice / 8.0))
 
@@ -296,6 +335,7 @@ class FluidSolver:
         # (stable_dt's maxima do not depend on the order)
         self._permute(sph.gather_by, b["perm"], (state.x, state.v, state.rho, state.ids))
         self._in_original_order = False
+        self.invalidate_lists()  # the slots changed and the grid is the pre-permutation one
 
     def unsort(self, state: FluidState) -> None:
         """Restore the original particle order (ids = 0..n_fluid-1), so that host reads, outputs and
@@ -308,18 +348,46 @@ class FluidSolver:
                                                   state.xsph_dv, state.drho_dt))
         wp.launch(sph.iota, dim=m.n_fluid, inputs=[state.ids], device=m.device)
         self._in_original_order = True
+        self.invalidate_lists()
 
     def build_grid(self, state: FluidState) -> None:
         """wp.HashGrid of all particles, for queries outside the step (gauges, neighbour counts, boundary
         volumes, the ghost solver); the step itself uses the cell grid (build_cells)."""
         self.grid.build(state.x, self.cell)
 
-    def build_neighbour_lists(self, state: FluidState) -> None:
-        """Neighbours within H of each fluid particle (after build_cells)."""
+    def build_neighbour_lists(self, state: FluidState, rebuild: wp.array | None = None) -> None:
+        """Neighbours within the list radius (1 + neighbour_skin) H of each fluid particle (after
+        build_cells); ``rebuild`` as in build_cells."""
         m = self.model
         wp.launch(sph.build_neighbour_list_cells, dim=m.n_fluid,
-                  inputs=[self.cells, state.x, m.support_radius, *self._slot_ranges],
-                  outputs=[self._nbr_count, self._nbr], device=m.device)
+                  inputs=[self.cells, state.x, self.list_radius, *self._slot_ranges,
+                          self._always if rebuild is None else rebuild],
+                  outputs=[self._nbr_count, self._nbr, self._x_build], device=m.device)
+
+    def _list_guard(self, state: FluidState):
+        """Start of a step: the displacement check. Returns the flag the cell grid and list build take,
+        or None when the host knows the list is still valid (CPU: the launches are skipped)."""
+        m = self.model
+        if self.neighbour_skin <= 0:
+            self.list_builds += 1
+            return self._always
+        half = 0.5 * self.neighbour_skin * m.support_radius
+        wp.launch(sph.list_displacement_check, dim=m.n_fluid, inputs=[state.x, self._x_build, half * half, self._rebuild],
+                  device=m.device)
+        if not self.host_decides:
+            return self._rebuild
+        if int(self._rebuild.numpy()[0]) == 0:
+            return None
+        self.list_builds += 1
+        return self._always
+
+    def invalidate_lists(self) -> None:
+        """Rebuild the cell grid and neighbour list at the next step (a device-side fill, capturable)."""
+        self._rebuild.fill_(1)
+
+    def _lists_built(self) -> None:
+        if self.neighbour_skin > 0:
+            self._rebuild.zero_()
 
     def compute_density(self, state: FluidState, lists: bool = False) -> None:
         """Summation density and pressure (before the first step, and each step in summation mode;
@@ -328,6 +396,7 @@ class FluidSolver:
         if not lists:
             self.build_cells(state)
             self.build_neighbour_lists(state)
+            self._lists_built()
         wp.launch(sph.particle_density_summation_list, dim=m.n_fluid,
                   inputs=[self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
                   outputs=[state.rho, state.pressure, self._pr2], device=m.device)
@@ -336,8 +405,8 @@ class FluidSolver:
     def _density_overflow(self, state: FluidState, dt, summation: bool) -> None:
         m = self.model
         wp.launch(sph.particle_density_overflow, dim=m.n_fluid,
-                  inputs=[self.cells, *self._slot_ranges, self._nbr_count, self.neighbour_cap, state.x, state.v,
-                          m.particle_mass, dt if dt is not None else self._zero_dt, m.params, 1 if summation else 0],
+                  inputs=[self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
+                          state.v, m.particle_mass, dt if dt is not None else self._zero_dt, m.params, 1 if summation else 0],
                   outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
 
     def set_density(self, state: FluidState, rho: np.ndarray) -> None:
@@ -352,15 +421,22 @@ class FluidSolver:
         m = self.model
         if m.n_fluid == 0:
             return
-        self.build_cells(state)
-        if self.fused_density:
-            mode = sph.DENSITY_SUMMATION if m.density_mode == "summation" else sph.DENSITY_CONTINUITY
-            wp.launch(sph.neighbour_list_density, dim=m.n_fluid,
-                      inputs=[self.cells, *self._slot_ranges, state.x, state.v, m.particle_mass, dt, m.params, mode],
-                      outputs=[self._nbr_count, self._nbr, state.drho_dt, state.rho, state.pressure, self._pr2],
-                      device=m.device)
-        else:
-            self.build_neighbour_lists(state)
+        guard = self._list_guard(state)
+        # the fused list build + density needs the host to know that the list is rebuilt this step
+        fused = self.fused_density and guard is self._always
+        if guard is not None:
+            self.build_cells(state, guard)
+            if fused:
+                mode = sph.DENSITY_SUMMATION if m.density_mode == "summation" else sph.DENSITY_CONTINUITY
+                wp.launch(sph.neighbour_list_density, dim=m.n_fluid,
+                          inputs=[self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, m.particle_mass, dt,
+                                  m.params, mode],
+                          outputs=[self._nbr_count, self._nbr, state.drho_dt, state.rho, state.pressure, self._pr2,
+                                   self._x_build], device=m.device)
+            else:
+                self.build_neighbour_lists(state, guard)
+            self._lists_built()
+        if not fused:
             if m.density_mode == "summation":
                 self.compute_density(state, lists=True)
             else:
@@ -373,8 +449,8 @@ class FluidSolver:
                           m.particle_mass, m.params],
                   outputs=[state.accel, state.xsph_dv], device=m.device, block_dim=self._block_dim)
         wp.launch(sph.particle_acceleration_overflow, dim=m.n_fluid,
-                  inputs=[self.cells, *self._slot_ranges, self._nbr_count, self.neighbour_cap, state.x, state.v, state.rho,
-                          state.pressure, m.particle_mass, m.params],
+                  inputs=[self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
+                          state.v, state.rho, state.pressure, m.particle_mass, m.params],
                   outputs=[state.accel, state.xsph_dv], device=m.device)
         wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[state.accel, state.xsph_dv, dt],
                   outputs=[state.x, state.v], device=m.device)

@@ -88,11 +88,13 @@ def _random_model(dim, monkeypatch, wrapped, n_side=7):
 
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("wrapped", [False, True])
-def test_neighbour_lists_match_brute_force(dim, wrapped, monkeypatch):
-    """The cell grid (x-cells H/4, y/z cells H, culled column runs; wrapped like a hash grid when the
-    domain needs too many cells) finds exactly the particles within H of each fluid particle, fluid
-    and boundary, self excluded."""
+@pytest.mark.parametrize("skin", [0.0, 0.2])
+def test_neighbour_lists_match_brute_force(dim, wrapped, skin, monkeypatch):
+    """The cell grid (x-cells R/4, y/z cells R, culled column runs; wrapped like a hash grid when the
+    domain needs too many cells) finds exactly the particles within the list radius R = (1 + skin) H of
+    each fluid particle, fluid and boundary, self excluded."""
     model, solver = _random_model(dim, monkeypatch, wrapped)
+    solver.set_neighbour_skin(skin)
     if wrapped:
         g = solver.cells
         assert g.nx * g.ny * g.nz <= 16 and g.ny == 3  # rows and columns alias
@@ -105,7 +107,7 @@ def test_neighbour_lists_match_brute_force(dim, wrapped, monkeypatch):
     nbr = solver._nbr.numpy().reshape(solver.neighbour_cap, n)
     X = s.x.numpy().astype(np.float64)
     d = np.linalg.norm(X[:n, None, :] - X[None, :, :], axis=2)
-    H = model.support_radius
+    H = solver.list_radius
     for i in range(n):
         want = set(np.flatnonzero(d[i] < H).tolist()) - {i}
         got = set(nbr[: cnt[i], i].tolist())
@@ -128,7 +130,7 @@ def test_neighbour_list_overflow_falls_back_to_cell_query(monkeypatch):
                       inputs=[solver._nbr_count, solver._nbr, s.x, s.v, s.rho, s.pressure, solver._pr2,
                               model.particle_mass, model.params], outputs=[s.accel, s.xsph_dv], device=DEVICE)
             wp.launch(sph.particle_acceleration_overflow, dim=n,
-                      inputs=[solver.cells, *solver._slot_ranges, solver._nbr_count, solver.neighbour_cap, s.x, s.v,
+                      inputs=[solver.cells, *solver._slot_ranges, solver.list_radius, solver._nbr_count, solver.neighbour_cap, s.x, s.v,
                               s.rho, s.pressure, model.particle_mass, model.params], outputs=[s.accel, s.xsph_dv],
                       device=DEVICE)
         return s.rho.numpy().copy(), s.accel.numpy().copy(), s.xsph_dv.numpy().copy()
@@ -140,3 +142,208 @@ def test_neighbour_list_overflow_falls_back_to_cell_query(monkeypatch):
     assert solver.list_overflow() > 0.5 * n
     for a, b in zip(full, small):
         assert np.allclose(a, b, rtol=1e-5, atol=1e-5 * np.abs(a).max())
+
+
+# ---------------------------------------------------------------- neighbour skin (Verlet lists) ----------
+
+def _with_skin(make, skin, monkeypatch=None):
+    """A simulation built by make() whose fluid solver uses the given neighbour skin."""
+    from rockwave.fluid import FluidSolver
+
+    old = FluidSolver.neighbour_skin
+    FluidSolver.neighbour_skin = skin
+    try:
+        return make()
+    finally:
+        FluidSolver.neighbour_skin = old
+
+
+class _BuildCounter:
+    """Counts list builds of a solver from its stored build positions (works in the device-flag mode too)."""
+
+    def __init__(self, fs):
+        self.fs, self.last, self.builds = fs, fs._x_build.numpy().copy(), 0
+
+    def update(self):
+        x = self.fs._x_build.numpy()
+        if not np.array_equal(x, self.last):
+            self.builds += 1
+            self.last = x.copy()
+
+
+_STATE_FIELDS = ("x", "v", "rho", "pressure", "accel", "xsph_dv", "drho_dt", "ids")
+
+
+def _dam_break(density):
+    scene = load_scene(ROOT / "scenes" / "dam_break_3d.toml")
+    scene.fluid["spacing_m"] = 0.08
+    scene.fluid["density"] = density
+    scene.output["gauges"] = []
+    return rockwave.Simulation(scene, device=DEVICE)
+
+
+@pytest.mark.parametrize("density", ["summation", "continuity"])
+@pytest.mark.parametrize("host_decides", [True, False])
+def test_neighbour_skin_matches_rebuilding_every_step(density, host_decides):
+    """With a skin the list is kept over several steps and the density and force passes skip its pairs
+    at r >= H: after a stretch of flowing dam break the state equals the run that rebuilds every step
+    (summation order only), in both the CPU's host-decided and the GPU's device-flag mode."""
+    a = _with_skin(lambda: _dam_break(density), 0.0)
+    a.advance(0.3)  # a flowing collapse, not the start at rest
+    b = _with_skin(lambda: _dam_break(density), 0.1)
+    assert b.fluid.density_mode == density
+    fs = b.fluid_solver
+    fs.host_decides = host_decides
+    a._canonical()
+    for k in _STATE_FIELDS:
+        getattr(b.state, k).assign(getattr(a.state, k))
+    b._set_dt(a.dt)
+    count = _BuildCounter(fs)
+    n = 24
+    for _ in range(n):
+        a.step()
+        b.step()
+        count.update()
+    assert 2 <= count.builds < n / 2  # rebuilt as the flow moves, but kept over several steps
+    assert a.fluid_solver.list_overflow() == 0 and fs.list_overflow() == 0
+    s = a.fluid.spacing
+    assert np.abs(b.positions() - a.positions()).max() < 1e-4 * s
+    assert np.abs(b.densities() - a.densities()).max() < 1e-2
+    acc_a, acc_b = a.state.accel.numpy(), b.state.accel.numpy()
+    assert np.abs(acc_b - acc_a).max() < 1e-4 * np.abs(acc_a).max()
+
+
+def test_neighbour_skin_coupled_scene_matches():
+    """A coupled scene (the coupling moves fluid particles after the fluid step): the same motion with
+    and without the skin."""
+    def run(skin):
+        sim = _with_skin(lambda: rockwave.Simulation(load_scene(ROOT / "scenes" / "sliding_wedge_small.toml"), device=DEVICE),
+                         skin)
+        count = _BuildCounter(sim.fluid_solver)
+        for _ in range(120):
+            sim.step()
+            count.update()
+        return sim, count.builds
+
+    (a, _), (b, builds) = run(0.0), run(0.1)
+    assert builds < 60
+    assert np.abs(a.coupling.dv.numpy()).max() > 0  # the block pushes the water
+    assert np.allclose(a.block_positions(), b.block_positions(), atol=1e-5)
+    assert np.abs(b.positions() - a.positions()).max() < 1e-4 * a.fluid.spacing
+    assert np.abs(b.densities() - a.densities()).max() < 2e-2
+
+
+@pytest.mark.parametrize("host_decides", [True, False])
+def test_neighbour_skin_rebuilds_after_large_displacement(host_decides, monkeypatch):
+    """A list is kept while every particle moved less than skin/2 since the build and rebuilt (equal to
+    brute force within the list radius at the new positions) as soon as one moves further, whatever moved
+    it (here: the positions assigned directly)."""
+    model, solver = _random_model(3, monkeypatch, wrapped=False)
+    solver.set_neighbour_skin(0.2)
+    solver.host_decides = host_decides
+    s = model.state()
+    s.v.zero_()
+    dt = wp.array([1e-6], dtype=float, device=DEVICE)
+    n, H = model.n_fluid, model.support_radius
+    R = solver.list_radius
+
+    def lists():
+        cnt = solver._nbr_count.numpy()
+        nbr = solver._nbr.numpy().reshape(solver.neighbour_cap, n)
+        return [set(nbr[: cnt[i], i].tolist()) for i in range(n)]
+
+    def brute(X):
+        d = np.linalg.norm(X[:n, None, :] - X[None, :, :], axis=2)
+        return [set(np.flatnonzero(d[i] < R).tolist()) - {i} for i in range(n)]
+
+    with wp.ScopedDevice(DEVICE):
+        X0 = s.x.numpy().astype(np.float64)
+        solver.step(s, dt)
+        assert lists() == brute(X0)
+        # a small move of one particle (< skin/2): the list is kept
+        x = s.x.numpy()
+        x[5] += np.array([0.4 * 0.5 * 0.2 * H, 0.0, 0.0], dtype=np.float32)
+        s.x.assign(x)
+        solver.step(s, dt)
+        assert np.array_equal(solver._x_build.numpy()[:n], X0[:n].astype(np.float32))
+        assert lists() == brute(X0)
+        # one particle jumps by 0.6 H: the list is rebuilt at the new positions
+        x = s.x.numpy()
+        x[7] += np.array([0.0, 0.6 * H, 0.0], dtype=np.float32)
+        s.x.assign(x)
+        X1 = s.x.numpy().astype(np.float64)
+        solver.step(s, dt)
+        assert np.array_equal(solver._x_build.numpy()[:n], X1[:n].astype(np.float32))
+        assert lists() == brute(X1)
+        # a large velocity for every particle: rebuilt each step
+        s.v.assign(np.random.default_rng(1).normal(0, 0.3 * H / 1e-6, (model.n_total, 3)).astype(np.float32) *
+                   (np.arange(model.n_total) < n)[:, None])
+        for _ in range(2):
+            X = s.x.numpy().astype(np.float64)
+            solver.step(s, dt)
+            assert lists() == brute(X)
+        # and the rates equal a solver without a skin on the same state
+        ref = FluidSolver_with_skin(model, 0.0)
+        s2 = model.state()
+        for k in _STATE_FIELDS:
+            getattr(s2, k).assign(getattr(s, k))
+        solver.step(s, dt)
+        ref.step(s2, dt)
+        for k in ("rho", "accel", "xsph_dv", "x"):
+            u, w = getattr(s, k).numpy(), getattr(s2, k).numpy()
+            assert np.allclose(u, w, rtol=1e-5, atol=1e-5 * np.abs(w).max()), k
+
+
+def FluidSolver_with_skin(model, skin):
+    from rockwave.fluid import FluidSolver
+
+    return FluidSolver(model, neighbour_skin=skin)
+
+
+def test_reorder_and_unsort_force_a_rebuild():
+    sim = _with_skin(lambda: _sim(), 0.1)
+    fs = sim.fluid_solver
+    sim.step()
+    assert int(fs._rebuild.numpy()[0]) == 0
+    with wp.ScopedDevice(sim.device):
+        fs.reorder(sim.state)
+    assert int(fs._rebuild.numpy()[0]) == 1
+    sim.step()
+    assert int(fs._rebuild.numpy()[0]) == 0
+    sim._canonical()
+    assert int(fs._rebuild.numpy()[0]) == 1
+
+
+@pytest.mark.parametrize("host_decides", [True, False])
+def test_neighbour_skin_overflow_fallback_on_a_kept_grid(host_decides, monkeypatch):
+    """Overflowed lists are summed by a cell query of radius H + skin on the grid of the last build,
+    which is kept with the list: after every particle moved (less than skin/2) without a rebuild, the
+    rates equal those of a solver without a skin and with room for every neighbour."""
+    from rockwave.fluid import FluidSolver
+
+    model, solver = _random_model(3, monkeypatch, wrapped=False)
+    solver.set_neighbour_skin(0.2)
+    solver.host_decides = host_decides
+    n, H = model.n_fluid, model.support_radius
+    solver.neighbour_cap = 8
+    solver._nbr = wp.zeros(8 * n, dtype=int, device=DEVICE)
+    ref = FluidSolver(model, neighbour_skin=0.0)
+    s, s2 = model.state(), model.state()
+    dt = wp.array([1e-7], dtype=float, device=DEVICE)
+    with wp.ScopedDevice(DEVICE):
+        solver.step(s, dt)
+        xb = solver._x_build.numpy().copy()
+        assert solver.list_overflow() > 0.5 * n
+        d = np.random.default_rng(2).normal(size=(model.n_total, 3))
+        d *= (0.45 * 0.1 * H / np.linalg.norm(d, axis=1))[:, None] * (np.arange(model.n_total) < n)[:, None]
+        x = s.x.numpy() + d.astype(np.float32)
+        for k in _STATE_FIELDS:
+            getattr(s2, k).assign(getattr(s, k))
+        s.x.assign(x)
+        s2.x.assign(x)
+        solver.step(s, dt)
+        ref.step(s2, dt)
+        assert np.array_equal(solver._x_build.numpy(), xb)  # the list and grid were kept
+    for k in ("rho", "accel", "xsph_dv"):
+        u, w = getattr(s, k).numpy(), getattr(s2, k).numpy()
+        assert np.allclose(u, w, rtol=1e-5, atol=1e-5 * np.abs(w).max()), k
