@@ -5,6 +5,8 @@
 
 Each method runs ``--repeats`` timed blocks of ``--steps`` steps; the fastest block is reported (wall
 time, and on the CPU also the process CPU time, which a busy shared machine disturbs less).
+``--attempts`` / ``--rounds`` override ``[fluid.ghost]`` (darts per cell and round, passes over the
+phases: a GPU step launches ``3^dim x rounds`` dependent dart kernels).
 """
 
 import argparse
@@ -19,11 +21,14 @@ import rockwave
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def run(scene_path, method, device, steps, spacing, warm=20, repeats=1):
+def run(scene_path, method, device, steps, spacing, warm=20, repeats=1, attempts=None, rounds=None):
     d = rockwave.load_scene(scene_path).raw
     d["fluid"]["method"] = method
     if spacing:
         d["fluid"]["spacing_m"] = spacing
+    for key, value in (("attempts", attempts), ("rounds", rounds)):
+        if value:
+            d["fluid"].setdefault("ghost", {})[key] = value
     sim = rockwave.Simulation(rockwave.parse_scene(d, str(scene_path), Path(scene_path).parent), device=device)
     for _ in range(warm):
         sim.step()
@@ -41,7 +46,7 @@ def run(scene_path, method, device, steps, spacing, warm=20, repeats=1):
         if w < wall:
             wall, share = w, (s.sample_seconds / steps / w if method == "ghost" else 0.0)
         cpu = min(cpu, c)
-    return sim.fluid.n_fluid, wall, share, getattr(s, "n_ghost", 0), cpu
+    return sim.fluid.n_fluid, wall, share, getattr(s, "n_ghost", 0), cpu, s
 
 
 def main():
@@ -51,11 +56,15 @@ def main():
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--spacing", type=float, default=None)
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--attempts", type=int, default=None, help="darts per cell and round (default: the scene's)")
+    ap.add_argument("--rounds", type=int, default=None, help="passes over the phases (default: the scene's)")
     a = ap.parse_args()
     wp.config.quiet = True
-    nb, tb, _, _, cb = run(a.scene, "basic", a.device, a.steps, a.spacing, repeats=a.repeats)
-    ng, tg, share, ghosts, cg = run(a.scene, "ghost", a.device, a.steps, a.spacing, repeats=a.repeats)
-    print(f"scene {Path(a.scene).name} device {a.device} fluid {nb} ghosts(last step) {ghosts}")
+    nb, tb, _, _, cb, _ = run(a.scene, "basic", a.device, a.steps, a.spacing, repeats=a.repeats)
+    ng, tg, share, ghosts, cg, s = run(a.scene, "ghost", a.device, a.steps, a.spacing, repeats=a.repeats,
+                                       attempts=a.attempts, rounds=a.rounds)
+    print(f"scene {Path(a.scene).name} device {a.device} fluid {nb} ghosts(last step) {ghosts} "
+          f"darts {s.attempts} x {s.rounds} rounds (GPU: {s.n_phases * s.rounds} dart launches per step)")
     print(f"basic {tb * 1e3:.3f} ms/step  ghost {tg * 1e3:.3f} ms/step  ratio {tg / tb:.2f}  sampling share of ghost step {share:.0%}")
     if not wp.get_device(a.device).is_cuda:
         print(f"process CPU time: basic {cb * 1e3:.3f} ms/step  ghost {cg * 1e3:.3f} ms/step  ratio {cg / cb:.2f}")
