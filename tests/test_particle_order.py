@@ -15,8 +15,7 @@ from helpers import ROOT
 def _sim(spacing=0.08, continuity=False):
     scene = load_scene(ROOT / "scenes" / "dam_break_3d.toml")
     scene.fluid["spacing_m"] = spacing
-    if continuity:
-        scene.fluid["density"] = "continuity"
+    scene.fluid["density"] = "continuity" if continuity else "summation"  # the scene's default is continuity
     scene.output["gauges"] = []
     return rockwave.Simulation(scene, device=DEVICE)
 
