@@ -332,7 +332,7 @@ def particle_acceleration(
 
 
 # ------------------------------------------------------------------ cell grid ------
-# The fluid solver's own neighbour search (rockwave.fluid.CellGridBuilder builds it each step):
+# The fluid solver's own neighbour search (rockwave.fluid.FluidSolver.build_cells builds it):
 # particles sorted by cell key, cells H wide in y and z and H/4 in x, keys x-fastest, so the cells
 # of one (y, z) column that lie within H of a particle form one contiguous run of sorted slots.
 # A query visits the 9 columns (3 in 2D) around a particle and, in each, only the x-cells within
