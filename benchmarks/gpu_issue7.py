@@ -195,6 +195,35 @@ def fluid_skin(device, spacing, skins, flow_s=0.3, steps=60):
     return out
 
 
+def fluid_flow(device, spacing, flow_s=0.3, steps=200):
+    """The user's path on a flowing dam break: advance(flow_s) (timed per step), then reorder chunks
+    (step_many, CUDA graphs) from the flowing state, their GPU-busy breakdown, and the per-pass times
+    there; the adaptive-dt host read (stable_dt) timed alone."""
+    sim = fluid_sim(device, spacing)
+    fs, st = sim.fluid_solver, sim.state
+    sim.advance(0.002)  # kernels loaded, graph captured
+    wp.synchronize_device(device)
+    s0, t0 = sim.steps, time.perf_counter()
+    sim.advance(flow_s)
+    wp.synchronize_device(device)
+    adv = (time.perf_counter() - t0) / max(sim.steps - s0, 1)
+    n = sim.n_fluid
+    sim.step_many(20)
+    t = _sync_time(lambda: sim.step_many(steps), device) / steps
+    busy = gpu_busy(lambda: sim.step_many(100), device, 100)
+    with wp.ScopedDevice(device):
+        sdt = _sync_time(lambda: fs.stable_dt(st, 0.3), device, 10)
+        sim.step_many(10)
+        cnt = fs._nbr_count.numpy()
+    r = dict(spacing_m=spacing, particles=n, flow_s=flow_s, time_s=sim.time, dt_s=sim.dt,
+             advance_ms_per_step=1e3 * adv, advance_steps=sim.steps - s0,
+             chunk_ms_per_step=1e3 * t, particle_steps_per_s=n / t, busy=busy, stable_dt_ms=1e3 * sdt,
+             neighbours_mean=float(cnt.mean()), neighbours_max=int(cnt.max()), list_capacity=fs.neighbour_cap,
+             list_overflow=int((cnt > fs.neighbour_cap).sum()), cell_dims=[fs.cells.nx, fs.cells.ny, fs.cells.nz])
+    print(json.dumps(r), flush=True)
+    return r
+
+
 def blocks_phases(device, count, steps=20, settle=300):
     from benchmarks.blocks_bench import run as _  # noqa: F401 (same scene construction)
     scene = rockwave.load_scene(ROOT / "scenes" / "rock_slope_10k.toml")
@@ -316,6 +345,8 @@ def main(argv=None):
         res["passes"] += [fluid_passes(a.device, a.spacings[-1], cell_ratio=r) for r in a.cell_ratios if r != 1.0]
     if "skin" in a.parts:
         res["skin"] = fluid_skin(a.device, a.spacings[-1], a.skins, a.flow_s, min(a.steps, 60))
+    if "flow" in a.parts:
+        res["flow"] = [fluid_flow(a.device, s, a.flow_s) for s in a.spacings]
     if "blocks" in a.parts:
         res["blocks"] = [blocks_phases(a.device, c) for c in a.block_counts]
     if "coupled" in a.parts:

@@ -846,12 +846,23 @@ def integrate_particles(
 def motion_extrema(
     v: wp.array(dtype=wp.vec3),
     accel: wp.array(dtype=wp.vec3),
+    n: int,
+    stride: int,
     out: wp.array(dtype=float),
 ):
-    """out[0] = max |v|^2, out[1] = max |a|^2 (for the CFL and force time-step limits)."""
-    i = wp.tid()
-    wp.atomic_max(out, 0, wp.length_sq(v[i]))
-    wp.atomic_max(out, 1, wp.length_sq(accel[i]))
+    """out[0] = max |v|^2, out[1] = max |a|^2 over the first n particles (for the CFL and force
+    time-step limits). Launched over `stride` threads, each reducing every stride-th particle before its
+    two atomics (one atomic per particle on two words serialises on a GPU)."""
+    t = wp.tid()
+    v2 = float(0.0)
+    a2 = float(0.0)
+    i = t
+    while i < n:
+        v2 = wp.max(v2, wp.length_sq(v[i]))
+        a2 = wp.max(a2, wp.length_sq(accel[i]))
+        i += stride
+    wp.atomic_max(out, 0, v2)
+    wp.atomic_max(out, 1, a2)
 
 
 @wp.kernel

@@ -465,7 +465,9 @@ class FluidSolver:
         m = self.model
         self._extrema.zero_()
         if m.n_fluid:
-            wp.launch(sph.motion_extrema, dim=m.n_fluid, inputs=[state.v, state.accel], outputs=[self._extrema], device=m.device)
+            stride = min(m.n_fluid, 16384)
+            wp.launch(sph.motion_extrema, dim=stride, inputs=[state.v, state.accel, m.n_fluid, stride], outputs=[self._extrema],
+                      device=m.device)
         vmax2, amax2 = (float(a) for a in self._extrema.numpy())
         return fluid_dt_limit(m, cfl, math.sqrt(vmax2), math.sqrt(amax2))
 

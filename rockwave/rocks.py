@@ -83,8 +83,9 @@ def block_specs(scene: Scene) -> list[BlockSpec]:
                     youngs_modulus=b.youngs_modulus_pa, poisson_ratio=b.poisson_ratio, motion=motion, material=material,
                     name=f"{b.name}_{k}" if many else b.name, strain_damping_ratio=b.strain_damping_ratio))
                 k += 1
-    names = [s.name for s in specs]
-    dup = {n for n in names if names.count(n) > 1}
+    from collections import Counter
+
+    dup = {n for n, c in Counter(s.name for s in specs).items() if c > 1}
     if dup:
         # unique names for USD prims and the CSV
         seen: dict[str, int] = {}
