@@ -204,35 +204,44 @@ def fluid_flow(device, spacing, flow_s=0.3, steps=200):
     sim.advance(0.002)  # kernels loaded, graph captured
     wp.synchronize_device(device)
     s0, t0 = sim.steps, time.perf_counter()
-    sim.advance(flow_s)
-    wp.synchronize_device(device)
+    segments = []
+    seg = 0.05
+    while sim.time < flow_s - 1e-9:
+        s1, t1 = sim.steps, time.perf_counter()
+        sim.advance(min(seg, flow_s - sim.time))
+        wp.synchronize_device(device)
+        segments.append(dict(t_end_s=sim.time, steps=sim.steps - s1, ms_per_step=1e3 * (time.perf_counter() - t1) / max(sim.steps - s1, 1)))
     adv = (time.perf_counter() - t0) / max(sim.steps - s0, 1)
     n = sim.n_fluid
     sim.step_many(20)
     t = _sync_time(lambda: sim.step_many(steps), device) / steps
     busy = gpu_busy(lambda: sim.step_many(100), device, 100)
+    busy_steps = gpu_busy(lambda: [sim.step() for _ in range(30)], device, 30)  # per kernel (no graph)
     with wp.ScopedDevice(device):
         sdt = _sync_time(lambda: fs.stable_dt(st, 0.3), device, 10)
         sim.step_many(10)
         cnt = fs._nbr_count.numpy()
     r = dict(spacing_m=spacing, particles=n, flow_s=flow_s, time_s=sim.time, dt_s=sim.dt,
              advance_ms_per_step=1e3 * adv, advance_steps=sim.steps - s0,
-             chunk_ms_per_step=1e3 * t, particle_steps_per_s=n / t, busy=busy, stable_dt_ms=1e3 * sdt,
+             chunk_ms_per_step=1e3 * t, particle_steps_per_s=n / t, busy=busy, busy_steps=busy_steps,
+             segments=segments, stable_dt_ms=1e3 * sdt,
              neighbours_mean=float(cnt.mean()), neighbours_max=int(cnt.max()), list_capacity=fs.neighbour_cap,
              list_overflow=int((cnt > fs.neighbour_cap).sum()), cell_dims=[fs.cells.nx, fs.cells.ny, fs.cells.nz])
     print(json.dumps(r), flush=True)
     return r
 
 
-def blocks_phases(device, count, steps=20, settle=300):
+def blocks_phases(device, count, steps=20, settle=300, joint=0.0002):
     from benchmarks.blocks_bench import run as _  # noqa: F401 (same scene construction)
     scene = rockwave.load_scene(ROOT / "scenes" / "rock_slope_10k.toml")
     nz = 10
     ny = max(1, int(round(math.sqrt(count / nz / 1.6))))
     nx = max(1, int(round(count / nz / ny)))
+    pitch = 0.5 + joint  # 0.5 m cubes, `joint` m apart (0: touching, so a packed block has ~6 neighbours in contact)
     scene.blocks[1]["array"]["count"] = [float(nx), float(ny), float(nz)]
-    scene.blocks[0]["size_m"] = [max(40.0, 0.5002 * nx + 25.0), max(16.0, 0.5002 * ny + 4.0), 1.0]
-    scene.blocks[1]["position_m"][1] = -0.5002 * ny / 2
+    scene.blocks[1]["array"]["spacing_m"] = [pitch] * 3
+    scene.blocks[0]["size_m"] = [max(40.0, pitch * nx + 25.0), max(16.0, pitch * ny + 4.0), 1.0]
+    scene.blocks[1]["position_m"][1] = -pitch * ny / 2
     t0 = time.perf_counter()
     sim = rockwave.Simulation(scene, device=device)
     setup = time.perf_counter() - t0
@@ -246,8 +255,11 @@ def blocks_phases(device, count, steps=20, settle=300):
     times = {"prepare": 0.0, "broad_phase": 0.0, "narrow_phase": 0.0, "integrate": 0.0}
     wp.synchronize_device(device)
     full = _sync_time(lambda: [sim.step() for _ in range(steps)], device) / steps
+    touching, points = [], []
     with wp.ScopedDevice(device):
         for _ in range(steps):
+            touching.append(int((st.tables[0]["nc"].numpy() > 0).sum()))  # pairs with contact points
+            points.append(float(np.mean(st.contact_counts()[1:])))
             times["prepare"] += _sync_time(lambda: bs._prepare(st), device)
             times["broad_phase"] += _sync_time(lambda: bs._broad_phase(), device)
             times["narrow_phase"] += _sync_time(lambda: bs._narrow_phase(st, dt), device)
@@ -258,8 +270,9 @@ def blocks_phases(device, count, steps=20, settle=300):
                         m.motion_amp, m.motion_freq, m.motion_phase, m.table_start, m.table_count, m.table_t,
                         m.table_x, st.x, st.q, st.v, st.w, st.strain, st.strain_rate,
                         st.force, st.torque, st.strain_force, st.ext_force, st.ext_torque]), device)
-    r = {"blocks": m.num_blocks, "pairs": bs.pair_count, "pair_cap": bs.pair_cap, "table_cap": st.table_cap,
-         "contacts_per_block": float(np.mean(st.contact_counts()[1:])), "setup_s": setup,
+    r = {"blocks": m.num_blocks, "joint_m": joint, "settle_steps": settle, "pairs_touching": float(np.mean(touching)),
+         "touching_neighbours_per_block": 2.0 * float(np.mean(touching)) / m.num_blocks, "pairs": bs.pair_count, "pair_cap": bs.pair_cap, "table_cap": st.table_cap,
+         "contact_points_per_block": float(np.mean(points)), "setup_s": setup,
          "step_ms": full * 1e3, "block_steps_per_s": m.num_blocks / full,
          **{k + "_ms": 1e3 * v / steps for k, v in times.items()}}
     print(json.dumps(r), flush=True)
@@ -285,9 +298,13 @@ def gpu_busy(fn, device, steps):
             "top_ms": top}
 
 
-def coupled_split(device, scale, steps=50):
+def coupled_split(device, scale, steps=50, without=()):
+    """The sliding wedge scaled to `scale` x the particles: step-by-step and chunked ms per step, GPU
+    busy breakdowns of both, per-part times; `without` names blocks left out (("wedge",): the same
+    fluid in the same block tank without the block)."""
     scene = rockwave.load_scene(ROOT / "scenes" / "sliding_wedge.toml")
     scene.fluid["spacing_m"] = scene.fluid.spacing_m / scale ** (1.0 / scene.dim)
+    scene.blocks[:] = [b for b in scene.blocks if b["name"] not in without]
     sim = rockwave.Simulation(scene, device=device)
     for _ in range(5):
         sim.step()
@@ -308,10 +325,13 @@ def coupled_split(device, scale, steps=50):
             "fluid_step": lambda: fs.step(st, sim._dt_dev),
             "block_step": lambda: sim.block_solver.step(bst, sim.dt, sim.time),
         }
-        r = {"scale": scale, "particles": nf, "blocks": sim.blocks.num_blocks, "step_ms": full * 1e3,
+        r = {"scale": scale, "without": list(without), "particles": nf, "blocks": sim.blocks.num_blocks, "step_ms": full * 1e3,
              "chunked_step_ms": chunked * 1e3, "particle_steps_per_s": nf / full, "particle_steps_per_s_chunked": nf / chunked}
         r["busy"] = gpu_busy(lambda: [sim.step() for _ in range(20)], device, 20)
+        r["busy_chunked"] = gpu_busy(lambda: sim.step_many(20), device, 20)
         for k, f in parts.items():
+            if k == "block_step" and sim.block_solver is None:
+                continue
             f()
             r[k + "_ms"] = 1e3 * _sync_time(f, device, 10)
     print(json.dumps(r), flush=True)
@@ -330,6 +350,8 @@ def main(argv=None):
     ap.add_argument("--cell-ratios", type=float, nargs="+", default=[1.0, 0.5])
     ap.add_argument("--skins", type=float, nargs="+", default=[0.0, 0.05, 0.1, 0.15])
     ap.add_argument("--flow-s", type=float, default=0.3)
+    ap.add_argument("--joints", type=float, nargs="+", default=[0.0002], help="gaps between the blocks [m]")
+    ap.add_argument("--settle", type=int, default=300, help="block steps before the timing")
     a = ap.parse_args(argv)
     wp.config.quiet = True
     res = {"device_name": device_name(a.device), "commit": commit(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
@@ -348,9 +370,9 @@ def main(argv=None):
     if "flow" in a.parts:
         res["flow"] = [fluid_flow(a.device, s, a.flow_s) for s in a.spacings]
     if "blocks" in a.parts:
-        res["blocks"] = [blocks_phases(a.device, c) for c in a.block_counts]
+        res["blocks"] = [blocks_phases(a.device, c, settle=a.settle, joint=j) for c in a.block_counts for j in a.joints]
     if "coupled" in a.parts:
-        res["coupled"] = [coupled_split(a.device, a.coupled_scale)]
+        res["coupled"] = [coupled_split(a.device, a.coupled_scale), coupled_split(a.device, a.coupled_scale, without=("wedge",))]
     res["wall_s"] = time.perf_counter() - t0
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

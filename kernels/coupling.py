@@ -91,9 +91,12 @@ def block_cells(
     ncell: wp.array(dtype=int),
     large: wp.array(dtype=int),
     counters: wp.array(dtype=int),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
 ):
-    """Per block: AABB grown by `reach`, clipped to the fluid AABB; cell range and count (0 when the
-    block is away from all water; blocks over max_cells cells go to the large list)."""
+    """Per block: AABB grown by `reach`, clipped to the fluid AABB (box_lo/hi: every point within reach
+    of the block lies inside); cell range and count (0 when the block is away from all water; blocks over
+    max_cells cells go to the large list, all of them when max_cells < 0)."""
     b = wp.tid()
     s = vert_start[b]
     lo = wv[s]
@@ -111,6 +114,8 @@ def block_cells(
         lo[k] = l
         hi[k] = h
     ncell[b] = 0
+    box_lo[b] = lo
+    box_hi[b] = hi
     if empty == 1:
         return
     cl = cell_of(lo, inv_s)
@@ -206,6 +211,11 @@ class CouplingParams:
 
 PINCH_COS = wp.constant(0.7071)  # two faces oppose (pinch a gap) when n_a . n_b < -cos 45 deg
 SIDE_COS = wp.constant(0.7071)  # exit faces of the moving block: |n_k . n| < cos 45 deg (its sides)
+
+
+@wp.func
+def in_box(xi: wp.vec3, lo: wp.vec3, hi: wp.vec3):
+    return xi[0] >= lo[0] and xi[0] <= hi[0] and xi[1] >= lo[1] and xi[1] <= hi[1] and xi[2] >= lo[2] and xi[2] <= hi[2]
 
 
 @wp.func
@@ -313,6 +323,8 @@ def particle_block_forces(
     entry_cell: wp.array(dtype=wp.vec3i),
     large: wp.array(dtype=int),
     counters: wp.array(dtype=int),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
     face_start: wp.array(dtype=int),
     face_count: wp.array(dtype=int),
     plane_n: wp.array(dtype=wp.vec3),
@@ -353,6 +365,8 @@ def particle_block_forces(
                 na = n
     for k in range(counters[1]):
         b = large[k]
+        if not in_box(xi, box_lo[b], box_hi[b]):  # farther than reach from b
+            continue
         d, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
         if d < da:
             ba = b
@@ -378,7 +392,7 @@ def particle_block_forces(
                         nb = n
         for k in range(counters[1]):
             b = large[k]
-            if b != ba:
+            if b != ba and in_box(xi, box_lo[b], box_hi[b]):
                 d, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
                 if d < db and wp.dot(n, na) < -PINCH_COS:
                     bb = b
@@ -407,6 +421,8 @@ def particle_block_forces(
                                depth_scale, ext_force, ext_torque, wall_force)
     for k in range(counters[1]):
         b = large[k]
+        if not in_box(xi, box_lo[b], box_hi[b]):
+            continue
         sq = zero
         if b == ba or b == bb:
             sq = squeeze

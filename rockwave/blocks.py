@@ -655,6 +655,10 @@ class BlockSolver:
         # back and the GPU never waits for the host; the overflow flags are still checked every
         # sync_check_interval steps. More blocks: capacities grow on demand (one counter read per step).
         self.sync_free = n <= self.sync_free_max_blocks
+        # no rigid or deformable block: nothing can collide (fixed and kinematic blocks do not act on each
+        # other), so a step only moves the kinematic blocks and clears the coupling's forces
+        kinds = model.np["kinds"]
+        self.has_free_blocks = bool(np.any((kinds == int(K.KIND_RIGID)) | (kinds == int(K.KIND_DEFORMABLE))))
         if self.sync_free:
             self._alloc_large(n)
             self._alloc_entries(self.large_cells * n + 64)
@@ -834,9 +838,10 @@ class BlockSolver:
         if t is None:
             t = state.time
         m, d = self.model, self.device
-        self._prepare(state)
-        self._broad_phase()
-        self._narrow_phase(state, dt)
+        if self.has_free_blocks:
+            self._prepare(state)
+            self._broad_phase()
+            self._narrow_phase(state, dt)
         wp.launch(K.integrate_blocks, dim=m.num_blocks,
                   inputs=[m.kinds, m.inv_mass, m.inertia_body, m.inv_inertia_body, m.strain_minv, m.strain_k,
                           m.strain_damp, wp.vec3(*m.gravity), float(t + dt), float(dt), m.base_x, m.motion_type,

@@ -200,7 +200,7 @@ def test_momentum_accounting_water_and_blocks():
     assert abs(walls[1]) > 0.5 * scale  # the floor carried the water: the check is not vacuous
 
 
-def test_scene_rules_and_broad_phase():
+def test_scene_rules_and_broad_phase(monkeypatch):
     base = {"simulation": {"dimension": 2, "duration_s": 0.1}, "fluid": {"spacing_m": 0.01, "eos": {"speed_of_sound_m_s": 10.0},
                                                                          "regions": [{"box_min_m": [0, 0], "box_max_m": [0.1, 0.1]}]}}
     with pytest.raises(SceneError, match="no walls"):
@@ -210,17 +210,23 @@ def test_scene_rules_and_broad_phase():
     bad = dict(walls, blocks=walls["blocks"] + [{"shape": "box", "size_m": [0.1, 0.1, 0.1], "position_m": [0, 1, 0], "orientation_deg": [10, 0, 0]}])
     with pytest.raises(SceneError, match="turns about z only"):
         parse_scene(bad)
-    # a block far above the water costs no coupling work: it never enters the broad-phase grid
-    sim = _sim("sinking_block_small.toml")
-    sim.step()
-    c = sim.coupling
-    ncell = c.ncell.numpy()
-    assert ncell[sim.blocks.names.index("block")] > 0
+    # a block far above the water costs no coupling work: it never becomes a candidate, whether the
+    # particles test the few blocks' grown boxes directly or look them up in the (block, cell) hash
+    from rockwave.coupling import Coupling
+
     far = dict(walls, blocks=walls["blocks"] + [{"shape": "box", "size_m": [0.1, 0.1, 0.1], "position_m": [0.05, 2.0, 0],
                                                  "material": {"normal_stiffness_n_m": 1e5}}])
-    sim2 = rockwave.Simulation(parse_scene(far), device=DEVICE)
-    sim2.step()
-    assert sim2.coupling.ncell.numpy()[1] == 0 and sim2.coupling.n_large == 0
+    for direct_max in (Coupling.direct_max_blocks, 0):
+        monkeypatch.setattr(Coupling, "direct_max_blocks", direct_max)
+        sim = _sim("sinking_block_small.toml")
+        sim.step()
+        assert sim.coupling.direct == (direct_max > 0)
+        assert sim.blocks.names.index("block") in sim.coupling.candidate_blocks()
+        sim2 = rockwave.Simulation(parse_scene(far), device=DEVICE)
+        sim2.step()
+        assert sim2.coupling.candidate_blocks() == {0}  # the floor only
+        if direct_max == 0:
+            assert sim2.coupling.ncell.numpy()[1] == 0 and sim2.coupling.n_large == 0
 
 
 def test_sync_free_step_matches_the_counter_read_path(monkeypatch):
@@ -234,6 +240,7 @@ def test_sync_free_step_matches_the_counter_read_path(monkeypatch):
         if not sync_free:
             monkeypatch.setattr(BlockSolver, "sync_free_max_blocks", 0)
             monkeypatch.setattr(Coupling, "sync_free_max_entries", 0)
+            monkeypatch.setattr(Coupling, "direct_max_blocks", 0)
         sim = _sim("sliding_wedge_small.toml")
         assert sim.block_solver.sync_free == sync_free and sim.coupling.sync_free == sync_free
         for _ in range(150):
@@ -243,6 +250,7 @@ def test_sync_free_step_matches_the_counter_read_path(monkeypatch):
     a = run(True)
     b = run(False)
     assert a.block_solver.pair_count == b.block_solver.pair_count > 0
-    assert a.coupling.n_large == b.coupling.n_large
+    assert a.coupling.direct and not b.coupling.direct  # boxes tested directly vs the (block, cell) hash
+    assert a.coupling.candidate_blocks() == b.coupling.candidate_blocks()
     assert np.allclose(a.block_positions(), b.block_positions(), atol=1e-6)
     assert np.allclose(a.positions(), b.positions(), atol=1e-6)
