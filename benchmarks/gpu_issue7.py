@@ -18,7 +18,7 @@ import warp as wp
 
 import rockwave
 from benchmarks.common import ROOT, commit, device_name
-from rockwave.kernels import sph, sph_packed
+from rockwave.kernels import sph
 
 
 @wp.kernel
@@ -132,22 +132,10 @@ def fluid_passes(device, spacing, reps=20, sort=True, cell_ratio=1.0):
             sph.particle_acceleration, dim=m.n_fluid,
             inputs=[fs.grid.id, st.x, st.v, st.rho, st.pressure, m.particle_mass, m.params],
             outputs=[st.accel, st.xsph_dv], device=d),
-        "pack_particles": lambda: wp.launch(
-            sph_packed.pack_particles, dim=m.n_total, inputs=[st.x, st.v, m.particle_mass, m.n_fluid],
-            outputs=list(fs._packed_buffers()), device=d),
-        "density_continuity_packed": lambda: wp.launch(
-            sph_packed.particle_density_continuity_packed, dim=m.n_fluid,
-            inputs=[fs._nbr_count, fs._nbr, dt, m.params, *fs._packed_buffers()],
-            outputs=[st.drho_dt, st.rho, st.pressure, fs._pr2], device=d),
-        "acceleration_packed": lambda: wp.launch(
-            sph_packed.particle_acceleration_packed, dim=m.n_fluid,
-            inputs=[fs._nbr_count, fs._nbr, m.params, *fs._packed_buffers()],
-            outputs=[st.accel, st.xsph_dv], device=d, block_dim=fs._block_dim),
         "integrate": lambda: wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[st.accel, st.xsph_dv, dt],
                                        outputs=[st.x, st.v], device=d),
         "reorder": lambda: fs.reorder(st),
         "full_step": lambda: sim.step(),
-        "full_step_unpacked": lambda: (setattr(fs, "packed_passes", False), sim.step(), setattr(fs, "packed_passes", None)),
         "full_step_fused": lambda: (setattr(fs, "fused_density", True), sim.step(), setattr(fs, "fused_density", d == "cpu")),
     }
     g = fs.cells

@@ -724,35 +724,16 @@ def pair_acceleration_fluid(
     if j >= p.n_fluid:
         # Akinci et al. 2012 boundary pressure: a_i -= Psi_b p_i/rho_i^2 grad W_ib (walls at rest)
         return -(particle_mass[j] * pi_r2) * gw, dv
-    return pair_acceleration_terms(rij, r2, r, gw, vi - v[j], rhoi, pi, pi_r2, rho[j], pressure[j], pr2[j], p)
-
-
-@wp.func
-def pair_acceleration_terms(
-    rij: wp.vec3,
-    r2: float,
-    r: float,
-    gw: wp.vec3,
-    vij: wp.vec3,
-    rhoi: float,
-    pi: float,
-    pi_r2: float,
-    rhoj: float,
-    pj: float,
-    pr2j: float,
-    p: SPHParams,
-):
-    """(acceleration, XSPH velocity) terms of fluid pair i-j at r < H from values (gw = grad W_ij,
-    vij = v_i - v_j, pr2 = p/rho^2); mass p.fluid_mass. Shared by the list and packed force passes."""
     mj = p.fluid_mass
-    dv = wp.vec3(0.0)
+    rhoj = rho[j]
     a = wp.vec3(0.0)
     if p.pressure_form == FORCE_MOMENTUM:
         # a_i -= sum_j m_j (p_i/rho_i^2 + p_j/rho_j^2) grad W_ij  (Monaghan 1992)
-        a = -(mj * (pi_r2 + pr2j)) * gw
+        a = -(mj * (pi_r2 + pr2[j])) * gw
     else:
         # Mueller 2003 symmetric: a_i -= 1/rho_i sum_j m_j (p_i + p_j)/(2 rho_j) grad W_ij
-        a = -(mj * (pi + pj) / (2.0 * rhoj * rhoi)) * gw
+        a = -(mj * (pi + pressure[j]) / (2.0 * rhoj * rhoi)) * gw
+    vij = vi - v[j]
     if p.mu > 0.0:
         # Mueller 2003: a_i += mu/rho_i sum_j m_j (v_j - v_i)/rho_j lap W_ij
         a -= (p.mu * mj / (rhoi * rhoj) * kernel_laplacian(r, p)) * vij

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from rockwave.kernels import sph, sph_packed
+from rockwave.kernels import sph
 
 
 def sound_speed_from_eos(eos, rest_density: float) -> float:
@@ -436,59 +436,24 @@ class FluidSolver:
             else:
                 self.build_neighbour_lists(state, guard)
             self._lists_built()
-        packed = self._packed(fused)
         if not fused:
             if m.density_mode == "summation":
                 self.compute_density(state, lists=True)
-            elif packed:
-                xq, vq = self._packed_buffers()
-                wp.launch(sph_packed.pack_particles, dim=m.n_total, inputs=[state.x, state.v, m.particle_mass, m.n_fluid],
-                          outputs=[xq, vq], device=m.device)
-                wp.launch(sph_packed.particle_density_continuity_packed, dim=m.n_fluid,
-                          inputs=[self._nbr_count, self._nbr, dt, m.params, xq, vq],
-                          outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
-                self._density_overflow(state, dt, summation=False)
-                wp.launch(sph_packed.repack_overflowed, dim=m.n_fluid,
-                          inputs=[self._nbr_count, self.neighbour_cap, state.rho, self._pr2], outputs=[xq, vq], device=m.device)
             else:
                 wp.launch(sph.particle_density_continuity_list, dim=m.n_fluid,
                           inputs=[self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
                           outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
                 self._density_overflow(state, dt, summation=False)
-        if packed:
-            xq, vq = self._packed_buffers()
-            wp.launch(sph_packed.particle_acceleration_packed, dim=m.n_fluid,
-                      inputs=[self._nbr_count, self._nbr, m.params, xq, vq],
-                      outputs=[state.accel, state.xsph_dv], device=m.device, block_dim=self._block_dim)
-        else:
-            wp.launch(sph.particle_acceleration_list, dim=m.n_fluid,
-                      inputs=[self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
-                              m.particle_mass, m.params],
-                      outputs=[state.accel, state.xsph_dv], device=m.device, block_dim=self._block_dim)
+        wp.launch(sph.particle_acceleration_list, dim=m.n_fluid,
+                  inputs=[self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
+                          m.particle_mass, m.params],
+                  outputs=[state.accel, state.xsph_dv], device=m.device, block_dim=self._block_dim)
         wp.launch(sph.particle_acceleration_overflow, dim=m.n_fluid,
                   inputs=[self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
                           state.v, state.rho, state.pressure, m.particle_mass, m.params],
                   outputs=[state.accel, state.xsph_dv], device=m.device)
         wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[state.accel, state.xsph_dv, dt],
                   outputs=[state.x, state.v], device=m.device)
-
-    # Continuity density and forces on packed (x, p/rho^2) and (v, rho) float4 arrays read with one
-    # 16-byte load per word (kernels/sph_packed.py); None: on CUDA only
-    packed_passes = None
-
-    def _packed(self, fused: bool) -> bool:
-        m = self.model
-        on = self.packed_passes if self.packed_passes is not None else m.device.is_cuda
-        # the packed density pass stores p/rho^2 and rho for the force pass; a later pass that changes
-        # them (summation density, the fused CPU pass, density diffusion) keeps the plain arrays
-        return bool(on) and not fused and m.density_mode == "continuity" and not getattr(m, "density_diffusion", 0.0)
-
-    def _packed_buffers(self):
-        m = self.model
-        if getattr(self, "_xq", None) is None:
-            self._xq = wp.zeros(max(m.n_total, 1), dtype=wp.vec4, device=m.device)
-            self._vq = wp.zeros(max(m.n_fluid, 1), dtype=wp.vec4, device=m.device)
-        return self._xq, self._vq
 
     def list_overflow(self) -> int:
         """Fluid particles whose last neighbour list overflowed the capacity (summed by a cell-grid query)."""

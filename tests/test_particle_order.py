@@ -346,28 +346,3 @@ def test_neighbour_skin_overflow_fallback_on_a_kept_grid(host_decides, monkeypat
     for k in ("rho", "accel", "xsph_dv"):
         u, w = getattr(s, k).numpy(), getattr(s2, k).numpy()
         assert np.allclose(u, w, rtol=1e-5, atol=1e-5 * np.abs(w).max()), k
-
-
-@pytest.mark.parametrize("small_lists", [False, True])
-def test_packed_passes_match_the_list_passes(small_lists, monkeypatch):
-    """The continuity density and force passes on the packed (x, p/rho^2), (v, rho) float4 arrays
-    (kernels/sph_packed.py, the CUDA default) give the list passes' motion; with lists too short for
-    most particles the overflow pass's densities reach the packed force pass too (repack_overflowed)."""
-    from rockwave.fluid import FluidSolver
-
-    if small_lists:
-        monkeypatch.setattr(FluidSolver, "list_capacity", staticmethod(lambda model, skin: 8))
-    out = []
-    for packed in (False, True):
-        monkeypatch.setattr(FluidSolver, "packed_passes", packed)
-        sim = _dam_break("continuity")
-        sim.fluid_solver.fused_density = False  # the CPU fuses the density into list builds
-        assert sim.fluid_solver._packed(False) == packed
-        for _ in range(40):
-            sim.step()
-        if small_lists:
-            assert sim.fluid_solver.list_overflow() > 0.5 * sim.n_fluid
-        out.append((sim.positions(), sim.velocities(), sim.densities()))
-    for a, b in zip(*out):
-        assert np.allclose(a, b, rtol=1e-5, atol=1e-6 * np.abs(a).max()), np.abs(a - b).max()
-    assert np.abs(out[0][0] - _dam_break("continuity").positions()).max() > 1e-3  # the water moved
