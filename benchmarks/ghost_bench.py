@@ -54,7 +54,11 @@ def run(scene_path, method, device, steps, spacing, warm=20, repeats=1, attempts
             cpu = min(cpu, c)
     if method == "ghost":
         s.profile = False
+    s_sim[0] = sim
     return sim.fluid.n_fluid, wall, share, getattr(s, "n_ghost", 0), cpu, s
+
+
+s_sim = [None]  # the last simulation run (for --busy)
 
 
 def main():
@@ -66,6 +70,7 @@ def main():
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--attempts", type=int, default=None, help="darts per cell and round (default: the scene's)")
     ap.add_argument("--rounds", type=int, default=None, help="passes over the phases (default: the scene's)")
+    ap.add_argument("--busy", action="store_true", help="GPU: time each kernel of the ghost step (CUDA events)")
     a = ap.parse_args()
     wp.config.quiet = True
     nb, tb, _, _, cb, _ = run(a.scene, "basic", a.device, a.steps, a.spacing, repeats=a.repeats)
@@ -76,6 +81,22 @@ def main():
     print(f"basic {tb * 1e3:.3f} ms/step  ghost {tg * 1e3:.3f} ms/step  ratio {tg / tb:.2f}  sampling share of ghost step {share:.0%}")
     if not wp.get_device(a.device).is_cuda:
         print(f"process CPU time: basic {cb * 1e3:.3f} ms/step  ghost {cg * 1e3:.3f} ms/step  ratio {cg / cb:.2f}")
+    elif a.busy:
+        # GPU time per kernel of the ghost step (CUDA events) against its wall time
+        sim = s_sim[0]
+        wp.synchronize_device(a.device)
+        t0 = time.perf_counter()
+        wp.timing_begin(cuda_filter=wp.TIMING_ALL)
+        for _ in range(a.steps):
+            sim.step()
+        res = wp.timing_end()
+        wall = (time.perf_counter() - t0) / a.steps
+        by = {}
+        for r in res:
+            by[r.name] = by.get(r.name, 0.0) + r.elapsed / a.steps
+        print(f"ghost step wall {wall * 1e3:.3f} ms, GPU busy {sum(by.values()):.3f} ms, {len(res) / a.steps:.1f} launches/step")
+        for k, v in sorted(by.items(), key=lambda kv: -kv[1])[:10]:
+            print(f"  {v:8.3f} ms  {k}")
 
 
 if __name__ == "__main__":
