@@ -699,3 +699,201 @@ def density_summation_capped(
     r = s + wp.min(gs, wp.max(p.rest_density - s, 0.0))
     rho[i] = r
     pressure[i] = equation_of_state(r, p)
+
+
+# ------------------------------------------------------------------ step over the neighbour lists ------
+# The ghost step reuses the fluid solver's cell grid and Verlet neighbour lists (kernels/sph.py) for
+# every liquid-liquid and liquid-boundary pair (position divergence, density, forces) and reaches the
+# ghosts through a small hash grid over the ghosts alone: the same sums as one hash-grid query over
+# fluid + boundary + ghosts, in another order (float rounding only).
+
+
+@wp.kernel
+def position_divergence_list(
+    count: wp.array(dtype=int),
+    nbr: wp.array(dtype=int),
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    p: SPHParams,
+    n_static: int,
+    threshold: float,
+    div: wp.array(dtype=float),
+    surface: wp.array(dtype=int),
+):
+    """position_divergence over the neighbour list (liquid and boundary neighbours; pairs out to the
+    list radius are skipped past H); a particle whose list overflowed sums over a query of ``grid``
+    (fluid + boundary [+ ghosts], index >= n_static skipped) instead."""
+    i = wp.tid()
+    n = count.shape[0]
+    c = count[i]
+    xi = x[i]
+    s = float(0.0)
+    H2 = p.H * p.H
+    if c <= nbr.shape[0] // n:
+        for k in range(c):
+            j = nbr[k * n + i]
+            rij = xi - x[j]
+            r2 = wp.length_sq(rij)
+            if r2 < H2:
+                rj = p.rest_density
+                if j < p.n_fluid:
+                    rj = rho[j]
+                s -= particle_mass[j] / rj * wp.dot(rij, kernel_grad(rij, wp.sqrt(r2), p))
+    else:
+        q = wp.hash_grid_query(grid, xi, p.H)
+        j = int(0)
+        while wp.hash_grid_query_next(q, j):
+            if j == i or j >= n_static:
+                continue
+            rij = xi - x[j]
+            r = wp.length(rij)
+            if r < p.H:
+                rj = p.rest_density
+                if j < p.n_fluid:
+                    rj = rho[j]
+                s -= particle_mass[j] / rj * wp.dot(rij, kernel_grad(rij, r, p))
+    div[i] = s
+    f = int(0)
+    if s < threshold:
+        f = 1
+    surface[i] = f
+
+
+@wp.kernel
+def park_unused_ghosts(count: wp.array(dtype=int), n_static: int, park: wp.vec3, x: wp.array(dtype=wp.vec3)):
+    """GPU: ghost slots at or past count[0] go to ``park``, a point whose hash-grid cell no query of the
+    ghost grid visits, so the grid can be built over every slot without reading the count back.
+    Launched over the ghost capacity."""
+    k = wp.tid()
+    if k >= count[0]:
+        x[n_static + k] = park
+
+
+@wp.kernel
+def ghost_mass_split(
+    grid: wp.uint64,
+    ghost_grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    n_static: int,
+    count: wp.array(dtype=int),
+    set_mass: int,
+    stamp: int,
+    near: wp.array(dtype=int),
+    particle_mass: wp.array(dtype=float),
+):
+    """Marks the liquid particles within H of a ghost (``near[i] = stamp``: the ghost passes of the step
+    skip the others without a query) and, with ``set_mass``, ghost_mass with the liquid neighbours from
+    ``grid`` (fluid + boundary [+ old ghosts]) and the ghosts from ``ghost_grid`` (ghosts only, index k
+    is slot n_static + k). Launched over the ghosts (threads at or past count[0] return)."""
+    gi = wp.tid()
+    if gi >= count[0]:
+        return
+    o = gi + n_static
+    xg = x[o]
+    s = float(0.0)
+    H2 = p.H * p.H
+    q = wp.hash_grid_query(grid, xg, p.H)
+    k = int(0)
+    while wp.hash_grid_query_next(q, k):
+        if k < p.n_fluid:
+            r2 = wp.length_sq(xg - x[k])
+            if r2 < H2:
+                near[k] = stamp
+            s += kernel_w(r2, p)
+    if set_mass == 0:
+        return
+    qg = wp.hash_grid_query(ghost_grid, xg, p.H)
+    while wp.hash_grid_query_next(qg, k):
+        s += kernel_w(wp.length_sq(xg - x[n_static + k]), p)
+    particle_mass[o] = p.rest_density / s
+
+
+@wp.kernel
+def ghost_density(
+    ghost_grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    dt: wp.array(dtype=float),
+    p: SPHParams,
+    n_static: int,
+    mode: int,
+    stamp: int,
+    near: wp.array(dtype=int),
+    drho_dt: wp.array(dtype=float),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    pr2: wp.array(dtype=float),
+):
+    """The ghosts' part of the density, after the list pass over liquid and boundary (rho_i = S_i):
+    mode 0 summation rho_i = S_i + G_i; mode 1 capped rho_i = S_i + min(G_i, max(rho0 - S_i, 0))
+    (density_summation_capped); mode 2 continuity with ghosts in the rate, rho_i += dt sum_g m_g
+    (v_i - v_g) . grad W_ig (density_rate_with_ghosts, ghost_mode 1). Then p_i and p_i/rho_i^2.
+    Particles with no ghost within H (near[i] != stamp) keep the list pass's values without a query."""
+    i = wp.tid()
+    if near[i] != stamp:
+        return
+    xi = x[i]
+    vi = v[i]
+    gs = float(0.0)
+    q = wp.hash_grid_query(ghost_grid, xi, p.H)
+    k = int(0)
+    while wp.hash_grid_query_next(q, k):
+        o = n_static + k
+        rij = xi - x[o]
+        r2 = wp.length_sq(rij)
+        if mode == 2:
+            if r2 < p.H * p.H:
+                gs += particle_mass[o] * wp.dot(vi - v[o], kernel_grad(rij, wp.sqrt(r2), p))
+        else:
+            gs += particle_mass[o] * kernel_w(r2, p)
+    if gs == 0.0:
+        return  # no ghost within H: rho, p and p/rho^2 of the list pass stand
+    s = rho[i]
+    r = s + gs
+    if mode == 1:
+        r = s + wp.min(gs, wp.max(p.rest_density - s, 0.0))
+    elif mode == 2:
+        drho_dt[i] = drho_dt[i] + gs
+        r = s + dt[0] * gs
+    rho[i] = r
+    pr = equation_of_state(r, p)
+    pressure[i] = pr
+    pr2[i] = pr / (r * r)
+
+
+@wp.kernel
+def ghost_pressure_force(
+    ghost_grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    pr2: wp.array(dtype=float),
+    p: SPHParams,
+    n_static: int,
+    stamp: int,
+    near: wp.array(dtype=int),
+    accel: wp.array(dtype=wp.vec3),
+):
+    """The ghosts' pressure term after the list force pass: a_i -= sum_g m_g p_i/rho_i^2 grad W_ig (the
+    boundary rule of pair_acceleration: ghosts have p = 0, no viscosity or XSPH); only particles with
+    a ghost within H (near[i] == stamp) query the ghost grid."""
+    i = wp.tid()
+    if near[i] != stamp:
+        return
+    xi = x[i]
+    a = wp.vec3(0.0)
+    q = wp.hash_grid_query(ghost_grid, xi, p.H)
+    k = int(0)
+    found = int(0)
+    while wp.hash_grid_query_next(q, k):
+        o = n_static + k
+        rij = xi - x[o]
+        r2 = wp.length_sq(rij)
+        if r2 < p.H * p.H and r2 > 0.0:
+            a -= particle_mass[o] * kernel_grad(rij, wp.sqrt(r2), p)
+            found = 1
+    if found != 0:
+        accel[i] = accel[i] + pr2[i] * a

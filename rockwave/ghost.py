@@ -5,12 +5,15 @@ never imports this module. :class:`GhostFluidSolver` is a :class:`rockwave.fluid
 whose step first seeds ghost air particles around the free surface and then runs the same SPH
 kernels on fluid + boundary + ghost particles:
 
-1. copy fluid and boundary positions/velocities into extended arrays, build the hash grid;
+1. FluidSolver's cell grid and Verlet neighbour lists (liquid + boundary, rebuilt when a particle
+   moved skin/2); copy fluid and boundary positions/velocities into extended arrays, build the hash
+   grid the darts query;
 2. free-surface particles: position divergence ``div x_i`` below a threshold;
 3. ghost air particles within one kernel radius of the liquid by parallel Poisson-disk dart
    throwing (``kernels/ghost.py``); mass = liquid mass, velocity = nearest liquid particle's,
    density = rho0 (p = 0);
-4. rebuild the grid with the ghosts, density (summation or continuity) and forces. Ghosts count in
+4. a hash grid over the ghosts alone; density (summation or continuity) and forces over the lists,
+   plus the ghosts' part from the ghost grid (only for liquid particles within H of a ghost). Ghosts count in
    the summation density (not in the continuity rate: see ``ghost_continuity``); in the pressure force they enter only through the liquid particle's own
    ``p_i/rho_i^2`` term (their pressure is zero); no viscosity or XSPH with ghosts.
 
@@ -38,7 +41,7 @@ import time
 import numpy as np
 import warp as wp
 
-from rockwave.fluid import FluidModel, FluidSolver, FluidState
+from rockwave.fluid import FluidModel, FluidSolver, FluidState, _grid_dims
 from rockwave.kernels import ghost as gk
 from rockwave.kernels import sph
 
@@ -124,6 +127,9 @@ class GhostFluidSolver(FluidSolver):
         # 3): their one-sided pressure term pumped energy in (x1.8 in 0.3 s); 0.3 keeps them outside
         g.colour_max = 0.3
         self.bg = g
+        # the ghosts alone in a hash grid of cell H (the step reaches liquid and boundary neighbours
+        # through FluidSolver's cell grid and neighbour lists, the ghosts through this grid)
+        self.ghost_grid = wp.HashGrid(*_grid_dims(lo, hi, model.support_radius, dim), device=d)
         self.keep_liquid = 0.6 * self.r_liquid
         self.keep_ghost = 0.6 * self.r
         self.keep_colour = 0.45
@@ -152,7 +158,9 @@ class GhostFluidSolver(FluidSolver):
         self.phase_bound = min(self.phase_cap, model.n_fluid * (-(-m_axis // 3)) ** dim)
         # GPU: launch over this bound without reading the counts back, up to this many threads a launch
         self.phase_bound_max = 1 << 19
-        self._drho = wp.zeros(model.n_fluid, dtype=float, device=d)
+        # near[i] == _near_stamp: liquid particle i has a ghost within H this step (set by ghost_mass_split)
+        self._near = wp.zeros(model.n_fluid, dtype=int, device=d)
+        self._near_stamp = 0
         # Continuity density sums liquid and boundary neighbours only. Ghosts are resampled every
         # step, so (v_i - v_ghost).grad W (v_ghost = nearest liquid particle's) is no rate of any
         # real change; it drained spray and wall-run-up particles to negative densities and sent
@@ -181,6 +189,7 @@ class GhostFluidSolver(FluidSolver):
         self._v_tmp = wp.zeros(capacity, dtype=wp.vec3, device=d)
         self._owner_tmp = wp.zeros(capacity, dtype=int, device=d)
         self.grid.reserve(ns + capacity)
+        self.ghost_grid.reserve(capacity)
 
     # ------------------------------------------------------------------ sampling -------------
     def sample_ghosts(self, state: FluidState) -> int:
@@ -199,8 +208,10 @@ class GhostFluidSolver(FluidSolver):
         wp.copy(self.x_ext, state.x, 0, 0, ns)
         wp.copy(self.v_ext, state.v, 0, 0, ns)
         self.grid.build(self.x_ext[: ns + n_old], m.support_radius)
-        wp.launch(gk.position_divergence, dim=m.n_fluid,
-                  inputs=[self.grid.id, self.x_ext, state.rho, self.mass_ext, m.params, ns, self.threshold],
+        # liquid and boundary neighbours from the neighbour lists (current: _update_lists ran first)
+        wp.launch(gk.position_divergence_list, dim=m.n_fluid,
+                  inputs=[self._nbr_count, self._nbr, self.grid.id, self.x_ext, state.rho, self.mass_ext, m.params, ns,
+                          self.threshold],
                   outputs=[self.div, self.surface], device=m.device)
         self.count.zero_()
         if n_old:
@@ -278,9 +289,16 @@ class GhostFluidSolver(FluidSolver):
                 wp.copy(self.v_ext, self._v_tmp, ns, 0, n)
                 wp.copy(self.ghost_of, self._owner_tmp, 0, 0, n)
         self.n_ghost = n
-        self.grid.build(self.x_ext[: ns + n], m.support_radius)
-        if n and self.number_density_mass:
-            wp.launch(gk.ghost_mass, dim=n, inputs=[self.grid.id, self.x_ext, m.params, ns], outputs=[self.mass_ext], device=m.device)
+        # the ghosts alone in their own grid (self.grid stays the one over fluid + boundary [+ old ghosts])
+        if n:
+            self.ghost_grid.build(self.x_ext[ns: ns + n], m.support_radius)
+        if n:
+            # ghost masses (number_density_mass) and the liquid particles with a ghost within H
+            self._near_stamp += 1
+            wp.launch(gk.ghost_mass_split, dim=n,
+                      inputs=[self.grid.id, self.ghost_grid.id, self.x_ext, m.params, ns, self._n_dev(n),
+                              int(self.number_density_mass), self._near_stamp, self._near],
+                      outputs=[self.mass_ext], device=m.device)
         if self.profile:
             wp.synchronize_device(m.device)
             self.sample_seconds += time.perf_counter() - t0
@@ -291,6 +309,13 @@ class GhostFluidSolver(FluidSolver):
         """Background cells active in the last sampling (a host read)."""
         return int(self.phase_count.numpy().sum())
 
+    def _n_dev(self, n: int) -> wp.array:
+        """A device scalar holding n (the ghost count for launches over the ghost slots)."""
+        if getattr(self, "_n_ghost_arr", None) is None:
+            self._n_ghost_arr = wp.zeros(1, dtype=int, device=self.model.device)
+        self._n_ghost_arr.fill_(n)
+        return self._n_ghost_arr
+
     def _n_old_dev(self, n_old: int) -> wp.array:
         """A device scalar holding n_old (the first ghost slot for the darts)."""
         if self._n_old_arr is None:
@@ -299,39 +324,71 @@ class GhostFluidSolver(FluidSolver):
         return self._n_old_arr
 
     # ------------------------------------------------------------------ solver interface -----
-    def compute_density(self, state: FluidState) -> None:
+    def _update_lists(self, state: FluidState, force: bool = False) -> None:
+        """FluidSolver's cell grid and Verlet neighbour lists (liquid and boundary neighbours within
+        (1 + skin) H), rebuilt when a particle moved skin/2 since the last build (or ``force``)."""
+        guard = self._always if force else self._list_guard(state)
+        if guard is not None:
+            self.build_cells(state, guard)
+            self.build_neighbour_lists(state, guard)
+            self._lists_built()
+
+    def compute_density(self, state: FluidState, lists: bool = False) -> None:
         """Summation density with ghosts (initial state in summation mode)."""
-        m = self.model
+        self._update_lists(state, force=not lists)
         self.sample_ghosts(state)
         self._summation_density(state)
 
     def _summation_density(self, state: FluidState) -> None:
+        """Summation density over the neighbour lists (liquid and boundary, self included), then the
+        ghosts' part (all of it, or capped at rho0: density_cap) from the ghost grid."""
         m = self.model
-        if self.density_cap:
-            wp.launch(gk.density_summation_capped, dim=m.n_fluid,
-                      inputs=[self.grid.id, self.x_ext, self.mass_ext, m.params, m.n_total],
-                      outputs=[state.rho, state.pressure], device=m.device)
-        else:
-            wp.launch(sph.particle_density_summation, dim=m.n_fluid,
-                      inputs=[self.grid.id, self.x_ext, self.mass_ext, m.params], outputs=[state.rho, state.pressure], device=m.device)
+        wp.launch(sph.particle_density_summation_list, dim=m.n_fluid,
+                  inputs=[self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
+                  outputs=[state.rho, state.pressure, self._pr2], device=m.device)
+        self._density_overflow(state, None, summation=True)
+        self._ghost_density(state, self._zero_dt, 1 if self.density_cap else 0)
+
+    def _ghost_density(self, state: FluidState, dt: wp.array, mode: int) -> None:
+        m = self.model
+        if self.n_ghost:
+            wp.launch(gk.ghost_density, dim=m.n_fluid,
+                      inputs=[self.ghost_grid.id, self.x_ext, self.v_ext, self.mass_ext, dt, m.params, m.n_total, mode,
+                              self._near_stamp, self._near],
+                      outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
 
     def step(self, state: FluidState, dt: wp.array) -> None:
+        """Lists, ghost sampling, density over the lists plus the ghosts' part, forces over the lists plus
+        the ghosts' pressure term, semi-implicit Euler. The same sums as one hash-grid query over fluid +
+        boundary + ghosts per pass, summed in another order."""
         m = self.model
         if m.n_fluid == 0:
             return
+        self._update_lists(state)
         self.sample_ghosts(state)
         if m.density_mode == "summation":
             self._summation_density(state)
         else:
-            wp.launch(gk.density_rate_with_ghosts, dim=m.n_fluid,
-                      inputs=[self.grid.id, self.x_ext, self.v_ext, self.mass_ext, m.params, m.n_total, self.ghost_continuity],
-                      outputs=[self._drho], device=m.device)
-            wp.launch(sph.integrate_density, dim=m.n_fluid, inputs=[self._drho, dt, m.params],
-                      outputs=[state.rho, state.pressure], device=m.device)
-        wp.launch(sph.particle_acceleration, dim=m.n_fluid,
-                  inputs=[self.grid.id, self.x_ext, self.v_ext, state.rho, state.pressure,
-                          self.mass_ext if self.ghost_pressure_term else self.mass_force, m.params],
+            # continuity over liquid and boundary (ghosts only with ghost_continuity: see __init__)
+            wp.launch(sph.particle_density_continuity_list, dim=m.n_fluid,
+                      inputs=[self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
+                      outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
+            self._density_overflow(state, dt, summation=False)
+            if self.ghost_continuity:
+                self._ghost_density(state, dt, 2)
+        wp.launch(sph.particle_acceleration_list, dim=m.n_fluid,
+                  inputs=[self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
+                          m.particle_mass, m.params],
+                  outputs=[state.accel, state.xsph_dv], device=m.device, block_dim=self._block_dim)
+        wp.launch(sph.particle_acceleration_overflow, dim=m.n_fluid,
+                  inputs=[self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
+                          state.v, state.rho, state.pressure, m.particle_mass, m.params],
                   outputs=[state.accel, state.xsph_dv], device=m.device)
+        if self.n_ghost and self.ghost_pressure_term:
+            wp.launch(gk.ghost_pressure_force, dim=m.n_fluid,
+                      inputs=[self.ghost_grid.id, self.x_ext, self.mass_ext, self._pr2, m.params, m.n_total, self._near_stamp,
+                              self._near],
+                      outputs=[state.accel], device=m.device)
         wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[state.accel, state.xsph_dv, dt],
                   outputs=[state.x, state.v], device=m.device)
 

@@ -117,21 +117,53 @@ def test_zero_gravity_drop_keeps_shape_with_ghosts_and_basic_summation_clumps():
     assert b["rg"] > 1.04 * s0["rg"] and b["area"] > 1.10 * s0["area"], f"basic SPH kept its shape: {b}"
 
 
+def _elastic_energy(params, rho):
+    """Specific elastic energy [J/kg] of the Tait EOS as the solver applies it: e(rho) = integral from
+    rho0 to rho of p/rho'^2 drho', p = B((rho/rho0)^gamma - 1), clipped at 0 below rho0 when
+    clamp_negative_pressure is set (the default; then no energy is stored in tension)."""
+    B, g, rho0 = float(params.eos_b), float(params.eos_gamma), float(params.rest_density)
+    assert params.eos == 0, "Tait EOS expected"
+    if params.clamp_negative:
+        rho = np.maximum(rho, rho0)
+    return B * ((rho ** (g - 1) - rho0 ** (g - 1)) / ((g - 1) * rho0**g) + 1.0 / rho - 1.0 / rho0)
+
+
 def test_ghost_dam_break_case3_runs_to_end_in_tank():
     """Case 3 (obstacle) at 0.03 m spacing (400 particles) for the scene's whole 1.0 s with ghosts:
     finite, no particle leaves the tank or passes a wall: none is more than half a spacing beyond a
     tank face (the wall's boundary layer is one kernel radius, 2 dx, thick), nor inside the obstacle
-    by more than that; the mechanical energy per mass (g y + v^2/2) never rises by more than 2%
-    between 0.1-s samples (before the fix, ghosts in the continuity sum drove densities negative
-    and particles flew through the walls: energy x7, a particle 4.8 m outside by 1.0 s); the front
-    has passed the obstacle. Measured (seeds 1-4): deepest 0.6-7 mm past a face, energy
-    2.93 -> 1.8-2.5 J/kg; 16 darts x 1 round (seed 1): 3.1 mm, 2.93 -> 1.99 J/kg, no 0.1-s rise
-    (8 x 2: 4.1 mm, 2.26 J/kg, largest rise +0.057)."""
+    by more than that; the front has passed the obstacle. Energy: E = g y + v^2/2 + e(rho) per mass,
+    e the Tait elastic energy that weakly compressible SPH stores in compressed particles
+    (_elastic_energy; 0.01-0.14 J/kg here), sampled at t = 0 and every 0.1 s. Asserted: E never
+    exceeds E(0) (closed tank, fixed walls, viscosity only dissipates), and never rises by more than
+    5% of E(0) between samples. Before the ghost-density fix, ghosts in the continuity sum drove
+    densities negative and particles flew through the walls: energy x7, a particle 4.8 m outside by
+    1.0 s: a gain of ~18 J/kg, >100x the 0.15 J/kg limit.
+    Why 5%: basic SPH on this scene (no ghosts) never gains energy between samples (largest change
+    -0.008 J/kg at CFL 0.25 and 0.125): time integration and the kernel-sum elastic energy leave no
+    measurable rise. The rises are the ghosts' (their one-sided pressure term does work) and shrink with
+    the step: over dart seeds 1-8 at the scene's CFL 0.25 the largest rise of E (E(0) = 2.952 J/kg)
+    is +0.081, +0.017, -0.014, +0.080, +0.295, +0.035, -0.000, +0.032 (seed 1 here: +0.081 = 2.7%,
+    at 0.7-0.8 s), max E/E(0) 0.994-0.996 except seed 5: 1.010; at CFL 0.125 -0.011, +0.006, +0.025,
+    -0.012, +0.059, -0.013, -0.011, -0.014. 5% is ~2x seed 1's ghost rise. Seed 5 (+10%, and E above
+    E(0)) fails both bounds: a genuine ghost energy gain in this chaotic splash, not hidden. The solver
+    before the shared neighbour lists (bfa8390) gave -0.016, -0.013, +0.027, -0.001, +0.358, -0.013,
+    -0.004, +0.671 (seed 8: E(1 s)/E(0) = 1.155), failing at seeds 5 and 8. E(1 s)/E(0): 0.68-0.93
+    (seed 1: 0.787). Deepest past a face (old solver, seeds 1-4): 0.6-7 mm."""
     dx = 0.03
     sim = _dam_break(3, dx)
     lo, hi = np.array([0.0, 0.0]), np.array([1.6, 3.5])
     ob_lo, ob_hi = np.array([1.0, 0.0]), np.array([1.12, 0.12])
-    energy, deepest = [], 0.0
+    n = sim.fluid.n_fluid
+    w = sim.fluid.particle_mass.numpy()[:n].astype(np.float64)
+    w /= w.sum()
+
+    def energy_per_mass():
+        x, v = sim.positions()[:, :2], sim.velocities()[:, :2]
+        e = 9.81 * x[:, 1] + 0.5 * (v**2).sum(axis=1) + _elastic_energy(sim.fluid.params, sim.densities())
+        return float(np.sum(w * e))
+
+    energy, deepest = [energy_per_mass()], 0.0
     while sim.time < sim.scene.simulation.duration_s - 1e-9:
         sim.advance(0.1)
         x, v = sim.positions()[:, :2], sim.velocities()[:, :2]
@@ -139,9 +171,11 @@ def test_ghost_dam_break_case3_runs_to_end_in_tank():
         deepest = max(deepest, float(np.max(lo - x)), float(np.max(x - hi)))
         inside = np.min(np.minimum(x - ob_lo, ob_hi - x), axis=1)  # depth inside the obstacle
         deepest = max(deepest, float(inside.max()))
-        energy.append(float(np.mean(9.81 * x[:, 1] + 0.5 * (v**2).sum(axis=1))))
+        energy.append(energy_per_mass())
     assert deepest < 0.5 * dx, f"a particle {deepest * 1000:.1f} mm past a wall face"
-    assert np.all(np.diff(energy) < 0.02 * energy[0]), f"energy gain: {np.round(energy, 3)}"
+    e = np.array(energy)
+    assert np.all(e[1:] <= e[0]), f"energy above E(0): {np.round(e, 3)}"
+    assert np.all(np.diff(e) < 0.05 * e[0]), f"energy gain: {np.round(e, 3)}"
     assert sim.positions()[:, 0].max() > 1.12
     assert sim.fluid_solver.n_ghost > 0
 
