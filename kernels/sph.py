@@ -13,6 +13,7 @@ import warp as wp
 
 KERNEL_MULLER = wp.constant(0)
 KERNEL_CUBIC = wp.constant(1)
+KERNEL_WENDLAND = wp.constant(2)
 EOS_TAIT = wp.constant(0)
 EOS_LINEAR = wp.constant(1)
 FORCE_MOMENTUM = wp.constant(0)
@@ -24,7 +25,7 @@ PI = wp.constant(3.14159265358979)
 @wp.struct
 class SPHParams:
     dim: int
-    kernel: int  # KERNEL_MULLER or KERNEL_CUBIC
+    kernel: int  # KERNEL_MULLER, KERNEL_CUBIC or KERNEL_WENDLAND
     H: float  # support radius
     rest_density: float
     eos: int
@@ -123,12 +124,42 @@ def cubic_grad(rij: wp.vec3, r: float, H: float, dim: int) -> wp.vec3:
 
 
 @wp.func
+def wendland_w(r: float, H: float, dim: int) -> float:
+    # Wendland (1995) C2: W = sigma (1 - q/2)^4 (2q + 1), q = r/h, h = H/2; sigma = 7/(4 pi h^2) (2D), 21/(16 pi h^3) (3D)
+    h = 0.5 * H
+    q = r / h
+    if q >= 2.0:
+        return 0.0
+    s = 7.0 / (4.0 * PI * h * h)
+    if dim == 3:
+        s = 21.0 / (16.0 * PI * h * h * h)
+    t = 1.0 - 0.5 * q
+    return s * t * t * t * t * (2.0 * q + 1.0)
+
+
+@wp.func
+def wendland_grad(rij: wp.vec3, r: float, H: float, dim: int) -> wp.vec3:
+    # dW/dr = -5 sigma/h q (1 - q/2)^3
+    h = 0.5 * H
+    q = r / h
+    if q >= 2.0 or r < 1.0e-9 * H:
+        return wp.vec3(0.0)
+    s = 7.0 / (4.0 * PI * h * h)
+    if dim == 3:
+        s = 21.0 / (16.0 * PI * h * h * h)
+    t = 1.0 - 0.5 * q
+    return (-5.0 * s / h * q * t * t * t / r) * rij
+
+
+@wp.func
 def kernel_w(r2: float, p: SPHParams) -> float:
     if p.kernel == KERNEL_MULLER:  # poly6 with the precomputed constant
         if r2 >= p.H * p.H:
             return 0.0
         d = p.H * p.H - r2
         return p.w_coef * d * d * d
+    if p.kernel == KERNEL_WENDLAND:
+        return wendland_w(wp.sqrt(r2), p.H, p.dim)
     return cubic_w(wp.sqrt(r2), p.H, p.dim)
 
 
@@ -140,6 +171,8 @@ def kernel_grad(rij: wp.vec3, r: float, p: SPHParams) -> wp.vec3:
             return wp.vec3(0.0)
         d = p.H - r
         return (-p.grad_scale * p.grad_coef * d * d / r) * rij
+    if p.kernel == KERNEL_WENDLAND:
+        return p.grad_scale * wendland_grad(rij, r, p.H, p.dim)
     return p.grad_scale * cubic_grad(rij, r, p.H, p.dim)
 
 

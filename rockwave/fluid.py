@@ -69,6 +69,7 @@ class FluidModel:
     initial_positions: np.ndarray
     initial_velocities: np.ndarray
     device: wp.context.Device
+    density_diffusion: float = 0.0  # delta of the delta-SPH density diffusion (kernels/diffusion.py); 0: off
 
     @property
     def n_total(self) -> int:
@@ -124,7 +125,7 @@ def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
     visc = scene_fluid["viscosity"]
     p = sph.SPHParams()
     p.dim = dim
-    p.kernel = 0 if scene_fluid["kernel"] == "muller" else 1
+    p.kernel = {"muller": 0, "cubic_spline": 1, "wendland": 2}[scene_fluid["kernel"]]
     p.H = scene_fluid["support_radius_ratio"] * scene_fluid["spacing_m"]
     p.rest_density = rho0
     p.eos = 0 if eos["type"] == "tait" else 1
@@ -444,6 +445,8 @@ class FluidSolver:
                           inputs=[self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
                           outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
                 self._density_overflow(state, dt, summation=False)
+        if m.density_diffusion > 0.0 and m.density_mode == "continuity":
+            self._density_diffusion(state, dt)
         wp.launch(sph.particle_acceleration_list, dim=m.n_fluid,
                   inputs=[self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
                           m.particle_mass, m.params],
@@ -454,6 +457,19 @@ class FluidSolver:
                   outputs=[state.accel, state.xsph_dv], device=m.device)
         wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[state.accel, state.xsph_dv, dt],
                   outputs=[state.x, state.v], device=m.device)
+
+    def _density_diffusion(self, state: FluidState, dt: wp.array) -> None:
+        """delta-SPH density diffusion after the continuity density (opt-in; kernels/diffusion.py)."""
+        from rockwave.kernels import diffusion
+
+        m = self.model
+        if getattr(self, "_diff_rate", None) is None:
+            self._diff_rate = wp.zeros(m.n_fluid, dtype=float, device=m.device)
+        wp.launch(diffusion.density_diffusion_rate, dim=m.n_fluid,
+                  inputs=[self._nbr_count, self._nbr, state.x, state.rho, m.params, m.density_diffusion],
+                  outputs=[self._diff_rate], device=m.device)
+        wp.launch(diffusion.apply_density_diffusion, dim=m.n_fluid, inputs=[self._diff_rate, dt, m.params],
+                  outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
 
     def list_overflow(self) -> int:
         """Fluid particles whose last neighbour list overflowed the capacity (summed by a cell-grid query)."""
@@ -544,6 +560,7 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
         particle_mass=masses, params=params, sound_speed=params.sound_speed,
         kinematic_viscosity=params.mu / params.rest_density, density_mode=scene_fluid["density"],
         domain_lo=lo, domain_hi=hi, initial_positions=x, initial_velocities=v, device=wp.get_device(device),
+        density_diffusion=float(scene_fluid.get("density_diffusion", 0.0) or 0.0),
     )
     if nb and full_support:
         mb = calibrate_lattice(params, bstep, dim, device)[0]
