@@ -113,6 +113,7 @@ def fluid_passes(device, spacing, reps=20, sort=True, cell_ratio=1.0):
             hashgrid_neighbour_list, dim=m.n_fluid, inputs=[fs.grid.id, st.x, m.support_radius, fs.neighbour_cap],
             outputs=[fs._nbr_count, fs._nbr], device=d),
         "neighbour_list": lambda: fs.build_neighbour_lists(st),
+        "skin_check": lambda: fs._list_guard(st),
         "neighbour_list_continuity": lambda: wp.launch(
             sph.neighbour_list_density, dim=m.n_fluid,
             inputs=[fs.cells, *fs._slot_ranges, fs.list_radius, st.x, st.v, m.particle_mass, dt, m.params,
@@ -195,11 +196,17 @@ def fluid_skin(device, spacing, skins, flow_s=0.3, steps=60):
     return out
 
 
-def fluid_flow(device, spacing, flow_s=0.3, steps=200):
+def fluid_flow(device, spacing, flow_s=0.3, steps=200, skin_check=None):
     """The user's path on a flowing dam break: advance(flow_s) (timed per step), then reorder chunks
     (step_many, CUDA graphs) from the flowing state, their GPU-busy breakdown, and the per-pass times
     there; the adaptive-dt host read (stable_dt) timed alone."""
+    from rockwave.fluid import FluidSolver
+
+    old_check = FluidSolver.skin_check
+    if skin_check:
+        FluidSolver.skin_check = skin_check
     sim = fluid_sim(device, spacing)
+    FluidSolver.skin_check = old_check
     fs, st = sim.fluid_solver, sim.state
     sim.advance(0.002)  # kernels loaded, graph captured
     wp.synchronize_device(device)
@@ -235,14 +242,21 @@ def fluid_flow(device, spacing, flow_s=0.3, steps=200):
     t = _sync_time(lambda: sim.step_many(steps), device) / steps
     busy = gpu_busy(lambda: sim.step_many(100), device, 100)
     busy_steps = gpu_busy(lambda: [sim.step() for _ in range(30)], device, 30)  # per kernel (no graph)
+    builds, last = 0, fs._x_build.numpy().copy()  # list builds over 60 plain steps (a host read per step)
+    for _ in range(60):
+        sim.step()
+        xb = fs._x_build.numpy()
+        builds += int(not np.array_equal(xb, last))
+        last = xb.copy()
     with wp.ScopedDevice(device):
         sdt = _sync_time(lambda: fs.stable_dt(st, 0.3), device, 10)
         sim.step_many(10)
         cnt = fs._nbr_count.numpy()
-    r = dict(spacing_m=spacing, particles=n, flow_s=flow_s, time_s=sim.time, dt_s=sim.dt,
+    r = dict(spacing_m=spacing, particles=n, skin_check=fs.skin_check if fs._check is not None else "absolute",
+             flow_s=flow_s, time_s=sim.time, dt_s=sim.dt,
              advance_ms_per_step=1e3 * adv, advance_steps=sim.steps - s0,
              chunk_ms_per_step=1e3 * t, particle_steps_per_s=n / t, busy=busy, busy_steps=busy_steps,
-             segments=segments, slow_calls=slow[:20], stable_dt_ms=1e3 * sdt,
+             segments=segments, slow_calls=slow[:20], list_builds_in_60_steps=builds, stable_dt_ms=1e3 * sdt,
              neighbours_mean=float(cnt.mean()), neighbours_max=int(cnt.max()), list_capacity=fs.neighbour_cap,
              list_overflow=int((cnt > fs.neighbour_cap).sum()), cell_dims=[fs.cells.nx, fs.cells.ny, fs.cells.nz])
     print(json.dumps(r), flush=True)
@@ -371,6 +385,7 @@ def main(argv=None):
     ap.add_argument("--flow-s", type=float, default=0.3)
     ap.add_argument("--joints", type=float, nargs="+", default=[0.0002], help="gaps between the blocks [m]")
     ap.add_argument("--settle", type=int, default=300, help="block steps before the timing")
+    ap.add_argument("--skin-checks", nargs="+", default=["relative", "absolute"], help="flow part: FluidSolver.skin_check values")
     a = ap.parse_args(argv)
     wp.config.quiet = True
     res = {"device_name": device_name(a.device), "commit": commit(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
@@ -387,7 +402,7 @@ def main(argv=None):
     if "skin" in a.parts:
         res["skin"] = fluid_skin(a.device, a.spacings[-1], a.skins, a.flow_s, min(a.steps, 60))
     if "flow" in a.parts:
-        res["flow"] = [fluid_flow(a.device, s, a.flow_s) for s in a.spacings]
+        res["flow"] = [fluid_flow(a.device, s, a.flow_s, skin_check=k) for s in a.spacings for k in a.skin_checks]
     if "blocks" in a.parts:
         res["blocks"] = [blocks_phases(a.device, c, settle=a.settle, joint=j) for c in a.block_counts for j in a.joints]
     if "coupled" in a.parts:

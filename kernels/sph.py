@@ -519,6 +519,123 @@ def list_displacement_check(x: wp.array(dtype=wp.vec3), x_build: wp.array(dtype=
         rebuild[0] = 1
 
 
+@wp.struct
+class CheckGrid:
+    """Dense grid of cells of width c (>= 2 H) over the build positions, for the relative-displacement
+    check of the neighbour lists (FluidSolver._list_guard)."""
+
+    lo: wp.vec3
+    inv_c: float
+    nx: int
+    ny: int
+    nz: int
+
+
+@wp.func
+def check_cell(g: CheckGrid, x: wp.vec3) -> wp.vec3i:
+    # clamped: a point outside the grid joins the edge cell (two points closer than c stay in cells at
+    # most one apart along each axis, so the adjacency argument holds there too)
+    q = (x - g.lo) * g.inv_c
+    return wp.vec3i(wp.clamp(int(wp.floor(q[0])), 0, g.nx - 1), wp.clamp(int(wp.floor(q[1])), 0, g.ny - 1),
+                    wp.clamp(int(wp.floor(q[2])), 0, g.nz - 1))
+
+
+@wp.kernel
+def displacement_bounds(
+    g: CheckGrid,
+    x: wp.array(dtype=wp.vec3),
+    x_build: wp.array(dtype=wp.vec3),
+    absolute2: float,
+    overflowed: wp.array(dtype=int),
+    d_lo: wp.array(dtype=wp.vec3),
+    d_hi: wp.array(dtype=wp.vec3),
+    rebuild: wp.array(dtype=int),
+):
+    """Per check cell (by build position) the box of the particles' displacements d = x - x_build
+    (d_lo/d_hi pre-filled with +-BIG). A position that is not finite, or a particle moved sqrt(absolute2)
+    while some list overflowed (the overflow passes query the kept cell grid, which holds the build
+    positions, out to the list radius only), sets rebuild[0]."""
+    i = wp.tid()
+    xb = x_build[i]
+    d = x[i] - xb
+    r2 = wp.length_sq(d)
+    if not (r2 < 1.0e30):
+        rebuild[0] = 1
+        return
+    if overflowed[0] != 0 and r2 >= absolute2:
+        rebuild[0] = 1
+    c = check_cell(g, xb)
+    k = c[0] + g.nx * (c[1] + g.ny * c[2])
+    wp.atomic_min(d_lo, k, d)
+    wp.atomic_max(d_hi, k, d)
+
+
+@wp.kernel
+def displacement_check_cells(
+    g: CheckGrid,
+    d_lo: wp.array(dtype=wp.vec3),
+    d_hi: wp.array(dtype=wp.vec3),
+    wall: wp.array(dtype=int),
+    skin2: float,
+    reach2: float,
+    rebuild: wp.array(dtype=int),
+):
+    """The relative-displacement test of the Verlet lists: rebuild[0] = 1 when in some cell a particle
+    moved sqrt(reach2) = (c - H)/2 or more, or two particles in the same or adjacent cells may have moved
+    sqrt(skin2) = s H or more relative to each other (bound from their cells' displacement boxes).
+    Why it suffices: a pair now closer than H that is not in the list (built out to (1 + s) H) has moved
+    more than s H relative to each other, and was closer than H + 2 max|d| < c at the build, so it
+    sits in the same or adjacent cells. Boundary particles never move: a cell holding some (wall[c] = 1)
+    has d = 0 in its box."""
+    t = wp.tid()
+    ci = t % g.nx
+    cj = (t // g.nx) % g.ny
+    ck = t // (g.nx * g.ny)
+    lo_a = d_lo[t]
+    hi_a = d_hi[t]
+    if wall[t] != 0:
+        lo_a = wp.min(lo_a, wp.vec3(0.0))
+        hi_a = wp.max(hi_a, wp.vec3(0.0))
+    if lo_a[0] > hi_a[0]:  # no particle
+        return
+    far = wp.vec3(wp.max(wp.abs(lo_a[0]), wp.abs(hi_a[0])), wp.max(wp.abs(lo_a[1]), wp.abs(hi_a[1])),
+                  wp.max(wp.abs(lo_a[2]), wp.abs(hi_a[2])))
+    if wp.length_sq(far) >= reach2:
+        rebuild[0] = 1
+        return
+    for k in range(wp.max(ck - 1, 0), wp.min(ck + 1, g.nz - 1) + 1):
+        for j in range(wp.max(cj - 1, 0), wp.min(cj + 1, g.ny - 1) + 1):
+            for i in range(wp.max(ci - 1, 0), wp.min(ci + 1, g.nx - 1) + 1):
+                b = i + g.nx * (j + g.ny * k)
+                if b >= t:  # each pair of cells once (and the cell with itself)
+                    lo_b = d_lo[b]
+                    hi_b = d_hi[b]
+                    if wall[b] != 0:
+                        lo_b = wp.min(lo_b, wp.vec3(0.0))
+                        hi_b = wp.max(hi_b, wp.vec3(0.0))
+                    if lo_b[0] <= hi_b[0]:
+                        # max over d_i in box a, d_j in box b of |d_i - d_j|, per axis
+                        e = wp.max(hi_a - lo_b, hi_b - lo_a)
+                        if wp.length_sq(e) >= skin2:
+                            rebuild[0] = 1
+                            return
+
+
+@wp.kernel
+def list_overflow_flag(count: wp.array(dtype=int), cap: int, rebuild: wp.array(dtype=int), overflowed: wp.array(dtype=int)):
+    """overflowed[0] = 1 when a list of this build holds more neighbours than its capacity (after the build;
+    reset by list_overflow_reset before it). rebuild[0] == 0: no build this step."""
+    i = wp.tid()
+    if rebuild[0] != 0 and count[i] > cap:
+        overflowed[0] = 1
+
+
+@wp.kernel
+def list_overflow_reset(rebuild: wp.array(dtype=int), overflowed: wp.array(dtype=int)):
+    if rebuild[0] != 0:
+        overflowed[0] = 0
+
+
 # ------------------------------------------------------------------ neighbour lists ------
 # One grid query per particle per step collects the neighbours within H into a list laid out
 # neighbour-major (nbr[k * n_fluid + i], so that consecutive threads read consecutive words); the

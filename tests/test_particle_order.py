@@ -346,3 +346,43 @@ def test_neighbour_skin_overflow_fallback_on_a_kept_grid(host_decides, monkeypat
     for k in ("rho", "accel", "xsph_dv"):
         u, w = getattr(s, k).numpy(), getattr(s2, k).numpy()
         assert np.allclose(u, w, rtol=1e-5, atol=1e-5 * np.abs(w).max()), k
+
+
+def test_relative_skin_check_keeps_every_neighbour_and_rebuilds_less():
+    """The relative skin check (FluidSolver.skin_check = "relative": rebuild when two particles in the same
+    or adjacent 2H cells may have moved s H relative to each other, or one moved (2H - H)/2): over a
+    flowing 3D dam break every pair closer than H is in the list at every step (brute force), and the
+    lists are rebuilt less often than with the absolute check (any particle moved s H / 2). Measured
+    (this test): 200 steps, relative 19 builds, absolute 33; at 10,850 particles over 0.3 s 196 vs 330."""
+    from rockwave.fluid import FluidSolver
+
+    assert FluidSolver.skin_check == "relative"
+    builds = {}
+    for mode in ("relative", "absolute"):
+        old = FluidSolver.skin_check
+        FluidSolver.skin_check = mode
+        try:
+            sim = _dam_break("continuity")
+        finally:
+            FluidSolver.skin_check = old
+        fs = sim.fluid_solver
+        assert (fs._check is not None) == (mode == "relative")
+        H = sim.fluid.support_radius
+        n, b0 = sim.n_fluid, fs.list_builds
+        for step in range(200):
+            sim.step()
+            if mode != "relative":
+                continue
+            x = sim.state.x.numpy()
+            cnt, nbr, cap = fs._nbr_count.numpy(), fs._nbr.numpy(), fs.neighbour_cap
+            near = ((x[:n, None, :] - x[None, :, :]) ** 2).sum(-1) < H * H
+            near[np.arange(n), np.arange(n)] = False
+            listed = np.zeros_like(near)
+            for k in range(cap):
+                rows = np.flatnonzero(cnt > k)
+                listed[rows, nbr[k * n + rows]] = True
+            missing = near & ~listed & (cnt <= cap)[:, None]
+            assert not missing.any(), f"step {step}: {int(missing.sum())} neighbour pairs missing from the lists"
+        builds[mode] = fs.list_builds - b0
+        assert np.abs(sim.velocities()).max() > 1.0  # the water flows
+    assert builds["relative"] < 0.8 * builds["absolute"], builds
