@@ -209,6 +209,7 @@ def fluid_flow(device, spacing, flow_s=0.3, steps=200, skin_check=None):
     FluidSolver.skin_check = old_check
     fs, st = sim.fluid_solver, sim.state
     sim.advance(0.002)  # kernels loaded, graph captured
+    sim.step()  # a plain step loads what the graph path did not (a one-off of 9-13 s in the first process call)
     wp.synchronize_device(device)
     # the slowest host calls of the advance loop (a one-off such as a kernel load or a graph capture
     # shows as one long call; a slow flow as many)

@@ -547,6 +547,7 @@ def displacement_bounds(
     x_build: wp.array(dtype=wp.vec3),
     absolute2: float,
     overflowed: wp.array(dtype=int),
+    moved: wp.array(dtype=int),
     d_lo: wp.array(dtype=wp.vec3),
     d_hi: wp.array(dtype=wp.vec3),
     rebuild: wp.array(dtype=int),
@@ -554,8 +555,11 @@ def displacement_bounds(
     """Per check cell (by build position) the box of the particles' displacements d = x - x_build
     (d_lo/d_hi pre-filled with +-BIG). A position that is not finite, or a particle moved sqrt(absolute2)
     while some list overflowed (the overflow passes query the kept cell grid, which holds the build
-    positions, out to the list radius only), sets rebuild[0]."""
+    positions, out to the list radius only), sets rebuild[0]. moved[0] == 0 (no particle moved
+    sqrt(absolute2): then no pair moved twice that relative to each other either): nothing to do."""
     i = wp.tid()
+    if moved[0] == 0:
+        return
     xb = x_build[i]
     d = x[i] - xb
     r2 = wp.length_sq(d)
@@ -578,6 +582,7 @@ def displacement_check_cells(
     wall: wp.array(dtype=int),
     skin2: float,
     reach2: float,
+    moved: wp.array(dtype=int),
     rebuild: wp.array(dtype=int),
 ):
     """The relative-displacement test of the Verlet lists: rebuild[0] = 1 when in some cell a particle
@@ -586,8 +591,10 @@ def displacement_check_cells(
     Why it suffices: a pair now closer than H that is not in the list (built out to (1 + s) H) has moved
     more than s H relative to each other, and was closer than H + 2 max|d| < c at the build, so it
     sits in the same or adjacent cells. Boundary particles never move: a cell holding some (wall[c] = 1)
-    has d = 0 in its box."""
+    has d = 0 in its box. moved[0] == 0: as in displacement_bounds."""
     t = wp.tid()
+    if moved[0] == 0:
+        return
     ci = t % g.nx
     cj = (t // g.nx) % g.ny
     ck = t // (g.nx * g.ny)

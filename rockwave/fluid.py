@@ -281,6 +281,7 @@ class FluidSolver:
         self._d_lo = wp.zeros(n_cells, dtype=wp.vec3, device=d)
         self._d_hi = wp.zeros(n_cells, dtype=wp.vec3, device=d)
         self._overflowed = wp.ones(1, dtype=int, device=d)
+        self._moved = wp.zeros(1, dtype=int, device=d)  # a particle moved s H / 2 since the build
         # cells holding boundary particles (static): their displacement boxes include d = 0
         wall = np.zeros(n_cells, np.int32)
         if m.n_boundary:
@@ -427,17 +428,22 @@ class FluidSolver:
             wp.launch(sph.list_displacement_check, dim=m.n_fluid, inputs=[state.x, self._x_build, half * half, self._rebuild],
                       device=m.device)
         else:
+            # first the absolute test into `moved`: while no particle moved s H / 2 (early in a flow, at rest)
+            # the relative kernels return at once (0.2 ms of the relative test saved on an H100 at 2.16 M)
             g = self._check
+            self._moved.zero_()
+            wp.launch(sph.list_displacement_check, dim=m.n_fluid, inputs=[state.x, self._x_build, half * half, self._moved],
+                      device=m.device)
             self._d_lo.fill_(wp.vec3(1.0e30))
             self._d_hi.fill_(wp.vec3(-1.0e30))
             wp.launch(sph.displacement_bounds, dim=m.n_fluid,
-                      inputs=[g, state.x, self._x_build, half * half, self._overflowed, self._d_lo, self._d_hi, self._rebuild],
-                      device=m.device)
+                      inputs=[g, state.x, self._x_build, half * half, self._overflowed, self._moved, self._d_lo, self._d_hi,
+                              self._rebuild], device=m.device)
             skin = self.neighbour_skin * m.support_radius
             reach = 0.5 * (self._check_width - m.support_radius)
             wp.launch(sph.displacement_check_cells, dim=self._d_lo.shape[0],
-                      inputs=[g, self._d_lo, self._d_hi, self._wall_cells, skin * skin, reach * reach, self._rebuild],
-                      device=m.device)
+                      inputs=[g, self._d_lo, self._d_hi, self._wall_cells, skin * skin, reach * reach, self._moved,
+                              self._rebuild], device=m.device)
         if not self.host_decides:
             return self._rebuild
         if int(self._rebuild.numpy()[0]) == 0:
