@@ -258,11 +258,16 @@ class FluidSolver:
     # exact test, 331 with "absolute"). "relative" falls back to "absolute" past check_cells_per_particle.
     skin_check = "relative"
     check_cells_per_particle = 4
+    # on a GPU a small step is launch-bound: the relative test's 5 extra launches would cost more than the
+    # list builds it saves (H100, 3,600 particles: 0.46 -> 0.69 ms/step); it starts at this many particles
+    relative_min_particles_cuda = 250_000
 
     def _init_check_grid(self) -> None:
         m, d = self.model, self.model.device
         self._check = None
         if self.skin_check != "relative" or self.neighbour_skin <= 0 or m.n_fluid == 0:
+            return
+        if m.device.is_cuda and m.n_fluid < self.relative_min_particles_cuda:
             return
         c = 2.0 * m.support_radius
         lo = np.asarray(m.domain_lo, float) - c
