@@ -6,19 +6,21 @@
 Writes benchmarks/results/<date>-<device>.json (every run's record), PNG charts
 benchmarks/results/<date>-<device>-*.png, and prints a summary table. Parts: accuracy against speed
 (2D dam break vs Martin & Moyce, SPHERIC Test 2), stability maps (fluid dt x c0, blocks dt x k_n),
-scaling (benchmarks/fluid_bench.py, blocks_bench.py, coupled_bench.py) with peak memory, and the
-peers (SPlisHSPlasH on the CPU, Warp's example_sph.py). ``--only accuracy stability ...`` picks parts;
+scaling (benchmarks/fluid_bench.py, blocks_bench.py, coupled_bench.py) with peak memory, the
+peers (SPlisHSPlasH on the CPU, Warp's example_sph.py), and the piston wave maker against linear theory
+as the resolution grows (benchmarks/wave_maker_accuracy.py; the 10% check of issue 4 at full size). ``--only accuracy stability ...`` picks parts;
 a run of some parts writes <date>-<device>-<suite>-<parts>.json unless --out says otherwise.
 
 The JSON is rewritten (temp file + rename) after every finished part, so a run killed part-way keeps
 the parts that finished (``parts_done``; ``parts_pending`` lists the rest). The full suite does not fit
 one 10-minute call on an H100 (accuracy ~385 s, stability ~336 s, scaling + peers ~305 s): on a GPU
-lease run it as three calls, then merge (merge checks the suite and device agree, redraws the charts
+lease run it as four calls, then merge (merge checks the suite and device agree, redraws the charts
 and prints the summary of the whole):
 
     python -m benchmarks run --device cuda:0 --suite full --only accuracy    # call 1
     python -m benchmarks run --device cuda:0 --suite full --only stability   # call 2
     python -m benchmarks run --device cuda:0 --suite full --only scaling peers   # call 3
+    python -m benchmarks run --device cuda:0 --suite full --only wave_maker      # call 4 (~4 min)
     python -m benchmarks merge benchmarks/results/<date>-cuda0-full-*.json --out benchmarks/results/<date>-cuda0-full.json
 
     python -m benchmarks charts FILE.json      # redraw the PNG charts of any result JSON (next to it)
@@ -53,7 +55,7 @@ SUITES = {
         fluid_spacings=[0.06, 0.045], fluid_steps=20, block_counts=[100, 400], block_steps=20, block_settle=100,
         coupled=["wave_maker_small.toml", "sliding_wedge_small.toml"], coupled_steps=5, coupled_scale=[1.0],
         mem_fluid=[0.06, 0.045], mem_blocks=[100, 400],
-        splash_res=10, warp_example_spacing=0.06,
+        splash_res=10, warp_example_spacing=0.06, wave_layers=[16],
     ),
     "full": dict(
         dam_res=[10, 20, 40, 80], dam_variants=list(H.VARIANTS), dam_t_end=0.2,
@@ -65,7 +67,7 @@ SUITES = {
         fluid_spacings=[0.04, 0.02, 0.015, 0.01], fluid_steps=100, block_counts=[1000, 10000, 100000], block_steps=100,
         block_settle=300, coupled=["wave_maker.toml", "sliding_wedge.toml"], coupled_steps=50, coupled_scale=[1.0, 2.0],
         mem_fluid=[0.02, 0.01], mem_blocks=[1000, 10000],
-        splash_res=10, warp_example_spacing=0.02,
+        splash_res=10, warp_example_spacing=0.02, wave_layers=[16, 32, 64, 128],
     ),
 }
 
@@ -114,6 +116,21 @@ def part_accuracy(dev: str, cfg: dict) -> dict:
             r["pareto"] = i in front
         out[f"{case}_recommendation"] = recommend(rows, front)
     return out
+
+
+def part_wave_maker(dev: str, cfg: dict) -> dict:
+    """Issue 4's piston check at growing resolution (benchmarks/wave_maker_accuracy.py): first-harmonic
+    wave height at gauge_1 against linear wavemaker theory, class "within 10%" or "outside 10%"."""
+    from benchmarks import wave_maker_accuracy as W
+
+    rows = []
+    for n in cfg["wave_layers"]:
+        r = W.run(dev, n)
+        r["class"] = "within 10%" if abs(r["error_gauge1"]) <= 0.10 else "outside 10%"
+        rows.append(r)
+        log(f"  wave maker {n:4d} layers/depth n={r['particles']:7d} gauge_1 {r['error_gauge1']:+.1%} gauge_2 "
+            f"{r['error_gauge2']:+.1%} ({r['wall_s']:.0f} s)  {r['class']}")
+    return {"piston": rows}
 
 
 def recommend(rows: list, front: list[int]) -> list[str]:
@@ -448,6 +465,12 @@ def summary(res: dict) -> str:
                      f"{w['rockwave']['particle_steps_per_s']:.3g}; ratio {w['throughput_ratio']:.2f}")
         else:
             L.append(f"  Warp example: {w.get('error')}")
+    wm = res.get("wave_maker")
+    if wm:
+        L.append("\npiston wave maker vs linear theory (wave_maker_small, gauge_1 at 0.35 m)")
+        for r in wm["piston"]:
+            L.append(f"  {r['layers']:4d} layers/depth {r['particles']:7d} particles gauge_1 {r['error_gauge1']:+.1%} "
+                     f"gauge_2 {r['error_gauge2']:+.1%}  {r['class']}")
     L.append(f"\nwall time of the suite: {res.get('suite_wall_s', math.nan):.0f} s"
              + (" (" + ", ".join(f"{k} {v:.0f} s" for k, v in res["part_wall_s"].items()) + ")" if res.get("part_wall_s") else ""))
     return "\n".join(L)
@@ -477,6 +500,12 @@ def markdown(res: dict) -> str:
                          f"| {parts} | {r.get('wall_per_sim_s', math.nan):.1f} | {r['class']} |")
             L += [""] + [f"- {x}" for x in acc.get(f"{case}_recommendation", [])] + [""]
     text = summary(res).split("\n")
+    wm = res.get("wave_maker")
+    if wm:
+        L += ["**Piston wave maker vs linear theory** (wave_maker_small, first-harmonic height at gauge_1, 0.35 m)", "",
+              "| layers per depth | particles | gauge_1 | gauge_2 | wall s | class |", "|---|---|---|---|---|---|"]
+        L += [f"| {r['layers']} | {r['particles']} | {r['error_gauge1']:+.1%} | {r['error_gauge2']:+.1%} | {r['wall_s']:.0f} | {r['class']} |"
+              for r in wm["piston"]] + [""]
     for head in ("stability", "scaling", "peers"):
         if head in res:
             i = next((k for k, l in enumerate(text) if l.startswith(head)), None)
@@ -502,7 +531,7 @@ def strip_series(res: dict) -> dict:
     return res
 
 
-PARTS = ["accuracy", "stability", "scaling", "peers"]
+PARTS = ["accuracy", "stability", "scaling", "peers", "wave_maker"]
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")
 
 
@@ -643,7 +672,8 @@ def main(argv=None) -> None:
            "record": _rel(path), "parts_done": [], "parts_pending": list(parts), "part_wall_s": {}, "suite_wall_s": 0.0}
     write_json(res, path)
     t0 = time.perf_counter()
-    fns = {"accuracy": part_accuracy, "stability": part_stability, "scaling": part_scaling, "peers": part_peers}
+    fns = {"accuracy": part_accuracy, "stability": part_stability, "scaling": part_scaling, "peers": part_peers,
+           "wave_maker": part_wave_maker}
     for p in parts:
         log(f"[{p}]")
         t = time.perf_counter()

@@ -108,7 +108,7 @@ def test_merge_parts_redraws_charts_and_refuses_mixed_devices(tmp_path):
     out = tmp_path / "merged" / "full.json"
     B.main(["merge", str(a), str(b), "--out", str(out)])
     res = json.loads(out.read_text())
-    assert res["parts_done"] == ["accuracy", "peers"] and res["parts_pending"] == ["stability", "scaling"]
+    assert res["parts_done"] == ["accuracy", "peers"] and res["parts_pending"] == ["stability", "scaling", "wave_maker"]
     assert res["suite_wall_s"] == 690.0 and [m["commit"] for m in res["merged_from"]] == ["aaa1111", "bbb2222"]
     assert (out.parent / "full-accuracy-dam_break_2d.png").stat().st_size > 0
     md = B.markdown(res)
@@ -141,3 +141,20 @@ def test_splash_scene_matches_rockwave_lattice_and_eos():
     assert np.allclose([x.min() for x in axes], ours.min(axis=0)) and np.allclose([x.max() for x in axes], ours.max(axis=0))
     assert abs(sc["Configuration"]["WCSPH"]["stiffness"] - 15.0 ** 2 * 1000.0 / 7.0) < 1e-9
     assert sc["Configuration"]["WCSPH"]["exponent"] == 7.0 and sc["Configuration"]["kernel"] == 0
+
+
+def test_wave_maker_part_reports_the_10_percent_check():
+    """The harness's wave_maker part (issue 4's piston check at full size) is summarised and written to
+    RESULTS markdown with its class; a record with the H100 figures (16 / 128 layers per depth)."""
+    from benchmarks.__main__ import markdown, summary
+
+    rows = [dict(layers=16, particles=2048, error_gauge1=-0.196, error_gauge2=-0.364, wall_s=5.0, class_="outside 10%"),
+            dict(layers=128, particles=131072, error_gauge1=-0.074, error_gauge2=-0.175, wall_s=169.0, class_="within 10%")]
+    for r in rows:
+        r["class"] = r.pop("class_")
+    res = {"suite": "full", "device": "cuda:0", "device_name": "NVIDIA H100 80GB HBM3", "date": "2026-11-22", "commit": "x",
+           "warp": "1.19.0", "load_average": [0.0, 0.0, 0.0], "wave_maker": {"piston": rows}}
+    s = summary(res)
+    assert "128 layers/depth  131072 particles gauge_1 -7.4%" in s and "within 10%" in s and "outside 10%" in s
+    md = markdown(res)
+    assert "| 128 | 131072 | -7.4% | -17.5% | 169 | within 10% |" in md
