@@ -395,6 +395,27 @@ def block_aabbs(
     contact_count[b] = 0
 
 
+@wp.kernel
+def aabbs_left_pair_boxes(
+    lo: wp.array(dtype=wp.vec3),
+    hi: wp.array(dtype=wp.vec3),
+    lo_bp: wp.array(dtype=wp.vec3),
+    hi_bp: wp.array(dtype=wp.vec3),
+    half_margin: float,
+    moved: wp.array(dtype=int),
+):
+    """moved[0] = 1 when a block's AABB grown by margin/2 (lo, hi: grown by margin) is no longer inside
+    the box grown by margin that the last broad phase used (lo_bp, hi_bp): while none is, every pair whose
+    AABBs grown by margin/2 overlap is still in the pair list, and the broad phase can be skipped."""
+    b = wp.tid()
+    l = lo[b] + wp.vec3(half_margin)
+    h = hi[b] - wp.vec3(half_margin)
+    lb = lo_bp[b]
+    hb = hi_bp[b]
+    if l[0] < lb[0] or l[1] < lb[1] or l[2] < lb[2] or h[0] > hb[0] or h[1] > hb[1] or h[2] > hb[2]:
+        moved[0] = 1
+
+
 # ----------------------------------------------------------------------------------------------
 # broad phase: uniform grid (cell S ~ 1.5 D50), counting sort into hashed buckets
 # ----------------------------------------------------------------------------------------------

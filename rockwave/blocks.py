@@ -670,6 +670,14 @@ class BlockSolver:
         self._pair_count = 0
         self._unchecked_steps = 0
         self._dt_crit = None
+        # Many blocks (the counter-read path): the pair list is kept while every block's AABB grown by
+        # margin/2 stays inside the box (grown by margin) of the last broad phase (kernels/dda.py
+        # aabbs_left_pair_boxes; one flag read joins the step's counter read). Few blocks: every step.
+        self.keep_pairs = not self.sync_free
+        self.lo_bp = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.hi_bp = wp.zeros(n, dtype=wp.vec3, device=d)
+        self._moved = wp.ones(1, dtype=int, device=d)
+        self.broad_phases = 0  # broad phases run (diagnostics)
 
     sync_free_max_blocks = 64
     sync_check_interval = 200
@@ -747,9 +755,18 @@ class BlockSolver:
                   inputs=[state.world_verts, m.vert_start, m.vert_count, self.margin, self.lo, self.hi,
                           state.contact_count], device=d)
 
-    def _broad_phase(self):
+    def _broad_phase(self, force: bool = False):
         m, d = self.model, self.device
         inv_s = 1.0 / self.cell_size
+        if self.keep_pairs and not force:
+            self._moved.zero_()
+            wp.launch(K.aabbs_left_pair_boxes, dim=m.num_blocks,
+                      inputs=[self.lo, self.hi, self.lo_bp, self.hi_bp, 0.5 * self.margin, self._moved], device=d)
+            if int(self._moved.numpy()[0]) == 0:
+                return
+        self.broad_phases += 1
+        wp.copy(self.lo_bp, self.lo)
+        wp.copy(self.hi_bp, self.hi)
         while True:
             self.counters.zero_()
             self.bucket_count.zero_()
@@ -822,7 +839,7 @@ class BlockSolver:
     def detect(self, state: BlockState):
         """Collision detection only (world vertices, broad + narrow phase), forces discarded."""
         self._prepare(state)
-        self._broad_phase()
+        self._broad_phase(force=True)
         self._narrow_phase(state, 0.0, screen=False)
         wp.launch(K.clear_forces, dim=self.model.num_blocks,
                   inputs=[state.force, state.torque, state.strain_force], device=self.device)
