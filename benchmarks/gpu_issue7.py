@@ -264,6 +264,21 @@ def fluid_flow(device, spacing, flow_s=0.3, steps=200, skin_check=None):
     return r
 
 
+def graph_check(device, spacing, steps=400):
+    """The same dam break advanced in reorder chunks with CUDA graphs (the list rebuild a conditional node)
+    and with plain launches: the largest position difference after `steps` steps (0: identical), and
+    whether the graph path was taken."""
+    out = {}
+    for graphs in (True, False):
+        sim = fluid_sim(device, spacing)
+        sim.use_graphs = graphs
+        sim.step_many(steps)
+        out[graphs] = (sim.positions(), bool(getattr(sim, "_graph_key", None)) and not getattr(sim, "_graph_failed", False))
+    r = dict(spacing_m=spacing, steps=steps, graph_used=out[True][1], max_abs_diff_m=float(np.abs(out[True][0] - out[False][0]).max()))
+    print(json.dumps(r), flush=True)
+    return r
+
+
 def blocks_phases(device, count, steps=20, settle=300, joint=0.0002):
     from benchmarks.blocks_bench import run as _  # noqa: F401 (same scene construction)
     scene = rockwave.load_scene(ROOT / "scenes" / "rock_slope_10k.toml")
@@ -402,6 +417,8 @@ def main(argv=None):
         res["passes"] += [fluid_passes(a.device, a.spacings[-1], cell_ratio=r) for r in a.cell_ratios if r != 1.0]
     if "skin" in a.parts:
         res["skin"] = fluid_skin(a.device, a.spacings[-1], a.skins, a.flow_s, min(a.steps, 60))
+    if "graphcheck" in a.parts:
+        res["graphcheck"] = [graph_check(a.device, s) for s in a.spacings]
     if "flow" in a.parts:
         res["flow"] = [fluid_flow(a.device, s, a.flow_s, skin_check=k) for s in a.spacings for k in a.skin_checks]
     if "blocks" in a.parts:

@@ -256,6 +256,7 @@ class FluidSolver:
     # displacement_check_cells); "absolute" when any particle moved s H / 2. In a flowing 3D dam break
     # the water moves together: a list then lasts ~9x longer (10,850 particles, 0.3 s: 37 builds with an
     # exact test, 331 with "absolute"). "relative" falls back to "absolute" past check_cells_per_particle.
+    conditional_rebuild = True  # CUDA graphs: the list rebuild as a conditional node (step)
     skin_check = "relative"
     check_cells_per_particle = 4
     # on a GPU a small step is launch-bound: the relative test's 5 extra launches would cost more than the
@@ -499,6 +500,16 @@ class FluidSolver:
         guard = self._list_guard(state)
         # the fused list build + density needs the host to know that the list is rebuilt this step
         fused = self.fused_density and guard is self._always
+        if guard is self._rebuild and self.conditional_rebuild and m.device.is_capturing:
+            # in a CUDA graph the rebuild is a conditional node on the device flag: the steps that keep
+            # the list skip the radix sort and the cell/list launches instead of running them to no effect
+            def rebuild():
+                self.build_cells(state, self._always)
+                self.build_neighbour_lists(state, self._always)
+                self._lists_built()
+
+            wp.capture_if(self._rebuild, on_true=rebuild)
+            guard = None
         if guard is not None:
             self.build_cells(state, guard)
             if fused:
