@@ -244,20 +244,25 @@ def particle_density_summation(
 def lattice_moments(
     x: wp.array(dtype=wp.vec3),
     p: SPHParams,
-    out: wp.array(dtype=float),
+    w: wp.array(dtype=float),
+    gx: wp.array(dtype=float),
 ):
-    """Lattice sums about x[0]: out[0] = sum_j W_0j, out[1] = sum_j (x_j - x_0)_x (dW/dx)_0j
-    (unscaled gradient), for the calibration of particle mass and gradient scale."""
+    """Terms of the lattice sums about x[0]: w[j] = W_0j and gx[j] = (x_j - x_0)_x (dW/dx)_0j (unscaled
+    gradient of the scene's kernel), summed on the host in float64 for the calibration of particle mass
+    and gradient scale (a float atomic sum here made the mass, and so every GPU run, differ in the last
+    bit from run to run)."""
     j = wp.tid()
     rij = x[0] - x[j]
     r = wp.length(rij)
-    wp.atomic_add(out, 0, kernel_w(r * r, p))
+    w[j] = kernel_w(r * r, p)
     g = wp.vec3(0.0)
     if p.kernel == KERNEL_MULLER:
         g = spiky_grad(rij, r, p.H, p.dim)
+    elif p.kernel == KERNEL_WENDLAND:
+        g = wendland_grad(rij, r, p.H, p.dim)
     else:
         g = cubic_grad(rij, r, p.H, p.dim)
-    wp.atomic_add(out, 1, (x[j][0] - x[0][0]) * g[0])
+    gx[j] = (x[j][0] - x[0][0]) * g[0]
 
 
 @wp.kernel

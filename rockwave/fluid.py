@@ -607,9 +607,10 @@ def calibrate_lattice(params: sph.SPHParams, spacing: float, dim: int, device) -
     centre = pts.shape[0] // 2
     pts[[0, centre]] = pts[[centre, 0]]
     xa = wp.array(pts, dtype=wp.vec3, device=device)
-    out = wp.zeros(2, dtype=float, device=device)
-    wp.launch(sph.lattice_moments, dim=len(pts), inputs=[xa, params], outputs=[out], device=device)
-    w_sum, grad_moment = (float(v) for v in out.numpy())
+    w = wp.zeros(len(pts), dtype=float, device=device)
+    gx = wp.zeros(len(pts), dtype=float, device=device)
+    wp.launch(sph.lattice_moments, dim=len(pts), inputs=[xa, params], outputs=[w, gx], device=device)
+    w_sum, grad_moment = float(np.sum(w.numpy(), dtype=np.float64)), float(np.sum(gx.numpy(), dtype=np.float64))
     mass = params.rest_density / w_sum
     return mass, w_sum / grad_moment
 
