@@ -65,42 +65,17 @@ def cell_index(g: GhostGrid, i: int, j: int, k: int) -> int:
     return (k * g.ny + j) * g.nx + i
 
 
-@wp.kernel
-def position_divergence(
-    grid: wp.uint64,
-    x: wp.array(dtype=wp.vec3),
-    rho: wp.array(dtype=float),
-    particle_mass: wp.array(dtype=float),
-    p: SPHParams,
-    n_static: int,
-    threshold: float,
-    div: wp.array(dtype=float),
-    surface: wp.array(dtype=int),
-):
-    """div x_i = sum_j V_j (x_j - x_i) . grad_i W_ij over liquid and boundary neighbours (Lee et al. 2008;
-    Schechter & Bridson 2012, sec. 4), V_j = m_j/rho_j (rho0 for boundary particles). It equals the
-    dimension inside the liquid (the kernel gradient is lattice-calibrated) and drops at a free
-    surface; particles below ``threshold`` are surface particles."""
-    i = wp.tid()
-    xi = x[i]
-    s = float(0.0)
-    q = wp.hash_grid_query(grid, xi, p.H)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        if j == i or j >= n_static:
-            continue
-        rij = xi - x[j]
-        r = wp.length(rij)
-        if r < p.H:
-            rj = p.rest_density
-            if j < p.n_fluid:
-                rj = rho[j]
-            s -= particle_mass[j] / rj * wp.dot(rij, kernel_grad(rij, r, p))
-    div[i] = s
-    f = int(0)
-    if s < threshold:
-        f = 1
-    surface[i] = f
+@wp.func
+def position_divergence_term(rij: wp.vec3, r: float, j: int, rho: wp.array(dtype=float),
+                             particle_mass: wp.array(dtype=float), p: SPHParams):
+    """One neighbour's term of div x_i = sum_j V_j (x_j - x_i) . grad_i W_ij over liquid and boundary
+    neighbours (Lee et al. 2008; Schechter & Bridson 2012, sec. 4), V_j = m_j/rho_j (rho0 for boundary
+    particles); rij = x_i - x_j, r = |rij| < H. The sum equals the dimension inside the liquid (the
+    kernel gradient is lattice-calibrated) and drops at a free surface."""
+    rj = p.rest_density
+    if j < p.n_fluid:
+        rj = rho[j]
+    return -particle_mass[j] / rj * wp.dot(rij, kernel_grad(rij, r, p))
 
 
 @wp.func
@@ -722,9 +697,10 @@ def position_divergence_list(
     div: wp.array(dtype=float),
     surface: wp.array(dtype=int),
 ):
-    """position_divergence over the neighbour list (liquid and boundary neighbours; pairs out to the
-    list radius are skipped past H); a particle whose list overflowed sums over a query of ``grid``
-    (fluid + boundary [+ ghosts], index >= n_static skipped) instead."""
+    """Free-surface detection: div x_i (position_divergence_term) over the neighbour list (liquid and
+    boundary neighbours; pairs out to the list radius are skipped past H); a particle whose list overflowed
+    sums over a query of ``grid`` (fluid + boundary [+ ghosts], index >= n_static skipped) instead.
+    Particles below ``threshold`` are surface particles."""
     i = wp.tid()
     n = count.shape[0]
     c = count[i]
@@ -737,10 +713,7 @@ def position_divergence_list(
             rij = xi - x[j]
             r2 = wp.length_sq(rij)
             if r2 < H2:
-                rj = p.rest_density
-                if j < p.n_fluid:
-                    rj = rho[j]
-                s -= particle_mass[j] / rj * wp.dot(rij, kernel_grad(rij, wp.sqrt(r2), p))
+                s += position_divergence_term(rij, wp.sqrt(r2), j, rho, particle_mass, p)
     else:
         q = wp.hash_grid_query(grid, xi, p.H)
         j = int(0)
@@ -750,25 +723,12 @@ def position_divergence_list(
             rij = xi - x[j]
             r = wp.length(rij)
             if r < p.H:
-                rj = p.rest_density
-                if j < p.n_fluid:
-                    rj = rho[j]
-                s -= particle_mass[j] / rj * wp.dot(rij, kernel_grad(rij, r, p))
+                s += position_divergence_term(rij, r, j, rho, particle_mass, p)
     div[i] = s
     f = int(0)
     if s < threshold:
         f = 1
     surface[i] = f
-
-
-@wp.kernel
-def park_unused_ghosts(count: wp.array(dtype=int), n_static: int, park: wp.vec3, x: wp.array(dtype=wp.vec3)):
-    """GPU: ghost slots at or past count[0] go to ``park``, a point whose hash-grid cell no query of the
-    ghost grid visits, so the grid can be built over every slot without reading the count back.
-    Launched over the ghost capacity."""
-    k = wp.tid()
-    if k >= count[0]:
-        x[n_static + k] = park
 
 
 @wp.kernel
