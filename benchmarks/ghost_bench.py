@@ -71,13 +71,19 @@ def main():
     ap.add_argument("--attempts", type=int, default=None, help="darts per cell and round (default: the scene's)")
     ap.add_argument("--rounds", type=int, default=None, help="passes over the phases (default: the scene's)")
     ap.add_argument("--busy", action="store_true", help="GPU: time each kernel of the ghost step (CUDA events)")
+    ap.add_argument("--darts", choices=["auto", "parallel", "serial"], default="auto",
+                    help="dart throwing: parallel screens + light phase launches, or the per-cell serial "
+                         "throw_darts (default: parallel on CUDA, serial on the CPU)")
     a = ap.parse_args()
     wp.config.quiet = True
+    from rockwave.ghost import GhostFluidSolver
+
+    GhostFluidSolver.parallel_darts = {"auto": None, "parallel": True, "serial": False}[a.darts]
     nb, tb, _, _, cb, _ = run(a.scene, "basic", a.device, a.steps, a.spacing, repeats=a.repeats)
     ng, tg, share, ghosts, cg, s = run(a.scene, "ghost", a.device, a.steps, a.spacing, repeats=a.repeats,
                                        attempts=a.attempts, rounds=a.rounds)
-    print(f"scene {Path(a.scene).name} device {a.device} fluid {nb} ghosts(last step) {ghosts} "
-          f"darts {s.attempts} x {s.rounds} rounds (GPU: {s.n_phases * s.rounds} dart launches per step)")
+    print(f"scene {Path(a.scene).name} device {a.device} fluid {nb} ghosts(last step) {ghosts} darts {a.darts}: "
+          f"{s.attempts} x {s.rounds} rounds (GPU: {s.n_phases * s.rounds} dart launches per step)")
     print(f"basic {tb * 1e3:.3f} ms/step  ghost {tg * 1e3:.3f} ms/step  ratio {tg / tb:.2f}  sampling share of ghost step {share:.0%}")
     if not wp.get_device(a.device).is_cuda:
         print(f"process CPU time: basic {cb * 1e3:.3f} ms/step  ghost {cg * 1e3:.3f} ms/step  ratio {cg / cb:.2f}")

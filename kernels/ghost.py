@@ -433,6 +433,276 @@ def throw_darts(
         return
 
 
+# ---- Parallel dart throwing (the GPU path; GhostFluidSolver.parallel_darts) -----------------------
+# The work that does not depend on the ghosts of this sampling is taken out of the dependent phase
+# launches: one launch screens every dart of every active cell against the liquid, the walls, the
+# kept old ghosts and the layer and colour rules (dart_screen, a thread per cell), and the 3^d phase
+# launches (place_darts) only test the darts left against the new ghosts around the cell. The
+# nearest liquid particle (the ghost's velocity) is found afterwards, a thread per new ghost
+# (ghost_nearest_liquid). In throw_darts a phase launch lasts as long as its slowest thread's serial
+# queries (one per dart that passes the liquid test); here no phase thread runs a hash query.
+
+
+# liquid and boundary particles near enough to a cell to reject one of its darts or to count in the
+# colour field at a dart (dart_screen's per-cell list); on overflow each dart runs its own query
+SCREEN_CAP = 96
+screen_list = wp.types.vector(length=SCREEN_CAP, dtype=int)
+
+
+@wp.kernel
+def dart_screen(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    n_fluid: int,
+    n_static: int,
+    g: GhostGrid,
+    p: SPHParams,
+    seed: int,
+    attempts: int,
+    stamp: int,
+    phase_count: wp.array(dtype=int),
+    phase_list: wp.array(dtype=int),
+    phase_cap: int,
+    ghost_stamp: wp.array(dtype=int),
+    keep: wp.array(dtype=int),
+    n_old: int,
+    dart_mask: wp.array(dtype=int),
+):
+    """Thread (ph, t): the t-th active cell of phase ph (all phases in one launch). Closes the cell
+    (``ghost_stamp = -stamp``) when no dart can pass: wholly within r_liquid of one liquid or boundary
+    particle, or inside the liquid by the colour field at its centre. Otherwise sets bit t of
+    ``dart_mask[c]`` for each dart t that passes every rule that does not depend on this sampling's
+    ghosts: no liquid or boundary particle within r_liquid, no kept old ghost within r, a liquid
+    particle within the layer, liquid colour field sum_j V_j W(y - x_j) at most colour_max. One hash
+    query per cell gathers the particles that can matter (within the test radius plus the half
+    diagonal of the cell: a dart lies within the half diagonal of the centre); every dart is tested
+    against that list."""
+    ph, t_cell = wp.tid()
+    if t_cell >= phase_count[ph]:
+        return
+    c = phase_list[ph * phase_cap + t_cell]
+    dart_mask[c] = 0
+    if ghost_stamp[c] == stamp or ghost_stamp[c] == -stamp:  # has a ghost (earlier round) / closed
+        return
+    ci = c % g.nx
+    cj = (c // g.nx) % g.ny
+    ck = c // (g.nx * g.ny)
+    half = 0.5 * g.cell
+    half_diag = half * wp.sqrt(float(g.dim))
+    xc = g.lo + wp.vec3(float(ci) * g.cell + half, float(cj) * g.cell + half, float(ck) * g.cell + half)
+    if g.dim == 2:
+        xc = wp.vec3(xc[0], xc[1], 0.0)
+    rl2 = g.r_liquid * g.r_liquid
+    r2 = g.r * g.r
+    layer2 = g.layer * g.layer
+    # (a small margin against rounding: an extra candidate never changes a decision)
+    eps = 1.0e-4 * g.cell
+    reach_l = wp.max(g.r_liquid, wp.max(g.layer, p.H)) + half_diag + eps
+    reach_g = g.r + half_diag + eps
+    base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
+    near = screen_list()
+    n_near = int(0)
+    kept = ghost_list()
+    n_kept = int(0)
+    col = float(0.0)
+    grad = wp.vec3(0.0)
+    covered = int(0)
+    qc = wp.hash_grid_query(grid, xc, wp.max(reach_l, reach_g))
+    jc = int(0)
+    while wp.hash_grid_query_next(qc, jc):
+        rc = xc - x[jc]
+        if jc < n_static:
+            dc = wp.length(rc)
+            # close cells where no dart can pass. Inside the liquid: the colour field at the centre, less
+            # |grad colour| times the half diagonal (first order) and a 0.1 margin, still above
+            # colour_max everywhere in the cell. Covered: the whole cell within r_liquid of one particle.
+            if dc <= g.layer:
+                if dc + half_diag < g.r_liquid:
+                    covered = 1
+                if jc < n_fluid and dc < p.H:
+                    col += g.liquid_volume * kernel_w(dc * dc, p)
+                    grad += g.liquid_volume * kernel_grad(rc, dc, p)
+            if dc < reach_l:
+                if n_near < SCREEN_CAP:
+                    near[n_near] = jc
+                n_near += 1
+        elif jc < n_static + n_old:
+            if keep[jc - n_static] != 0:
+                if wp.length(rc) < reach_g:
+                    if n_kept < GHOST_CAP:
+                        kept[n_kept] = jc
+                    n_kept += 1
+    if covered != 0 or col - wp.length(grad) * half_diag - 0.1 > g.colour_max:
+        ghost_stamp[c] = -stamp
+        return
+    lists = int(0)
+    if n_near <= SCREEN_CAP and n_kept <= GHOST_CAP:
+        lists = 1
+    rng = wp.rand_init(seed, c)
+    mask = int(0)
+    for t in range(attempts):
+        y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
+        if g.dim == 2:
+            y = wp.vec3(y[0], y[1], 0.0)
+        ok = int(1)
+        inside = int(0)  # a liquid particle within the layer
+        colour = float(0.0)
+        if lists != 0:
+            for m in range(n_kept):
+                if wp.length_sq(x[kept[m]] - y) < r2:
+                    ok = 0
+                    break
+            if ok != 0:
+                for m in range(n_near):
+                    j = near[m]
+                    d2 = wp.length_sq(x[j] - y)
+                    if d2 < rl2:
+                        ok = 0
+                        break
+                    if j < n_fluid:
+                        if d2 <= layer2:
+                            inside = 1
+                        colour += g.liquid_volume * kernel_w(d2, p)
+                        if colour > g.colour_max:
+                            ok = 0
+                            break
+        else:
+            j = int(0)
+            q = wp.hash_grid_query(grid, y, wp.max(wp.max(g.r_liquid, g.r), wp.max(g.layer, p.H)))
+            while wp.hash_grid_query_next(q, j):
+                if j < n_static:
+                    d2 = wp.length_sq(x[j] - y)
+                    if d2 < rl2:
+                        ok = 0
+                        break
+                    if j < n_fluid:
+                        if d2 <= layer2:
+                            inside = 1
+                        colour += g.liquid_volume * kernel_w(d2, p)
+                elif j < n_static + n_old:
+                    if keep[j - n_static] != 0 and wp.length_sq(x[j] - y) < r2:
+                        ok = 0
+                        break
+        if ok != 0 and inside != 0 and colour <= g.colour_max:
+            mask = mask | (1 << t)
+    dart_mask[c] = mask
+
+
+@wp.kernel
+def place_darts(
+    g: GhostGrid,
+    seed: int,
+    attempts: int,
+    stamp: int,
+    phase_count: wp.array(dtype=int),
+    phase_list: wp.array(dtype=int),
+    phase_cap: int,
+    offset: int,
+    dart_mask: wp.array(dtype=int),
+    cell_ghost: wp.array(dtype=int),
+    ghost_stamp: wp.array(dtype=int),
+    count: wp.array(dtype=int),
+    capacity: int,
+    n_static: int,
+    x_ghost: wp.array(dtype=wp.vec3),
+):
+    """Phase launch of the parallel darts (thread (ph, t): the t-th active cell of phase offset + ph;
+    one launch per phase on a GPU, all phases in turn in one launch on the CPU, as throw_darts).
+    Places the first dart left in ``dart_mask[c]`` that no ghost of this sampling lies within r of,
+    closes the neighbouring cells wholly within r of it, and leaves its velocity and owner to
+    ghost_nearest_liquid."""
+    ph, t_cell = wp.tid()
+    if t_cell >= phase_count[offset + ph]:
+        return
+    c = phase_list[(offset + ph) * phase_cap + t_cell]
+    if ghost_stamp[c] == stamp or ghost_stamp[c] == -stamp:  # has a ghost / closed
+        return
+    mask = dart_mask[c]
+    if mask == 0:
+        return
+    ci = c % g.nx
+    cj = (c // g.nx) % g.ny
+    ck = c // (g.nx * g.ny)
+    half = 0.5 * g.cell
+    half_diag = half * wp.sqrt(float(g.dim))
+    xc = g.lo + wp.vec3(float(ci) * g.cell + half, float(cj) * g.cell + half, float(ck) * g.cell + half)
+    if g.dim == 2:
+        xc = wp.vec3(xc[0], xc[1], 0.0)
+    eps = 1.0e-4 * g.cell
+    reach_g = g.r + half_diag + eps
+    base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
+    ghosts = ghost_list()
+    n_gh = int(0)
+    k0 = ck
+    k1 = ck
+    if g.dim == 3:
+        k0 = wp.max(ck - 2, 0)
+        k1 = wp.min(ck + 2, g.nz - 1)
+    for k in range(k0, k1 + 1):
+        for jj in range(wp.max(cj - 2, 0), wp.min(cj + 2, g.ny - 1) + 1):
+            for ii in range(wp.max(ci - 2, 0), wp.min(ci + 2, g.nx - 1) + 1):
+                n = cell_index(g, ii, jj, k)
+                if ghost_stamp[n] == stamp:
+                    o = cell_ghost[n]
+                    if wp.length(x_ghost[o] - xc) < reach_g:
+                        if n_gh < GHOST_CAP:
+                            ghosts[n_gh] = o
+                        n_gh += 1
+    rng = wp.rand_init(seed, c)
+    for t in range(attempts):
+        y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
+        if g.dim == 2:
+            y = wp.vec3(y[0], y[1], 0.0)
+        if (mask & (1 << t)) == 0:
+            continue
+        if near_new_ghost(y, x_ghost, ghosts, n_gh, g, ci, cj, k0, k1, stamp, ghost_stamp, cell_ghost) != 0:
+            continue
+        slot = wp.atomic_add(count, 0, 1)
+        if slot < capacity:
+            o = n_static + slot
+            x_ghost[o] = y
+            cell_ghost[c] = o
+            ghost_stamp[c] = stamp
+            for k in range(wp.max(ck - 1, 0), wp.min(ck + 1, g.nz - 1) + 1):
+                for jj in range(wp.max(cj - 1, 0), wp.min(cj + 1, g.ny - 1) + 1):
+                    for ii in range(wp.max(ci - 1, 0), wp.min(ci + 1, g.nx - 1) + 1):
+                        n = cell_index(g, ii, jj, k)
+                        if n != c and ghost_stamp[n] != stamp:
+                            if wp.length(cell_centre(g, ii, jj, k) - y) + half_diag + eps < g.r:
+                                ghost_stamp[n] = -stamp
+        return
+
+
+@wp.kernel
+def ghost_nearest_liquid(
+    grid: wp.uint64,
+    n_fluid: int,
+    n_static: int,
+    g: GhostGrid,
+    first: int,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    ghost_of: wp.array(dtype=int),
+):
+    """Velocity and owner of the new ghost in slot first + tid: the nearest liquid particle within
+    the layer (the query of dart_colour, in the same order: the same particle throw_darts picks)."""
+    i = first + wp.tid()
+    o = n_static + i
+    y = x[o]
+    best = float(1.0e30)
+    nearest = int(-1)
+    j = int(0)
+    q = wp.hash_grid_query(grid, y, g.layer)
+    while wp.hash_grid_query_next(q, j):
+        if j < n_fluid:
+            d2 = wp.length_sq(x[j] - y)
+            if d2 < best:
+                best = d2
+                nearest = j
+    ghost_of[i] = nearest
+    v[o] = v[nearest]
+
+
 @wp.kernel
 def density_rate_with_ghosts(
     grid: wp.uint64,

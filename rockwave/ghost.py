@@ -71,6 +71,12 @@ class GhostFluidSolver(FluidSolver):
     reorder_interval = 0  # the grid also holds the ghosts: particles keep their order
     phase_launches = False  # True: one dart launch per phase sized by phase_bound on the CPU too (the GPU path)
     shortcuts = True  # False: no cell skips without a query (kernels/ghost.py); the same ghosts, for tests
+    # parallel darts (kernels/ghost.py dart_screen/dart_colour/place_darts): the queries of the
+    # sampling in two launches over every active cell and dart, the dependent phase launches only
+    # test darts against the new ghosts. The same ghosts as throw_darts (tests/test_ghost.py). None: on
+    # CUDA (where a phase launch lasts as long as its slowest thread); the CPU runs one thread, where
+    # throw_darts' skips (no query for a cell whose darts all fall near a ghost) do less work.
+    parallel_darts = None
 
     def __init__(self, model: FluidModel, cfg=None):
         super().__init__(model)
@@ -151,6 +157,7 @@ class GhostFluidSolver(FluidSolver):
         self.n_phases = 27 if dim == 3 else 9
         self.phase_cap = int(np.prod([-(-g.nx // 3), -(-g.ny // 3), -(-g.nz // 3)]))  # cells of one phase
         self.phase_count = wp.zeros(self.n_phases, dtype=int, device=d)
+        self.dart_mask = wp.zeros(ncell, dtype=int, device=d)  # parallel darts: bit t, dart t of the cell passed the screens
         self.phase_list = wp.zeros(self.n_phases * self.phase_cap, dtype=int, device=d)
         # host bound on the active cells of one phase: a surface particle marks the cells of the box
         # [x - layer, x + layer], at most m per axis, ceil(m/3) per axis in one phase
@@ -243,7 +250,11 @@ class GhostFluidSolver(FluidSolver):
             # Warp's CPU backend runs a launch in index order on one thread (phase_launches: the GPU's
             # launch pattern on the CPU too, for tests)
             serial = not m.device.is_cuda and not self.phase_launches
-            if serial or self.phase_bound > self.phase_bound_max:
+            parallel = m.device.is_cuda if self.parallel_darts is None else bool(self.parallel_darts)
+            if parallel:
+                # exact launch sizes for the dart screens (one host read)
+                counts = self.phase_count.numpy()
+            elif serial or self.phase_bound > self.phase_bound_max:
                 counts = self.phase_count.numpy()  # host read: launch over the active cells only
             else:
                 # GPU: no host read; each phase launch covers the bound on its active cells, and
@@ -256,6 +267,9 @@ class GhostFluidSolver(FluidSolver):
                     seed = self.seed + self._seed
                 # one launch for all phases in turn (CPU), or one per phase (GPU), over the active cells only
                 launches = [(0, self.n_phases, int(counts.max()))] if serial else [(k, 1, int(counts[k])) for k in range(self.n_phases)]
+                if parallel:
+                    self._parallel_darts(seed, int(counts.max()), launches, n_old)
+                    continue
                 for k, nph, ncell in launches:
                     if ncell == 0:
                         continue
@@ -267,6 +281,11 @@ class GhostFluidSolver(FluidSolver):
                               outputs=[self.x_ext, self.v_ext, self.ghost_of], device=m.device)
             n, dropped = (int(c) for c in self.count.numpy())
             if n <= self.capacity:
+                if parallel and n > n_old:
+                    # the new ghosts' velocity and owner: the nearest liquid particle
+                    wp.launch(gk.ghost_nearest_liquid, dim=n - n_old,
+                              inputs=[self.grid.id, m.n_fluid, ns, self.bg, n_old],
+                              outputs=[self.x_ext, self.v_ext, self.ghost_of], device=m.device)
                 break
             # more ghosts than slots: grow and sample again (rare; the buffers only grow)
             keep = [a for a in (self.x_ext, self.v_ext, self.ghost_of, self.keep)]
@@ -303,6 +322,26 @@ class GhostFluidSolver(FluidSolver):
             wp.synchronize_device(m.device)
             self.sample_seconds += time.perf_counter() - t0
         return n
+
+    def _parallel_darts(self, seed: int, most: int, launches, n_old: int) -> None:
+        """One round of the parallel darts: screen every dart of every active cell against the liquid,
+        boundary and kept ghosts (a thread per cell), test the layer and colour rules (a thread per
+        dart), then the phase launches place the first dart left in each cell that no new ghost rejects."""
+        m = self.model
+        if most == 0:
+            return
+        ns = m.n_total
+        wp.launch(gk.dart_screen, dim=(self.n_phases, most),
+                  inputs=[self.grid.id, self.x_ext, m.n_fluid, ns, self.bg, m.params, seed, self.attempts, self._stamp,
+                          self.phase_count, self.phase_list, self.phase_cap, self.ghost_stamp, self.keep, n_old],
+                  outputs=[self.dart_mask], device=m.device)
+        for k, nph, ncell in launches:
+            if ncell == 0:
+                continue
+            wp.launch(gk.place_darts, dim=(nph, ncell),
+                      inputs=[self.bg, seed, self.attempts, self._stamp, self.phase_count, self.phase_list, self.phase_cap,
+                              k, self.dart_mask, self.cell_ghost, self.ghost_stamp, self.count, self.capacity, ns],
+                      outputs=[self.x_ext], device=m.device)
 
     @property
     def n_active(self) -> int:

@@ -115,7 +115,7 @@ SCHEMA: dict[str, Key] = {
             surface_threshold=Key("float", "free-surface particles have position divergence div x below this (interior: the dimension); default 1.5 in 2D, 2.4 in 3D", min=0, max=3, min_open=True),
             sample_radius_ratio=Key("float", "Poisson-disk radius r / spacing (default 0.80 in 2D, 0.85 in 3D: surface density ~ rho0)", min=0.5, max=1.5),
             layer_ratio=Key("float", "ghost layer thickness / kernel support radius", default=1.0, min=0.25, max=2.0),
-            attempts=Key("int", "darts per background cell and round (Bridson's k)", default=16, min=1, max=100),
+            attempts=Key("int", "darts per background cell and round (Bridson's k; one bit each in a 32-bit mask on the parallel path)", default=16, min=1, max=31),
             rounds=Key("int", "passes over the 3^dim independent phases of the background grid (each pass is 3^dim dependent launches on a GPU)", default=1, min=1, max=10),
             pressure_term=Key("bool", "ghosts enter the pressure force through the liquid particle's own p_i/rho_i^2 term (true), or add no pressure force at all (false)", default=True),
             density_cap=Key("bool", "summation density: ghosts fill a surface particle's kernel support up to rho0 and no further, rho_i = S_i + min(G_i, max(rho0 - S_i, 0)) (true); or add their full sum (false)", default=False),

@@ -311,3 +311,34 @@ def test_cell_skips_place_the_same_ghosts(case, monkeypatch):
     assert np.array_equal(a.ghost_positions(), b.ghost_positions())
     assert np.array_equal(runs[0].positions(), runs[1].positions())
     assert a.n_active < b.n_active, "no cell was skipped"
+
+
+@pytest.mark.parametrize("case", ["block2d", "block3d", "case1", "drop2d", "rounds2"])
+def test_parallel_darts_place_the_same_ghosts(case, monkeypatch):
+    """The parallel darts (the GPU path: every dart screened against liquid, walls and kept ghosts in
+    one launch, the layer and colour rules in one more, the phase launches only test new ghosts)
+    accept exactly the darts of the per-cell serial throw_darts, bit for bit, over several steps:
+    lattice blocks (2D, 3D), a dam break with walls (case 1, 0.03 m), persistent ghosts (zero-g disc),
+    two rounds of darts. The CPU runs the GPU's per-phase launches here (phase_launches)."""
+    runs = []
+    for parallel in (True, False):
+        monkeypatch.setattr(GhostFluidSolver, "parallel_darts", parallel)
+        monkeypatch.setattr(GhostFluidSolver, "phase_launches", parallel)
+        if case.startswith("block"):
+            sim, _ = _sampled(int(case[5]))
+        elif case == "case1":
+            sim = _dam_break(1, 0.03)
+        elif case == "rounds2":
+            sim = rockwave.Simulation(_scene("ghost_dam_break_case1.toml", **{"fluid.spacing_m": 0.03, "fluid.ghost.attempts": 6,
+                                                                              "fluid.ghost.rounds": 2}), device=DEVICE)
+        else:
+            sim = drop_simulation(_scene("drop_zero_g_2d.toml"), 0.15, device=DEVICE)
+        for _ in range(4 if case.startswith("block") else 20):
+            sim.step()
+        runs.append(sim)
+    a, b = (sim.fluid_solver for sim in runs)
+    assert a.n_ghost == b.n_ghost > 0
+    assert np.array_equal(a.ghost_positions(), b.ghost_positions())
+    assert np.array_equal(a.ghost_velocities(), b.ghost_velocities())
+    assert np.array_equal(a.ghost_of.numpy()[: a.n_ghost], b.ghost_of.numpy()[: b.n_ghost])
+    assert np.array_equal(runs[0].positions(), runs[1].positions())
