@@ -142,8 +142,9 @@ def mark_active_cells(
     the stamp of the sampling that last marked a cell, so the dense grid is never cleared. Cells
     already closed (``ghost_stamp == -stamp``: wholly within r_liquid of a liquid particle, or a
     kept ghost's cell) and cells wholly within r_liquid of a wall particle (``wall_closed``) are
-    not listed: no dart there can pass."""
-    i = wp.tid()
+    not listed: no dart there can pass. Thread (i, s): particle i, the s-th slice of its box of cells
+    (along z in 3D, y in 2D; launched with as many slices as the box can have)."""
+    i, s = wp.tid()
     if surface[i] == 0:
         return
     xi = x[i]
@@ -151,8 +152,15 @@ def mark_active_cells(
     lo = cell_coord(g, xi - wp.vec3(reach))
     hi = cell_coord(g, xi + wp.vec3(reach))
     if g.dim == 2:
-        lo = wp.vec3i(lo[0], lo[1], 0)
-        hi = wp.vec3i(hi[0], hi[1], 0)
+        if lo[1] + s > hi[1]:
+            return
+        lo = wp.vec3i(lo[0], lo[1] + s, 0)
+        hi = wp.vec3i(hi[0], lo[1], 0)
+    else:
+        if lo[2] + s > hi[2]:
+            return
+        lo = wp.vec3i(lo[0], lo[1], lo[2] + s)
+        hi = wp.vec3i(hi[0], hi[1], lo[2])
     half = 0.5 * g.cell
     half_diag = half * wp.sqrt(float(g.dim))
     for k in range(wp.max(lo[2], 0), wp.min(hi[2], g.nz - 1) + 1):
@@ -436,11 +444,13 @@ def throw_darts(
 # ---- Parallel dart throwing (the GPU path; GhostFluidSolver.parallel_darts) -----------------------
 # The work that does not depend on the ghosts of this sampling is taken out of the dependent phase
 # launches: one launch screens every dart of every active cell against the liquid, the walls, the
-# kept old ghosts and the layer and colour rules (dart_screen, a thread per cell), and the 3^d phase
-# launches (place_darts) only test the darts left against the new ghosts around the cell. The
+# kept old ghosts and the layer and colour rules (dart_screen, a few threads per cell), and each of
+# the 3^d phases is two short launches: the darts left against each new ghost around the cell (a
+# thread per (cell, block cell): dart_conflicts), then the first free dart placed (place_darts). The
 # nearest liquid particle (the ghost's velocity) is found afterwards, a thread per new ghost
 # (ghost_nearest_liquid). In throw_darts a phase launch lasts as long as its slowest thread's serial
-# queries (one per dart that passes the liquid test); here no phase thread runs a hash query.
+# queries (one per dart that passes the liquid test); here no phase thread queries or loops over a
+# block of cells.
 
 
 # liquid and boundary particles near enough to a cell to reject one of its darts or to count in the
@@ -466,9 +476,11 @@ def dart_screen(
     ghost_stamp: wp.array(dtype=int),
     keep: wp.array(dtype=int),
     n_old: int,
+    groups: int,
     dart_mask: wp.array(dtype=int),
 ):
-    """Thread (ph, t): the t-th active cell of phase ph (all phases in one launch). Closes the cell
+    """Thread (ph, t, s): the t-th active cell of phase ph (all phases in one launch), darts s,
+    s + groups, ... of the cell (``groups`` threads share a cell's darts). Closes the cell
     (``ghost_stamp = -stamp``) when no dart can pass: wholly within r_liquid of one liquid or boundary
     particle, or inside the liquid by the colour field at its centre. Otherwise sets bit t of
     ``dart_mask[c]`` for each dart t that passes every rule that does not depend on this sampling's
@@ -476,12 +488,11 @@ def dart_screen(
     particle within the layer, liquid colour field sum_j V_j W(y - x_j) at most colour_max. One hash
     query per cell gathers the particles that can matter (within the test radius plus the half
     diagonal of the cell: a dart lies within the half diagonal of the centre); every dart is tested
-    against that list."""
-    ph, t_cell = wp.tid()
+    against that list. ``dart_mask`` is zero on entry (place_darts clears it); the bits are or-ed in."""
+    ph, t_cell, grp = wp.tid()
     if t_cell >= phase_count[ph]:
         return
     c = phase_list[ph * phase_cap + t_cell]
-    dart_mask[c] = 0
     if ghost_stamp[c] == stamp or ghost_stamp[c] == -stamp:  # has a ghost (earlier round) / closed
         return
     ci = c % g.nx
@@ -544,6 +555,8 @@ def dart_screen(
         y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
         if g.dim == 2:
             y = wp.vec3(y[0], y[1], 0.0)
+        if t % groups != grp:
+            continue
         ok = int(1)
         inside = int(0)  # a liquid particle within the layer
         colour = float(0.0)
@@ -585,7 +598,64 @@ def dart_screen(
                         break
         if ok != 0 and inside != 0 and colour <= g.colour_max:
             mask = mask | (1 << t)
-    dart_mask[c] = mask
+    if mask != 0:
+        wp.atomic_or(dart_mask, c, mask)
+
+
+@wp.kernel
+def dart_conflicts(
+    g: GhostGrid,
+    seed: int,
+    attempts: int,
+    stamp: int,
+    phase_count: wp.array(dtype=int),
+    phase_list: wp.array(dtype=int),
+    phase_cap: int,
+    phase: int,
+    dart_mask: wp.array(dtype=int),
+    cell_ghost: wp.array(dtype=int),
+    ghost_stamp: wp.array(dtype=int),
+    x_ghost: wp.array(dtype=wp.vec3),
+    reject: wp.array(dtype=int),
+):
+    """First launch of a phase (thread (t, o): the t-th active cell of the phase and the o-th cell of
+    the 5^d block around it): if the block cell holds a ghost of this sampling, or-s into
+    ``reject[c]`` the bits of the cell's darts left in dart_mask that lie within r of it. A ghost
+    farther than two cells cannot reach a dart of the cell (cells are r/sqrt(d) wide)."""
+    t_cell, o = wp.tid()
+    if t_cell >= phase_count[phase]:
+        return
+    c = phase_list[phase * phase_cap + t_cell]
+    mask = dart_mask[c]
+    if mask == 0:
+        return
+    ci = c % g.nx
+    cj = (c // g.nx) % g.ny
+    ck = c // (g.nx * g.ny)
+    ii = ci + o % 5 - 2
+    jj = cj + (o // 5) % 5 - 2
+    kk = ck + o // 25 - 2
+    if g.dim == 2:
+        kk = ck
+    if ii < 0 or ii >= g.nx or jj < 0 or jj >= g.ny or kk < 0 or kk >= g.nz:
+        return
+    n = cell_index(g, ii, jj, kk)
+    if ghost_stamp[n] != stamp:
+        return
+    yg = x_ghost[cell_ghost[n]]
+    base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
+    r2 = g.r * g.r
+    rng = wp.rand_init(seed, c)
+    bits = int(0)
+    for t in range(attempts):
+        y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
+        if g.dim == 2:
+            y = wp.vec3(y[0], y[1], 0.0)
+        if (mask & (1 << t)) != 0:
+            if wp.length_sq(yg - y) < r2:
+                bits = bits | (1 << t)
+    if bits != 0:
+        wp.atomic_or(reject, c, bits)
 
 
 @wp.kernel
@@ -597,8 +667,9 @@ def place_darts(
     phase_count: wp.array(dtype=int),
     phase_list: wp.array(dtype=int),
     phase_cap: int,
-    offset: int,
+    phase: int,
     dart_mask: wp.array(dtype=int),
+    reject: wp.array(dtype=int),
     cell_ghost: wp.array(dtype=int),
     ghost_stamp: wp.array(dtype=int),
     count: wp.array(dtype=int),
@@ -606,56 +677,35 @@ def place_darts(
     n_static: int,
     x_ghost: wp.array(dtype=wp.vec3),
 ):
-    """Phase launch of the parallel darts (thread (ph, t): the t-th active cell of phase offset + ph;
-    one launch per phase on a GPU, all phases in turn in one launch on the CPU, as throw_darts).
-    Places the first dart left in ``dart_mask[c]`` that no ghost of this sampling lies within r of,
-    closes the neighbouring cells wholly within r of it, and leaves its velocity and owner to
-    ghost_nearest_liquid."""
-    ph, t_cell = wp.tid()
-    if t_cell >= phase_count[offset + ph]:
+    """Second launch of a phase (thread t: the t-th active cell of the phase): places the first dart
+    of the cell that passed dart_screen and that no ghost rejected (dart_conflicts), closes the
+    neighbouring cells wholly within r of it, and clears the cell's dart_mask and reject words for
+    the next sampling. Velocity and owner come from ghost_nearest_liquid."""
+    t_cell = wp.tid()
+    if t_cell >= phase_count[phase]:
         return
-    c = phase_list[(offset + ph) * phase_cap + t_cell]
+    c = phase_list[phase * phase_cap + t_cell]
+    mask = dart_mask[c]
+    rej = reject[c]
+    dart_mask[c] = 0
+    reject[c] = 0
     if ghost_stamp[c] == stamp or ghost_stamp[c] == -stamp:  # has a ghost / closed
         return
-    mask = dart_mask[c]
-    if mask == 0:
+    free = mask & (-1 ^ rej)
+    if free == 0:
         return
     ci = c % g.nx
     cj = (c // g.nx) % g.ny
     ck = c // (g.nx * g.ny)
-    half = 0.5 * g.cell
-    half_diag = half * wp.sqrt(float(g.dim))
-    xc = g.lo + wp.vec3(float(ci) * g.cell + half, float(cj) * g.cell + half, float(ck) * g.cell + half)
-    if g.dim == 2:
-        xc = wp.vec3(xc[0], xc[1], 0.0)
+    half_diag = 0.5 * g.cell * wp.sqrt(float(g.dim))
     eps = 1.0e-4 * g.cell
-    reach_g = g.r + half_diag + eps
     base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
-    ghosts = ghost_list()
-    n_gh = int(0)
-    k0 = ck
-    k1 = ck
-    if g.dim == 3:
-        k0 = wp.max(ck - 2, 0)
-        k1 = wp.min(ck + 2, g.nz - 1)
-    for k in range(k0, k1 + 1):
-        for jj in range(wp.max(cj - 2, 0), wp.min(cj + 2, g.ny - 1) + 1):
-            for ii in range(wp.max(ci - 2, 0), wp.min(ci + 2, g.nx - 1) + 1):
-                n = cell_index(g, ii, jj, k)
-                if ghost_stamp[n] == stamp:
-                    o = cell_ghost[n]
-                    if wp.length(x_ghost[o] - xc) < reach_g:
-                        if n_gh < GHOST_CAP:
-                            ghosts[n_gh] = o
-                        n_gh += 1
     rng = wp.rand_init(seed, c)
     for t in range(attempts):
         y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
         if g.dim == 2:
             y = wp.vec3(y[0], y[1], 0.0)
-        if (mask & (1 << t)) == 0:
-            continue
-        if near_new_ghost(y, x_ghost, ghosts, n_gh, g, ci, cj, k0, k1, stamp, ghost_stamp, cell_ghost) != 0:
+        if (free & (1 << t)) == 0:
             continue
         slot = wp.atomic_add(count, 0, 1)
         if slot < capacity:
@@ -685,7 +735,7 @@ def ghost_nearest_liquid(
     ghost_of: wp.array(dtype=int),
 ):
     """Velocity and owner of the new ghost in slot first + tid: the nearest liquid particle within
-    the layer (the query of dart_colour, in the same order: the same particle throw_darts picks)."""
+    the layer (the query and order of throw_darts: the same particle)."""
     i = first + wp.tid()
     o = n_static + i
     y = x[o]

@@ -71,12 +71,13 @@ class GhostFluidSolver(FluidSolver):
     reorder_interval = 0  # the grid also holds the ghosts: particles keep their order
     phase_launches = False  # True: one dart launch per phase sized by phase_bound on the CPU too (the GPU path)
     shortcuts = True  # False: no cell skips without a query (kernels/ghost.py); the same ghosts, for tests
-    # parallel darts (kernels/ghost.py dart_screen/dart_colour/place_darts): the queries of the
-    # sampling in two launches over every active cell and dart, the dependent phase launches only
-    # test darts against the new ghosts. The same ghosts as throw_darts (tests/test_ghost.py). None: on
-    # CUDA (where a phase launch lasts as long as its slowest thread); the CPU runs one thread, where
+    # parallel darts (kernels/ghost.py dart_screen/dart_conflicts/place_darts): every query of the
+    # sampling in one launch over the active cells, the dependent phase launches only test darts
+    # against the new ghosts. The same ghosts as throw_darts (tests/test_ghost.py). None: on CUDA
+    # (where a phase launch lasts as long as its slowest thread); the CPU runs one thread, where
     # throw_darts' skips (no query for a cell whose darts all fall near a ghost) do less work.
     parallel_darts = None
+    dart_groups = None  # dart_screen threads per cell, each with the cell's query (None: 4 on CUDA, 1 on the CPU)
 
     def __init__(self, model: FluidModel, cfg=None):
         super().__init__(model)
@@ -157,11 +158,15 @@ class GhostFluidSolver(FluidSolver):
         self.n_phases = 27 if dim == 3 else 9
         self.phase_cap = int(np.prod([-(-g.nx // 3), -(-g.ny // 3), -(-g.nz // 3)]))  # cells of one phase
         self.phase_count = wp.zeros(self.n_phases, dtype=int, device=d)
-        self.dart_mask = wp.zeros(ncell, dtype=int, device=d)  # parallel darts: bit t, dart t of the cell passed the screens
+        # parallel darts: bit t of dart_mask[c] = dart t of cell c passed the screens, of dart_reject[c] = a
+        # new ghost lies within r of it (both zero between samplings: place_darts clears them)
+        self.dart_mask = wp.zeros(ncell, dtype=int, device=d)
+        self.dart_reject = wp.zeros(ncell, dtype=int, device=d)
         self.phase_list = wp.zeros(self.n_phases * self.phase_cap, dtype=int, device=d)
         # host bound on the active cells of one phase: a surface particle marks the cells of the box
         # [x - layer, x + layer], at most m per axis, ceil(m/3) per axis in one phase
         m_axis = int(2.0 * self.layer / cell) + 2
+        self.mark_slices = m_axis  # mark_active_cells: a thread per surface particle and slice of its box
         self.phase_bound = min(self.phase_cap, model.n_fluid * (-(-m_axis // 3)) ** dim)
         # GPU: launch over this bound without reading the counts back, up to this many threads a launch
         self.phase_bound_max = 1 << 19
@@ -244,7 +249,7 @@ class GhostFluidSolver(FluidSolver):
             if n_old:
                 wp.launch(gk.close_kept_cells, dim=n_old, inputs=[self.x_ext, self.keep, ns, self.bg, self._stamp],
                           outputs=[self.ghost_stamp], device=m.device)
-            wp.launch(gk.mark_active_cells, dim=m.n_fluid,
+            wp.launch(gk.mark_active_cells, dim=(m.n_fluid, self.mark_slices),
                       inputs=[self.x_ext, self.surface, self.bg, self._stamp, self.cell_mark, self.ghost_stamp,
                               self.wall_closed, self.phase_count, self.phase_list, self.phase_cap], device=m.device)
             # Warp's CPU backend runs a launch in index order on one thread (phase_launches: the GPU's
@@ -268,7 +273,7 @@ class GhostFluidSolver(FluidSolver):
                 # one launch for all phases in turn (CPU), or one per phase (GPU), over the active cells only
                 launches = [(0, self.n_phases, int(counts.max()))] if serial else [(k, 1, int(counts[k])) for k in range(self.n_phases)]
                 if parallel:
-                    self._parallel_darts(seed, int(counts.max()), launches, n_old)
+                    self._parallel_darts(seed, counts, n_old)
                     continue
                 for k, nph, ncell in launches:
                     if ncell == 0:
@@ -323,25 +328,55 @@ class GhostFluidSolver(FluidSolver):
             self.sample_seconds += time.perf_counter() - t0
         return n
 
-    def _parallel_darts(self, seed: int, most: int, launches, n_old: int) -> None:
+    def _parallel_darts(self, seed: int, counts: np.ndarray, n_old: int) -> None:
         """One round of the parallel darts: screen every dart of every active cell against the liquid,
-        boundary and kept ghosts (a thread per cell), test the layer and colour rules (a thread per
-        dart), then the phase launches place the first dart left in each cell that no new ghost rejects."""
+        walls, kept ghosts and the layer/colour rules (``dart_groups`` threads per cell), then per
+        phase: the darts left against the new ghosts around each cell, and the first free one placed.
+        The 2 x 3^d phase launches are recorded once and replayed (host cost per launch ~µs)."""
         m = self.model
+        most = int(counts.max())
         if most == 0:
             return
         ns = m.n_total
-        wp.launch(gk.dart_screen, dim=(self.n_phases, most),
+        groups = self.dart_groups or (4 if m.device.is_cuda else 1)
+        wp.launch(gk.dart_screen, dim=(self.n_phases, most, groups),
                   inputs=[self.grid.id, self.x_ext, m.n_fluid, ns, self.bg, m.params, seed, self.attempts, self._stamp,
-                          self.phase_count, self.phase_list, self.phase_cap, self.ghost_stamp, self.keep, n_old],
+                          self.phase_count, self.phase_list, self.phase_cap, self.ghost_stamp, self.keep, n_old, groups],
                   outputs=[self.dart_mask], device=m.device)
-        for k, nph, ncell in launches:
-            if ncell == 0:
+        cmds = self._phase_commands()
+        block = 5 ** m.dim
+        for k in range(self.n_phases):
+            n = int(counts[k])
+            if n == 0:
                 continue
-            wp.launch(gk.place_darts, dim=(nph, ncell),
-                      inputs=[self.bg, seed, self.attempts, self._stamp, self.phase_count, self.phase_list, self.phase_cap,
-                              k, self.dart_mask, self.cell_ghost, self.ghost_stamp, self.count, self.capacity, ns],
-                      outputs=[self.x_ext], device=m.device)
+            conflicts, place = cmds[k]
+            for cmd in (conflicts, place):
+                cmd.set_param_by_name("seed", seed)
+                cmd.set_param_by_name("stamp", self._stamp)
+            conflicts.set_dim((n, block))
+            place.set_dim(n)
+            conflicts.launch()
+            place.launch()
+
+    def _phase_commands(self):
+        """Recorded (dart_conflicts, place_darts) launches per phase, for the current buffers."""
+        key = (id(self.x_ext), self.capacity)
+        if getattr(self, "_cmds_key", None) != key:
+            m = self.model
+            cmds = []
+            for k in range(self.n_phases):
+                conflicts = wp.launch(gk.dart_conflicts, dim=(1, 1),
+                                      inputs=[self.bg, 0, self.attempts, 0, self.phase_count, self.phase_list, self.phase_cap,
+                                              k, self.dart_mask, self.cell_ghost, self.ghost_stamp, self.x_ext],
+                                      outputs=[self.dart_reject], device=m.device, record_cmd=True)
+                place = wp.launch(gk.place_darts, dim=1,
+                                  inputs=[self.bg, 0, self.attempts, 0, self.phase_count, self.phase_list, self.phase_cap, k,
+                                          self.dart_mask, self.dart_reject, self.cell_ghost, self.ghost_stamp, self.count,
+                                          self.capacity, m.n_total],
+                                  outputs=[self.x_ext], device=m.device, record_cmd=True)
+                cmds.append((conflicts, place))
+            self._cmds, self._cmds_key = cmds, key
+        return self._cmds
 
     @property
     def n_active(self) -> int:
