@@ -444,9 +444,9 @@ def throw_darts(
 # ---- Parallel dart throwing (the GPU path; GhostFluidSolver.parallel_darts) -----------------------
 # The work that does not depend on the ghosts of this sampling is taken out of the dependent phase
 # launches: one launch screens every dart of every active cell against the liquid, the walls, the
-# kept old ghosts and the layer and colour rules (dart_screen, a few threads per cell), and each of
+# kept old ghosts and the layer and colour rules (dart_screen, a thread per cell), and each of
 # the 3^d phases is two short launches: the darts left against each new ghost around the cell (a
-# thread per (cell, block cell): dart_conflicts), then the first free dart placed (place_darts). The
+# thread per (cell, row of the 5^d block): dart_conflicts), then the first free dart placed (place_darts). The
 # nearest liquid particle (the ghost's velocity) is found afterwards, a thread per new ghost
 # (ghost_nearest_liquid). In throw_darts a phase launch lasts as long as its slowest thread's serial
 # queries (one per dart that passes the liquid test); here no phase thread queries or loops over a
@@ -476,11 +476,9 @@ def dart_screen(
     ghost_stamp: wp.array(dtype=int),
     keep: wp.array(dtype=int),
     n_old: int,
-    groups: int,
     dart_mask: wp.array(dtype=int),
 ):
-    """Thread (ph, t, s): the t-th active cell of phase ph (all phases in one launch), darts s,
-    s + groups, ... of the cell (``groups`` threads share a cell's darts). Closes the cell
+    """Thread (ph, t): the t-th active cell of phase ph (all phases in one launch). Closes the cell
     (``ghost_stamp = -stamp``) when no dart can pass: wholly within r_liquid of one liquid or boundary
     particle, or inside the liquid by the colour field at its centre. Otherwise sets bit t of
     ``dart_mask[c]`` for each dart t that passes every rule that does not depend on this sampling's
@@ -488,8 +486,8 @@ def dart_screen(
     particle within the layer, liquid colour field sum_j V_j W(y - x_j) at most colour_max. One hash
     query per cell gathers the particles that can matter (within the test radius plus the half
     diagonal of the cell: a dart lies within the half diagonal of the centre); every dart is tested
-    against that list. ``dart_mask`` is zero on entry (place_darts clears it); the bits are or-ed in."""
-    ph, t_cell, grp = wp.tid()
+    against that list. ``dart_mask`` is zero on entry (place_darts clears it)."""
+    ph, t_cell = wp.tid()
     if t_cell >= phase_count[ph]:
         return
     c = phase_list[ph * phase_cap + t_cell]
@@ -506,6 +504,7 @@ def dart_screen(
     rl2 = g.r_liquid * g.r_liquid
     r2 = g.r * g.r
     layer2 = g.layer * g.layer
+    H2 = p.H * p.H
     # (a small margin against rounding: an extra candidate never changes a decision)
     eps = 1.0e-4 * g.cell
     reach_l = wp.max(g.r_liquid, wp.max(g.layer, p.H)) + half_diag + eps
@@ -555,8 +554,6 @@ def dart_screen(
         y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
         if g.dim == 2:
             y = wp.vec3(y[0], y[1], 0.0)
-        if t % groups != grp:
-            continue
         ok = int(1)
         inside = int(0)  # a liquid particle within the layer
         colour = float(0.0)
@@ -575,10 +572,11 @@ def dart_screen(
                     if j < n_fluid:
                         if d2 <= layer2:
                             inside = 1
-                        colour += g.liquid_volume * kernel_w(d2, p)
-                        if colour > g.colour_max:
-                            ok = 0
-                            break
+                        if d2 < H2:  # (kernel_w is zero beyond H: the same sum)
+                            colour += g.liquid_volume * kernel_w(d2, p)
+                            if colour > g.colour_max:
+                                ok = 0
+                                break
         else:
             j = int(0)
             q = wp.hash_grid_query(grid, y, wp.max(wp.max(g.r_liquid, g.r), wp.max(g.layer, p.H)))
@@ -598,8 +596,7 @@ def dart_screen(
                         break
         if ok != 0 and inside != 0 and colour <= g.colour_max:
             mask = mask | (1 << t)
-    if mask != 0:
-        wp.atomic_or(dart_mask, c, mask)
+    dart_mask[c] = mask
 
 
 @wp.kernel
@@ -618,10 +615,10 @@ def dart_conflicts(
     x_ghost: wp.array(dtype=wp.vec3),
     reject: wp.array(dtype=int),
 ):
-    """First launch of a phase (thread (t, o): the t-th active cell of the phase and the o-th cell of
-    the 5^d block around it): if the block cell holds a ghost of this sampling, or-s into
-    ``reject[c]`` the bits of the cell's darts left in dart_mask that lie within r of it. A ghost
-    farther than two cells cannot reach a dart of the cell (cells are r/sqrt(d) wide)."""
+    """First launch of a phase (thread (t, o): the t-th active cell of the phase and the o-th row of
+    5 cells along x of the 5^d block around it): for each ghost of this sampling in the row, or-s
+    into ``reject[c]`` the bits of the cell's darts left in dart_mask that lie within r of it. A
+    ghost farther than two cells cannot reach a dart of the cell (cells are r/sqrt(d) wide)."""
     t_cell, o = wp.tid()
     if t_cell >= phase_count[phase]:
         return
@@ -632,28 +629,33 @@ def dart_conflicts(
     ci = c % g.nx
     cj = (c // g.nx) % g.ny
     ck = c // (g.nx * g.ny)
-    ii = ci + o % 5 - 2
-    jj = cj + (o // 5) % 5 - 2
-    kk = ck + o // 25 - 2
+    jj = cj + o % 5 - 2
+    kk = ck + o // 5 - 2
     if g.dim == 2:
         kk = ck
-    if ii < 0 or ii >= g.nx or jj < 0 or jj >= g.ny or kk < 0 or kk >= g.nz:
+    if jj < 0 or jj >= g.ny or kk < 0 or kk >= g.nz:
         return
-    n = cell_index(g, ii, jj, kk)
-    if ghost_stamp[n] != stamp:
-        return
-    yg = x_ghost[cell_ghost[n]]
     base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
+    # a dart lies within the half diagonal of the centre: a ghost farther than r + half diagonal rejects none
+    centre = base + wp.vec3(0.5 * g.cell)
+    if g.dim == 2:
+        centre = wp.vec3(centre[0], centre[1], 0.0)
+    reach_g = g.r + 0.5 * g.cell * wp.sqrt(float(g.dim)) + 1.0e-4 * g.cell
     r2 = g.r * g.r
-    rng = wp.rand_init(seed, c)
     bits = int(0)
-    for t in range(attempts):
-        y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
-        if g.dim == 2:
-            y = wp.vec3(y[0], y[1], 0.0)
-        if (mask & (1 << t)) != 0:
-            if wp.length_sq(yg - y) < r2:
-                bits = bits | (1 << t)
+    for ii in range(wp.max(ci - 2, 0), wp.min(ci + 2, g.nx - 1) + 1):
+        n = cell_index(g, ii, jj, kk)
+        if ghost_stamp[n] == stamp:
+            yg = x_ghost[cell_ghost[n]]
+            if wp.length(yg - centre) < reach_g:
+                rng = wp.rand_init(seed, c)
+                for t in range(attempts):
+                    y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
+                    if g.dim == 2:
+                        y = wp.vec3(y[0], y[1], 0.0)
+                    if (mask & (1 << t)) != 0:
+                        if wp.length_sq(yg - y) < r2:
+                            bits = bits | (1 << t)
     if bits != 0:
         wp.atomic_or(reject, c, bits)
 

@@ -77,7 +77,6 @@ class GhostFluidSolver(FluidSolver):
     # (where a phase launch lasts as long as its slowest thread); the CPU runs one thread, where
     # throw_darts' skips (no query for a cell whose darts all fall near a ghost) do less work.
     parallel_darts = None
-    dart_groups = None  # dart_screen threads per cell, each with the cell's query (None: 4 on CUDA, 1 on the CPU)
 
     def __init__(self, model: FluidModel, cfg=None):
         super().__init__(model)
@@ -330,7 +329,7 @@ class GhostFluidSolver(FluidSolver):
 
     def _parallel_darts(self, seed: int, counts: np.ndarray, n_old: int) -> None:
         """One round of the parallel darts: screen every dart of every active cell against the liquid,
-        walls, kept ghosts and the layer/colour rules (``dart_groups`` threads per cell), then per
+        walls, kept ghosts and the layer/colour rules (a thread per cell), then per
         phase: the darts left against the new ghosts around each cell, and the first free one placed.
         The 2 x 3^d phase launches are recorded once and replayed (host cost per launch ~µs)."""
         m = self.model
@@ -338,13 +337,12 @@ class GhostFluidSolver(FluidSolver):
         if most == 0:
             return
         ns = m.n_total
-        groups = self.dart_groups or (4 if m.device.is_cuda else 1)
-        wp.launch(gk.dart_screen, dim=(self.n_phases, most, groups),
+        wp.launch(gk.dart_screen, dim=(self.n_phases, most),
                   inputs=[self.grid.id, self.x_ext, m.n_fluid, ns, self.bg, m.params, seed, self.attempts, self._stamp,
-                          self.phase_count, self.phase_list, self.phase_cap, self.ghost_stamp, self.keep, n_old, groups],
+                          self.phase_count, self.phase_list, self.phase_cap, self.ghost_stamp, self.keep, n_old],
                   outputs=[self.dart_mask], device=m.device)
         cmds = self._phase_commands()
-        block = 5 ** m.dim
+        rows = 5 ** (m.dim - 1)  # rows of 5 cells in the 5^d block around a cell
         for k in range(self.n_phases):
             n = int(counts[k])
             if n == 0:
@@ -353,7 +351,7 @@ class GhostFluidSolver(FluidSolver):
             for cmd in (conflicts, place):
                 cmd.set_param_by_name("seed", seed)
                 cmd.set_param_by_name("stamp", self._stamp)
-            conflicts.set_dim((n, block))
+            conflicts.set_dim((n, rows))
             place.set_dim(n)
             conflicts.launch()
             place.launch()

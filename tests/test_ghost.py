@@ -319,13 +319,11 @@ def test_parallel_darts_place_the_same_ghosts(case, monkeypatch):
     one launch, the layer and colour rules in one more, the phase launches only test new ghosts)
     accept exactly the darts of the per-cell serial throw_darts, bit for bit, over several steps:
     lattice blocks (2D, 3D), a dam break with walls (case 1, 0.03 m), persistent ghosts (zero-g disc),
-    two rounds of darts. The CPU runs the GPU's per-phase launches here (phase_launches), with one or
-    three screening threads per cell."""
+    two rounds of darts. The CPU runs the GPU's per-phase launches here (phase_launches)."""
     runs = []
     for parallel in (True, False):
         monkeypatch.setattr(GhostFluidSolver, "parallel_darts", parallel)
         monkeypatch.setattr(GhostFluidSolver, "phase_launches", parallel)
-        monkeypatch.setattr(GhostFluidSolver, "dart_groups", 3 if case in ("block3d", "case1") else None)
         if case.startswith("block"):
             sim, _ = _sampled(int(case[5]))
         elif case == "case1":
