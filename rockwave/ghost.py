@@ -77,6 +77,9 @@ class GhostFluidSolver(FluidSolver):
     # (where a phase launch lasts as long as its slowest thread); the CPU runs one thread, where
     # throw_darts' skips (no query for a cell whose darts all fall near a ghost) do less work.
     parallel_darts = None
+    # parallel darts without a host read while phase_bound is at most this (a dart_conflicts launch has
+    # 5^(d-1) threads per cell of the bound); above it the per-phase counts are read back
+    parallel_bound_max = 1 << 16
 
     def __init__(self, model: FluidModel, cfg=None):
         super().__init__(model)
@@ -256,8 +259,12 @@ class GhostFluidSolver(FluidSolver):
             serial = not m.device.is_cuda and not self.phase_launches
             parallel = m.device.is_cuda if self.parallel_darts is None else bool(self.parallel_darts)
             if parallel:
-                # exact launch sizes for the dart screens (one host read)
-                counts = self.phase_count.numpy()
+                # launches over the host bound on a phase's active cells (threads past the count return),
+                # or, where the bound is large, over the counts read back (one host read)
+                if self.phase_bound > self.parallel_bound_max:
+                    counts = self.phase_count.numpy()
+                else:
+                    counts = np.full(self.n_phases, self.phase_bound)
             elif serial or self.phase_bound > self.phase_bound_max:
                 counts = self.phase_count.numpy()  # host read: launch over the active cells only
             else:
