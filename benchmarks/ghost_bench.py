@@ -74,11 +74,16 @@ def main():
     ap.add_argument("--darts", choices=["auto", "parallel", "serial"], default="auto",
                     help="dart throwing: parallel screens + light phase launches, or the per-cell serial "
                          "throw_darts (default: parallel on CUDA, serial on the CPU)")
+    ap.add_argument("--read-counts", action="store_true",
+                    help="parallel darts: read the per-phase active-cell counts back every step (exact launch sizes) "
+                         "even where the host bound is small")
     a = ap.parse_args()
     wp.config.quiet = True
     from rockwave.ghost import GhostFluidSolver
 
     GhostFluidSolver.parallel_darts = {"auto": None, "parallel": True, "serial": False}[a.darts]
+    if a.read_counts:
+        GhostFluidSolver.parallel_bound_max = 0
     nb, tb, _, _, cb, _ = run(a.scene, "basic", a.device, a.steps, a.spacing, repeats=a.repeats)
     ng, tg, share, ghosts, cg, s = run(a.scene, "ghost", a.device, a.steps, a.spacing, repeats=a.repeats,
                                        attempts=a.attempts, rounds=a.rounds)

@@ -457,7 +457,6 @@ def throw_darts(
 # colour field at a dart (dart_screen's per-cell list); on overflow each dart runs its own query
 SCREEN_CAP = 96
 screen_list = wp.types.vector(length=SCREEN_CAP, dtype=int)
-dart_floats = wp.types.vector(length=32, dtype=float)  # one value per dart (attempts <= 31)
 
 
 @wp.kernel
@@ -546,55 +545,39 @@ def dart_screen(
     if covered != 0 or col - wp.length(grad) * half_diag - 0.1 > g.colour_max:
         ghost_stamp[c] = -stamp
         return
+    lists = int(0)
+    if n_near <= SCREEN_CAP and n_kept <= GHOST_CAP:
+        lists = 1
     rng = wp.rand_init(seed, c)
     mask = int(0)
-    if n_near <= SCREEN_CAP and n_kept <= GHOST_CAP:
-        # particles outer, darts inner: each listed position is loaded once for all darts (the
-        # per-dart sums run in the same order as a dart-by-dart loop over the list)
-        dx = dart_floats()
-        dy = dart_floats()
-        dz = dart_floats()
-        colour = dart_floats()
-        for t in range(attempts):
-            y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
-            dx[t] = y[0]
-            dy[t] = y[1]
-            dz[t] = y[2]
-            if g.dim == 2:
-                dz[t] = 0.0
-        rejected = int(0)
-        inside = int(0)  # bit t: a liquid particle within the layer of dart t
-        for m in range(n_kept):
-            xk = x[kept[m]]
-            for t in range(attempts):
-                if wp.length_sq(xk - wp.vec3(dx[t], dy[t], dz[t])) < r2:
-                    rejected = rejected | (1 << t)
-        for m in range(n_near):
-            j = near[m]
-            xj = x[j]
-            for t in range(attempts):
-                bit = 1 << t
-                if (rejected & bit) != 0:
-                    continue
-                d2 = wp.length_sq(xj - wp.vec3(dx[t], dy[t], dz[t]))
-                if d2 < rl2:
-                    rejected = rejected | bit
-                elif j < n_fluid:
-                    if d2 <= layer2:
-                        inside = inside | bit
-                    if d2 < H2:  # (kernel_w is zero beyond H: the same sum)
-                        colour[t] += g.liquid_volume * kernel_w(d2, p)
-                        if colour[t] > g.colour_max:
-                            rejected = rejected | bit
-        mask = inside & (-1 ^ rejected)
-    else:
-        for t in range(attempts):
-            y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
-            if g.dim == 2:
-                y = wp.vec3(y[0], y[1], 0.0)
-            ok = int(1)
-            near_y = int(0)  # a liquid particle within the layer
-            colour_y = float(0.0)
+    for t in range(attempts):
+        y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
+        if g.dim == 2:
+            y = wp.vec3(y[0], y[1], 0.0)
+        ok = int(1)
+        inside = int(0)  # a liquid particle within the layer
+        colour = float(0.0)
+        if lists != 0:
+            for m in range(n_kept):
+                if wp.length_sq(x[kept[m]] - y) < r2:
+                    ok = 0
+                    break
+            if ok != 0:
+                for m in range(n_near):
+                    j = near[m]
+                    d2 = wp.length_sq(x[j] - y)
+                    if d2 < rl2:
+                        ok = 0
+                        break
+                    if j < n_fluid:
+                        if d2 <= layer2:
+                            inside = 1
+                        if d2 < H2:  # (kernel_w is zero beyond H: the same sum)
+                            colour += g.liquid_volume * kernel_w(d2, p)
+                            if colour > g.colour_max:
+                                ok = 0
+                                break
+        else:
             j = int(0)
             q = wp.hash_grid_query(grid, y, wp.max(wp.max(g.r_liquid, g.r), wp.max(g.layer, p.H)))
             while wp.hash_grid_query_next(q, j):
@@ -605,14 +588,14 @@ def dart_screen(
                         break
                     if j < n_fluid:
                         if d2 <= layer2:
-                            near_y = 1
-                        colour_y += g.liquid_volume * kernel_w(d2, p)
+                            inside = 1
+                        colour += g.liquid_volume * kernel_w(d2, p)
                 elif j < n_static + n_old:
                     if keep[j - n_static] != 0 and wp.length_sq(x[j] - y) < r2:
                         ok = 0
                         break
-            if ok != 0 and near_y != 0 and colour_y <= g.colour_max:
-                mask = mask | (1 << t)
+        if ok != 0 and inside != 0 and colour <= g.colour_max:
+            mask = mask | (1 << t)
     dart_mask[c] = mask
 
 
