@@ -77,6 +77,8 @@ def main():
     ap.add_argument("--read-counts", action="store_true",
                     help="parallel darts: read the per-phase active-cell counts back every step (exact launch sizes) "
                          "even where the host bound is small")
+    ap.add_argument("--plain-launches", action="store_true",
+                    help="ghost step with plain wp.launch calls instead of recorded, replayed launches")
     a = ap.parse_args()
     wp.config.quiet = True
     from rockwave.ghost import GhostFluidSolver
@@ -84,6 +86,8 @@ def main():
     GhostFluidSolver.parallel_darts = {"auto": None, "parallel": True, "serial": False}[a.darts]
     if a.read_counts:
         GhostFluidSolver.parallel_bound_max = 0
+    if a.plain_launches:
+        GhostFluidSolver.recorded_launches = False
     nb, tb, _, _, cb, _ = run(a.scene, "basic", a.device, a.steps, a.spacing, repeats=a.repeats)
     ng, tg, share, ghosts, cg, s = run(a.scene, "ghost", a.device, a.steps, a.spacing, repeats=a.repeats,
                                        attempts=a.attempts, rounds=a.rounds)

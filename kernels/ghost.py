@@ -823,6 +823,34 @@ def ghost_mass(
 
 
 @wp.kernel
+def begin_sampling(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    x_ext: wp.array(dtype=wp.vec3),
+    v_ext: wp.array(dtype=wp.vec3),
+    count: wp.array(dtype=int),
+):
+    """Copy the liquid and boundary positions and velocities into the extended arrays (thread i:
+    particle i) and zero the ghost counters (one launch instead of two copies and a memset)."""
+    i = wp.tid()
+    x_ext[i] = x[i]
+    v_ext[i] = v[i]
+    if i == 0:
+        count[0] = 0
+        count[1] = 0
+
+
+@wp.kernel
+def begin_round(n_old: int, phase_count: wp.array(dtype=int), count: wp.array(dtype=int)):
+    """Zero the per-phase active-cell counts (thread k: phase k); thread 0 puts the first free ghost
+    slot (after the kept old ghosts) in count[0]."""
+    k = wp.tid()
+    phase_count[k] = 0
+    if k == 0:
+        count[0] = n_old
+
+
+@wp.kernel
 def advect_ghosts(
     grid: wp.uint64,
     x_new: wp.array(dtype=wp.vec3),

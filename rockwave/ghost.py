@@ -80,6 +80,7 @@ class GhostFluidSolver(FluidSolver):
     # parallel darts without a host read while phase_bound is at most this (a dart_conflicts launch has
     # 5^(d-1) threads per cell of the bound); above it the per-phase counts are read back
     parallel_bound_max = 1 << 16
+    recorded_launches = True  # see _launch
 
     def __init__(self, model: FluidModel, cfg=None):
         super().__init__(model)
@@ -154,7 +155,6 @@ class GhostFluidSolver(FluidSolver):
         self.wall_closed = wp.zeros(ncell, dtype=int, device=d)
         self._walls_closed = False
         self.count = wp.zeros(2, dtype=int, device=d)  # [0] ghost slots used, [1] ghosts dropped (persistent)
-        self._n_old_arr = None
         self.div = wp.zeros(model.n_fluid, dtype=float, device=d)
         self.surface = wp.zeros(model.n_fluid, dtype=int, device=d)
         self.n_phases = 27 if dim == 3 else 9
@@ -180,6 +180,7 @@ class GhostFluidSolver(FluidSolver):
         # real change; it drained spray and wall-run-up particles to negative densities and sent
         # particles through the walls (case 1/3 dam breaks). 1 restores ghosts in the sum.
         self.ghost_continuity = 0
+        self._recorded = {}  # _launch: recorded launches by kernel and argument arrays
         self._alloc(max(1024, 2 * model.n_fluid))
 
     # ------------------------------------------------------------------ buffers --------------
@@ -187,6 +188,7 @@ class GhostFluidSolver(FluidSolver):
         m, d = self.model, self.model.device
         ns = m.n_total
         self.capacity = capacity
+        self._recorded = {}
         self.x_ext = wp.zeros(ns + capacity, dtype=wp.vec3, device=d)
         self.v_ext = wp.zeros(ns + capacity, dtype=wp.vec3, device=d)
         self.mass_ext = wp.full(ns + capacity, m.fluid_mass, dtype=float, device=d)
@@ -217,22 +219,20 @@ class GhostFluidSolver(FluidSolver):
         if n_old:
             # x_ext[:n_fluid] still holds the liquid positions of the last sampling
             # (the grid is still last step's, over these old positions)
-            wp.launch(gk.advect_ghosts, dim=n_old, inputs=[self.grid.id, state.x, self.ghost_of, ns, m.params],
-                      outputs=[self.x_ext], device=m.device)
-        wp.copy(self.x_ext, state.x, 0, 0, ns)
-        wp.copy(self.v_ext, state.v, 0, 0, ns)
+            self._launch(gk.advect_ghosts, n_old, [self.grid.id, state.x, self.ghost_of, ns, m.params],
+                         [self.x_ext])
+        self._launch(gk.begin_sampling, ns, [state.x, state.v], [self.x_ext, self.v_ext, self.count])
         self.grid.build(self.x_ext[: ns + n_old], m.support_radius)
         # liquid and boundary neighbours from the neighbour lists (current: _update_lists ran first)
-        wp.launch(gk.position_divergence_list, dim=m.n_fluid,
-                  inputs=[self._nbr_count, self._nbr, self.grid.id, self.x_ext, state.rho, self.mass_ext, m.params, ns,
-                          self.threshold],
-                  outputs=[self.div, self.surface], device=m.device)
-        self.count.zero_()
+        self._launch(gk.position_divergence_list, m.n_fluid,
+                     [self._nbr_count, self._nbr, self.grid.id, self.x_ext, state.rho, self.mass_ext, m.params, ns,
+                      self.threshold],
+                     [self.div, self.surface])
         if n_old:
-            wp.launch(gk.keep_ghosts, dim=n_old,
-                      inputs=[self.grid.id, self.x_ext, m.n_fluid, ns, self.bg, m.params, self.keep_liquid,
-                              self.keep_colour, self.keep_ghost],
-                      outputs=[self.keep, self.count, self.v_ext, self.ghost_of], device=m.device)
+            self._launch(gk.keep_ghosts, n_old,
+                         [self.grid.id, self.x_ext, m.n_fluid, ns, self.bg, m.params, self.keep_liquid,
+                          self.keep_colour, self.keep_ghost],
+                         [self.keep, self.count, self.v_ext, self.ghost_of])
         if self.shortcuts and not self._walls_closed:  # static walls: once (shortcuts: set before the first sampling)
             if m.n_boundary:
                 wp.launch(gk.close_covered_cells, dim=m.n_boundary, inputs=[self.x_ext[m.n_fluid: ns], self.bg, 1],
@@ -240,20 +240,18 @@ class GhostFluidSolver(FluidSolver):
             self._walls_closed = True
         while True:
             self._stamp += 1
-            self.phase_count.zero_()
-            wp.copy(self.count, self._n_old_dev(n_old), 0, 0, 1)
+            self._launch(gk.begin_round, self.n_phases, [n_old], [self.phase_count, self.count])
             # close the cells that no dart can pass before listing the active cells: wholly within
             # r_liquid of a liquid particle (the classification's "covered" test, done here by a
             # scatter over the liquid instead of a hash query per cell), and the kept ghosts' cells
             if self.shortcuts:
-                wp.launch(gk.close_covered_cells, dim=m.n_fluid, inputs=[self.x_ext, self.bg, -self._stamp],
-                          outputs=[self.ghost_stamp], device=m.device)
+                self._launch(gk.close_covered_cells, m.n_fluid, [self.x_ext, self.bg, -self._stamp], [self.ghost_stamp])
             if n_old:
-                wp.launch(gk.close_kept_cells, dim=n_old, inputs=[self.x_ext, self.keep, ns, self.bg, self._stamp],
-                          outputs=[self.ghost_stamp], device=m.device)
-            wp.launch(gk.mark_active_cells, dim=(m.n_fluid, self.mark_slices),
-                      inputs=[self.x_ext, self.surface, self.bg, self._stamp, self.cell_mark, self.ghost_stamp,
-                              self.wall_closed, self.phase_count, self.phase_list, self.phase_cap], device=m.device)
+                self._launch(gk.close_kept_cells, n_old, [self.x_ext, self.keep, ns, self.bg, self._stamp],
+                             [self.ghost_stamp])
+            self._launch(gk.mark_active_cells, (m.n_fluid, self.mark_slices),
+                         [self.x_ext, self.surface, self.bg, self._stamp, self.cell_mark, self.ghost_stamp,
+                          self.wall_closed, self.phase_count, self.phase_list, self.phase_cap])
             # Warp's CPU backend runs a launch in index order on one thread (phase_launches: the GPU's
             # launch pattern on the CPU too, for tests)
             serial = not m.device.is_cuda and not self.phase_launches
@@ -294,9 +292,9 @@ class GhostFluidSolver(FluidSolver):
             if n <= self.capacity:
                 if parallel and n > n_old:
                     # the new ghosts' velocity and owner: the nearest liquid particle
-                    wp.launch(gk.ghost_nearest_liquid, dim=n - n_old,
-                              inputs=[self.grid.id, m.n_fluid, ns, self.bg, n_old],
-                              outputs=[self.x_ext, self.v_ext, self.ghost_of], device=m.device)
+                    self._launch(gk.ghost_nearest_liquid, n - n_old,
+                                 [self.grid.id, m.n_fluid, ns, self.bg, n_old],
+                                 [self.x_ext, self.v_ext, self.ghost_of])
                 break
             # more ghosts than slots: grow and sample again (rare; the buffers only grow)
             keep = [a for a in (self.x_ext, self.v_ext, self.ghost_of, self.keep)]
@@ -325,14 +323,44 @@ class GhostFluidSolver(FluidSolver):
         if n:
             # ghost masses (number_density_mass) and the liquid particles with a ghost within H
             self._near_stamp += 1
-            wp.launch(gk.ghost_mass_split, dim=n,
-                      inputs=[self.grid.id, self.ghost_grid.id, self.x_ext, m.params, ns, self._n_dev(n),
-                              int(self.number_density_mass), self._near_stamp, self._near],
-                      outputs=[self.mass_ext], device=m.device)
+            self._launch(gk.ghost_mass_split, n,
+                         [self.grid.id, self.ghost_grid.id, self.x_ext, m.params, ns,
+                          self._n_dev(n) if self.persistent else self.count,  # (count[0] = n without drops)
+                          int(self.number_density_mass), self._near_stamp, self._near],
+                         [self.mass_ext])
         if self.profile:
             wp.synchronize_device(m.device)
             self.sample_seconds += time.perf_counter() - t0
         return n
+
+    def _launch(self, kernel, dim, inputs, outputs=(), block_dim: int = 256) -> None:
+        """wp.launch for the per-step launches of the ghost step: recorded once per kernel and argument
+        arrays, then replayed with the scalar arguments and the launch size updated (a plain wp.launch
+        packs every argument each time: on a GPU the host, not the device, set the pace of small ghost
+        steps). ``recorded_launches = False``: plain launches."""
+        m = self.model
+        if not self.recorded_launches:
+            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=m.device, block_dim=block_dim)
+            return
+        args = (*inputs, *outputs)
+        scalar = tuple(isinstance(a, (int, float, np.integer, np.floating)) for a in args)
+        arrays = tuple(None if sc else id(a) for a, sc in zip(args, scalar))
+        entry = self._recorded.get(kernel.key)
+        if entry is None or entry[3] != arrays:
+            cmd = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=m.device, block_dim=block_dim,
+                            record_cmd=True)
+            # (args keeps the recorded arrays alive, so their ids stay theirs)
+            entry = self._recorded[kernel.key] = [cmd, list(args), dim, arrays]
+        else:
+            cmd, values, last_dim = entry[0], entry[1], entry[2]
+            for i, sc in enumerate(scalar):
+                if sc and args[i] != values[i]:
+                    cmd.set_param_at_index(i, args[i])
+                    values[i] = args[i]
+            if dim != last_dim:
+                cmd.set_dim(dim)
+                entry[2] = dim
+        entry[0].launch()
 
     def _parallel_darts(self, seed: int, counts: np.ndarray, n_old: int) -> None:
         """One round of the parallel darts: screen every dart of every active cell against the liquid,
@@ -344,10 +372,10 @@ class GhostFluidSolver(FluidSolver):
         if most == 0:
             return
         ns = m.n_total
-        wp.launch(gk.dart_screen, dim=(self.n_phases, most),
-                  inputs=[self.grid.id, self.x_ext, m.n_fluid, ns, self.bg, m.params, seed, self.attempts, self._stamp,
-                          self.phase_count, self.phase_list, self.phase_cap, self.ghost_stamp, self.keep, n_old],
-                  outputs=[self.dart_mask], device=m.device)
+        self._launch(gk.dart_screen, (self.n_phases, most),
+                     [self.grid.id, self.x_ext, m.n_fluid, ns, self.bg, m.params, seed, self.attempts, self._stamp,
+                      self.phase_count, self.phase_list, self.phase_cap, self.ghost_stamp, self.keep, n_old],
+                     [self.dart_mask])
         cmds = self._phase_commands()
         rows = 5 ** (m.dim - 1)  # rows of 5 cells in the 5^d block around a cell
         for k in range(self.n_phases):
@@ -395,13 +423,6 @@ class GhostFluidSolver(FluidSolver):
         self._n_ghost_arr.fill_(n)
         return self._n_ghost_arr
 
-    def _n_old_dev(self, n_old: int) -> wp.array:
-        """A device scalar holding n_old (the first ghost slot for the darts)."""
-        if self._n_old_arr is None:
-            self._n_old_arr = wp.zeros(1, dtype=int, device=self.model.device)
-        self._n_old_arr.fill_(n_old)
-        return self._n_old_arr
-
     # ------------------------------------------------------------------ solver interface -----
     def _update_lists(self, state: FluidState, force: bool = False) -> None:
         """FluidSolver's cell grid and Verlet neighbour lists (liquid and boundary neighbours within
@@ -422,19 +443,19 @@ class GhostFluidSolver(FluidSolver):
         """Summation density over the neighbour lists (liquid and boundary, self included), then the
         ghosts' part (all of it, or capped at rho0: density_cap) from the ghost grid."""
         m = self.model
-        wp.launch(sph.particle_density_summation_list, dim=m.n_fluid,
-                  inputs=[self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
-                  outputs=[state.rho, state.pressure, self._pr2], device=m.device)
+        self._launch(sph.particle_density_summation_list, m.n_fluid,
+                     [self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
+                     [state.rho, state.pressure, self._pr2])
         self._density_overflow(state, None, summation=True)
         self._ghost_density(state, self._zero_dt, 1 if self.density_cap else 0)
 
     def _ghost_density(self, state: FluidState, dt: wp.array, mode: int) -> None:
         m = self.model
         if self.n_ghost:
-            wp.launch(gk.ghost_density, dim=m.n_fluid,
-                      inputs=[self.ghost_grid.id, self.x_ext, self.v_ext, self.mass_ext, dt, m.params, m.n_total, mode,
-                              self._near_stamp, self._near],
-                      outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
+            self._launch(gk.ghost_density, m.n_fluid,
+                         [self.ghost_grid.id, self.x_ext, self.v_ext, self.mass_ext, dt, m.params, m.n_total, mode,
+                          self._near_stamp, self._near],
+                         [state.drho_dt, state.rho, state.pressure, self._pr2])
 
     def step(self, state: FluidState, dt: wp.array) -> None:
         """Lists, ghost sampling, density over the lists plus the ghosts' part, forces over the lists plus
@@ -449,27 +470,27 @@ class GhostFluidSolver(FluidSolver):
             self._summation_density(state)
         else:
             # continuity over liquid and boundary (ghosts only with ghost_continuity: see __init__)
-            wp.launch(sph.particle_density_continuity_list, dim=m.n_fluid,
-                      inputs=[self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
-                      outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
+            self._launch(sph.particle_density_continuity_list, m.n_fluid,
+                         [self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
+                         [state.drho_dt, state.rho, state.pressure, self._pr2])
             self._density_overflow(state, dt, summation=False)
             if self.ghost_continuity:
                 self._ghost_density(state, dt, 2)
-        wp.launch(sph.particle_acceleration_list, dim=m.n_fluid,
-                  inputs=[self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
-                          m.particle_mass, m.params],
-                  outputs=[state.accel, state.xsph_dv], device=m.device, block_dim=self._block_dim)
-        wp.launch(sph.particle_acceleration_overflow, dim=m.n_fluid,
-                  inputs=[self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
-                          state.v, state.rho, state.pressure, m.particle_mass, m.params],
-                  outputs=[state.accel, state.xsph_dv], device=m.device)
+        self._launch(sph.particle_acceleration_list, m.n_fluid,
+                     [self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2, m.particle_mass,
+                      m.params],
+                     [state.accel, state.xsph_dv], block_dim=self._block_dim)
+        self._launch(sph.particle_acceleration_overflow, m.n_fluid,
+                     [self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
+                      state.v, state.rho, state.pressure, m.particle_mass, m.params],
+                     [state.accel, state.xsph_dv])
         if self.n_ghost and self.ghost_pressure_term:
-            wp.launch(gk.ghost_pressure_force, dim=m.n_fluid,
-                      inputs=[self.ghost_grid.id, self.x_ext, self.mass_ext, self._pr2, m.params, m.n_total, self._near_stamp,
-                              self._near],
-                      outputs=[state.accel], device=m.device)
-        wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[state.accel, state.xsph_dv, dt],
-                  outputs=[state.x, state.v], device=m.device)
+            self._launch(gk.ghost_pressure_force, m.n_fluid,
+                         [self.ghost_grid.id, self.x_ext, self.mass_ext, self._pr2, m.params, m.n_total, self._near_stamp,
+                          self._near],
+                         [state.accel])
+        self._launch(sph.integrate_particles, m.n_fluid, [state.accel, state.xsph_dv, dt],
+                     [state.x, state.v])
 
     # ------------------------------------------------------------------ reading --------------
     def ghost_positions(self) -> np.ndarray:
