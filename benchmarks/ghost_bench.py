@@ -3,8 +3,11 @@
     python benchmarks/ghost_bench.py --device cpu --scene scenes/ghost_dam_break_case1.toml --steps 200
     python benchmarks/ghost_bench.py --device cuda:0 --spacing 0.0025     # GPU, finer
 
-Each method runs ``--repeats`` timed blocks of ``--steps`` steps; the fastest block is reported (wall
-time, and on the CPU also the process CPU time, which a busy shared machine disturbs less).
+Each method runs ``--repeats`` timed blocks of ``--steps`` steps, basic and ghost alternating; the fastest
+block is reported (wall time, and on the CPU also the process CPU time, which a busy shared machine
+disturbs less). Both are timed step by step (``Simulation.step``: plain launches); on a GPU the basic
+step is also timed as ``Simulation.step_many`` runs it (CUDA graph chunks, which the ghost step,
+with its host reads, cannot use).
 ``--attempts`` / ``--rounds`` override ``[fluid.ghost]`` (darts per cell and round, passes over the
 phases: a GPU step launches ``3^dim x rounds`` dependent dart kernels).
 """
@@ -21,7 +24,8 @@ import rockwave
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def run(scene_path, method, device, steps, spacing, warm=20, repeats=1, attempts=None, rounds=None):
+def make(scene_path, method, device, spacing, warm=20, attempts=None, rounds=None):
+    """A Simulation of the scene with ``method``, stepped ``warm`` times."""
     d = rockwave.load_scene(scene_path).raw
     d["fluid"]["method"] = method
     if spacing:
@@ -33,32 +37,51 @@ def run(scene_path, method, device, steps, spacing, warm=20, repeats=1, attempts
     for _ in range(warm):
         sim.step()
     wp.synchronize_device(sim.device)
+    return sim
+
+
+def block(sim, steps, profile=False):
+    """Wall and process CPU time per step over ``steps`` steps, and (profile) the ghost sampling's share."""
     s = sim.fluid_solver
-    wall, cpu, share = float("inf"), float("inf"), 0.0
-    # On a GPU the sampling share is timed in an extra block: the profile mode synchronises inside the
-    # step, which the timed blocks must not do. On the CPU (synchronous anyway) every block profiles.
-    cuda = wp.get_device(sim.device).is_cuda
-    for rep in range(repeats + (1 if cuda and method == "ghost" else 0)):
-        profiling = method == "ghost" and (not cuda or rep == repeats)
-        if method == "ghost":
-            s.profile, s.sample_seconds = profiling, 0.0
-        t0, c0 = time.perf_counter(), time.process_time()
-        for _ in range(steps):
-            sim.step()
-        wp.synchronize_device(sim.device)
-        w, c = (time.perf_counter() - t0) / steps, (time.process_time() - c0) / steps
-        if profiling:
-            share = s.sample_seconds / steps / w
-        if rep < repeats:
-            wall = min(wall, w)
-            cpu = min(cpu, c)
-    if method == "ghost":
+    ghost = hasattr(s, "sample_seconds")
+    if ghost:
+        s.profile, s.sample_seconds = profile, 0.0
+    t0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(steps):
+        sim.step()
+    wp.synchronize_device(sim.device)
+    w, c = (time.perf_counter() - t0) / steps, (time.process_time() - c0) / steps
+    share = s.sample_seconds / steps / w if ghost and profile else 0.0
+    if ghost:
         s.profile = False
-    s_sim[0] = sim
-    return sim.fluid.n_fluid, wall, share, getattr(s, "n_ghost", 0), cpu, s
+    return w, c, share
 
 
-s_sim = [None]  # the last simulation run (for --busy)
+def run(scene_path, device, steps, spacing, repeats=1, attempts=None, rounds=None):
+    """Basic and ghost on the same scene, timed in alternating blocks (basic, ghost, basic, ...: both at
+    the same flow time, and a drift of the machine hits both); fastest block of each. On a GPU the
+    sampling share comes from one extra profiled ghost block (profiling synchronises inside the step,
+    which the timed blocks must not do); on the CPU (synchronous anyway) every ghost block profiles."""
+    basic = make(scene_path, "basic", device, spacing)
+    ghost = make(scene_path, "ghost", device, spacing, attempts=attempts, rounds=rounds)
+    cuda = wp.get_device(ghost.device).is_cuda
+    tb = cb = tg = cg = tgraph = float("inf")
+    share = 0.0
+    for _ in range(repeats):
+        w, c, _ = block(basic, steps)
+        tb, cb = min(tb, w), min(cb, c)
+        if cuda:
+            t0 = time.perf_counter()
+            basic.step_many(steps)
+            wp.synchronize_device(basic.device)
+            tgraph = min(tgraph, (time.perf_counter() - t0) / steps)
+        w, c, sh = block(ghost, steps, profile=not cuda)
+        if w < tg:
+            share = sh
+        tg, cg = min(tg, w), min(cg, c)
+    if cuda:
+        share = block(ghost, steps, profile=True)[2]
+    return basic, ghost, tb, cb, tg, cg, share, tgraph
 
 
 def main():
@@ -88,17 +111,20 @@ def main():
         GhostFluidSolver.parallel_bound_max = 0
     if a.plain_launches:
         GhostFluidSolver.recorded_launches = False
-    nb, tb, _, _, cb, _ = run(a.scene, "basic", a.device, a.steps, a.spacing, repeats=a.repeats)
-    ng, tg, share, ghosts, cg, s = run(a.scene, "ghost", a.device, a.steps, a.spacing, repeats=a.repeats,
-                                       attempts=a.attempts, rounds=a.rounds)
+    basic, ghost, tb, cb, tg, cg, share, tgraph = run(a.scene, a.device, a.steps, a.spacing, repeats=a.repeats,
+                                                      attempts=a.attempts, rounds=a.rounds)
+    s = ghost.fluid_solver
+    nb, ghosts = basic.fluid.n_fluid, s.n_ghost
     print(f"scene {Path(a.scene).name} device {a.device} fluid {nb} ghosts(last step) {ghosts} darts {a.darts}: "
           f"{s.attempts} x {s.rounds} rounds (GPU: {s.n_phases * s.rounds} dart launches per step)")
     print(f"basic {tb * 1e3:.3f} ms/step  ghost {tg * 1e3:.3f} ms/step  ratio {tg / tb:.2f}  sampling share of ghost step {share:.0%}")
     if not wp.get_device(a.device).is_cuda:
         print(f"process CPU time: basic {cb * 1e3:.3f} ms/step  ghost {cg * 1e3:.3f} ms/step  ratio {cg / cb:.2f}")
-    elif a.busy:
+    else:
+        print(f"basic in CUDA graph chunks (step_many) {tgraph * 1e3:.3f} ms/step  ghost/that {tg / tgraph:.2f}")
+    if wp.get_device(a.device).is_cuda and a.busy:
         # GPU time per kernel of the ghost step (CUDA events) against its wall time
-        sim = s_sim[0]
+        sim = ghost
         wp.synchronize_device(a.device)
         t0 = time.perf_counter()
         wp.timing_begin(cuda_filter=wp.TIMING_ALL)
