@@ -27,6 +27,12 @@ a wall particle are never listed, a new ghost closes the neighbouring cells whol
 and a cell tests its darts against the ghosts around it before its query (most cells outside the
 liquid are within r of a ghost by then). The ghosts come out bit for bit as without these skips
 (tests/test_ghost.py::test_cell_skips_place_the_same_ghosts).
+
+Two forms of the dart throwing with the same accept decisions: ``throw_darts`` (a thread per cell
+does all of a cell's tests inside the phase launch; the CPU path, where the skips save work) and
+the parallel darts (``dart_screen``, ``dart_conflicts``, ``place_darts``, ``ghost_nearest_liquid``;
+the GPU path), where no phase thread runs a query: a GPU phase launch lasts as long as its slowest
+thread (tests/test_ghost.py::test_parallel_darts_place_the_same_ghosts).
 """
 
 import warp as wp

@@ -10,8 +10,10 @@ kernels on fluid + boundary + ghost particles:
    grid the darts query;
 2. free-surface particles: position divergence ``div x_i`` below a threshold;
 3. ghost air particles within one kernel radius of the liquid by parallel Poisson-disk dart
-   throwing (``kernels/ghost.py``); mass = liquid mass, velocity = nearest liquid particle's,
-   density = rho0 (p = 0);
+   throwing (``kernels/ghost.py``): on a GPU every dart of every active cell is screened in one
+   launch and the 3^d phases only test darts against new ghosts (``parallel_darts``); on the CPU
+   the same decisions cell by cell (``throw_darts``). Mass = liquid mass, velocity = nearest liquid
+   particle's, density = rho0 (p = 0);
 4. a hash grid over the ghosts alone; density (summation or continuity) and forces over the lists,
    plus the ghosts' part from the ghost grid (only for liquid particles within H of a ghost). Ghosts count in
    the summation density (not in the continuity rate: see ``ghost_continuity``); in the pressure force they enter only through the liquid particle's own
@@ -29,8 +31,11 @@ Walls: the tank and obstacle boundary particles are static layers at least one k
 with lattice-calibrated masses, i.e. they already are the "ghost solid particles" of the paper
 (they complete the density sums at walls and push with the Akinci term); they are not resampled.
 
-One host read per step on a GPU (the ghost count, to size the grid build and grow the buffers); the
-dart launches are sized by a host bound on the active cells (``phase_bound``) instead of a read.
+One host read per step on a GPU (the ghost count, to size the ghost grid build and grow the buffers);
+the dart launches are sized by a host bound on the active cells (``phase_bound``) instead of a read
+where that bound is small (``parallel_bound_max``), else the per-phase counts are read too. The
+step's launches are recorded once and replayed (``_launch``): a GPU ghost step of a few thousand
+particles is set by launch latency and host work, not by the device.
 """
 
 from __future__ import annotations
