@@ -191,7 +191,9 @@ def set_path(d: dict, path: str, value) -> dict:
 VARIANTS = {
     "tait": {},
     "linear": {"fluid.eos.type": "linear"},
-    "ghost": {"fluid.method": "ghost"},
+    # ghost steps at a Courant number of 0.125 (rockwave.ghost.GHOST_CFL_MAX; at 0.25 the ghost pressure term
+    # pumped energy into a splash on the GPU); the stability sweep's dt multiples are of this step
+    "ghost": {"fluid.method": "ghost", "simulation.cfl_number": 0.125},
     "laplacian": {"fluid.viscosity.artificial_alpha": 0.0, "fluid.viscosity.laplacian_pa_s": 1.0e-3},
     "xsph": {"fluid.viscosity.xsph_epsilon": 0.05},
     "fixed_dt": {"simulation.time_step": "fixed"},  # dt_s set from the spacing (see scene_dict)

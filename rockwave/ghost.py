@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 
 import numpy as np
 import warp as wp
@@ -59,6 +60,20 @@ DEFAULT_THRESHOLD = {2: 1.5, 3: 2.4}
 # saturated. Calibrated so the summation density of a flat surface layer comes out at rho0
 # within about 2% (tests/test_ghost.py::test_ghosts_complete_surface_density).
 DEFAULT_RADIUS_RATIO = {2: 0.80, 3: 0.85}
+# Courant number above which the ghosts' one-sided pressure term was measured to pump energy into a
+# splash: case 3 on an H100 (runs differ in the atomics' order), at 0.25 two of three 0.03 m runs
+# gained energy (one x5.3, a particle 0.46 m out) and the 0.01 m scene blew up (x584); at 0.125 none
+# of seven runs did (benchmarks/RESULTS.md). The ghost scenes use 0.125.
+GHOST_CFL_MAX = 0.125
+
+
+def warn_unstable_step(scene) -> None:
+    """Warn when a ghost scene steps with a Courant number above GHOST_CFL_MAX."""
+    sim = scene.simulation
+    if sim.time_step == "cfl" and sim.cfl_number > GHOST_CFL_MAX:
+        warnings.warn(f"{scene.path}: simulation.cfl_number = {sim.cfl_number:g} with fluid.method = 'ghost': ghost steps "
+                      f"above a Courant number of {GHOST_CFL_MAX} were measured to gain energy and blow up in a "
+                      f"splash (dam break case 3); use simulation.cfl_number <= {GHOST_CFL_MAX}", stacklevel=3)
 
 
 class GhostFluidSolver(FluidSolver):

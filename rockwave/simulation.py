@@ -163,8 +163,9 @@ class Simulation:
                 self.fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2,
                                                self.device, bstep, layers)
                 if scene.fluid.method == "ghost":
-                    from rockwave.ghost import GhostFluidSolver  # basic scenes never load the ghost code
+                    from rockwave.ghost import GhostFluidSolver, warn_unstable_step  # basic scenes never load it
 
+                    warn_unstable_step(scene)
                     self.fluid_solver = GhostFluidSolver(self.fluid, scene.fluid.ghost)
                 else:
                     self.fluid_solver = FluidSolver(self.fluid)

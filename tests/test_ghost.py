@@ -140,16 +140,14 @@ def test_ghost_dam_break_case3_runs_to_end_in_tank():
     densities negative and particles flew through the walls: energy x7, a particle 4.8 m outside by
     1.0 s: a gain of ~18 J/kg, >100x the 0.15 J/kg limit.
     Why 5%: basic SPH on this scene (no ghosts) never gains energy between samples (largest change
-    -0.008 J/kg at CFL 0.25 and 0.125): time integration and the kernel-sum elastic energy leave no
-    measurable rise. The rises are the ghosts' (their one-sided pressure term does work) and shrink with
-    the step: over dart seeds 1-8 at the scene's CFL 0.25 the largest rise of E (E(0) = 2.952 J/kg)
-    is +0.081, +0.017, -0.014, +0.080, +0.295, +0.035, -0.000, +0.032 (seed 1 here: +0.081 = 2.7%,
-    at 0.7-0.8 s), max E/E(0) 0.994-0.996 except seed 5: 1.010; at CFL 0.125 -0.011, +0.006, +0.025,
-    -0.012, +0.059, -0.013, -0.011, -0.014. 5% is ~2x seed 1's ghost rise. Seed 5 (+10%, and E above
-    E(0)) fails both bounds: a genuine ghost energy gain in this chaotic splash, not hidden. The solver
-    before the shared neighbour lists (bfa8390) gave -0.016, -0.013, +0.027, -0.001, +0.358, -0.013,
-    -0.004, +0.671 (seed 8: E(1 s)/E(0) = 1.155), failing at seeds 5 and 8. E(1 s)/E(0): 0.68-0.93
-    (seed 1: 0.787). Deepest past a face (old solver, seeds 1-4): 0.6-7 mm."""
+    -0.008 J/kg): time integration and the kernel-sum elastic energy leave no measurable rise. The
+    rises are the ghosts' (their one-sided pressure term does work) and grow with the step. At the
+    scene's former Courant number 0.25, dart seeds 1-8 on the CPU gave largest rises (E(0) = 2.952
+    J/kg) +0.081, +0.017, -0.014, +0.080, +0.295, +0.035, -0.000, +0.032 (seed 5: E above E(0)), and
+    on an H100 (runs differ in the atomics' order) two of three runs failed, one at E x5.3 with a
+    particle 0.46 m out; the 0.01 m scene blew up (E x584). At 0.125 (the scene now; the solver warns
+    above it) seeds 1, 5, 8 give -0.001, +0.016, -0.014 here, and seven H100 runs (0.03 and 0.01 m)
+    at most +0.005 J/kg (benchmarks/RESULTS.md)."""
     dx = 0.03
     sim = _dam_break(3, dx)
     lo, hi = np.array([0.0, 0.0]), np.array([1.6, 3.5])
@@ -190,7 +188,7 @@ def test_elliptical_drop_semi_axis_with_ghosts():
     """Monaghan (1994) elliptical drop with ghosts (scenes/drop_elliptical_2d.toml: dx 0.05, support
     3 dx, c0 1400 m/s, exact initial pressure): the semi-axis a(t) of the second-moment ellipse is
     within 5% of the exact values (benchmarks/data/elliptical_drop.csv) at t = 2.5, 5, 7.5 ms, and the
-    area a b stays within 5%. Measured: a +0.2%, +0.8%, +3.4%; a b 1.002, 1.004, 1.025."""
+    area a b stays within 5%. Measured (Courant 0.125): a +0.17%, +0.58%, +2.26%; a b 1.001, 1.002, 1.014."""
     sim = elliptical_drop_simulation(_scene("drop_elliptical_2d.toml"), device=DEVICE)
     for t, a_exact in _elliptical_exact()[1:4]:
         sim.advance(t - sim.time)
@@ -206,9 +204,10 @@ def test_elliptical_drop_summation_ghosts_beat_basic():
     (a(t) bit-identical to basic; with ghost_continuity = 1 within 0.06 points of it); with
     summation basic SPH's surface particles start at 0.73 rho0 (outer ring r > 0.95; ghosts:
     0.94 rho0) under a large tension. Asserted: ghost a(t) within 5% of exact at t = 2.5, 5, 7.5 ms, and basic's error larger
-    than ghost's by at least 0.4 points at every time. Measured (CPU, seeds 1-4 within 0.02 points):
-    ghost -0.13%, +0.66%, +2.16%, basic +0.66%, +1.92%, +3.24%; ghost a b 0.996, 1.001, 1.011,
-    basic 1.006, 1.012, 1.016; density at 2.5 ms ghost 986-1017, basic 948-1044 kg/m^3."""
+    than ghost's by at least 0.4 points at every time. Measured (CPU, Courant 0.125): ghost -0.13%,
+    +0.65%, +2.15%, basic +0.67%, +1.97%, +3.27%; ghost a b 0.996, 1.001, 1.011, basic 1.006, 1.012,
+    1.017 (at 0.25, seeds 1-4 within 0.02 points: ghost -0.13, +0.66, +2.16%, basic +0.66, +1.92,
+    +3.24%); density at 2.5 ms ghost 986-1017, basic 948-1044 kg/m^3."""
     sc = _scene("drop_elliptical_2d_summation.toml")
     ghost = elliptical_drop_simulation(sc, device=DEVICE)
     basic = elliptical_drop_simulation(with_changes_scene(sc, **{"fluid.method": "basic"}), device=DEVICE)
@@ -364,3 +363,22 @@ def test_recorded_launches_match_plain_launches(monkeypatch):
     assert np.array_equal(a.ghost_positions(), b.ghost_positions())
     assert np.array_equal(runs[0].positions(), runs[1].positions())
     assert np.array_equal(runs[0].velocities(), runs[1].velocities())
+
+
+def test_ghost_scene_above_the_stable_courant_number_warns():
+    """A ghost scene stepping with a Courant number above GHOST_CFL_MAX (0.125) gets a warning naming
+    the file and key (at 0.25 case 3 gained energy and blew up on the GPU); the shipped ghost dam
+    breaks use 0.125 and load without it."""
+    import warnings
+
+    from rockwave.ghost import GHOST_CFL_MAX
+
+    with pytest.warns(UserWarning, match=r"ghost_dam_break_case3.toml: simulation.cfl_number = 0.25"):
+        rockwave.Simulation(_scene("ghost_dam_break_case3.toml", **{"fluid.spacing_m": 0.05,
+                                                                   "simulation.cfl_number": 0.25}), device=DEVICE)
+    for case in (1, 2, 3):
+        sc = _scene(f"ghost_dam_break_case{case}.toml")
+        assert sc.simulation.cfl_number <= GHOST_CFL_MAX
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            rockwave.Simulation(_scene(f"ghost_dam_break_case{case}.toml", **{"fluid.spacing_m": 0.05}), device=DEVICE)
