@@ -98,6 +98,34 @@ def cell_centre(g: GhostGrid, i: int, j: int, k: int) -> wp.vec3:
     return c
 
 
+@wp.func
+def cell_ijk(g: GhostGrid, c: int) -> wp.vec3i:
+    """Cell coordinates of the flat cell index c."""
+    return wp.vec3i(c % g.nx, (c // g.nx) % g.ny, c // (g.nx * g.ny))
+
+
+@wp.func
+def cell_corner(g: GhostGrid, i: int, j: int, k: int) -> wp.vec3:
+    """Lower corner of cell (i, j, k): a dart of the cell is corner + cell * (u, u, u), u uniform in [0, 1)."""
+    return g.lo + wp.vec3(float(i) * g.cell, float(j) * g.cell, float(k) * g.cell)
+
+
+@wp.func
+def close_neighbour_cells(g: GhostGrid, c: int, ijk: wp.vec3i, y: wp.vec3, stamp: int, ghost_stamp: wp.array(dtype=int)):
+    """A new ghost at y in cell c closes (ghost_stamp = -stamp) the neighbouring cells wholly within r of
+    it: it rejects all their darts. They are of other phases, so no other thread of the phase launch
+    writes or decides them."""
+    half_diag = 0.5 * g.cell * wp.sqrt(float(g.dim))
+    eps = 1.0e-4 * g.cell
+    for k in range(wp.max(ijk[2] - 1, 0), wp.min(ijk[2] + 1, g.nz - 1) + 1):
+        for jj in range(wp.max(ijk[1] - 1, 0), wp.min(ijk[1] + 1, g.ny - 1) + 1):
+            for ii in range(wp.max(ijk[0] - 1, 0), wp.min(ijk[0] + 1, g.nx - 1) + 1):
+                n = cell_index(g, ii, jj, k)
+                if n != c and ghost_stamp[n] != stamp:
+                    if wp.length(cell_centre(g, ii, jj, k) - y) + half_diag + eps < g.r:
+                        ghost_stamp[n] = -stamp
+
+
 @wp.kernel
 def close_covered_cells(
     x: wp.array(dtype=wp.vec3),
@@ -167,14 +195,11 @@ def mark_active_cells(
             return
         lo = wp.vec3i(lo[0], lo[1], lo[2] + s)
         hi = wp.vec3i(hi[0], hi[1], lo[2])
-    half = 0.5 * g.cell
-    half_diag = half * wp.sqrt(float(g.dim))
+    half_diag = 0.5 * g.cell * wp.sqrt(float(g.dim))
     for k in range(wp.max(lo[2], 0), wp.min(hi[2], g.nz - 1) + 1):
         for jj in range(wp.max(lo[1], 0), wp.min(hi[1], g.ny - 1) + 1):
             for ii in range(wp.max(lo[0], 0), wp.min(hi[0], g.nx - 1) + 1):
-                c = g.lo + wp.vec3(float(ii) * g.cell + half, float(jj) * g.cell + half, float(k) * g.cell + half)
-                if g.dim == 2:
-                    c = wp.vec3(c[0], c[1], 0.0)
+                c = cell_centre(g, ii, jj, k)
                 # skip cells wholly inside the disc of radius r_liquid around x_i (every dart there is
                 # rejected) or wholly beyond the layer
                 dist = wp.length(c - xi)
@@ -290,21 +315,19 @@ def throw_darts(
     c = phase_list[(offset + ph) * phase_cap + t_cell]
     if ghost_stamp[c] == stamp or ghost_stamp[c] == -stamp:  # has a ghost / closed
         return
-    ci = c % g.nx
-    cj = (c // g.nx) % g.ny
-    ck = c // (g.nx * g.ny)
-    half = 0.5 * g.cell
-    half_diag = half * wp.sqrt(float(g.dim))
-    xc = g.lo + wp.vec3(float(ci) * g.cell + half, float(cj) * g.cell + half, float(ck) * g.cell + half)
-    if g.dim == 2:
-        xc = wp.vec3(xc[0], xc[1], 0.0)
+    ijk = cell_ijk(g, c)
+    ci = ijk[0]
+    cj = ijk[1]
+    ck = ijk[2]
+    half_diag = 0.5 * g.cell * wp.sqrt(float(g.dim))
+    xc = cell_centre(g, ci, cj, ck)
     rl2 = g.r_liquid * g.r_liquid
     # a dart is within half_diag of xc: only particles within (test radius + half_diag) can reject it
     # (a small margin against rounding: an extra candidate never changes a decision)
     eps = 1.0e-4 * g.cell
     reach_l = g.r_liquid + half_diag + eps
     reach_g = g.r + half_diag + eps
-    base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
+    base = cell_corner(g, ci, cj, ck)
     # new ghosts of this sampling in the 5^d block of cells around (at most one per cell)
     ghosts = ghost_list()
     n_gh = int(0)
@@ -435,15 +458,7 @@ def throw_darts(
             ghost_stamp[c] = stamp
             if shortcuts == 0:
                 return
-            # close the neighbouring cells wholly within r of the new ghost: it rejects all their darts
-            # (they are of other phases: no other thread of this launch writes or decides them)
-            for k in range(wp.max(ck - 1, 0), wp.min(ck + 1, g.nz - 1) + 1):
-                for jj in range(wp.max(cj - 1, 0), wp.min(cj + 1, g.ny - 1) + 1):
-                    for ii in range(wp.max(ci - 1, 0), wp.min(ci + 1, g.nx - 1) + 1):
-                        n = cell_index(g, ii, jj, k)
-                        if n != c and ghost_stamp[n] != stamp:
-                            if wp.length(cell_centre(g, ii, jj, k) - y) + half_diag + eps < g.r:
-                                ghost_stamp[n] = -stamp
+            close_neighbour_cells(g, c, ijk, y, stamp, ghost_stamp)
         return
 
 
@@ -499,14 +514,12 @@ def dart_screen(
     c = phase_list[ph * phase_cap + t_cell]
     if ghost_stamp[c] == stamp or ghost_stamp[c] == -stamp:  # has a ghost (earlier round) / closed
         return
-    ci = c % g.nx
-    cj = (c // g.nx) % g.ny
-    ck = c // (g.nx * g.ny)
-    half = 0.5 * g.cell
-    half_diag = half * wp.sqrt(float(g.dim))
-    xc = g.lo + wp.vec3(float(ci) * g.cell + half, float(cj) * g.cell + half, float(ck) * g.cell + half)
-    if g.dim == 2:
-        xc = wp.vec3(xc[0], xc[1], 0.0)
+    ijk = cell_ijk(g, c)
+    ci = ijk[0]
+    cj = ijk[1]
+    ck = ijk[2]
+    half_diag = 0.5 * g.cell * wp.sqrt(float(g.dim))
+    xc = cell_centre(g, ci, cj, ck)
     rl2 = g.r_liquid * g.r_liquid
     r2 = g.r * g.r
     layer2 = g.layer * g.layer
@@ -515,7 +528,7 @@ def dart_screen(
     eps = 1.0e-4 * g.cell
     reach_l = wp.max(g.r_liquid, wp.max(g.layer, p.H)) + half_diag + eps
     reach_g = g.r + half_diag + eps
-    base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
+    base = cell_corner(g, ci, cj, ck)
     near = screen_list()
     n_near = int(0)
     kept = ghost_list()
@@ -632,20 +645,19 @@ def dart_conflicts(
     mask = dart_mask[c]
     if mask == 0:
         return
-    ci = c % g.nx
-    cj = (c // g.nx) % g.ny
-    ck = c // (g.nx * g.ny)
+    ijk = cell_ijk(g, c)
+    ci = ijk[0]
+    cj = ijk[1]
+    ck = ijk[2]
     jj = cj + o % 5 - 2
     kk = ck + o // 5 - 2
     if g.dim == 2:
         kk = ck
     if jj < 0 or jj >= g.ny or kk < 0 or kk >= g.nz:
         return
-    base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
+    base = cell_corner(g, ci, cj, ck)
     # a dart lies within the half diagonal of the centre: a ghost farther than r + half diagonal rejects none
-    centre = base + wp.vec3(0.5 * g.cell)
-    if g.dim == 2:
-        centre = wp.vec3(centre[0], centre[1], 0.0)
+    centre = cell_centre(g, ci, cj, ck)
     reach_g = g.r + 0.5 * g.cell * wp.sqrt(float(g.dim)) + 1.0e-4 * g.cell
     r2 = g.r * g.r
     bits = int(0)
@@ -702,12 +714,8 @@ def place_darts(
     free = mask & (-1 ^ rej)
     if free == 0:
         return
-    ci = c % g.nx
-    cj = (c // g.nx) % g.ny
-    ck = c // (g.nx * g.ny)
-    half_diag = 0.5 * g.cell * wp.sqrt(float(g.dim))
-    eps = 1.0e-4 * g.cell
-    base = g.lo + wp.vec3(float(ci) * g.cell, float(cj) * g.cell, float(ck) * g.cell)
+    ijk = cell_ijk(g, c)
+    base = cell_corner(g, ijk[0], ijk[1], ijk[2])
     rng = wp.rand_init(seed, c)
     for t in range(attempts):
         y = base + g.cell * wp.vec3(wp.randf(rng), wp.randf(rng), wp.randf(rng))
@@ -721,13 +729,7 @@ def place_darts(
             x_ghost[o] = y
             cell_ghost[c] = o
             ghost_stamp[c] = stamp
-            for k in range(wp.max(ck - 1, 0), wp.min(ck + 1, g.nz - 1) + 1):
-                for jj in range(wp.max(cj - 1, 0), wp.min(cj + 1, g.ny - 1) + 1):
-                    for ii in range(wp.max(ci - 1, 0), wp.min(ci + 1, g.nx - 1) + 1):
-                        n = cell_index(g, ii, jj, k)
-                        if n != c and ghost_stamp[n] != stamp:
-                            if wp.length(cell_centre(g, ii, jj, k) - y) + half_diag + eps < g.r:
-                                ghost_stamp[n] = -stamp
+            close_neighbour_cells(g, c, ijk, y, stamp, ghost_stamp)
         return
 
 
