@@ -286,6 +286,23 @@ def test_phase_launches_without_host_read_match_serial_sampling(dim):
     assert b.phase_count.numpy().max() <= b.phase_bound
 
 
+def _stepped_case(case):
+    """The scenes of the same-ghosts tests, stepped: lattice blocks (2D, 3D; 4 steps), case 1 at 0.03 m,
+    the persistent-ghost zero-g disc, case 1 with two rounds of 6 darts (20 steps)."""
+    if case.startswith("block"):
+        sim, _ = _sampled(int(case[5]))
+    elif case == "case1":
+        sim = _dam_break(1, 0.03)
+    elif case == "rounds2":
+        sim = rockwave.Simulation(_scene("ghost_dam_break_case1.toml", **{"fluid.spacing_m": 0.03, "fluid.ghost.attempts": 6,
+                                                                          "fluid.ghost.rounds": 2}), device=DEVICE)
+    else:
+        sim = drop_simulation(_scene("drop_zero_g_2d.toml"), 0.15, device=DEVICE)
+    for _ in range(4 if case.startswith("block") else 20):
+        sim.step()
+    return sim
+
+
 @pytest.mark.parametrize("case", ["block2d", "block3d", "case1", "drop2d"])
 def test_cell_skips_place_the_same_ghosts(case, monkeypatch):
     """The cell skips without a hash query (cells wholly within r_liquid of a liquid or wall particle
@@ -296,15 +313,7 @@ def test_cell_skips_place_the_same_ghosts(case, monkeypatch):
     runs = []
     for shortcuts in (True, False):
         monkeypatch.setattr(GhostFluidSolver, "shortcuts", shortcuts)
-        if case.startswith("block"):
-            sim, _ = _sampled(int(case[5]))
-        elif case == "case1":
-            sim = _dam_break(1, 0.03)
-        else:
-            sim = drop_simulation(_scene("drop_zero_g_2d.toml"), 0.15, device=DEVICE)
-        for _ in range(4 if case.startswith("block") else 20):
-            sim.step()
-        runs.append(sim)
+        runs.append(_stepped_case(case))
     a, b = (sim.fluid_solver for sim in runs)
     assert a.n_ghost == b.n_ghost > 0
     assert np.array_equal(a.ghost_positions(), b.ghost_positions())
@@ -314,8 +323,8 @@ def test_cell_skips_place_the_same_ghosts(case, monkeypatch):
 
 @pytest.mark.parametrize("case", ["block2d", "block3d", "case1", "drop2d", "rounds2"])
 def test_parallel_darts_place_the_same_ghosts(case, monkeypatch):
-    """The parallel darts (the GPU path: every dart screened against liquid, walls and kept ghosts in
-    one launch, the layer and colour rules in one more, the phase launches only test new ghosts)
+    """The parallel darts (the GPU path: every dart screened against liquid, walls, kept ghosts and the
+    layer and colour rules in one launch, the phase launches only test new ghosts)
     accept exactly the darts of the per-cell serial throw_darts, bit for bit, over several steps:
     lattice blocks (2D, 3D), a dam break with walls (case 1, 0.03 m), persistent ghosts (zero-g disc),
     two rounds of darts. The CPU runs the GPU's per-phase launches here (phase_launches)."""
@@ -325,18 +334,7 @@ def test_parallel_darts_place_the_same_ghosts(case, monkeypatch):
         monkeypatch.setattr(GhostFluidSolver, "phase_launches", parallel)
         # launches over the host bound (no read), or over the counts read back
         monkeypatch.setattr(GhostFluidSolver, "parallel_bound_max", 0 if case in ("block3d", "drop2d") else 1 << 16)
-        if case.startswith("block"):
-            sim, _ = _sampled(int(case[5]))
-        elif case == "case1":
-            sim = _dam_break(1, 0.03)
-        elif case == "rounds2":
-            sim = rockwave.Simulation(_scene("ghost_dam_break_case1.toml", **{"fluid.spacing_m": 0.03, "fluid.ghost.attempts": 6,
-                                                                              "fluid.ghost.rounds": 2}), device=DEVICE)
-        else:
-            sim = drop_simulation(_scene("drop_zero_g_2d.toml"), 0.15, device=DEVICE)
-        for _ in range(4 if case.startswith("block") else 20):
-            sim.step()
-        runs.append(sim)
+        runs.append(_stepped_case(case))
     a, b = (sim.fluid_solver for sim in runs)
     assert a.n_ghost == b.n_ghost > 0
     assert np.array_equal(a.ghost_positions(), b.ghost_positions())
