@@ -102,6 +102,8 @@ def main():
                          "even where the host bound is small")
     ap.add_argument("--plain-launches", action="store_true",
                     help="ghost step with plain wp.launch calls instead of recorded, replayed launches")
+    ap.add_argument("--no-graph-darts", action="store_true",
+                    help="parallel darts: launch a round's dart kernels one by one instead of replaying them as one CUDA graph")
     a = ap.parse_args()
     wp.config.quiet = True
     from rockwave.ghost import GhostFluidSolver
@@ -111,6 +113,8 @@ def main():
         GhostFluidSolver.parallel_bound_max = 0
     if a.plain_launches:
         GhostFluidSolver.recorded_launches = False
+    if a.no_graph_darts:
+        GhostFluidSolver.graph_darts = False
     basic, ghost, tb, cb, tg, cg, share, tgraph = run(a.scene, a.device, a.steps, a.spacing, repeats=a.repeats,
                                                       attempts=a.attempts, rounds=a.rounds)
     s = ghost.fluid_solver

@@ -480,17 +480,16 @@ SCREEN_CAP = 96
 screen_list = wp.types.vector(length=SCREEN_CAP, dtype=int)
 
 
-@wp.kernel
-def dart_screen(
+@wp.func
+def screen_cell(
     grid: wp.uint64,
     x: wp.array(dtype=wp.vec3),
     n_fluid: int,
     n_static: int,
     g: GhostGrid,
     p: SPHParams,
-    seed: int,
+    ids: wp.array(dtype=int),
     attempts: int,
-    stamp: int,
     phase_count: wp.array(dtype=int),
     phase_list: wp.array(dtype=int),
     phase_cap: int,
@@ -498,6 +497,8 @@ def dart_screen(
     keep: wp.array(dtype=int),
     n_old: int,
     dart_mask: wp.array(dtype=int),
+    ph: int,
+    t_cell: int,
 ):
     """Thread (ph, t): the t-th active cell of phase ph (all phases in one launch). Closes the cell
     (``ghost_stamp = -stamp``) when no dart can pass: wholly within r_liquid of one liquid or boundary
@@ -507,8 +508,11 @@ def dart_screen(
     particle within the layer, liquid colour field sum_j V_j W(y - x_j) at most colour_max. One hash
     query per cell gathers the particles that can matter (within the test radius plus the half
     diagonal of the cell: a dart lies within the half diagonal of the centre); every dart is tested
-    against that list. ``dart_mask`` is zero on entry (place_darts clears it)."""
-    ph, t_cell = wp.tid()
+    against that list. ``dart_mask`` is zero on entry (place_darts clears it). ``ids`` = [stamp of this
+    sampling, dart seed of this round] in device memory (as for dart_conflicts and place_darts), so that a
+    recorded CUDA graph of the round replays with the values of each step."""
+    stamp = ids[0]
+    seed = ids[1]
     if t_cell >= phase_count[ph]:
         return
     c = phase_list[ph * phase_cap + t_cell]
@@ -618,12 +622,39 @@ def dart_screen(
     dart_mask[c] = mask
 
 
+
 @wp.kernel
-def dart_conflicts(
+def dart_screen(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    n_fluid: int,
+    n_static: int,
     g: GhostGrid,
-    seed: int,
+    p: SPHParams,
+    ids: wp.array(dtype=int),
     attempts: int,
-    stamp: int,
+    phase_count: wp.array(dtype=int),
+    phase_list: wp.array(dtype=int),
+    phase_cap: int,
+    ghost_stamp: wp.array(dtype=int),
+    keep: wp.array(dtype=int),
+    n_old: int,
+    dart_mask: wp.array(dtype=int),
+    stride: int,
+):
+    """Launch of screen_cell over (phase, active cell). A thread takes every ``stride``-th active cell of the phase (stride = the launch
+    size along the cells), so the launch may be smaller than the count."""
+    ph, t0 = wp.tid()
+    t_cell = t0
+    while t_cell < phase_count[ph]:
+        screen_cell(grid, x, n_fluid, n_static, g, p, ids, attempts, phase_count, phase_list, phase_cap, ghost_stamp, keep, n_old, dart_mask, ph, t_cell)
+        t_cell += stride
+
+@wp.func
+def conflicts_cell_row(
+    g: GhostGrid,
+    ids: wp.array(dtype=int),
+    attempts: int,
     phase_count: wp.array(dtype=int),
     phase_list: wp.array(dtype=int),
     phase_cap: int,
@@ -633,12 +664,15 @@ def dart_conflicts(
     ghost_stamp: wp.array(dtype=int),
     x_ghost: wp.array(dtype=wp.vec3),
     reject: wp.array(dtype=int),
+    t_cell: int,
+    o: int,
 ):
     """First launch of a phase (thread (t, o): the t-th active cell of the phase and the o-th row of
     5 cells along x of the 5^d block around it): for each ghost of this sampling in the row, or-s
     into ``reject[c]`` the bits of the cell's darts left in dart_mask that lie within r of it. A
     ghost farther than two cells cannot reach a dart of the cell (cells are r/sqrt(d) wide)."""
-    t_cell, o = wp.tid()
+    stamp = ids[0]
+    seed = ids[1]
     if t_cell >= phase_count[phase]:
         return
     c = phase_list[phase * phase_cap + t_cell]
@@ -678,12 +712,36 @@ def dart_conflicts(
         wp.atomic_or(reject, c, bits)
 
 
+
 @wp.kernel
-def place_darts(
+def dart_conflicts(
     g: GhostGrid,
-    seed: int,
+    ids: wp.array(dtype=int),
     attempts: int,
-    stamp: int,
+    phase_count: wp.array(dtype=int),
+    phase_list: wp.array(dtype=int),
+    phase_cap: int,
+    phase: int,
+    dart_mask: wp.array(dtype=int),
+    cell_ghost: wp.array(dtype=int),
+    ghost_stamp: wp.array(dtype=int),
+    x_ghost: wp.array(dtype=wp.vec3),
+    reject: wp.array(dtype=int),
+    stride: int,
+):
+    """Launch of conflicts_cell_row over (active cell of the phase, row). A thread takes every ``stride``-th active cell of the phase (stride = the launch
+    size along the cells), so the launch may be smaller than the count."""
+    t0, o = wp.tid()
+    t_cell = t0
+    while t_cell < phase_count[phase]:
+        conflicts_cell_row(g, ids, attempts, phase_count, phase_list, phase_cap, phase, dart_mask, cell_ghost, ghost_stamp, x_ghost, reject, t_cell, o)
+        t_cell += stride
+
+@wp.func
+def place_cell(
+    g: GhostGrid,
+    ids: wp.array(dtype=int),
+    attempts: int,
     phase_count: wp.array(dtype=int),
     phase_list: wp.array(dtype=int),
     phase_cap: int,
@@ -696,12 +754,14 @@ def place_darts(
     capacity: int,
     n_static: int,
     x_ghost: wp.array(dtype=wp.vec3),
+    t_cell: int,
 ):
     """Second launch of a phase (thread t: the t-th active cell of the phase): places the first dart
     of the cell that passed dart_screen and that no ghost rejected (dart_conflicts), closes the
     neighbouring cells wholly within r of it, and clears the cell's dart_mask and reject words for
     the next sampling. Velocity and owner come from ghost_nearest_liquid."""
-    t_cell = wp.tid()
+    stamp = ids[0]
+    seed = ids[1]
     if t_cell >= phase_count[phase]:
         return
     c = phase_list[phase * phase_cap + t_cell]
@@ -732,6 +792,34 @@ def place_darts(
             close_neighbour_cells(g, c, ijk, y, stamp, ghost_stamp)
         return
 
+
+
+@wp.kernel
+def place_darts(
+    g: GhostGrid,
+    ids: wp.array(dtype=int),
+    attempts: int,
+    phase_count: wp.array(dtype=int),
+    phase_list: wp.array(dtype=int),
+    phase_cap: int,
+    phase: int,
+    dart_mask: wp.array(dtype=int),
+    reject: wp.array(dtype=int),
+    cell_ghost: wp.array(dtype=int),
+    ghost_stamp: wp.array(dtype=int),
+    count: wp.array(dtype=int),
+    capacity: int,
+    n_static: int,
+    x_ghost: wp.array(dtype=wp.vec3),
+    stride: int,
+):
+    """Launch of place_cell over the active cells of the phase. A thread takes every ``stride``-th active cell of the phase (stride = the launch
+    size along the cells), so the launch may be smaller than the count."""
+    t0 = wp.tid()
+    t_cell = t0
+    while t_cell < phase_count[phase]:
+        place_cell(g, ids, attempts, phase_count, phase_list, phase_cap, phase, dart_mask, reject, cell_ghost, ghost_stamp, count, capacity, n_static, x_ghost, t_cell)
+        t_cell += stride
 
 @wp.kernel
 def ghost_nearest_liquid(
@@ -1215,3 +1303,10 @@ def ghost_pressure_force(
             found = 1
     if found != 0:
         accel[i] = accel[i] + pr2[i] * a
+
+
+@wp.kernel
+def set_dart_ids(stamp: int, seed: int, ids: wp.array(dtype=int)):
+    """ids = [stamp, seed] for the dart launches of one round (read on the device: see dart_screen)."""
+    ids[0] = stamp
+    ids[1] = seed

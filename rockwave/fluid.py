@@ -199,9 +199,11 @@ class FluidSolver:
     # in flow keeps a list ~3 steps, CPU step 19.6 -> 14.0 ms at 10.9k particles (benchmarks/RESULTS.md)
     neighbour_skin = 0.05
     reorder_interval = 10  # steps between reorders; 0: never (the ghost solver's grid also holds ghosts)
+    recorded_launches = False  # _launch: record per-step launches once and replay them
     cell_ratio = 1.0  # hash-grid cell width / support radius (queries visit ceil(2/ratio + 1)^dim cells)
 
     def __init__(self, model: FluidModel, neighbour_skin: float | None = None):
+        self._recorded = {}  # _launch: recorded launches by kernel and argument arrays
         self.model = model
         d = model.device
         self.neighbour_skin = float(self.neighbour_skin if neighbour_skin is None else neighbour_skin)
@@ -332,19 +334,46 @@ class FluidSolver:
         self.cells = g
         self._slot_ranges = (0, 18) if m.dim == 3 else (6, 12)  # 9 columns (3 in 2D) x 2 parts
 
+    def _launch(self, kernel, dim, inputs, outputs=(), block_dim: int = 256) -> None:
+        """wp.launch for the per-step launches: with ``recorded_launches``, recorded once per kernel and
+        argument arrays, then replayed with the scalar arguments and the launch size updated (a plain
+        wp.launch packs every argument each time: on a GPU the host, not the device, sets the pace of a
+        small step launched step by step; the ghost solver, whose step cannot be a CUDA graph). Else a
+        plain wp.launch (the basic step: on a GPU `advance` replays it as a CUDA graph)."""
+        m = self.model
+        if not self.recorded_launches:
+            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=m.device, block_dim=block_dim)
+            return
+        args = (*inputs, *outputs)
+        scalar = tuple(isinstance(a, (int, float, np.integer, np.floating)) for a in args)
+        arrays = tuple(None if sc else id(a) for a, sc in zip(args, scalar))
+        entry = self._recorded.get(kernel.key)
+        if entry is None or entry[3] != arrays:
+            cmd = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=m.device, block_dim=block_dim,
+                            record_cmd=True)
+            # (args keeps the recorded arrays alive, so their ids stay theirs)
+            entry = self._recorded[kernel.key] = [cmd, list(args), dim, arrays]
+        else:
+            cmd, values, last_dim = entry[0], entry[1], entry[2]
+            for i, sc in enumerate(scalar):
+                if sc and args[i] != values[i]:
+                    cmd.set_param_at_index(i, args[i])
+                    values[i] = args[i]
+            if dim != last_dim:
+                cmd.set_dim(dim)
+                entry[2] = dim
+        entry[0].launch()
+
     def build_cells(self, state: FluidState, rebuild: wp.array | None = None) -> None:
         """Sort all particles (fluid and boundary) by cell: cells.order, cells.first, cells.x_sorted.
         ``rebuild``: a device flag; while rebuild[0] == 0 the kernels return at once (the radix sort still
         runs; on the unchanged sorted keys it keeps the order). None: always."""
         m = self.model
         f = self._always if rebuild is None else rebuild
-        wp.launch(sph.cell_keys, dim=m.n_total, inputs=[self.cells, state.x, self._cell_keys, self._cell_order, f],
-                  device=m.device)
+        self._launch(sph.cell_keys, m.n_total, [self.cells, state.x, self._cell_keys, self._cell_order, f])
         wp.utils.radix_sort_pairs(self._cell_keys, self._cell_order, m.n_total, 0, self._cell_bits)
-        wp.launch(sph.cell_first, dim=self._cell_first.shape[0], inputs=[self._cell_keys, m.n_total, self._cell_first, f],
-                  device=m.device)
-        wp.launch(sph.gather_sorted_positions, dim=m.n_total, inputs=[self._cell_order, state.x, self._x_sorted, f],
-                  device=m.device)
+        self._launch(sph.cell_first, self._cell_first.shape[0], [self._cell_keys, m.n_total, self._cell_first, f])
+        self._launch(sph.gather_sorted_positions, m.n_total, [self._cell_order, state.x, self._x_sorted, f])
 
     @staticmethod
     def list_capacity(model: "FluidModel", skin: float = 0.0) -> int:
@@ -409,18 +438,17 @@ class FluidSolver:
         build_cells); ``rebuild`` as in build_cells."""
         m = self.model
         f = self._always if rebuild is None else rebuild
-        wp.launch(sph.build_neighbour_list_cells, dim=m.n_fluid,
-                  inputs=[self.cells, state.x, self.list_radius, *self._slot_ranges, f],
-                  outputs=[self._nbr_count, self._nbr, self._x_build], device=m.device)
+        self._launch(sph.build_neighbour_list_cells, m.n_fluid,
+                     [self.cells, state.x, self.list_radius, *self._slot_ranges, f],
+                     [self._nbr_count, self._nbr, self._x_build])
         self._flag_overflow(f)
 
     def _flag_overflow(self, rebuild: wp.array) -> None:
         """After a list build: does a list of this build overflow? (the relative skin check needs to know)"""
         m = self.model
         if self._check is not None:
-            wp.launch(sph.list_overflow_reset, dim=1, inputs=[rebuild, self._overflowed], device=m.device)
-            wp.launch(sph.list_overflow_flag, dim=m.n_fluid, inputs=[self._nbr_count, self.neighbour_cap, rebuild,
-                                                                      self._overflowed], device=m.device)
+            self._launch(sph.list_overflow_reset, 1, [rebuild, self._overflowed])
+            self._launch(sph.list_overflow_flag, m.n_fluid, [self._nbr_count, self.neighbour_cap, rebuild, self._overflowed])
 
     def _list_guard(self, state: FluidState):
         """Start of a step: the displacement check. Returns the flag the cell grid and list build take,
@@ -431,25 +459,23 @@ class FluidSolver:
             return self._always
         half = 0.5 * self.neighbour_skin * m.support_radius
         if self._check is None:
-            wp.launch(sph.list_displacement_check, dim=m.n_fluid, inputs=[state.x, self._x_build, half * half, self._rebuild],
-                      device=m.device)
+            self._launch(sph.list_displacement_check, m.n_fluid, [state.x, self._x_build, half * half, self._rebuild])
         else:
             # first the absolute test into `moved`: while no particle moved s H / 2 (early in a flow, at rest)
             # the relative kernels return at once (0.2 ms of the relative test saved on an H100 at 2.16 M)
             g = self._check
             self._moved.zero_()
-            wp.launch(sph.list_displacement_check, dim=m.n_fluid, inputs=[state.x, self._x_build, half * half, self._moved],
-                      device=m.device)
+            self._launch(sph.list_displacement_check, m.n_fluid, [state.x, self._x_build, half * half, self._moved])
             self._d_lo.fill_(wp.vec3(1.0e30))
             self._d_hi.fill_(wp.vec3(-1.0e30))
-            wp.launch(sph.displacement_bounds, dim=m.n_fluid,
-                      inputs=[g, state.x, self._x_build, half * half, self._overflowed, self._moved, self._d_lo, self._d_hi,
-                              self._rebuild], device=m.device)
+            self._launch(sph.displacement_bounds, m.n_fluid,
+                         [g, state.x, self._x_build, half * half, self._overflowed, self._moved, self._d_lo, self._d_hi,
+                          self._rebuild])
             skin = self.neighbour_skin * m.support_radius
             reach = 0.5 * (self._check_width - m.support_radius)
-            wp.launch(sph.displacement_check_cells, dim=self._d_lo.shape[0],
-                      inputs=[g, self._d_lo, self._d_hi, self._wall_cells, skin * skin, reach * reach, self._moved,
-                              self._rebuild], device=m.device)
+            self._launch(sph.displacement_check_cells, self._d_lo.shape[0],
+                         [g, self._d_lo, self._d_hi, self._wall_cells, skin * skin, reach * reach, self._moved,
+                          self._rebuild])
         if not self.host_decides:
             return self._rebuild
         if int(self._rebuild.numpy()[0]) == 0:
@@ -480,10 +506,10 @@ class FluidSolver:
 
     def _density_overflow(self, state: FluidState, dt, summation: bool) -> None:
         m = self.model
-        wp.launch(sph.particle_density_overflow, dim=m.n_fluid,
-                  inputs=[self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
-                          state.v, m.particle_mass, dt if dt is not None else self._zero_dt, m.params, 1 if summation else 0],
-                  outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
+        self._launch(sph.particle_density_overflow, m.n_fluid,
+                     [self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
+                      state.v, m.particle_mass, dt if dt is not None else self._zero_dt, m.params, 1 if summation else 0],
+                     [state.drho_dt, state.rho, state.pressure, self._pr2])
 
     def set_density(self, state: FluidState, rho: np.ndarray) -> None:
         """Set the fluid densities (continuity mode's initial condition) and their pressures."""

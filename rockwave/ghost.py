@@ -100,7 +100,9 @@ class GhostFluidSolver(FluidSolver):
     # parallel darts without a host read while phase_bound is at most this (a dart_conflicts launch has
     # 5^(d-1) threads per cell of the bound); above it the per-phase counts are read back
     parallel_bound_max = 1 << 16
-    recorded_launches = True  # see _launch
+    recorded_launches = True  # FluidSolver._launch: the ghost step cannot run in a CUDA graph (host reads)
+    graph_darts = True  # CUDA: a round of parallel darts sized by the host bound replays as one CUDA graph
+    dart_launch_size = None  # parallel darts: at most this many threads along a phase's cells (tests; None: see _parallel_darts)
 
     def __init__(self, model: FluidModel, cfg=None):
         super().__init__(model)
@@ -174,17 +176,23 @@ class GhostFluidSolver(FluidSolver):
         self.cell_class = wp.zeros(ncell, dtype=int, device=d)
         self.wall_closed = wp.zeros(ncell, dtype=int, device=d)
         self._walls_closed = False
-        self.count = wp.zeros(2, dtype=int, device=d)  # [0] ghost slots used, [1] ghosts dropped (persistent)
         self.div = wp.zeros(model.n_fluid, dtype=float, device=d)
         self.surface = wp.zeros(model.n_fluid, dtype=int, device=d)
         self.n_phases = 27 if dim == 3 else 9
         self.phase_cap = int(np.prod([-(-g.nx // 3), -(-g.ny // 3), -(-g.nz // 3)]))  # cells of one phase
-        self.phase_count = wp.zeros(self.n_phases, dtype=int, device=d)
+        # [0] ghost slots used, [1] ghosts dropped (persistent), [2:] active cells per phase (phase_count): the
+        # step's one host read takes them all (the phase counts size the next step's dart launches on CUDA)
+        self.count = wp.zeros(2 + self.n_phases, dtype=int, device=d)
+        self.phase_count = self.count[2:]
+        self._last_counts = None
         # parallel darts: bit t of dart_mask[c] = dart t of cell c passed the screens, of dart_reject[c] = a
         # new ghost lies within r of it (both zero between samplings: place_darts clears them)
         self.dart_mask = wp.zeros(ncell, dtype=int, device=d)
         self.dart_reject = wp.zeros(ncell, dtype=int, device=d)
         self.phase_list = wp.zeros(self.n_phases * self.phase_cap, dtype=int, device=d)
+        self.dart_ids = wp.zeros(2, dtype=int, device=d)  # [stamp, seed] of the round (set_dart_ids)
+        self._dart_graphs = {}  # CUDA graphs of a round of parallel darts, by buffers and launch sizes
+        self._dart_graph_warm = set()
         # host bound on the active cells of one phase: a surface particle marks the cells of the box
         # [x - layer, x + layer], at most m per axis, ceil(m/3) per axis in one phase
         m_axis = int(2.0 * self.layer / cell) + 2
@@ -200,7 +208,6 @@ class GhostFluidSolver(FluidSolver):
         # real change; it drained spray and wall-run-up particles to negative densities and sent
         # particles through the walls (case 1/3 dam breaks). 1 restores ghosts in the sum.
         self.ghost_continuity = 0
-        self._recorded = {}  # _launch: recorded launches by kernel and argument arrays
         self._alloc(max(1024, 2 * model.n_fluid))
 
     # ------------------------------------------------------------------ buffers --------------
@@ -209,6 +216,7 @@ class GhostFluidSolver(FluidSolver):
         ns = m.n_total
         self.capacity = capacity
         self._recorded = {}
+        self._views = {}  # _x_view
         self.x_ext = wp.zeros(ns + capacity, dtype=wp.vec3, device=d)
         self.v_ext = wp.zeros(ns + capacity, dtype=wp.vec3, device=d)
         self.mass_ext = wp.full(ns + capacity, m.fluid_mass, dtype=float, device=d)
@@ -242,7 +250,7 @@ class GhostFluidSolver(FluidSolver):
             self._launch(gk.advect_ghosts, n_old, [self.grid.id, state.x, self.ghost_of, ns, m.params],
                          [self.x_ext])
         self._launch(gk.begin_sampling, ns, [state.x, state.v], [self.x_ext, self.v_ext, self.count])
-        self.grid.build(self.x_ext[: ns + n_old], m.support_radius)
+        self.grid.build(self._x_view(0, ns + n_old), m.support_radius)
         # liquid and boundary neighbours from the neighbour lists (current: _update_lists ran first)
         self._launch(gk.position_divergence_list, m.n_fluid,
                      [self._nbr_count, self._nbr, self.grid.id, self.x_ext, state.rho, self.mass_ext, m.params, ns,
@@ -276,13 +284,22 @@ class GhostFluidSolver(FluidSolver):
             # launch pattern on the CPU too, for tests)
             serial = not m.device.is_cuda and not self.phase_launches
             parallel = m.device.is_cuda if self.parallel_darts is None else bool(self.parallel_darts)
+            graph_ok = False
             if parallel:
-                # launches over the host bound on a phase's active cells (threads past the count return),
-                # or, where the bound is large, over the counts read back (one host read)
-                if self.phase_bound > self.parallel_bound_max:
-                    counts = self.phase_count.numpy()
+                if m.device.is_cuda and self._last_counts is not None:
+                    # CUDA: launch sizes from the last sampling's counts (read with the ghost count), x1.5 and
+                    # a power of two (few distinct sizes: few graph captures); a thread takes every size-th
+                    # cell of its phase, so a launch smaller than this sampling's count is still exact
+                    last = 2 ** np.ceil(np.log2(1.5 * self._last_counts + 32))
+                    counts = np.minimum(self.phase_bound, last).astype(int)
+                    graph_ok = True
+                elif self.phase_bound > self.parallel_bound_max:
+                    counts = self.phase_count.numpy()  # (first sampling, large bound: one more host read)
                 else:
-                    counts = np.full(self.n_phases, self.phase_bound)
+                    counts = np.full(self.n_phases, self.phase_bound)  # threads past the count return
+                    graph_ok = True
+                if self.dart_launch_size:
+                    counts = np.minimum(counts, self.dart_launch_size)
             elif serial or self.phase_bound > self.phase_bound_max:
                 counts = self.phase_count.numpy()  # host read: launch over the active cells only
             else:
@@ -297,7 +314,7 @@ class GhostFluidSolver(FluidSolver):
                 # one launch for all phases in turn (CPU), or one per phase (GPU), over the active cells only
                 launches = [(0, self.n_phases, int(counts.max()))] if serial else [(k, 1, int(counts[k])) for k in range(self.n_phases)]
                 if parallel:
-                    self._parallel_darts(seed, counts, n_old)
+                    self._parallel_darts(seed, counts, n_old, graph_ok)
                     continue
                 for k, nph, ncell in launches:
                     if ncell == 0:
@@ -308,7 +325,9 @@ class GhostFluidSolver(FluidSolver):
                                       self.phase_cap, k, self.cell_ghost, self.ghost_stamp, self.count, self.capacity,
                                       self.keep, n_old, int(self.shortcuts)],
                               outputs=[self.x_ext, self.v_ext, self.ghost_of], device=m.device)
-            n, dropped = (int(c) for c in self.count.numpy())
+            read = self.count.numpy()
+            n, dropped = int(read[0]), int(read[1])
+            self._last_counts = read[2:].copy()
             if n <= self.capacity:
                 if parallel and n > n_old:
                     # the new ghosts' velocity and owner: the nearest liquid particle
@@ -339,7 +358,7 @@ class GhostFluidSolver(FluidSolver):
         self.n_ghost = n
         # the ghosts alone in their own grid (self.grid stays the one over fluid + boundary [+ old ghosts])
         if n:
-            self.ghost_grid.build(self.x_ext[ns: ns + n], m.support_radius)
+            self.ghost_grid.build(self._x_view(ns, ns + n), m.support_radius)
         if n:
             # ghost masses (number_density_mass) and the liquid particles with a ghost within H
             self._near_stamp += 1
@@ -353,49 +372,59 @@ class GhostFluidSolver(FluidSolver):
             self.sample_seconds += time.perf_counter() - t0
         return n
 
-    def _launch(self, kernel, dim, inputs, outputs=(), block_dim: int = 256) -> None:
-        """wp.launch for the per-step launches of the ghost step: recorded once per kernel and argument
-        arrays, then replayed with the scalar arguments and the launch size updated (a plain wp.launch
-        packs every argument each time: on a GPU the host, not the device, set the pace of small ghost
-        steps). ``recorded_launches = False``: plain launches."""
-        m = self.model
-        if not self.recorded_launches:
-            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=m.device, block_dim=block_dim)
-            return
-        args = (*inputs, *outputs)
-        scalar = tuple(isinstance(a, (int, float, np.integer, np.floating)) for a in args)
-        arrays = tuple(None if sc else id(a) for a, sc in zip(args, scalar))
-        entry = self._recorded.get(kernel.key)
-        if entry is None or entry[3] != arrays:
-            cmd = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=m.device, block_dim=block_dim,
-                            record_cmd=True)
-            # (args keeps the recorded arrays alive, so their ids stay theirs)
-            entry = self._recorded[kernel.key] = [cmd, list(args), dim, arrays]
-        else:
-            cmd, values, last_dim = entry[0], entry[1], entry[2]
-            for i, sc in enumerate(scalar):
-                if sc and args[i] != values[i]:
-                    cmd.set_param_at_index(i, args[i])
-                    values[i] = args[i]
-            if dim != last_dim:
-                cmd.set_dim(dim)
-                entry[2] = dim
-        entry[0].launch()
+    def _x_view(self, lo: int, hi: int) -> wp.array:
+        """x_ext[lo:hi], the view kept while the buffers and bounds stay (a new view costs the host ~30 µs)."""
+        views = self._views
+        key = (lo, hi)
+        v = views.get(key)
+        if v is None:
+            if len(views) > 64:
+                views.clear()
+            v = views[key] = self.x_ext[lo:hi]
+        return v
 
-    def _parallel_darts(self, seed: int, counts: np.ndarray, n_old: int) -> None:
+    def _parallel_darts(self, seed: int, counts: np.ndarray, n_old: int, graph_ok: bool = False) -> None:
         """One round of the parallel darts: screen every dart of every active cell against the liquid,
-        walls, kept ghosts and the layer/colour rules (a thread per cell), then per
-        phase: the darts left against the new ghosts around each cell, and the first free one placed.
-        The 2 x 3^d phase launches are recorded once and replayed (host cost per launch ~µs)."""
+        walls, kept ghosts and the layer/colour rules, then per phase: the darts left against the new
+        ghosts around each cell, and the first free one placed. ``counts``: launch size per phase (each
+        thread takes every size-th active cell of its phase). The stamp and seed go to the device
+        (``dart_ids``); the 1 + 2 x 3^d launches of the round are recorded once and replayed, and on
+        CUDA, unless the sizes came from a read of this sampling's counts (``graph_ok``), replayed as one
+        CUDA graph per set of sizes (``graph_darts``): a round is then one host call."""
         m = self.model
         most = int(counts.max())
         if most == 0:
             return
+        self._launch(gk.set_dart_ids, 1, [self._stamp, seed], [self.dart_ids])
+        if self.graph_darts and graph_ok and n_old == 0 and self.recorded_launches and m.device.is_cuda:
+            key = (id(self.x_ext), self.capacity, self.attempts, tuple(counts.tolist()))
+            graph = self._dart_graphs.get(key)
+            if graph is None:
+                # capture at a key's second use (the first runs plain: modules loaded, recorded commands built)
+                if key not in self._dart_graph_warm:
+                    self._dart_round(counts, n_old)
+                    self._dart_graph_warm.add(key)
+                    return
+                if len(self._dart_graphs) >= 32:
+                    self._dart_graphs.clear()
+                wp.capture_begin(m.device, force_module_load=False)
+                try:
+                    self._dart_round(counts, n_old)
+                finally:
+                    graph = self._dart_graphs[key] = wp.capture_end(m.device)
+            wp.capture_launch(graph)
+            return
+        self._dart_round(counts, n_old)
+
+    def _dart_round(self, counts: np.ndarray, n_old: int) -> None:
+        """The launches of one round of parallel darts (see _parallel_darts)."""
+        m = self.model
         ns = m.n_total
+        most = int(counts.max())
         self._launch(gk.dart_screen, (self.n_phases, most),
-                     [self.grid.id, self.x_ext, m.n_fluid, ns, self.bg, m.params, seed, self.attempts, self._stamp,
+                     [self.grid.id, self.x_ext, m.n_fluid, ns, self.bg, m.params, self.dart_ids, self.attempts,
                       self.phase_count, self.phase_list, self.phase_cap, self.ghost_stamp, self.keep, n_old],
-                     [self.dart_mask])
+                     [self.dart_mask, most])
         cmds = self._phase_commands()
         rows = 5 ** (m.dim - 1)  # rows of 5 cells in the 5^d block around a cell
         for k in range(self.n_phases):
@@ -403,31 +432,33 @@ class GhostFluidSolver(FluidSolver):
             if n == 0:
                 continue
             conflicts, place = cmds[k]
-            for cmd in (conflicts, place):
-                cmd.set_param_by_name("seed", seed)
-                cmd.set_param_by_name("stamp", self._stamp)
-            conflicts.set_dim((n, rows))
-            place.set_dim(n)
-            conflicts.launch()
-            place.launch()
+            if conflicts[1] != n:  # launch size n, and each thread takes every n-th cell (stride)
+                conflicts[0].set_dim((n, rows))
+                place[0].set_dim(n)
+                conflicts[0].set_param_by_name("stride", n)
+                place[0].set_param_by_name("stride", n)
+                conflicts[1] = place[1] = n
+            conflicts[0].launch()
+            place[0].launch()
 
     def _phase_commands(self):
-        """Recorded (dart_conflicts, place_darts) launches per phase, for the current buffers."""
+        """Recorded [dart_conflicts, dim] and [place_darts, dim] launches per phase, for the current buffers."""
         key = (id(self.x_ext), self.capacity)
         if getattr(self, "_cmds_key", None) != key:
             m = self.model
             cmds = []
             for k in range(self.n_phases):
                 conflicts = wp.launch(gk.dart_conflicts, dim=(1, 1),
-                                      inputs=[self.bg, 0, self.attempts, 0, self.phase_count, self.phase_list, self.phase_cap,
-                                              k, self.dart_mask, self.cell_ghost, self.ghost_stamp, self.x_ext],
-                                      outputs=[self.dart_reject], device=m.device, record_cmd=True)
+                                      inputs=[self.bg, self.dart_ids, self.attempts, self.phase_count, self.phase_list,
+                                              self.phase_cap, k, self.dart_mask, self.cell_ghost, self.ghost_stamp,
+                                              self.x_ext],
+                                      outputs=[self.dart_reject, 1], device=m.device, record_cmd=True)
                 place = wp.launch(gk.place_darts, dim=1,
-                                  inputs=[self.bg, 0, self.attempts, 0, self.phase_count, self.phase_list, self.phase_cap, k,
-                                          self.dart_mask, self.dart_reject, self.cell_ghost, self.ghost_stamp, self.count,
-                                          self.capacity, m.n_total],
-                                  outputs=[self.x_ext], device=m.device, record_cmd=True)
-                cmds.append((conflicts, place))
+                                  inputs=[self.bg, self.dart_ids, self.attempts, self.phase_count, self.phase_list,
+                                          self.phase_cap, k, self.dart_mask, self.dart_reject, self.cell_ghost,
+                                          self.ghost_stamp, self.count, self.capacity, m.n_total],
+                                  outputs=[self.x_ext, 1], device=m.device, record_cmd=True)
+                cmds.append(([conflicts, 1], [place, 1]))
             self._cmds, self._cmds_key = cmds, key
         return self._cmds
 

@@ -343,6 +343,28 @@ def test_parallel_darts_place_the_same_ghosts(case, monkeypatch):
     assert np.array_equal(runs[0].positions(), runs[1].positions())
 
 
+@pytest.mark.parametrize("case", ["block2d", "block3d", "case1"])
+def test_parallel_darts_in_small_launches_place_the_same_ghosts(case, monkeypatch):
+    """A dart launch smaller than its phase's active cells (each thread takes every size-th cell: on a GPU
+    the launches are sized from the last sampling's counts) places the same ghosts as a launch of a thread
+    per cell: the same positions, velocities and owners (the slots come in another order)."""
+    monkeypatch.setattr(GhostFluidSolver, "parallel_darts", True)
+    monkeypatch.setattr(GhostFluidSolver, "phase_launches", True)
+    sim = _stepped_case(case)
+    s = sim.fluid_solver
+    out = []
+    for size in (None, 3):
+        monkeypatch.setattr(GhostFluidSolver, "dart_launch_size", size)
+        s.sample_ghosts(sim.state)
+        x = s.ghost_positions()
+        order = np.lexsort(x.T[::-1])
+        out.append((x[order], s.ghost_velocities()[order], s.ghost_of.numpy()[: s.n_ghost][order]))
+    assert len(out[0][0]) == len(out[1][0]) > 0
+    for a, b in zip(*out):
+        assert np.array_equal(a, b)
+    assert int(s.phase_count.numpy().max()) > 3 * 4, "the launches did not loop"
+
+
 def test_recorded_launches_match_plain_launches(monkeypatch):
     """The ghost step's recorded, replayed launches (GhostFluidSolver._launch: arguments packed once,
     scalars and sizes updated) give the plain wp.launch results bit for bit over 30 steps of case 1
