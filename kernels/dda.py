@@ -170,8 +170,11 @@ def minkowski_edge_face(a: wp.vec3, b: wp.vec3, c: wp.vec3, d: wp.vec3):
 
 
 @wp.func
-def fcp_plane(
-    n0: wp.vec3,
+def fcp_candidates(
+    a: int,
+    b: int,
+    best_n: wp.vec3,
+    best_gap: float,
     sA: int,
     cA: int,
     sB: int,
@@ -183,63 +186,53 @@ def fcp_plane(
     he_prev: wp.array(dtype=int),
     he_twin: wp.array(dtype=int),
 ):
-    # Fast Common Plane (Nezami et al. 2004): iterate closest vertices A, B and candidate planes
-    # (a) PB of AB, (b) faces at A or B, (c) edge at A x edge at B, (d) one edge at A or B and AB.
-    best_n, best_gap = signed_gap(n0, sA, cA, sB, cB, wv)
-    a = int(-1)
-    b = int(-1)
-    for it in range(FCP_MAX_ITER):
-        loA, ilA, hiA, ihA = extent_along(best_n, sA, cA, wv)
-        loB, ilB, hiB, ihB = extent_along(best_n, sB, cB, wv)
-        if ihA == a and ilB == b:
-            break
-        a = ihA
-        b = ilB
-        xa = wv[a]
-        xb = wv[b]
-        dab = xb - xa
-        # (a) perpendicular bisector of AB
-        best_n, best_gap = try_plane(dab, best_n, best_gap, sA, cA, sB, cB, wv)
-        # walk the half-edges leaving A: h -> twin(prev(h))
-        h0 = vertex_out_he[a]
-        h = h0
-        for ka in range(MAX_VALENCE):
-            nf, df = face_plane_of_he(h, wv, he_vertex, he_next)
-            best_n, best_gap = try_plane(nf, best_n, best_gap, sA, cA, sB, cB, wv)  # (b)
-            ea = wv[he_dest(h, he_vertex, he_next)] - xa
-            # (d) plane containing edge ea, as close to the PB as possible: n = AB - (AB.e)e
-            le = wp.length(ea)
-            if le > 0.0:
-                eh = ea / le
-                best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv)
-            # (c) edge at A x edge at B
-            g0 = vertex_out_he[b]
-            g = g0
-            for kb in range(MAX_VALENCE):
-                eb = wv[he_dest(g, he_vertex, he_next)] - xb
-                c = wp.cross(ea, eb)
-                if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
-                    best_n, best_gap = try_plane(c, best_n, best_gap, sA, cA, sB, cB, wv)
-                g = he_twin[he_prev[g]]
-                if g == g0:
-                    break
-            h = he_twin[he_prev[h]]
-            if h == h0:
-                break
-        # faces and edges at B: (b), (d)
+    # FCP candidate planes of the vertex pair (A, B): (a) PB of AB, (b) faces at A or B,
+    # (c) edge at A x edge at B, (d) one edge at A or B and AB
+    xa = wv[a]
+    xb = wv[b]
+    dab = xb - xa
+    # (a) perpendicular bisector of AB
+    best_n, best_gap = try_plane(dab, best_n, best_gap, sA, cA, sB, cB, wv)
+    # walk the half-edges leaving A: h -> twin(prev(h))
+    h0 = vertex_out_he[a]
+    h = h0
+    for ka in range(MAX_VALENCE):
+        nf, df = face_plane_of_he(h, wv, he_vertex, he_next)
+        best_n, best_gap = try_plane(nf, best_n, best_gap, sA, cA, sB, cB, wv)  # (b)
+        ea = wv[he_dest(h, he_vertex, he_next)] - xa
+        # (d) plane containing edge ea, as close to the PB as possible: n = AB - (AB.e)e
+        le = wp.length(ea)
+        if le > 0.0:
+            eh = ea / le
+            best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv)
+        # (c) edge at A x edge at B
         g0 = vertex_out_he[b]
         g = g0
         for kb in range(MAX_VALENCE):
-            nf, df = face_plane_of_he(g, wv, he_vertex, he_next)
-            best_n, best_gap = try_plane(-nf, best_n, best_gap, sA, cA, sB, cB, wv)
             eb = wv[he_dest(g, he_vertex, he_next)] - xb
-            le = wp.length(eb)
-            if le > 0.0:
-                eh = eb / le
-                best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv)
+            c = wp.cross(ea, eb)
+            if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
+                best_n, best_gap = try_plane(c, best_n, best_gap, sA, cA, sB, cB, wv)
             g = he_twin[he_prev[g]]
             if g == g0:
                 break
+        h = he_twin[he_prev[h]]
+        if h == h0:
+            break
+    # faces and edges at B: (b), (d)
+    g0 = vertex_out_he[b]
+    g = g0
+    for kb in range(MAX_VALENCE):
+        nf, df = face_plane_of_he(g, wv, he_vertex, he_next)
+        best_n, best_gap = try_plane(-nf, best_n, best_gap, sA, cA, sB, cB, wv)
+        eb = wv[he_dest(g, he_vertex, he_next)] - xb
+        le = wp.length(eb)
+        if le > 0.0:
+            eh = eb / le
+            best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv)
+        g = he_twin[he_prev[g]]
+        if g == g0:
+            break
     return best_n, best_gap
 
 
@@ -274,6 +267,108 @@ def column_through(
     if t_lo > t_hi + tol:
         hit = 0
     return t_lo, t_hi, hit
+
+
+@wp.func
+def fcp_touching(
+    n: wp.vec3,
+    gap: float,
+    tie: float,
+    hiA: float,
+    loB: float,
+    sA: int,
+    cA: int,
+    sB: int,
+    cB: int,
+    fsA: int,
+    fcA: int,
+    fsB: int,
+    fcB: int,
+    face_he: wp.array(dtype=int),
+    wv: wp.array(dtype=wp.vec3),
+    he_vertex: wp.array(dtype=int),
+    he_next: wp.array(dtype=int),
+):
+    # certificate that no plane separates better than (n, gap): a closest vertex p of one block whose
+    # line along n meets the other block at q = p +- gap n (within tie); any plane's gap is <= |q - p|
+    for k in range(cA):
+        p = wv[sA + k]
+        if wp.dot(n, p) >= hiA - tie:
+            t_lo, t_hi, hit = column_through(p, n, fsB, fcB, face_he, wv, he_vertex, he_next, tie)
+            if hit == 1 and t_lo <= gap + tie:
+                return int(1)
+    for k in range(cB):
+        p = wv[sB + k]
+        if wp.dot(n, p) <= loB + tie:
+            t_lo, t_hi, hit = column_through(p, n, fsA, fcA, face_he, wv, he_vertex, he_next, tie)
+            if hit == 1 and t_hi >= -gap - tie:
+                return int(1)
+    return int(0)
+
+
+@wp.func
+def fcp_plane(
+    n0: wp.vec3,
+    tie: float,
+    sA: int,
+    cA: int,
+    sB: int,
+    cB: int,
+    fsA: int,
+    fcA: int,
+    fsB: int,
+    fcB: int,
+    face_he: wp.array(dtype=int),
+    wv: wp.array(dtype=wp.vec3),
+    vertex_out_he: wp.array(dtype=int),
+    he_vertex: wp.array(dtype=int),
+    he_next: wp.array(dtype=int),
+    he_prev: wp.array(dtype=int),
+    he_twin: wp.array(dtype=int),
+):
+    # Fast Common Plane (Nezami et al. 2004): iterate closest vertices A, B and their candidate planes
+    # until the closest pair repeats. Face and edge-edge planes leave a face or edge of each block
+    # closest, its vertices tied (float32 rounding picks one), and the candidates of that one vertex
+    # miss those at the others (e.g. the edge-edge plane of a face edge not at it): FCP stopped below
+    # the optimum. So at a separating fixed point (gap > 0) not certified by fcp_touching, the
+    # candidates of every pair of closest vertices (within tie) are tried, and FCP goes on if one is
+    # better. gap(n) = min_B n.x - max_A n.x is concave in n, so for separated blocks the final fixed
+    # point is the exact gap. Overlaps stop at the first fixed point: narrow_phase's SAT fallback
+    # checks them (and resting face contacts would pay |face|^2 pairs every step).
+    best_n, best_gap = signed_gap(n0, sA, cA, sB, cB, wv)
+    a = int(-1)
+    b = int(-1)
+    for it in range(FCP_MAX_ITER):
+        n = best_n
+        gap0 = best_gap
+        loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv)
+        loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv)
+        if ihA != a or ilB != b:
+            a = ihA
+            b = ilB
+            best_n, best_gap = fcp_candidates(
+                a, b, best_n, best_gap, sA, cA, sB, cB, wv, vertex_out_he, he_vertex, he_next, he_prev, he_twin
+            )
+        else:
+            if gap0 <= 0.0:
+                break
+            touching = fcp_touching(n, gap0, tie, hiA, loB, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv,
+                                    he_vertex, he_next)
+            if touching == 1:
+                break
+            for ka in range(cA):
+                va = sA + ka
+                if wp.dot(n, wv[va]) >= hiA - tie:
+                    for kb in range(cB):
+                        vb = sB + kb
+                        if wp.dot(n, wv[vb]) <= loB + tie:
+                            best_n, best_gap = fcp_candidates(
+                                va, vb, best_n, best_gap, sA, cA, sB, cB, wv,
+                                vertex_out_he, he_vertex, he_next, he_prev, he_twin,
+                            )
+            if best_gap <= gap0:
+                break
+    return best_n, best_gap
 
 
 @wp.func
@@ -760,7 +855,14 @@ def narrow_phase(
         n0 = old_normal[oslot]
     if wp.length(n0) < 1.0e-12:
         n0 = wp.vec3(0.0, 0.0, 1.0)
-    n, gap = fcp_plane(wp.normalize(n0), sA, cA, sB, cB, wv, vertex_out_he, he_vertex, he_next, he_prev, he_twin)
+    # FCP's tie tolerance for closest vertices: float32 rounding of n.x (~1e-7 (|x| + size)) well inside
+    tie = 1.0e-6 * (block_size[A] + block_size[B] + wp.length(x[A]) + wp.length(x[B]))
+    fsA = face_start[A]
+    fcA = face_count[A]
+    fsB = face_start[B]
+    fcB = face_count[B]
+    n, gap = fcp_plane(wp.normalize(n0), tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv,
+                       vertex_out_he, he_vertex, he_next, he_prev, he_twin)
     if gap < 0.0:
         # FCP is a local search: before accepting an overlap, also try every face normal of both
         # blocks (separating-axis faces); if one separates better, iterate FCP again from it
@@ -805,7 +907,8 @@ def narrow_phase(
                     if h == h0:
                         break
         if g1 > gap + 1.0e-7:
-            n, gap = fcp_plane(n1, sA, cA, sB, cB, wv, vertex_out_he, he_vertex, he_next, he_prev, he_twin)
+            n, gap = fcp_plane(n1, tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv,
+                               vertex_out_he, he_vertex, he_next, he_prev, he_twin)
     new_normal[slot] = n
     new_gapb[slot] = gap
     pair_gap[tid] = gap

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from rockwave import geometry as G
@@ -212,6 +212,8 @@ def test_fcp_separated_gap():
 
 @settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**31 - 1), st.sampled_from([-1e-3, -1e-4, 1e-4, 1e-3]))
+@example(seed=1175471, target=1e-3)  # FCP stopped at a face plane (tied closest vertices), gap 1.07e-4
+@example(seed=746325305, target=1e-4)  # the same, found by a 300-seed scan: gap 1.6e-5
 def test_fcp_matches_exact_separating_axis_near_contact(seed, target):
     """Random rock vs box orientations, placed at a given overlap (-) or gap (+) by bisection on the
     exact separating-axis depth: the FCP gap equals it, and contact points appear only on overlap."""
