@@ -757,9 +757,11 @@ def place_cell(
     t_cell: int,
 ):
     """Second launch of a phase (thread t: the t-th active cell of the phase): places the first dart
-    of the cell that passed dart_screen and that no ghost rejected (dart_conflicts), closes the
-    neighbouring cells wholly within r of it, and clears the cell's dart_mask and reject words for
-    the next sampling. Velocity and owner come from ghost_nearest_liquid."""
+    of the cell that passed dart_screen and that no ghost rejected (dart_conflicts), and clears the
+    cell's dart_mask and reject words for the next sampling. Velocity and owner come from
+    ghost_nearest_liquid. Unlike throw_darts it does not close the neighbouring cells wholly within r
+    of the new ghost: their darts are all rejected by dart_conflicts anyway (the same decisions), and
+    the 3^d cell reads and writes were a serial chain that set the length of each phase launch on a GPU."""
     stamp = ids[0]
     seed = ids[1]
     if t_cell >= phase_count[phase]:
@@ -789,9 +791,7 @@ def place_cell(
             x_ghost[o] = y
             cell_ghost[c] = o
             ghost_stamp[c] = stamp
-            close_neighbour_cells(g, c, ijk, y, stamp, ghost_stamp)
         return
-
 
 
 @wp.kernel
