@@ -104,6 +104,8 @@ def main():
                     help="ghost step with plain wp.launch calls instead of recorded, replayed launches")
     ap.add_argument("--no-graph-darts", action="store_true",
                     help="parallel darts: launch a round's dart kernels one by one instead of replaying them as one CUDA graph")
+    ap.add_argument("--conflict-span", type=int, choices=[1, 5], default=None,
+                    help="parallel darts: dart_conflicts threads per cell of the 5^d block (1) or per row of 5 cells (5)")
     a = ap.parse_args()
     wp.config.quiet = True
     from rockwave.ghost import GhostFluidSolver
@@ -115,6 +117,8 @@ def main():
         GhostFluidSolver.recorded_launches = False
     if a.no_graph_darts:
         GhostFluidSolver.graph_darts = False
+    if a.conflict_span:
+        GhostFluidSolver.conflict_span = a.conflict_span
     basic, ghost, tb, cb, tg, cg, share, tgraph = run(a.scene, a.device, a.steps, a.spacing, repeats=a.repeats,
                                                       attempts=a.attempts, rounds=a.rounds)
     s = ghost.fluid_solver

@@ -664,13 +664,15 @@ def conflicts_cell_row(
     ghost_stamp: wp.array(dtype=int),
     x_ghost: wp.array(dtype=wp.vec3),
     reject: wp.array(dtype=int),
+    span: int,
     t_cell: int,
     o: int,
 ):
-    """First launch of a phase (thread (t, o): the t-th active cell of the phase and the o-th row of
-    5 cells along x of the 5^d block around it): for each ghost of this sampling in the row, or-s
-    into ``reject[c]`` the bits of the cell's darts left in dart_mask that lie within r of it. A
-    ghost farther than two cells cannot reach a dart of the cell (cells are r/sqrt(d) wide)."""
+    """First launch of a phase (thread (t, o): the t-th active cell of the phase and, span 5, the o-th
+    row of 5 cells along x of the 5^d block around it, or, span 1, its o-th cell): for each ghost of
+    this sampling there, or-s into ``reject[c]`` the bits of the cell's darts left in dart_mask that
+    lie within r of it. A ghost farther than two cells cannot reach a dart of the cell (cells are
+    r/sqrt(d) wide)."""
     stamp = ids[0]
     seed = ids[1]
     if t_cell >= phase_count[phase]:
@@ -683,8 +685,17 @@ def conflicts_cell_row(
     ci = ijk[0]
     cj = ijk[1]
     ck = ijk[2]
-    jj = cj + o % 5 - 2
-    kk = ck + o // 5 - 2
+    row = o
+    i_lo = wp.max(ci - 2, 0)
+    i_hi = wp.min(ci + 2, g.nx - 1)
+    if span == 1:
+        row = o // 5
+        i_lo = ci + o % 5 - 2
+        i_hi = i_lo
+        if i_lo < 0 or i_lo >= g.nx:
+            return
+    jj = cj + row % 5 - 2
+    kk = ck + row // 5 - 2
     if g.dim == 2:
         kk = ck
     if jj < 0 or jj >= g.ny or kk < 0 or kk >= g.nz:
@@ -695,7 +706,7 @@ def conflicts_cell_row(
     reach_g = g.r + 0.5 * g.cell * wp.sqrt(float(g.dim)) + 1.0e-4 * g.cell
     r2 = g.r * g.r
     bits = int(0)
-    for ii in range(wp.max(ci - 2, 0), wp.min(ci + 2, g.nx - 1) + 1):
+    for ii in range(i_lo, i_hi + 1):
         n = cell_index(g, ii, jj, kk)
         if ghost_stamp[n] == stamp:
             yg = x_ghost[cell_ghost[n]]
@@ -727,6 +738,7 @@ def dart_conflicts(
     ghost_stamp: wp.array(dtype=int),
     x_ghost: wp.array(dtype=wp.vec3),
     reject: wp.array(dtype=int),
+    span: int,
     stride: int,
 ):
     """Launch of conflicts_cell_row over (active cell of the phase, row). A thread takes every ``stride``-th active cell of the phase (stride = the launch
@@ -734,7 +746,7 @@ def dart_conflicts(
     t0, o = wp.tid()
     t_cell = t0
     while t_cell < phase_count[phase]:
-        conflicts_cell_row(g, ids, attempts, phase_count, phase_list, phase_cap, phase, dart_mask, cell_ghost, ghost_stamp, x_ghost, reject, t_cell, o)
+        conflicts_cell_row(g, ids, attempts, phase_count, phase_list, phase_cap, phase, dart_mask, cell_ghost, ghost_stamp, x_ghost, reject, span, t_cell, o)
         t_cell += stride
 
 @wp.func
