@@ -31,11 +31,13 @@ Walls: the tank and obstacle boundary particles are static layers at least one k
 with lattice-calibrated masses, i.e. they already are the "ghost solid particles" of the paper
 (they complete the density sums at walls and push with the Akinci term); they are not resampled.
 
-One host read per step on a GPU (the ghost count, to size the ghost grid build and grow the buffers);
-the dart launches are sized by a host bound on the active cells (``phase_bound``) instead of a read
-where that bound is small (``parallel_bound_max``), else the per-phase counts are read too. The
-step's launches are recorded once and replayed (``_launch``): a GPU ghost step of a few thousand
-particles is set by launch latency and host work, not by the device.
+One host read per step on a GPU: the ghost count (to size the ghost grid build and grow the buffers)
+with the per-phase active-cell counts, which size the next step's dart launches (each thread takes
+every size-th cell of its phase, so a launch smaller than the count is exact; the first sampling
+launches over a host bound, ``phase_bound``, or reads the counts where that bound is large). A round
+of darts replays as one CUDA graph (``graph_darts``), the step's other launches are recorded once and
+replayed (``FluidSolver._launch``): a GPU ghost step of a few thousand particles is set by launch
+latency and host work, not by the device.
 """
 
 from __future__ import annotations
