@@ -622,7 +622,6 @@ def screen_cell(
     dart_mask[c] = mask
 
 
-
 @wp.kernel
 def dart_screen(
     grid: wp.uint64,
@@ -642,13 +641,15 @@ def dart_screen(
     dart_mask: wp.array(dtype=int),
     stride: int,
 ):
-    """Launch of screen_cell over (phase, active cell). A thread takes every ``stride``-th active cell of the phase (stride = the launch
-    size along the cells), so the launch may be smaller than the count."""
+    """screen_cell over (phase, active cell): a thread takes every ``stride``-th active cell of its phase
+    (stride = the launch size along the cells), so the launch may be smaller than the count."""
     ph, t0 = wp.tid()
     t_cell = t0
     while t_cell < phase_count[ph]:
-        screen_cell(grid, x, n_fluid, n_static, g, p, ids, attempts, phase_count, phase_list, phase_cap, ghost_stamp, keep, n_old, dart_mask, ph, t_cell)
+        screen_cell(grid, x, n_fluid, n_static, g, p, ids, attempts, phase_count, phase_list, phase_cap, ghost_stamp,
+                    keep, n_old, dart_mask, ph, t_cell)
         t_cell += stride
+
 
 @wp.func
 def conflicts_cell_row(
@@ -723,7 +724,6 @@ def conflicts_cell_row(
         wp.atomic_or(reject, c, bits)
 
 
-
 @wp.kernel
 def dart_conflicts(
     g: GhostGrid,
@@ -741,13 +741,15 @@ def dart_conflicts(
     span: int,
     stride: int,
 ):
-    """Launch of conflicts_cell_row over (active cell of the phase, row). A thread takes every ``stride``-th active cell of the phase (stride = the launch
-    size along the cells), so the launch may be smaller than the count."""
+    """conflicts_cell_row over (active cell of the phase, cell or row of its block): a thread takes every
+    ``stride``-th active cell of the phase (stride = the launch size along the cells)."""
     t0, o = wp.tid()
     t_cell = t0
     while t_cell < phase_count[phase]:
-        conflicts_cell_row(g, ids, attempts, phase_count, phase_list, phase_cap, phase, dart_mask, cell_ghost, ghost_stamp, x_ghost, reject, span, t_cell, o)
+        conflicts_cell_row(g, ids, attempts, phase_count, phase_list, phase_cap, phase, dart_mask, cell_ghost,
+                           ghost_stamp, x_ghost, reject, span, t_cell, o)
         t_cell += stride
+
 
 @wp.func
 def place_cell(
@@ -825,13 +827,15 @@ def place_darts(
     x_ghost: wp.array(dtype=wp.vec3),
     stride: int,
 ):
-    """Launch of place_cell over the active cells of the phase. A thread takes every ``stride``-th active cell of the phase (stride = the launch
-    size along the cells), so the launch may be smaller than the count."""
+    """place_cell over the active cells of the phase: a thread takes every ``stride``-th active cell (stride =
+    the launch size)."""
     t0 = wp.tid()
     t_cell = t0
     while t_cell < phase_count[phase]:
-        place_cell(g, ids, attempts, phase_count, phase_list, phase_cap, phase, dart_mask, reject, cell_ghost, ghost_stamp, count, capacity, n_static, x_ghost, t_cell)
+        place_cell(g, ids, attempts, phase_count, phase_list, phase_cap, phase, dart_mask, reject, cell_ghost,
+                   ghost_stamp, count, capacity, n_static, x_ghost, t_cell)
         t_cell += stride
+
 
 @wp.kernel
 def ghost_nearest_liquid(
