@@ -157,8 +157,8 @@ def close_covered_cells(
                     cell_state[cell_index(g, ii, jj, k)] = value
 
 
-@wp.kernel
-def mark_active_cells(
+@wp.func
+def mark_slice(
     x: wp.array(dtype=wp.vec3),
     surface: wp.array(dtype=int),
     g: GhostGrid,
@@ -169,6 +169,8 @@ def mark_active_cells(
     phase_count: wp.array(dtype=int),
     phase_list: wp.array(dtype=int),
     phase_cap: int,
+    i: int,
+    s: int,
 ):
     """Mark the background cells that meet the disc/ball of radius ``layer`` around each surface
     particle (the dart tests decide the rest) and append each newly marked cell once to the list of
@@ -176,9 +178,8 @@ def mark_active_cells(
     the stamp of the sampling that last marked a cell, so the dense grid is never cleared. Cells
     already closed (``ghost_stamp == -stamp``: wholly within r_liquid of a liquid particle, or a
     kept ghost's cell) and cells wholly within r_liquid of a wall particle (``wall_closed``) are
-    not listed: no dart there can pass. Thread (i, s): particle i, the s-th slice of its box of cells
-    (along z in 3D, y in 2D; launched with as many slices as the box can have)."""
-    i, s = wp.tid()
+    not listed: no dart there can pass. Particle i, the s-th slice of its box of cells (along z in 3D, y
+    in 2D)."""
     if surface[i] == 0:
         return
     xi = x[i]
@@ -212,6 +213,36 @@ def mark_active_cells(
                     ph = phase_of(ii, jj, k)
                     slot = wp.atomic_add(phase_count, ph, 1)
                     phase_list[ph * phase_cap + slot] = ci
+
+
+
+
+@wp.kernel
+def mark_active_cells(
+    x: wp.array(dtype=wp.vec3),
+    surface: wp.array(dtype=int),
+    g: GhostGrid,
+    stamp: int,
+    cell_mark: wp.array(dtype=int),
+    ghost_stamp: wp.array(dtype=int),
+    wall_closed: wp.array(dtype=int),
+    phase_count: wp.array(dtype=int),
+    phase_list: wp.array(dtype=int),
+    phase_cap: int,
+    n_slices: int,
+    slice_step: int,
+):
+    """mark_slice for thread (i, s0): particle i and slices s0, s0 + slice_step, ... < n_slices of its box: a
+    thread per slice on a GPU, a thread per particle on the CPU (fewer threads; on its one thread the list
+    appends come in the same order)."""
+    i, s0 = wp.tid()
+    if surface[i] == 0:
+        return
+    s = s0
+    while s < n_slices:
+        mark_slice(x, surface, g, stamp, cell_mark, ghost_stamp, wall_closed, phase_count, phase_list, phase_cap,
+                   i, s)
+        s += slice_step
 
 
 # Per-cell candidate lists of throw_darts (local vectors): the ghosts, and the liquid/boundary

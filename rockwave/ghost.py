@@ -283,9 +283,11 @@ class GhostFluidSolver(FluidSolver):
             if n_old:
                 self._launch(gk.close_kept_cells, n_old, [self.x_ext, self.keep, ns, self.bg, self._stamp],
                              [self.ghost_stamp])
-            self._launch(gk.mark_active_cells, (m.n_fluid, self.mark_slices),
+            per_slice = self.mark_slices if m.device.is_cuda else 1  # CPU: a thread per particle
+            self._launch(gk.mark_active_cells, (m.n_fluid, per_slice),
                          [self.x_ext, self.surface, self.bg, self._stamp, self.cell_mark, self.ghost_stamp,
-                          self.wall_closed, self.phase_count, self.phase_list, self.phase_cap])
+                          self.wall_closed, self.phase_count, self.phase_list, self.phase_cap, self.mark_slices,
+                          per_slice])
             # Warp's CPU backend runs a launch in index order on one thread (phase_launches: the GPU's
             # launch pattern on the CPU too, for tests)
             serial = not m.device.is_cuda and not self.phase_launches
