@@ -1225,6 +1225,91 @@ def position_divergence_list(
 
 
 @wp.kernel
+def continuity_rate_and_divergence_list(
+    count: wp.array(dtype=int),
+    nbr: wp.array(dtype=int),
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    p: SPHParams,
+    n_static: int,
+    threshold: float,
+    drho_dt: wp.array(dtype=float),
+    div: wp.array(dtype=float),
+    surface: wp.array(dtype=int),
+):
+    """position_divergence_list and the continuity rate of sph.particle_density_continuity_list in one pass
+    over the neighbour list (the same terms in the same order: the same bits). The density itself is not
+    advanced here (div x reads the neighbours' rho: advance_density_rate does it after this launch); an
+    overflowed list gets div x from a query of ``grid`` and its rate from sph.particle_density_overflow."""
+    i = wp.tid()
+    n = count.shape[0]
+    c = count[i]
+    xi = x[i]
+    vi = v[i]
+    s = float(0.0)
+    rate = float(0.0)
+    H2 = p.H * p.H
+    if c <= nbr.shape[0] // n:
+        for k in range(c):
+            j = nbr[k * n + i]
+            rij = xi - x[j]
+            r2 = wp.length_sq(rij)
+            if r2 < H2:
+                r = wp.sqrt(r2)
+                g = kernel_grad(rij, r, p)
+                rj = p.rest_density
+                if j < p.n_fluid:
+                    rj = rho[j]
+                    rate += p.fluid_mass * wp.dot(vi - v[j], g)
+                else:
+                    rate += particle_mass[j] * wp.dot(vi, g)
+                s += -particle_mass[j] / rj * wp.dot(rij, g)
+        drho_dt[i] = rate
+    else:
+        q = wp.hash_grid_query(grid, xi, p.H)
+        j = int(0)
+        while wp.hash_grid_query_next(q, j):
+            if j == i or j >= n_static:
+                continue
+            rij = xi - x[j]
+            r = wp.length(rij)
+            if r < p.H:
+                s += position_divergence_term(rij, r, j, rho, particle_mass, p)
+    div[i] = s
+    f = int(0)
+    if s < threshold:
+        f = 1
+    surface[i] = f
+
+
+@wp.kernel
+def advance_density_rate(
+    count: wp.array(dtype=int),
+    nbr: wp.array(dtype=int),
+    dt: wp.array(dtype=float),
+    p: SPHParams,
+    drho_dt: wp.array(dtype=float),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    pr2: wp.array(dtype=float),
+):
+    """rho_i += dt d rho_i/dt, p_i = EOS(rho_i), pr2_i = p_i/rho_i^2 after continuity_rate_and_divergence_list
+    (particles whose list overflowed: sph.particle_density_overflow)."""
+    i = wp.tid()
+    n = count.shape[0]
+    if count[i] > nbr.shape[0] // n:
+        return
+    rr = rho[i] + dt[0] * drho_dt[i]
+    rho[i] = rr
+    pr = equation_of_state(rr, p)
+    pressure[i] = pr
+    pr2[i] = pr / (rr * rr)
+
+
+@wp.kernel
 def ghost_mass_split(
     grid: wp.uint64,
     ghost_grid: wp.uint64,

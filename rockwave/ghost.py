@@ -242,10 +242,13 @@ class GhostFluidSolver(FluidSolver):
         self.ghost_grid.reserve(capacity)
 
     # ------------------------------------------------------------------ sampling -------------
-    def sample_ghosts(self, state: FluidState) -> int:
+    def sample_ghosts(self, state: FluidState, dt: wp.array | None = None) -> int:
         """Free-surface detection and ghost seeding for the current positions (persistent: last
         step's ghosts moved with their owners, the ones that break the rules dropped, the holes
-        filled). Leaves the hash grid built over fluid + boundary + ghosts. Returns the number of ghosts."""
+        filled). Leaves the hash grid built over fluid + boundary + ghosts. Returns the number of ghosts.
+        ``dt`` (continuity density): the step's continuity rate is summed in the same pass over the
+        neighbour lists as div x, and the density advanced by dt right after (step then skips its own
+        continuity pass)."""
         m = self.model
         ns = m.n_total
         t0 = time.perf_counter() if self.profile else 0.0
@@ -258,10 +261,19 @@ class GhostFluidSolver(FluidSolver):
         self._launch(gk.begin_sampling, ns, [state.x, state.v], [self.x_ext, self.v_ext, self.count])
         self.grid.build(self._x_view(0, ns + n_old), m.support_radius)
         # liquid and boundary neighbours from the neighbour lists (current: _update_lists ran first)
-        self._launch(gk.position_divergence_list, m.n_fluid,
-                     [self._nbr_count, self._nbr, self.grid.id, self.x_ext, state.rho, self.mass_ext, m.params, ns,
-                      self.threshold],
-                     [self.div, self.surface])
+        if dt is not None:
+            # div x and the continuity rate in one pass (same bits as the two passes), then rho advanced
+            self._launch(gk.continuity_rate_and_divergence_list, m.n_fluid,
+                         [self._nbr_count, self._nbr, self.grid.id, self.x_ext, state.v, state.rho, self.mass_ext,
+                          m.params, ns, self.threshold],
+                         [state.drho_dt, self.div, self.surface])
+            self._launch(gk.advance_density_rate, m.n_fluid, [self._nbr_count, self._nbr, dt, m.params],
+                         [state.drho_dt, state.rho, state.pressure, self._pr2])
+        else:
+            self._launch(gk.position_divergence_list, m.n_fluid,
+                         [self._nbr_count, self._nbr, self.grid.id, self.x_ext, state.rho, self.mass_ext, m.params, ns,
+                          self.threshold],
+                         [self.div, self.surface])
         if n_old:
             self._launch(gk.keep_ghosts, n_old,
                          [self.grid.id, self.x_ext, m.n_fluid, ns, self.bg, m.params, self.keep_liquid,
@@ -529,14 +541,13 @@ class GhostFluidSolver(FluidSolver):
         if m.n_fluid == 0:
             return
         self._update_lists(state)
-        self.sample_ghosts(state)
-        if m.density_mode == "summation":
+        continuity = m.density_mode != "summation"
+        # continuity over liquid and boundary, in sample_ghosts' div x pass (ghosts only with ghost_continuity:
+        # see __init__); the overflowed lists' rate below
+        self.sample_ghosts(state, dt if continuity else None)
+        if not continuity:
             self._summation_density(state)
         else:
-            # continuity over liquid and boundary (ghosts only with ghost_continuity: see __init__)
-            self._launch(sph.particle_density_continuity_list, m.n_fluid,
-                         [self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
-                         [state.drho_dt, state.rho, state.pressure, self._pr2])
             self._density_overflow(state, dt, summation=False)
             if self.ghost_continuity:
                 self._ghost_density(state, dt, 2)
