@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from rockwave.kernels.sph import SPHParams, equation_of_state, kernel_grad
+from rockwave.kernels.sph import SPHParams, kernel_grad, store_density
 
 
 @wp.kernel
@@ -71,8 +71,5 @@ def apply_density_diffusion(
     i = wp.tid()
     r = rho[i] + dt[0] * rate[i]
     drho_dt[i] = drho_dt[i] + rate[i]
-    rho[i] = r
-    pr = equation_of_state(r, p)
-    pressure[i] = pr
-    pr2[i] = pr / (r * r)
+    store_density(i, r, p, rho, pressure, pr2)
 

@@ -37,7 +37,7 @@ thread (tests/test_ghost.py::test_parallel_darts_place_the_same_ghosts).
 
 import warp as wp
 
-from rockwave.kernels.sph import SPHParams, equation_of_state, kernel_grad, kernel_w
+from rockwave.kernels.sph import SPHParams, equation_of_state, kernel_grad, kernel_w, store_density
 
 
 @wp.struct
@@ -1176,6 +1176,24 @@ def density_summation_capped(
 # fluid + boundary + ghosts, in another order (float rounding only).
 
 
+@wp.func
+def divergence_by_query(grid: wp.uint64, i: int, xi: wp.vec3, x: wp.array(dtype=wp.vec3), rho: wp.array(dtype=float),
+                        particle_mass: wp.array(dtype=float), p: SPHParams, n_static: int) -> float:
+    """div x_i over a query of ``grid`` (liquid and boundary neighbours; index >= n_static skipped): the
+    fallback for a particle whose neighbour list overflowed."""
+    s = float(0.0)
+    q = wp.hash_grid_query(grid, xi, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j == i or j >= n_static:
+            continue
+        rij = xi - x[j]
+        r = wp.length(rij)
+        if r < p.H:
+            s += position_divergence_term(rij, r, j, rho, particle_mass, p)
+    return s
+
+
 @wp.kernel
 def position_divergence_list(
     count: wp.array(dtype=int),
@@ -1208,20 +1226,9 @@ def position_divergence_list(
             if r2 < H2:
                 s += position_divergence_term(rij, wp.sqrt(r2), j, rho, particle_mass, p)
     else:
-        q = wp.hash_grid_query(grid, xi, p.H)
-        j = int(0)
-        while wp.hash_grid_query_next(q, j):
-            if j == i or j >= n_static:
-                continue
-            rij = xi - x[j]
-            r = wp.length(rij)
-            if r < p.H:
-                s += position_divergence_term(rij, r, j, rho, particle_mass, p)
+        s = divergence_by_query(grid, i, xi, x, rho, particle_mass, p, n_static)
     div[i] = s
-    f = int(0)
-    if s < threshold:
-        f = 1
-    surface[i] = f
+    surface[i] = wp.where(s < threshold, 1, 0)
 
 
 @wp.kernel
@@ -1269,20 +1276,9 @@ def continuity_rate_and_divergence_list(
                 s += -particle_mass[j] / rj * wp.dot(rij, g)
         drho_dt[i] = rate
     else:
-        q = wp.hash_grid_query(grid, xi, p.H)
-        j = int(0)
-        while wp.hash_grid_query_next(q, j):
-            if j == i or j >= n_static:
-                continue
-            rij = xi - x[j]
-            r = wp.length(rij)
-            if r < p.H:
-                s += position_divergence_term(rij, r, j, rho, particle_mass, p)
+        s = divergence_by_query(grid, i, xi, x, rho, particle_mass, p, n_static)
     div[i] = s
-    f = int(0)
-    if s < threshold:
-        f = 1
-    surface[i] = f
+    surface[i] = wp.where(s < threshold, 1, 0)
 
 
 @wp.kernel
@@ -1302,11 +1298,7 @@ def advance_density_rate(
     n = count.shape[0]
     if count[i] > nbr.shape[0] // n:
         return
-    rr = rho[i] + dt[0] * drho_dt[i]
-    rho[i] = rr
-    pr = equation_of_state(rr, p)
-    pressure[i] = pr
-    pr2[i] = pr / (rr * rr)
+    store_density(i, rho[i] + dt[0] * drho_dt[i], p, rho, pressure, pr2)
 
 
 @wp.kernel
@@ -1397,10 +1389,7 @@ def ghost_density(
     elif mode == 2:
         drho_dt[i] = drho_dt[i] + gs
         r = s + dt[0] * gs
-    rho[i] = r
-    pr = equation_of_state(r, p)
-    pressure[i] = pr
-    pr2[i] = pr / (r * r)
+    store_density(i, r, p, rho, pressure, pr2)
 
 
 @wp.kernel

@@ -704,6 +704,16 @@ def pair_density_rate(xi: wp.vec3, vi: wp.vec3, j: int, x: wp.array(dtype=wp.vec
     return particle_mass[j] * wp.dot(vi, g)
 
 
+@wp.func
+def store_density(i: int, rr: float, p: SPHParams, rho: wp.array(dtype=float), pressure: wp.array(dtype=float),
+                  pr2: wp.array(dtype=float)):
+    """rho_i = rr, p_i = EOS(rr), pr2_i = p_i / rr^2 (the force pass reads pr2)."""
+    rho[i] = rr
+    pr = equation_of_state(rr, p)
+    pressure[i] = pr
+    pr2[i] = pr / (rr * rr)
+
+
 @wp.kernel
 def particle_density_continuity_list(
     count: wp.array(dtype=int),
@@ -734,11 +744,7 @@ def particle_density_continuity_list(
     for k in range(c):
         s += pair_density_rate(xi, vi, nbr[k * n + i], x, v, particle_mass, p)
     drho_dt[i] = s
-    rr = rho[i] + dt[0] * s
-    rho[i] = rr
-    pr = equation_of_state(rr, p)
-    pressure[i] = pr
-    pr2[i] = pr / (rr * rr)
+    store_density(i, rho[i] + dt[0] * s, p, rho, pressure, pr2)
 
 
 @wp.kernel
