@@ -24,13 +24,13 @@ import rockwave
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def make(scene_path, method, device, spacing, warm=20, attempts=None, rounds=None):
+def make(scene_path, method, device, spacing, warm=20, attempts=None, rounds=None, sampler=None):
     """A Simulation of the scene with ``method``, stepped ``warm`` times."""
     d = rockwave.load_scene(scene_path).raw
     d["fluid"]["method"] = method
     if spacing:
         d["fluid"]["spacing_m"] = spacing
-    for key, value in (("attempts", attempts), ("rounds", rounds)):
+    for key, value in (("attempts", attempts), ("rounds", rounds), ("sampler", sampler)):
         if value:
             d["fluid"].setdefault("ghost", {})[key] = value
     sim = rockwave.Simulation(rockwave.parse_scene(d, str(scene_path), Path(scene_path).parent), device=device)
@@ -57,13 +57,13 @@ def block(sim, steps, profile=False):
     return w, c, share
 
 
-def run(scene_path, device, steps, spacing, repeats=1, attempts=None, rounds=None):
+def run(scene_path, device, steps, spacing, repeats=1, attempts=None, rounds=None, sampler=None):
     """Basic and ghost on the same scene, timed in alternating blocks (basic, ghost, basic, ...: both at
     the same flow time, and a drift of the machine hits both); fastest block of each. On a GPU the
     sampling share comes from one extra profiled ghost block (profiling synchronises inside the step,
     which the timed blocks must not do); on the CPU (synchronous anyway) every ghost block profiles."""
     basic = make(scene_path, "basic", device, spacing)
-    ghost = make(scene_path, "ghost", device, spacing, attempts=attempts, rounds=rounds)
+    ghost = make(scene_path, "ghost", device, spacing, attempts=attempts, rounds=rounds, sampler=sampler)
     cuda = wp.get_device(ghost.device).is_cuda
     tb = cb = tg = cg = tgraph = float("inf")
     share = 0.0
@@ -93,6 +93,8 @@ def main():
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--attempts", type=int, default=None, help="darts per cell and round (default: the scene's)")
     ap.add_argument("--rounds", type=int, default=None, help="passes over the phases (default: the scene's)")
+    ap.add_argument("--sampler", choices=["tile", "darts"], default=None,
+                    help="fluid.ghost.sampler (default: the scene's, else tile; darts with persistent ghosts)")
     ap.add_argument("--busy", action="store_true", help="GPU: time each kernel of the ghost step (CUDA events)")
     ap.add_argument("--darts", choices=["auto", "parallel", "serial"], default="auto",
                     help="dart throwing: parallel screens + light phase launches, or the per-cell serial "
@@ -120,11 +122,15 @@ def main():
     if a.conflict_span:
         GhostFluidSolver.conflict_span = a.conflict_span
     basic, ghost, tb, cb, tg, cg, share, tgraph = run(a.scene, a.device, a.steps, a.spacing, repeats=a.repeats,
-                                                      attempts=a.attempts, rounds=a.rounds)
+                                                      attempts=a.attempts, rounds=a.rounds, sampler=a.sampler)
     s = ghost.fluid_solver
     nb, ghosts = basic.fluid.n_fluid, s.n_ghost
-    print(f"scene {Path(a.scene).name} device {a.device} fluid {nb} ghosts(last step) {ghosts} darts {a.darts}: "
-          f"{s.attempts} x {s.rounds} rounds (GPU: {s.n_phases * s.rounds} dart launches per step)")
+    if s.sampler == "tile":
+        how = f"sampler tile ({s.tile_k}^{s.model.dim} cells, r {s.r / s.model.spacing:.2f} dx)"
+    else:
+        how = (f"sampler darts {a.darts}: {s.attempts} x {s.rounds} rounds (GPU: {s.n_phases * s.rounds} dart launches "
+               f"per step)")
+    print(f"scene {Path(a.scene).name} device {a.device} fluid {nb} ghosts(last step) {ghosts} {how}")
     print(f"basic {tb * 1e3:.3f} ms/step  ghost {tg * 1e3:.3f} ms/step  ratio {tg / tb:.2f}  sampling share of ghost step {share:.0%}")
     if not wp.get_device(a.device).is_cuda:
         print(f"process CPU time: basic {cb * 1e3:.3f} ms/step  ghost {cg * 1e3:.3f} ms/step  ratio {cg / cb:.2f}")

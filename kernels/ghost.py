@@ -158,6 +158,12 @@ def close_covered_cells(
 
 
 @wp.func
+def tile_index(i: int, j: int, k: int, tile_k: int) -> int:
+    """Cell (i, j, k) of the background grid -> its cell in the periodic tile of tile_k^d cells."""
+    return (i % tile_k) + tile_k * ((j % tile_k) + tile_k * (k % tile_k))
+
+
+@wp.func
 def mark_slice(
     x: wp.array(dtype=wp.vec3),
     surface: wp.array(dtype=int),
@@ -217,6 +223,75 @@ def mark_slice(
 
 
 
+@wp.func
+def mark_tile_slice(
+    x: wp.array(dtype=wp.vec3),
+    g: GhostGrid,
+    stamp: int,
+    cell_mark: wp.array(dtype=int),
+    ghost_stamp: wp.array(dtype=int),
+    wall_closed: wp.array(dtype=int),
+    phase_count: wp.array(dtype=int),
+    phase_list: wp.array(dtype=int),
+    phase_cap: int,
+    tile: wp.array(dtype=wp.vec3),
+    tile_k: int,
+    row_first: wp.array(dtype=int),
+    row_cells: wp.array(dtype=int),
+    i: int,
+    s: int,
+):
+    """mark_slice for the tile sampler: only the cells whose tile point lies within the layer of surface
+    particle i and not within r_liquid of it are listed. Each row of the box along x visits only the
+    cells of the row that hold a tile point (``row_cells[row_first[r]:row_first[r + 1]]``: their x
+    index modulo tile_k, for row r = (j mod k) + k (k mod k)), not every cell."""
+    xi = x[i]
+    reach = g.layer
+    lo = cell_coord(g, xi - wp.vec3(reach))
+    hi = cell_coord(g, xi + wp.vec3(reach))
+    if g.dim == 2:
+        if lo[1] + s > hi[1]:
+            return
+        lo = wp.vec3i(lo[0], lo[1] + s, 0)
+        hi = wp.vec3i(hi[0], lo[1], 0)
+    else:
+        if lo[2] + s > hi[2]:
+            return
+        lo = wp.vec3i(lo[0], lo[1], lo[2] + s)
+        hi = wp.vec3i(hi[0], hi[1], lo[2])
+    rl2 = g.r_liquid * g.r_liquid
+    layer2 = reach * reach
+    i0 = wp.max(lo[0], 0)
+    i1 = wp.min(hi[0], g.nx - 1)
+    if i0 > i1:
+        return
+    for k in range(wp.max(lo[2], 0), wp.min(hi[2], g.nz - 1) + 1):
+        for jj in range(wp.max(lo[1], 0), wp.min(hi[1], g.ny - 1) + 1):
+            row = (jj % tile_k) + tile_k * (k % tile_k)
+            tile_row = tile_k * row  # tile index of the row's first cell
+            cell_row = g.nx * (jj + g.ny * k)  # background index of the row's cell 0
+            base = i0 - i0 % tile_k  # the period holding i0
+            for m in range(row_first[row], row_first[row + 1]):
+                o = row_cells[m]
+                ii = base + o
+                if ii < i0:
+                    ii += tile_k
+                off = tile[tile_row + o]
+                while ii <= i1:
+                    y = cell_corner(g, ii, jj, k) + g.cell * off  # (as tile_ghosts computes it)
+                    if g.dim == 2:
+                        y = wp.vec3(y[0], y[1], 0.0)
+                    d2 = wp.length_sq(y - xi)
+                    if d2 >= rl2 and d2 <= layer2:
+                        ci = cell_row + ii
+                        if ghost_stamp[ci] != -stamp and wall_closed[ci] == 0:
+                            if wp.atomic_max(cell_mark, ci, stamp) < stamp:
+                                ph = phase_of(ii, jj, k)
+                                slot = wp.atomic_add(phase_count, ph, 1)
+                                phase_list[ph * phase_cap + slot] = ci
+                    ii += tile_k
+
+
 @wp.kernel
 def mark_active_cells(
     x: wp.array(dtype=wp.vec3),
@@ -229,6 +304,10 @@ def mark_active_cells(
     phase_count: wp.array(dtype=int),
     phase_list: wp.array(dtype=int),
     phase_cap: int,
+    tile: wp.array(dtype=wp.vec3),
+    tile_k: int,
+    row_first: wp.array(dtype=int),
+    row_cells: wp.array(dtype=int),
     n_slices: int,
     slice_step: int,
 ):
@@ -240,8 +319,12 @@ def mark_active_cells(
         return
     s = s0
     while s < n_slices:
-        mark_slice(x, surface, g, stamp, cell_mark, ghost_stamp, wall_closed, phase_count, phase_list, phase_cap,
-                   i, s)
+        if tile_k > 0:
+            mark_tile_slice(x, g, stamp, cell_mark, ghost_stamp, wall_closed, phase_count, phase_list, phase_cap, tile,
+                            tile_k, row_first, row_cells, i, s)
+        else:
+            mark_slice(x, surface, g, stamp, cell_mark, ghost_stamp, wall_closed, phase_count, phase_list, phase_cap,
+                       i, s)
         s += slice_step
 
 
@@ -491,6 +574,84 @@ def throw_darts(
                 return
             close_neighbour_cells(g, c, ijk, y, stamp, ghost_stamp)
         return
+
+
+# ---- Tile sampler (GhostFluidSolver sampler = "tile") ---------------------------------------------
+# The candidates are the points of a periodic Poisson-disk tile laid over the background grid (at most
+# one per cell: cells are r/sqrt(d) wide), generated once (rockwave/ghost.py poisson_disk_tile). They are
+# r apart by construction, so a step only keeps those that pass the liquid rules: one launch, no phases.
+
+
+@wp.kernel
+def tile_ghosts(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    n_fluid: int,
+    n_static: int,
+    g: GhostGrid,
+    p: SPHParams,
+    phase_count: wp.array(dtype=int),
+    phase_list: wp.array(dtype=int),
+    phase_cap: int,
+    tile: wp.array(dtype=wp.vec3),
+    tile_k: int,
+    count: wp.array(dtype=int),
+    capacity: int,
+    stride: int,
+    x_ghost: wp.array(dtype=wp.vec3),
+    v_ghost: wp.array(dtype=wp.vec3),
+    ghost_of: wp.array(dtype=int),
+):
+    """Thread (ph, t): the t-th, t + stride-th, ... listed cell of phase ph. The cell's tile point y becomes
+    a ghost when no liquid or boundary particle lies within r_liquid of it, a liquid particle lies within
+    the layer, and the liquid colour field sum_j V_j W(y - x_j) is at most colour_max (outside the liquid):
+    the rules of the darts, tested with one hash query. Velocity and owner: the nearest liquid particle."""
+    ph, t0 = wp.tid()
+    t_cell = t0
+    rl2 = g.r_liquid * g.r_liquid
+    layer2 = g.layer * g.layer
+    H2 = p.H * p.H
+    radius = wp.max(g.r_liquid, wp.max(g.layer, p.H))
+    while t_cell < phase_count[ph]:
+        c = phase_list[ph * phase_cap + t_cell]
+        t_cell += stride
+        ijk = cell_ijk(g, c)
+        off = tile[tile_index(ijk[0], ijk[1], ijk[2], tile_k)]
+        if off[0] < 0.0:
+            continue
+        y = cell_corner(g, ijk[0], ijk[1], ijk[2]) + g.cell * off
+        if g.dim == 2:
+            y = wp.vec3(y[0], y[1], 0.0)
+        ok = int(1)
+        best = float(1.0e30)
+        nearest = int(-1)
+        colour = float(0.0)
+        j = int(0)
+        q = wp.hash_grid_query(grid, y, radius)
+        while wp.hash_grid_query_next(q, j):
+            if j < n_static:
+                d2 = wp.length_sq(x[j] - y)
+                if d2 < rl2:
+                    ok = 0
+                    break
+                if j < n_fluid:
+                    if d2 <= layer2 and d2 < best:
+                        best = d2
+                        nearest = j
+                    if d2 < H2:
+                        colour += g.liquid_volume * kernel_w(d2, p)
+                        if colour > g.colour_max:
+                            ok = 0
+                            break
+        if ok == 0 or nearest < 0:
+            continue
+        slot = wp.atomic_add(count, 0, 1)
+        if slot < capacity:
+            o = n_static + slot
+            x_ghost[o] = y
+            v_ghost[o] = v[nearest]
+            ghost_of[slot] = nearest
 
 
 # ---- Parallel dart throwing (the GPU path; GhostFluidSolver.parallel_darts) -----------------------

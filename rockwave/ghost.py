@@ -62,6 +62,9 @@ DEFAULT_THRESHOLD = {2: 1.5, 3: 2.4}
 # saturated. Calibrated so the summation density of a flat surface layer comes out at rho0
 # within about 2% (tests/test_ghost.py::test_ghosts_complete_surface_density).
 DEFAULT_RADIUS_RATIO = {2: 0.80, 3: 0.85}
+# the same for the tile sampler, whose layer has gaps next to the liquid (tile points within r_liquid
+# of it are dropped, not replaced): a smaller radius
+TILE_RADIUS_RATIO = {2: 0.65, 3: 0.70}
 # Courant number above which the ghosts' one-sided pressure term was measured to pump energy into a
 # splash: case 3 on an H100 (runs differ in the atomics' order), at 0.25 two of three 0.03 m runs
 # gained energy (one x5.3, a particle 0.46 m out) and the 0.01 m scene blew up (x584); at 0.125 none
@@ -76,6 +79,73 @@ def warn_unstable_step(scene) -> None:
         warnings.warn(f"{scene.path}: simulation.cfl_number = {sim.cfl_number:g} with fluid.method = 'ghost': ghost steps "
                       f"above a Courant number of {GHOST_CFL_MAX} were measured to gain energy and blow up in a "
                       f"splash (dam break case 3); use simulation.cfl_number <= {GHOST_CFL_MAX}", stacklevel=3)
+
+
+# periodic Poisson-disk tile of the tile sampler: cells per axis (r/sqrt(d) wide: 36 dx in 2D, 12 dx in 3D)
+TILE_CELLS = {2: 63, 3: 24}
+_TILES = {}
+
+
+def poisson_disk_tile(k: int, dim: int, seed: int = 1, attempts: int = 30) -> np.ndarray:
+    """A periodic Poisson-disk set in a box of k^dim unit cells, radius sqrt(dim) (so at most one point per
+    cell), by Bridson's (2007) algorithm: candidates uniform in the annulus r..2r around a random active
+    sample, the first farther than r from every sample (periodic distance) accepted and made active, an
+    active sample with ``attempts`` rejections retired. Points (n, dim) in cell units; cached per process."""
+    key = (k, dim, seed, attempts)
+    if key in _TILES:
+        return _TILES[key]
+    import itertools
+
+    r = math.sqrt(dim)
+    L = float(k)
+    rng = np.random.default_rng(seed)
+    owner = -np.ones((k,) * dim, dtype=np.int64)
+    pts = np.zeros((k ** dim, dim))
+    offs = np.array(list(itertools.product(range(-2, 3), repeat=dim)))  # r < 2 cells
+    n = 0
+
+    def add(y):
+        nonlocal n
+        pts[n] = y
+        owner[tuple(np.floor(y).astype(int) % k)] = n
+        n += 1
+
+    add(rng.random(dim) * L)
+    active = [0]
+    while active:
+        ia = int(rng.integers(len(active)))
+        u = rng.random(attempts)
+        if dim == 2:
+            ang = rng.random(attempts) * 2.0 * math.pi
+            d = np.sqrt(r * r * (1.0 + 3.0 * u))[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+        else:
+            w = rng.normal(size=(attempts, 3))
+            d = np.cbrt(r ** 3 * (1.0 + 7.0 * u))[:, None] * w / np.linalg.norm(w, axis=1)[:, None]
+        cand = (pts[active[ia]] + d) % L
+        cells = (np.floor(cand).astype(int)[:, None, :] + offs[None]) % k
+        own = owner[tuple(cells[..., a] for a in range(dim))]
+        q = pts[np.maximum(own, 0)] - cand[:, None, :]
+        q -= L * np.round(q / L)
+        free = ~((own >= 0) & ((q * q).sum(-1) < r * r)).any(1)
+        if free.any():
+            add(cand[int(np.argmax(free))])
+            active.append(n - 1)
+        else:
+            active[ia] = active[-1]
+            active.pop()
+    _TILES[key] = pts[:n].copy()
+    return _TILES[key]
+
+
+def tile_offsets(points: np.ndarray, k: int, dim: int) -> np.ndarray:
+    """Per cell of the k^dim tile (x fastest) the offset of its point in the cell (0..1 per axis), or -1."""
+    out = np.full((k ** dim, 3), -1.0, dtype=np.float32)
+    c = np.floor(points).astype(int) % k
+    idx = c[:, 0] + k * c[:, 1] + (k * k * c[:, 2] if dim == 3 else 0)
+    out[idx, :dim] = points - np.floor(points)
+    if dim == 2:
+        out[idx, 2] = 0.0
+    return out
 
 
 class GhostFluidSolver(FluidSolver):
@@ -108,6 +178,8 @@ class GhostFluidSolver(FluidSolver):
     # the same bits. None: 1 in 3D (each thread's chain of dependent reads is shorter: H100, 3D drop
     # 0.44 -> 0.32 ms a step, dam break 0.66 -> 0.54), 5 in 2D (no gain measured there)
     conflict_span = None
+    default_sampler = "tile"
+    tile_points = None  # tests: the tile (points in cell units) instead of poisson_disk_tile's
     dart_launch_size = None  # parallel darts: at most this many threads along a phase's cells (tests; None: see _parallel_darts)
 
     def __init__(self, model: FluidModel, cfg=None):
@@ -116,7 +188,16 @@ class GhostFluidSolver(FluidSolver):
         d = model.device
         dim = model.dim
         self.threshold = float(cfg.get("surface_threshold") or DEFAULT_THRESHOLD[dim])
-        self.r = float(cfg.get("sample_radius_ratio") or DEFAULT_RADIUS_RATIO[dim]) * model.spacing
+        # "darts": dart throwing in the background cells each step; "tile": the points of a periodic
+        # Poisson-disk tile that pass the liquid rules (poisson_disk_tile; one launch, no phases)
+        persistent = bool(cfg.get("persistent", False))
+        self.sampler = str(cfg.get("sampler") or ("darts" if persistent else self.default_sampler))
+        if self.sampler not in ("darts", "tile"):
+            raise ValueError(f"fluid.ghost.sampler = {self.sampler!r}: expected 'darts' or 'tile'")
+        if self.sampler == "tile" and persistent:
+            raise ValueError("fluid.ghost.sampler = 'tile' does not keep ghosts (persistent = true needs 'darts')")
+        ratio = (DEFAULT_RADIUS_RATIO if self.sampler == "darts" else TILE_RADIUS_RATIO)[dim]
+        self.r = float(cfg.get("sample_radius_ratio") or ratio) * model.spacing
         self.layer = float(cfg.get("layer_ratio") or 1.0) * model.support_radius
         # liquid particles own a cell of width dx, ghosts one of width ~r: keep the centres half of each apart
         self.r_liquid = 0.5 * (model.spacing + self.r)
@@ -185,6 +266,21 @@ class GhostFluidSolver(FluidSolver):
         self.div = wp.zeros(model.n_fluid, dtype=float, device=d)
         self.surface = wp.zeros(model.n_fluid, dtype=int, device=d)
         self.n_phases = 27 if dim == 3 else 9
+        self.tile_k = 0
+        tile = np.full((1, 3), -1.0, dtype=np.float32)
+        if self.sampler == "tile":
+            k = TILE_CELLS[dim]
+            pts = self.tile_points if self.tile_points is not None else poisson_disk_tile(k, dim)
+            tile = tile_offsets(pts, k, dim)
+            self.tile_k = k
+        self.tile = wp.array(tile, dtype=wp.vec3, device=d)
+        # the tile's rows along x (CSR): the x indices (mod k) of the cells of row (j mod k) + k (k mod k) with a point
+        k = max(self.tile_k, 1)
+        has = (tile[:, 0] >= 0).reshape(-1, k) if self.tile_k else np.zeros((1, 1), bool)
+        first = np.concatenate([[0], np.cumsum(has.sum(axis=1))]).astype(np.int32)
+        cells = np.nonzero(has)[1].astype(np.int32) if has.any() else np.zeros(1, np.int32)
+        self.tile_row_first = wp.array(first, dtype=int, device=d)
+        self.tile_row_cells = wp.array(cells, dtype=int, device=d)
         self.phase_cap = int(np.prod([-(-g.nx // 3), -(-g.ny // 3), -(-g.nz // 3)]))  # cells of one phase
         # [0] ghost slots used, [1] ghosts dropped (persistent), [2:] active cells per phase (phase_count): the
         # step's one host read takes them all (the phase counts size the next step's dart launches on CUDA)
@@ -298,8 +394,8 @@ class GhostFluidSolver(FluidSolver):
             per_slice = self.mark_slices if m.device.is_cuda else 1  # CPU: a thread per particle
             self._launch(gk.mark_active_cells, (m.n_fluid, per_slice),
                          [self.x_ext, self.surface, self.bg, self._stamp, self.cell_mark, self.ghost_stamp,
-                          self.wall_closed, self.phase_count, self.phase_list, self.phase_cap, self.mark_slices,
-                          per_slice])
+                          self.wall_closed, self.phase_count, self.phase_list, self.phase_cap, self.tile, self.tile_k,
+                          self.tile_row_first, self.tile_row_cells, self.mark_slices, per_slice])
             # Warp's CPU backend runs a launch in index order on one thread (phase_launches: the GPU's
             # launch pattern on the CPU too, for tests)
             serial = not m.device.is_cuda and not self.phase_launches
@@ -326,7 +422,15 @@ class GhostFluidSolver(FluidSolver):
                 # GPU: no host read; each phase launch covers the bound on its active cells, and
                 # threads past phase_count[k] return at once
                 counts = np.full(self.n_phases, self.phase_bound)
-            for rnd in range(self.rounds):
+            if self.sampler == "tile":
+                # one launch over every phase's listed cells: the tile points are r apart already
+                most = int(counts.max())
+                if most:
+                    self._launch(gk.tile_ghosts, (self.n_phases, most),
+                                 [self.grid.id, self.x_ext, self.v_ext, m.n_fluid, ns, self.bg, m.params, self.phase_count,
+                                  self.phase_list, self.phase_cap, self.tile, self.tile_k, self.count, self.capacity, most],
+                                 [self.x_ext, self.v_ext, self.ghost_of])
+            for rnd in range(self.rounds if self.sampler == "darts" else 0):
                 seed = self.seed + rnd
                 if self.fresh_darts:
                     self._seed += 1
@@ -349,7 +453,7 @@ class GhostFluidSolver(FluidSolver):
             n, dropped = int(read[0]), int(read[1])
             self._last_counts = read[2:].copy()
             if n <= self.capacity:
-                if parallel and n > n_old:
+                if parallel and n > n_old and self.sampler == "darts":
                     # the new ghosts' velocity and owner: the nearest liquid particle
                     self._launch(gk.ghost_nearest_liquid, n - n_old,
                                  [self.grid.id, m.n_fluid, ns, self.bg, n_old],
