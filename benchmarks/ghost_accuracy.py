@@ -1,0 +1,149 @@
+"""Accuracy of basic SPH and Ghost SPH (both ghost samplers) on the report's scenes.
+
+    python -m benchmarks.ghost_accuracy --device cuda:0                 # 0.01 m, the report's resolution
+    python -m benchmarks.ghost_accuracy --device cpu --spacing 0.03     # the tests' resolution
+
+For each method (``basic``, ``tile``, ``darts``) and the same scene settings otherwise:
+
+- case 1 (column against the left wall): surge front Z = (max x + dx/2) / a against Martin & Moyce
+  (1952, n^2 = 1) at their times up to T = t sqrt(g/a) = 1.62 (before the far wall): mean and largest
+  relative error;
+- case 2 (column in the middle): at t = 0.2 s the centroid's offset from the tank centre, the
+  difference between the two fronts' distances from their walls (both / dx), and the mean distance
+  from each particle's mirror image to the nearest particle / dx;
+- case 3 (case 1 with an obstacle), to the scene's end: energy per mass E = g y + v^2/2 + e(rho) (Tait
+  elastic energy, as in tests/test_ghost.py) sampled every 0.1 s, as max E/E(0) and the largest rise
+  between samples / E(0); the deepest particle past a tank face or into the obstacle / dx.
+
+Prints one row per method and case; ``--json`` writes them. Wall time per case is printed too (the
+runs go through Simulation.advance, so it includes the host reads of the checks).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+import rockwave
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT / "benchmarks" / "data"
+TANK_LO, TANK_HI = np.array([0.0, 0.0]), np.array([1.6, 3.5])
+OBSTACLE_LO, OBSTACLE_HI = np.array([1.0, 0.0]), np.array([1.12, 0.12])
+
+
+def martin_moyce(series: str = "front_n2_1") -> np.ndarray:
+    rows = [line.split(",") for line in (DATA / "martin_moyce_1952.csv").read_text().splitlines()
+            if line and not line.startswith("#") and not line.startswith("series")]
+    return np.array([[float(t), float(v)] for s, t, v in rows if s == series])
+
+
+def simulation(case: int, method: str, spacing: float | None, device: str) -> rockwave.Simulation:
+    """Scene ghost_dam_break_case<case>.toml with fluid.method basic, or ghost with the given sampler."""
+    path = ROOT / "scenes" / f"ghost_dam_break_case{case}.toml"
+    d = rockwave.load_scene(path).raw
+    if spacing:
+        d["fluid"]["spacing_m"] = spacing
+    if method == "basic":
+        d["fluid"]["method"] = "basic"
+    else:
+        d["fluid"]["method"] = "ghost"
+        d["fluid"].setdefault("ghost", {})["sampler"] = method
+    d["output"]["usd"] = ""
+    return rockwave.Simulation(rockwave.parse_scene(d, str(path), path.parent), device=device)
+
+
+def elastic_energy(params, rho: np.ndarray) -> np.ndarray:
+    """Specific elastic energy [J/kg] of the Tait EOS as the solver applies it (no energy in tension when
+    negative pressure is clamped)."""
+    B, g, rho0 = float(params.eos_b), float(params.eos_gamma), float(params.rest_density)
+    if params.clamp_negative:
+        rho = np.maximum(rho, rho0)
+    return B * ((rho ** (g - 1) - rho0 ** (g - 1)) / ((g - 1) * rho0**g) + 1.0 / rho - 1.0 / rho0)
+
+
+def case1_front(sim: rockwave.Simulation, a: float = 0.6) -> dict:
+    dx = sim.fluid.spacing
+    errors = []
+    for T, Z in martin_moyce():
+        if T > 1.62:
+            break
+        sim.advance(T / np.sqrt(9.81 / a) - sim.time)
+        z = (sim.positions()[:, 0].max() + 0.5 * dx) / a
+        errors.append(z / Z - 1.0)
+    e = np.array(errors)
+    return {"front_error_mean": float(e.mean()), "front_error_max": float(e[np.argmax(np.abs(e))]), "samples": len(e)}
+
+
+def case2_symmetry(sim: rockwave.Simulation, t: float = 0.2) -> dict:
+    from scipy.spatial import cKDTree
+
+    dx = sim.fluid.spacing
+    sim.advance(t)
+    x = sim.positions()
+    mirror = x.copy()
+    mirror[:, 0] = 1.6 - mirror[:, 0]
+    return {"centroid_dx": float((x[:, 0].mean() - 0.8) / dx),
+            "front_difference_dx": float((x[:, 0].min() - (1.6 - x[:, 0].max())) / dx),
+            "mirror_distance_dx": float(cKDTree(x).query(mirror)[0].mean() / dx)}
+
+
+def case3_energy(sim: rockwave.Simulation) -> dict:
+    dx = sim.fluid.spacing
+    n = sim.fluid.n_fluid
+    w = sim.fluid.particle_mass.numpy()[:n].astype(np.float64)
+    w /= w.sum()
+
+    def energy():
+        x, v = sim.positions()[:, :2], sim.velocities()[:, :2]
+        e = 9.81 * x[:, 1] + 0.5 * (v**2).sum(axis=1) + elastic_energy(sim.fluid.params, sim.densities())
+        return float(np.sum(w * e))
+
+    e, deepest = [energy()], 0.0
+    while sim.time < sim.scene.simulation.duration_s - 1e-9:
+        sim.advance(min(0.1, sim.scene.simulation.duration_s - sim.time))
+        x = sim.positions()[:, :2]
+        if not np.isfinite(x).all():
+            return {"finite": False}
+        deepest = max(deepest, float(np.max(TANK_LO - x)), float(np.max(x - TANK_HI)))
+        inside = np.min(np.minimum(x - OBSTACLE_LO, OBSTACLE_HI - x), axis=1)
+        deepest = max(deepest, float(inside.max()))
+        e.append(energy())
+    e = np.array(e)
+    return {"finite": True, "E0": float(e[0]), "max_E_over_E0": float(e.max() / e[0]),
+            "largest_rise_over_E0": float(np.diff(e).max() / e[0]), "deepest_past_wall_dx": deepest / dx,
+            "passed_obstacle": bool(sim.positions()[:, 0].max() > OBSTACLE_HI[0])}
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--spacing", type=float, default=None, help="fluid spacing [m] (default: the scenes' 0.01 m)")
+    ap.add_argument("--methods", default="basic,tile,darts")
+    ap.add_argument("--cases", default="1,2,3")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args(argv)
+    wp.config.quiet = True
+    rows = []
+    for case in [int(c) for c in a.cases.split(",")]:
+        for method in a.methods.split(","):
+            sim = simulation(case, method, a.spacing, a.device)
+            t0 = time.perf_counter()
+            res = {1: case1_front, 2: case2_symmetry, 3: case3_energy}[case](sim)
+            res.update(case=case, method=method, spacing=sim.fluid.spacing, n_fluid=sim.n_fluid,
+                       wall_s=time.perf_counter() - t0, device=str(sim.device))
+            rows.append(res)
+            shown = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in res.items()
+                     if k not in ("case", "method", "device", "spacing")}
+            print(f"case {case} {method:6s} {shown}", flush=True)
+    if a.json:
+        Path(a.json).write_text(json.dumps({"device": wp.get_device(a.device).name, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
