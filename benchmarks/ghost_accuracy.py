@@ -45,10 +45,19 @@ def martin_moyce(series: str = "front_n2_1") -> np.ndarray:
     return np.array([[float(t), float(v)] for s, t, v in rows if s == series])
 
 
-def simulation(case: int, method: str, spacing: float | None, device: str) -> rockwave.Simulation:
-    """Scene ghost_dam_break_case<case>.toml with fluid.method basic, or ghost with the given sampler."""
+def simulation(case: int, method: str, spacing: float | None, device: str, changes=()) -> rockwave.Simulation:
+    """Scene ghost_dam_break_case<case>.toml with fluid.method basic, or ghost with the given sampler;
+    ``changes``: (dotted key, value) pairs applied to the scene (ghost runs only for fluid.ghost keys)."""
     path = ROOT / "scenes" / f"ghost_dam_break_case{case}.toml"
     d = rockwave.load_scene(path).raw
+    for key, value in changes:
+        if method == "basic" and key.startswith("fluid.ghost."):
+            continue
+        node = d
+        *parents, last = key.split(".")
+        for k in parents:
+            node = node.setdefault(k, {})
+        node[last] = value
     if spacing:
         d["fluid"]["spacing_m"] = spacing
     if method == "basic":
@@ -141,13 +150,16 @@ def main(argv=None) -> None:
     ap.add_argument("--cases", default="1,2,3")
     ap.add_argument("--repeats", type=int, default=1,
                     help="runs of each case and method (on a GPU runs differ: atomics order)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="scene change, e.g. fluid.ghost.sample_radius_ratio=0.8 (value parsed as JSON)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     wp.config.quiet = True
     rows = []
     for case in [int(c) for c in a.cases.split(",")]:
         for method in [m for m in a.methods.split(",") for _ in range(a.repeats)]:
-            sim = simulation(case, method, a.spacing, a.device)
+            changes = [(kv.split("=", 1)[0], json.loads(kv.split("=", 1)[1])) for kv in a.set]
+            sim = simulation(case, method, a.spacing, a.device, changes)
             t0 = time.perf_counter()
             res = {1: case1_front, 2: case2_symmetry, 3: case3_energy}[case](sim)
             res.update(case=case, method=method, spacing=sim.fluid.spacing, n_fluid=sim.n_fluid,
