@@ -62,9 +62,11 @@ DEFAULT_THRESHOLD = {2: 1.5, 3: 2.4}
 # saturated. Calibrated so the summation density of a flat surface layer comes out at rho0
 # within about 2% (tests/test_ghost.py::test_ghosts_complete_surface_density).
 DEFAULT_RADIUS_RATIO = {2: 0.80, 3: 0.85}
-# the same for the tile sampler, whose layer has gaps next to the liquid (tile points within r_liquid
-# of it are dropped, not replaced): a smaller radius
-TILE_RADIUS_RATIO = {2: 0.65, 3: 0.70}
+# The tile sampler uses the same radius. Its layer has gaps next to the liquid (tile points within r_liquid of it
+# are dropped, not replaced), so its flat-surface summation density is ~8% low (0.92 rho0, tests); a smaller
+# radius would fill it (0.65 dx: 0.945 rho0 in 2D) but its denser ghosts' pressure term pushed particles
+# through the walls in the case-3 splash at 0.01 m (3 of 6 H100 runs; none at 0.72 and 0.80: RESULTS).
+# Summation density with ghosts wants persistent ghosts anyway, which only the darts keep.
 # Courant number above which the ghosts' one-sided pressure term was measured to pump energy into a
 # splash: case 3 on an H100 (runs differ in the atomics' order), at 0.25 two of three 0.03 m runs
 # gained energy (one x5.3, a particle 0.46 m out) and the 0.01 m scene blew up (x584); at 0.125 none
@@ -196,8 +198,7 @@ class GhostFluidSolver(FluidSolver):
             raise ValueError(f"fluid.ghost.sampler = {self.sampler!r}: expected 'darts' or 'tile'")
         if self.sampler == "tile" and persistent:
             raise ValueError("fluid.ghost.sampler = 'tile' does not keep ghosts (persistent = true needs 'darts')")
-        ratio = (DEFAULT_RADIUS_RATIO if self.sampler == "darts" else TILE_RADIUS_RATIO)[dim]
-        self.r = float(cfg.get("sample_radius_ratio") or ratio) * model.spacing
+        self.r = float(cfg.get("sample_radius_ratio") or DEFAULT_RADIUS_RATIO[dim]) * model.spacing
         self.layer = float(cfg.get("layer_ratio") or 1.0) * model.support_radius
         # liquid particles own a cell of width dx, ghosts one of width ~r: keep the centres half of each apart
         self.r_liquid = 0.5 * (model.spacing + self.r)

@@ -113,7 +113,7 @@ SCHEMA: dict[str, Key] = {
         ghost=_sec(
             "Ghost SPH settings (used when method = 'ghost')",
             surface_threshold=Key("float", "free-surface particles have position divergence div x below this (interior: the dimension); default 1.5 in 2D, 2.4 in 3D", min=0, max=3, min_open=True),
-            sample_radius_ratio=Key("float", "Poisson-disk radius r / spacing (default, surface density ~ rho0: tile sampler 0.65 in 2D, 0.70 in 3D; darts 0.80 in 2D, 0.85 in 3D)", min=0.5, max=1.5),
+            sample_radius_ratio=Key("float", "Poisson-disk radius r / spacing (default 0.80 in 2D, 0.85 in 3D: darts' flat-surface summation density ~ rho0, the tile's ~0.92 rho0)", min=0.5, max=1.5),
             layer_ratio=Key("float", "ghost layer thickness / kernel support radius", default=1.0, min=0.25, max=2.0),
             sampler=Key("str", "'tile': the ghosts are the points of a periodic Poisson-disk tile (Bridson 2007, generated once) laid over the space, kept where they pass the liquid rules each step (one parallel pass); 'darts': Poisson-disk dart throwing in the background cells each step (3^dim dependent phases). Default: 'tile', 'darts' with persistent = true", choices=("tile", "darts")),
             attempts=Key("int", "darts per background cell and round (Bridson's k; one bit each in a 32-bit mask on the parallel path)", default=16, min=1, max=31),

