@@ -9,10 +9,13 @@ kernels on fluid + boundary + ghost particles:
    moved skin/2); copy fluid and boundary positions/velocities into extended arrays, build the hash
    grid the darts query;
 2. free-surface particles: position divergence ``div x_i`` below a threshold;
-3. ghost air particles within one kernel radius of the liquid by parallel Poisson-disk dart
-   throwing (``kernels/ghost.py``): on a GPU every dart of every active cell is screened in one
-   launch and the 3^d phases only test darts against new ghosts (``parallel_darts``); on the CPU
-   the same decisions cell by cell (``throw_darts``). Mass = liquid mass, velocity = nearest liquid
+3. ghost air particles within one kernel radius of the liquid, from a Poisson-disk set
+   (``kernels/ghost.py``). ``sampler = "tile"`` (default): the points of a periodic Poisson-disk tile
+   (``poisson_disk_tile``, Bridson 2007, generated once) that lie in the layer and pass the liquid rules,
+   one launch (``tile_ghosts``). ``sampler = "darts"`` (and with ``persistent``): dart throwing in the
+   background cells in 3^d phases; on a GPU every dart of every active cell is screened in one launch and
+   the phases only test darts against new ghosts (``parallel_darts``); on the CPU the same decisions cell
+   by cell (``throw_darts``). Mass = liquid mass (or number-density mass), velocity = nearest liquid
    particle's, density = rho0 (p = 0);
 4. a hash grid over the ghosts alone; density (summation or continuity) and forces over the lists,
    plus the ghosts' part from the ghost grid (only for liquid particles within H of a ghost). Ghosts count in
@@ -32,7 +35,7 @@ with lattice-calibrated masses, i.e. they already are the "ghost solid particles
 (they complete the density sums at walls and push with the Akinci term); they are not resampled.
 
 One host read per step on a GPU: the ghost count (to size the ghost grid build and grow the buffers)
-with the per-phase active-cell counts, which size the next step's dart launches (each thread takes
+with the per-phase active-cell counts, which size the next step's dart (or tile) launches (each thread takes
 every size-th cell of its phase, so a launch smaller than the count is exact; the first sampling
 launches over a host bound, ``phase_bound``, or reads the counts where that bound is large). A round
 of darts replays as one CUDA graph (``graph_darts``), the step's other launches are recorded once and
