@@ -375,6 +375,9 @@ def _cross_checks(v: _Validator, s: Node) -> None:
         if s["tank"] is not None or s["obstacles"]:
             v.err("tank", "a tank or obstacles need water: add a [fluid] section or remove them")
         return
+    gh = fl.get("ghost") or {}
+    if gh.get("sampler") == "tile" and gh.get("persistent"):
+        v.err("fluid.ghost.sampler", "the tile sampler does not keep ghosts: persistent = true needs sampler = 'darts'")
     if s["tank"] is None and not any(b["kind"] in ("fixed", "kinematic") for b in s["blocks"]):
         v.err("tank", "the water has no walls: add a [tank] (box_min_m/box_max_m or mesh) or fixed [[blocks]] around it")
     eos = fl["eos"]

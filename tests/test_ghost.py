@@ -478,3 +478,15 @@ def test_ghost_scene_above_the_stable_courant_number_warns():
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             rockwave.Simulation(_scene(f"ghost_dam_break_case{case}.toml", **{"fluid.spacing_m": 0.05}), device=DEVICE)
+
+
+def test_tile_sampler_with_persistent_ghosts_is_a_scene_error():
+    """persistent = true keeps last step's ghosts and fills the holes with darts; the tile sampler cannot:
+    asking for both is a scene error naming the file and key. Without a sampler persistent scenes get the darts."""
+    from rockwave.scene import SceneError
+
+    d = rockwave.load_scene(ROOT / "scenes" / "drop_zero_g_2d.toml").raw
+    with pytest.raises(SceneError, match=r"drop_zero_g_2d.toml: fluid.ghost.sampler: .*persistent = true needs sampler = 'darts'"):
+        rockwave.parse_scene(with_changes(d, **{"fluid.ghost.sampler": "tile"}), "drop_zero_g_2d.toml", ROOT / "scenes")
+    sim = drop_simulation(_scene("drop_zero_g_2d.toml"), 0.05, device=DEVICE)
+    assert sim.fluid_solver.sampler == "darts" and sim.fluid_solver.persistent
