@@ -12,7 +12,13 @@ n_ghost)`` ghosts. The SPH kernels of ``sph.py`` treat every index >= n_fluid as
 pressure of its own (Akinci's boundary term ``-m_j p_i/rho_i^2 grad W_ij``), which is exactly the
 ghost rule p_ghost = 0; they are excluded from viscosity and XSPH there.
 
-Sampling (parallel dart throwing, after Bridson 2007's rejection rule): a background grid of cell
+Sampling, tile sampler (the default; ``tile_ghosts``): the candidates are the points of a periodic
+Poisson-disk tile (Bridson 2007, generated once on the host) laid over the background grid below, at
+most one per cell. The surface particles list the cells of their layer that hold a tile point
+(``mark_active_cells`` with the tile, visiting only those cells of each row), and one launch keeps the
+points that pass the liquid rules: they are r apart by construction, so there are no phases.
+
+Sampling, darts (parallel dart throwing, after Bridson 2007's rejection rule): a background grid of cell
 size r/sqrt(d) holds at most one ghost per cell. Cells near a surface particle are marked active and
 appended to a compact list per phase (3^d phases: cell index mod 3 along each axis; two cells of one
 phase are at least two cells apart, i.e. farther than r, so all cells of a phase throw darts at the

@@ -157,7 +157,8 @@ class GhostFluidSolver(FluidSolver):
     """FluidSolver with ghost air particles (Schechter & Bridson 2012).
 
     Attributes (beyond FluidSolver's):
-        threshold: free-surface threshold on div x; r: Poisson-disk radius [m];
+        sampler: "tile" (points of a periodic Poisson-disk tile, one launch) or "darts" (dart throwing
+        in 3^d phases; with persistent ghosts); threshold: free-surface threshold on div x; r: Poisson-disk radius [m];
         layer: ghost layer thickness [m]; attempts, rounds: darts per cell per round, rounds.
         n_ghost: ghosts in use this step; capacity: ghost slots allocated (grows on demand).
         x_ext, v_ext, mass_ext: wp.array(n_fluid + n_boundary + capacity): fluid, boundary, ghosts.
