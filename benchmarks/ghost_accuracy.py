@@ -32,17 +32,11 @@ import numpy as np
 import warp as wp
 
 import rockwave
+from benchmarks.harness import martin_moyce
 
 ROOT = Path(__file__).resolve().parent.parent
-DATA = ROOT / "benchmarks" / "data"
 TANK_LO, TANK_HI = np.array([0.0, 0.0]), np.array([1.6, 3.5])
 OBSTACLE_LO, OBSTACLE_HI = np.array([1.0, 0.0]), np.array([1.12, 0.12])
-
-
-def martin_moyce(series: str = "front_n2_1") -> np.ndarray:
-    rows = [line.split(",") for line in (DATA / "martin_moyce_1952.csv").read_text().splitlines()
-            if line and not line.startswith("#") and not line.startswith("series")]
-    return np.array([[float(t), float(v)] for s, t, v in rows if s == series])
 
 
 def simulation(case: int, method: str, spacing: float | None, device: str, changes=()) -> rockwave.Simulation:
@@ -70,9 +64,12 @@ def simulation(case: int, method: str, spacing: float | None, device: str, chang
 
 
 def elastic_energy(params, rho: np.ndarray) -> np.ndarray:
-    """Specific elastic energy [J/kg] of the Tait EOS as the solver applies it (no energy in tension when
-    negative pressure is clamped)."""
+    """Specific elastic energy [J/kg] of the Tait EOS as the solver applies it: e(rho) = integral from rho0
+    to rho of p/rho'^2 drho', p = B((rho/rho0)^gamma - 1), clipped at 0 below rho0 when
+    clamp_negative_pressure is set (the default; then no energy is stored in tension). Used by
+    tests/test_ghost.py too."""
     B, g, rho0 = float(params.eos_b), float(params.eos_gamma), float(params.rest_density)
+    assert params.eos == 0, "Tait EOS expected"
     if params.clamp_negative:
         rho = np.maximum(rho, rho0)
     return B * ((rho ** (g - 1) - rho0 ** (g - 1)) / ((g - 1) * rho0**g) + 1.0 / rho - 1.0 / rho0)
@@ -81,7 +78,7 @@ def elastic_energy(params, rho: np.ndarray) -> np.ndarray:
 def case1_front(sim: rockwave.Simulation, a: float = 0.6) -> dict:
     dx = sim.fluid.spacing
     errors = []
-    for T, Z in martin_moyce():
+    for T, Z in martin_moyce("front_n2_1"):
         if T > 1.62:
             break
         sim.advance(T / np.sqrt(9.81 / a) - sim.time)

@@ -8,6 +8,7 @@ from scipy.spatial import cKDTree
 import rockwave
 from rockwave.ghost import GhostFluidSolver, drop_simulation, elliptical_drop_simulation, ellipse_semi_axes
 
+from benchmarks.ghost_accuracy import elastic_energy
 from conftest import DEVICE
 from helpers import DATA, ROOT, with_changes
 
@@ -185,24 +186,13 @@ def test_zero_gravity_drop_keeps_shape_with_ghosts_and_basic_summation_clumps():
     assert b["rg"] > 1.04 * s0["rg"] and b["area"] > 1.10 * s0["area"], f"basic SPH kept its shape: {b}"
 
 
-def _elastic_energy(params, rho):
-    """Specific elastic energy [J/kg] of the Tait EOS as the solver applies it: e(rho) = integral from
-    rho0 to rho of p/rho'^2 drho', p = B((rho/rho0)^gamma - 1), clipped at 0 below rho0 when
-    clamp_negative_pressure is set (the default; then no energy is stored in tension)."""
-    B, g, rho0 = float(params.eos_b), float(params.eos_gamma), float(params.rest_density)
-    assert params.eos == 0, "Tait EOS expected"
-    if params.clamp_negative:
-        rho = np.maximum(rho, rho0)
-    return B * ((rho ** (g - 1) - rho0 ** (g - 1)) / ((g - 1) * rho0**g) + 1.0 / rho - 1.0 / rho0)
-
-
 def test_ghost_dam_break_case3_runs_to_end_in_tank():
     """Case 3 (obstacle) at 0.03 m spacing (400 particles) for the scene's whole 1.0 s with ghosts:
     finite, no particle leaves the tank or passes a wall: none is more than half a spacing beyond a
     tank face (the wall's boundary layer is one kernel radius, 2 dx, thick), nor inside the obstacle
     by more than that; the front has passed the obstacle. Energy: E = g y + v^2/2 + e(rho) per mass,
     e the Tait elastic energy that weakly compressible SPH stores in compressed particles
-    (_elastic_energy; 0.01-0.14 J/kg here), sampled at t = 0 and every 0.1 s. Asserted: E never
+    (elastic_energy; 0.01-0.14 J/kg here), sampled at t = 0 and every 0.1 s. Asserted: E never
     exceeds E(0) (closed tank, fixed walls, viscosity only dissipates), and never rises by more than
     5% of E(0) between samples. Before the ghost-density fix, ghosts in the continuity sum drove
     densities negative and particles flew through the walls: energy x7, a particle 4.8 m outside by
@@ -228,7 +218,7 @@ def test_ghost_dam_break_case3_runs_to_end_in_tank():
 
     def energy_per_mass():
         x, v = sim.positions()[:, :2], sim.velocities()[:, :2]
-        e = 9.81 * x[:, 1] + 0.5 * (v**2).sum(axis=1) + _elastic_energy(sim.fluid.params, sim.densities())
+        e = 9.81 * x[:, 1] + 0.5 * (v**2).sum(axis=1) + elastic_energy(sim.fluid.params, sim.densities())
         return float(np.sum(w * e))
 
     energy, deepest = [energy_per_mass()], 0.0
