@@ -9,8 +9,10 @@ written, so a resumed run starts at the next frame with outputs that match the s
 
 What is saved is collected from *providers*, one per state group:
 
-- ``clock``: ``Simulation.time``, ``steps``, ``dt``, ``_dt_target`` (the adaptive step);
-- ``fluid``: every ``wp.array`` field of the :class:`rockwave.fluid.FluidState`;
+- ``clock``: the clock's time, steps, dt and adaptive target (rockwave/clock.py);
+- ``fluid``: every ``wp.array`` field of the :class:`rockwave.fluid.FluidState` and what the fluid
+  solver keeps between steps (``checkpoint_arrays``: the list-build positions, from which a restore
+  rebuilds the same neighbour lists; Ghost SPH: its ghosts);
 - ``blocks``: the :class:`rockwave.blocks.BlockState` arrays, its time, the contact-history hash
   table (occupied slots only) and the block solver's buffer capacities (they fix the order of the
   contact pairs and with it the float sums, so a resumed CPU run is bit-identical);
@@ -135,24 +137,46 @@ class ArrayGroup:
 
 
 class ClockProvider:
-    KEYS = ("time", "steps", "dt", "_dt_target")
+    """The clock (rockwave/clock.py): time, steps, dt, the adaptive target."""
 
     def __init__(self, sim):
         self.sim = sim
 
     def capture(self):
-        return {k: getattr(self.sim, k) for k in self.KEYS}
+        return self.sim.clock.capture()
 
     def pack(self, captured):
         return {}, dict(captured)
 
     def restore(self, arrays, meta):
+        self.sim.clock.restore(meta)
+
+
+class FluidProvider:
+    """The FluidState arrays and what the fluid solver keeps between steps (its checkpoint_arrays: the
+    list-build positions; a ghost solver also its ghosts)."""
+
+    def __init__(self, sim):
+        self.sim = sim
+
+    def capture(self):
         sim = self.sim
-        sim.time = float(meta["time"])
-        sim.steps = int(meta["steps"])
-        sim._dt_target = float(meta["_dt_target"])
-        sim.dt = float(meta["dt"])
-        sim._dt_dev.fill_(sim.dt)
+        state = {n: wp.clone(a) for n, a in _wp_arrays(sim.state).items()}
+        solver = {n: wp.clone(a) for n, a in sim.fluid_solver.checkpoint_arrays().items()}
+        return state, solver, sim.fluid_solver.checkpoint_meta()
+
+    def pack(self, captured):
+        state, solver, meta = captured
+        out = {n: a.numpy() for n, a in state.items()}
+        out.update({f"solver/{n}": a.numpy() for n, a in solver.items()})
+        return out, dict(meta)
+
+    def restore(self, arrays, meta):
+        sim = self.sim
+        plain = {n: a for n, a in arrays.items() if not n.startswith("solver/")}
+        ArrayGroup(lambda: sim.state).restore(plain, {})
+        solver = {n[len("solver/"):]: a for n, a in arrays.items() if n.startswith("solver/")}
+        sim.fluid_solver.restore_checkpoint(sim.state, solver, meta)
 
 
 class BlockProvider:
@@ -217,7 +241,7 @@ def register(sim, name: str, provider) -> None:
 def providers(sim) -> dict:
     out: dict[str, Any] = {"clock": ClockProvider(sim)}
     if getattr(sim, "fluid", None) is not None:
-        out["fluid"] = ArrayGroup(lambda: sim.state)
+        out["fluid"] = FluidProvider(sim)
     if getattr(sim, "blocks", None) is not None:
         out["blocks"] = BlockProvider(sim)
     out.update(getattr(sim, "checkpoint_providers", {}))
@@ -269,17 +293,8 @@ def read_file(path: str | os.PathLike) -> tuple[dict, dict]:
     return arrays, meta
 
 
-def _invalidate_neighbour_lists(sim) -> None:
-    # a neighbour list kept over steps (FluidSolver.neighbour_skin) is not saved: both the running
-    # simulation and one resumed from this state rebuild it at the next step (bit-identical resume)
-    fs = getattr(sim, "fluid_solver", None)
-    if fs is not None and hasattr(fs, "invalidate_lists"):
-        fs.invalidate_lists()
-
-
 def capture(sim) -> dict:
-    """Device-side copy of every provider's state (cheap; no host transfer)."""
-    _invalidate_neighbour_lists(sim)
+    """Device-side copy of every provider's state (cheap; no host transfer; the simulation is untouched)."""
     return {name: p.capture() for name, p in providers(sim).items()}
 
 
@@ -308,10 +323,9 @@ def restore(sim, arrays: dict, meta: dict) -> None:
     for name in provs:
         if name not in meta["groups"]:
             raise CheckpointError(f"the checkpoint lacks state group {name!r}")
-    _invalidate_neighbour_lists(sim)
     if ident["time_step"] != now["time_step"]:
         # the scene's step settings changed (e.g. a smaller cfl_number after a blow-up): use them now
-        sim._dt_target = sim.scene.simulation.dt_s if sim.fixed else sim._adaptive_dt()
+        sim.clock.target = sim.scene.simulation.dt_s if sim.fixed else sim.clock.adaptive()
 
 
 # --------------------------------------------------------------------------------------------
@@ -359,7 +373,7 @@ class RunCheckpointer:
         self.path = self.out / FILE_NAME
         self.interval = float(interval_s)
         self.t0 = t0
-        self.outputs = outputs  # -> {"usd": writer|None, "csv": {name: (path, rows)}, "vtk": series|None, "escaped": int}
+        self.outputs = outputs  # -> {"usd": recorder|None, "csv": {name: recorder|None}, "vtk": recorder|None, "escaped": int}
         self.snapshot = None
         self.frame = -1
         self.next_due = time.monotonic() + self.interval
@@ -377,17 +391,19 @@ class RunCheckpointer:
             return None
         arrays, groups = pack(self.sim, self.snapshot)
         o = self.outputs()
-        writer = o.get("usd")
+        tag = f"{self.frame:06d}"
+        usd = o.get("usd")
         meta = {"format": FORMAT_VERSION, "frame": self.frame, "t0": self.t0, "reason": reason,
                 "written_unix_s": time.time(), "scene": scene_identity(self.sim), "groups": groups,
                 "escaped": int(o.get("escaped", 0)),
-                "usd": writer.checkpoint_state(f"{self.frame:06d}") if writer is not None else None,
-                "csv": {name: csv_state(p, rows) for name, (p, rows) in o.get("csv", {}).items()},
-                "vtk": [list(e) for e in o["vtk"].entries] if o.get("vtk") is not None else None}
+                "usd": usd.checkpoint_state(tag) if usd is not None else None,
+                "csv": {name: r.checkpoint_state(tag) for name, r in o.get("csv", {}).items() if r is not None},
+                "vtk": o["vtk"].checkpoint_state(tag) if o.get("vtk") is not None else None}
         write_file(self.path, arrays, meta)
         self.written_frame = self.frame
         self.next_due = time.monotonic() + self.interval
-        if writer is not None:
+        if usd is not None:
+            writer = usd.writer
             keep = meta["usd"]["open_chunk"]
             for p in writer.clip_dir.glob(f"open_*{writer.ext}"):
                 if p.name != keep:

@@ -7,13 +7,69 @@ obstacles; Akinci et al. 2012) after them, so one ``wp.HashGrid`` serves both.
 
 from __future__ import annotations
 
+import enum
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
 
 from rockwave.kernels import sph
+from rockwave.solver import TimeStep
+
+
+class Density(enum.IntEnum):
+    """How the fluid density is found each step (``fluid.density``), chosen once at build time."""
+
+    SUMMATION = sph.DENSITY_SUMMATION  # rho_i = sum_j m_j W_ij
+    CONTINUITY = sph.DENSITY_CONTINUITY  # d rho_i / dt = sum_j m_j (v_i - v_j) . grad W_ij
+
+
+@dataclass
+class FluidOptions:
+    """Tuning of the fluid solver (Python API: ``Simulation(scene, options=SimulationOptions(fluid=...))``).
+    The defaults are measured (docs/notes.md); none changes the physics, only the cost.
+
+    neighbour_skin: Verlet-list skin as a fraction of the support radius H; the list holds pairs within
+        (1 + skin) H and is kept until a displacement check fails (0: rebuilt every step). 0.05: a 3D dam
+        break keeps a list ~3 steps, CPU step 19.6 -> 14.0 ms at 10.9k particles.
+    skin_check: "relative" (rebuild when two particles that may have become neighbours moved skin H
+        relative to each other; cells of 2H by build position) or "absolute" (any particle moved skin H/2).
+    reorder_interval: steps between sorts of the fluid particles by cell on a GPU and in step_many (0: never;
+        None: 10, or 0 for Ghost SPH, whose grid also holds the ghosts).
+    recorded_launches: record the per-step launches once and replay them (None: on for Ghost SPH, whose step
+        cannot be a CUDA graph; the basic step is replayed as a CUDA graph instead).
+    fused_density: build the neighbour list and the density in one pass (None: on the CPU, where it saves a
+        traversal, 17.1 vs 19.8 ms/step at 10k particles; off on CUDA, 2.16 ms fused vs 1.03 + 0.55 ms apart on
+        an H100 at 2.16 M particles).
+    conditional_rebuild: in a CUDA graph, the list rebuild is a conditional node on the device flag.
+    cell_ratio: hash-grid cell width / H. cell_subdivision_x: list cell grid x-cells H/n wide.
+    min_cells, cells_per_particle: the list cell grid wraps past max(min_cells, cells_per_particle x particles).
+    check_cells_per_particle: the relative check falls back to "absolute" past this many cells a particle.
+    relative_min_particles_cuda: on a GPU the relative check starts at this many particles (below, its 5 extra
+        launches cost more than the builds they save: H100, 3,600 particles, 0.46 -> 0.69 ms/step).
+    cfl_number: Courant number of the adaptive step (``simulation.cfl_number``; None: 0.3)."""
+
+    neighbour_skin: float = 0.05
+    skin_check: str = "relative"
+    reorder_interval: int | None = None
+    recorded_launches: bool | None = None
+    fused_density: bool | None = None
+    conditional_rebuild: bool = True
+    cell_ratio: float = 1.0
+    cell_subdivision_x: int = 4
+    min_cells: int = 1 << 20
+    cells_per_particle: int = 4
+    check_cells_per_particle: int = 4
+    relative_min_particles_cuda: int = 250_000
+    cfl_number: float | None = None
+
+    def __post_init__(self):
+        if self.skin_check not in ("relative", "absolute"):
+            raise ValueError(f"FluidOptions.skin_check = {self.skin_check!r}: expected 'relative' or 'absolute'")
+        if self.neighbour_skin < 0:
+            raise ValueError(f"FluidOptions.neighbour_skin = {self.neighbour_skin}: must be >= 0")
 
 
 def sound_speed_from_eos(eos, rest_density: float) -> float:
@@ -49,7 +105,7 @@ class FluidModel:
         particle_mass: wp.array(float, n_fluid + n_boundary): fluid mass [kg], or boundary Psi_b [kg].
         params: sph.SPHParams passed to every kernel.
         sound_speed: c0 [m/s]; kinematic_viscosity: mu/rho0 [m^2/s].
-        density_mode: "summation" or "continuity".
+        density: Density (summation or continuity), chosen once from ``fluid.density``.
         domain_lo, domain_hi: bounding box of all particles [m] (3 components).
     """
 
@@ -63,7 +119,7 @@ class FluidModel:
     params: sph.SPHParams
     sound_speed: float
     kinematic_viscosity: float
-    density_mode: str
+    density: Density
     domain_lo: np.ndarray
     domain_hi: np.ndarray
     initial_positions: np.ndarray
@@ -71,6 +127,11 @@ class FluidModel:
     device: wp.context.Device
     density_diffusion: float = 0.0  # delta of the delta-SPH density diffusion (kernels/diffusion.py); 0: off
     boundary_spacing: float = 0.0  # boundary particle lattice spacing [m]; 0: the fluid spacing
+
+    @property
+    def density_mode(self) -> str:
+        """"summation" or "continuity" (the scene's word for ``density``)."""
+        return self.density.name.lower()
 
     @property
     def n_total(self) -> int:
@@ -196,19 +257,23 @@ class FluidSolver:
     capture or restore (rockwave/checkpoint.py: a resumed run rebuilds where the running one does, so a
     resume stays bit-identical). s = 0: rebuild every step."""
 
-    # list radius (1 + skin) H; 0: the list is rebuilt every step (see the class doc). 0.05: a 3D dam break
-    # in flow keeps a list ~3 steps, CPU step 19.6 -> 14.0 ms at 10.9k particles (benchmarks/RESULTS.md)
-    neighbour_skin = 0.05
-    reorder_interval = 10  # steps between reorders; 0: never (the ghost solver's grid also holds ghosts)
-    recorded_launches = False  # _launch: record per-step launches once and replay them
-    cell_ratio = 1.0  # hash-grid cell width / support radius (queries visit ceil(2/ratio + 1)^dim cells)
-
-    def __init__(self, model: FluidModel, neighbour_skin: float | None = None):
+    def __init__(self, model: FluidModel, options: FluidOptions | None = None, neighbour_skin: float | None = None):
+        o = options or FluidOptions()
+        if neighbour_skin is not None:
+            o = replace(o, neighbour_skin=float(neighbour_skin))
+        self.options = o
         self._recorded = {}  # _launch: recorded launches by kernel and argument arrays
         self.model = model
         d = model.device
-        self.neighbour_skin = float(self.neighbour_skin if neighbour_skin is None else neighbour_skin)
-        self.cell = model.support_radius * self.cell_ratio
+        is_cuda = wp.get_device(d).is_cuda
+        self.neighbour_skin = float(o.neighbour_skin)
+        self.reorder_interval = self.default_reorder_interval if o.reorder_interval is None else int(o.reorder_interval)
+        self.recorded_launches = self.default_recorded_launches if o.recorded_launches is None else bool(o.recorded_launches)
+        self.fused_density = (not is_cuda) if o.fused_density is None else bool(o.fused_density)
+        self.cfl_number = 0.3 if o.cfl_number is None else float(o.cfl_number)
+        self.skin_check = o.skin_check
+        self.conditional_rebuild = o.conditional_rebuild
+        self.cell = model.support_radius * o.cell_ratio
         dims = _grid_dims(model.domain_lo, model.domain_hi, self.cell, model.dim)
         self.grid = wp.HashGrid(*dims, device=d)
         self.grid.reserve(model.n_total)
@@ -217,21 +282,22 @@ class FluidSolver:
         self._order_buf = None
         self._always = wp.ones(1, dtype=int, device=d)  # the rebuild flag of unconditional builds
         self._rebuild = wp.ones(1, dtype=int, device=d)  # 1: the list must be rebuilt this step
-        self.host_decides = not wp.get_device(d).is_cuda  # CPU: read the flag, skip the launches
+        self.host_decides = not is_cuda  # CPU: read the flag, skip the launches
         self.list_builds = 0  # host-decided builds (CPU), for tests and measurements
         nf = max(model.n_fluid, 1)
         self._pr2 = wp.zeros(nf, dtype=float, device=d)  # p / rho^2 of this step (kernels/sph.py pair_acceleration_fluid)
         self._zero_dt = wp.zeros(1, dtype=float, device=d)
-        self._block_dim = 128 if wp.get_device(d).is_cuda else 256  # force pass: 0.84 vs 0.91 ms at 256 (H100, 2.16 M)
+        self._block_dim = 128 if is_cuda else 256  # force pass: 0.84 vs 0.91 ms at 256 (H100, 2.16 M)
         self._init_lists()
-        # density inside the neighbour-list query (CPU: one traversal fewer, 17.1 vs 19.8 ms/step at 10k
-        # particles) or in its own pass over the list (CUDA: the query's lanes that find a neighbour make
-        # the others wait, 2.16 ms fused vs 1.03 + 0.55 ms apart on an H100 at 2.16 M particles)
-        self.fused_density = not wp.get_device(d).is_cuda
 
-    cell_subdivision_x = 4  # cell grid: x-cells H/4 wide (y, z cells H wide); see kernels/sph.py CellGrid
-    min_cells = 1 << 20  # the cell grid wraps past max(min_cells, cells_per_particle x particles) cells
-    cells_per_particle = 4
+    default_reorder_interval = 10  # FluidOptions.reorder_interval = None
+    default_recorded_launches = False  # FluidOptions.recorded_launches = None
+    capturable = True  # a step is launches only: a chunk of steps can be one CUDA graph
+
+    @property
+    def sorted_by_cell(self) -> bool:
+        """True while the fluid particles are in cell order (after reorder; state.ids gives the seeded order)."""
+        return not self._in_original_order
 
     def set_neighbour_skin(self, skin: float) -> None:
         """Change the skin (fraction of H): reallocates the lists and the cell grid; the next step rebuilds."""
@@ -259,19 +325,13 @@ class FluidSolver:
     # displacement_check_cells); "absolute" when any particle moved s H / 2. In a flowing 3D dam break
     # the water moves together: a list then lasts ~9x longer (10,850 particles, 0.3 s: 37 builds with an
     # exact test, 331 with "absolute"). "relative" falls back to "absolute" past check_cells_per_particle.
-    conditional_rebuild = True  # CUDA graphs: the list rebuild as a conditional node (step)
-    skin_check = "relative"
-    check_cells_per_particle = 4
-    # on a GPU a small step is launch-bound: the relative test's 5 extra launches would cost more than the
-    # list builds it saves (H100, 3,600 particles: 0.46 -> 0.69 ms/step); it starts at this many particles
-    relative_min_particles_cuda = 250_000
 
     def _init_check_grid(self) -> None:
         m, d = self.model, self.model.device
         self._check = None
         if self.skin_check != "relative" or self.neighbour_skin <= 0 or m.n_fluid == 0:
             return
-        if m.device.is_cuda and m.n_fluid < self.relative_min_particles_cuda:
+        if m.device.is_cuda and m.n_fluid < self.options.relative_min_particles_cuda:
             return
         c = 2.0 * m.support_radius
         lo = np.asarray(m.domain_lo, float) - c
@@ -279,7 +339,7 @@ class FluidSolver:
         if m.dim == 2:
             dims[2] = 1
         n_cells = int(np.prod(dims))
-        if n_cells > self.check_cells_per_particle * m.n_fluid + 4096:
+        if n_cells > self.options.check_cells_per_particle * m.n_fluid + 4096:
             return
         g = sph.CheckGrid()
         g.lo = wp.vec3(*[float(a) for a in lo])
@@ -305,13 +365,13 @@ class FluidSolver:
         m, d = self.model, self.model.device
         H = self.list_radius
         c = H * 1.0001  # a neighbour within R is at most one y/z cell away despite rounding
-        cx = H / self.cell_subdivision_x
+        cx = H / self.options.cell_subdivision_x
         lo = np.asarray(m.domain_lo, float) - 2 * H
         hi = np.asarray(m.domain_hi, float) + 2 * H
         dims = np.maximum(np.ceil((hi - lo) / np.array([cx, c, c])).astype(np.int64) + 1, 1)
         if m.dim == 2:
             dims[2] = 1
-        limit = min(max(self.min_cells, self.cells_per_particle * m.n_total), 1 << 26)
+        limit = min(max(self.options.min_cells, self.options.cells_per_particle * m.n_total), 1 << 26)
         # wrapped y/z rows keep >= 3 cells so the 3 columns around a particle never alias
         floor = np.array([1, min(3, dims[1]), min(3, dims[2])])
         while int(np.prod(dims)) > limit and np.any(dims > floor):
@@ -506,9 +566,9 @@ class FluidSolver:
             self.build_cells(state)
             self.build_neighbour_lists(state)
             self._lists_built()
-        wp.launch(sph.particle_density_summation_list, dim=m.n_fluid,
-                  inputs=[self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
-                  outputs=[state.rho, state.pressure, self._pr2], device=m.device)
+        self._launch(sph.particle_density_summation_list, m.n_fluid,
+                     [self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
+                     [state.rho, state.pressure, self._pr2])
         self._density_overflow(state, None, summation=True)
 
     def _density_overflow(self, state: FluidState, dt, summation: bool) -> None:
@@ -524,12 +584,34 @@ class FluidSolver:
         state.rho.assign(np.asarray(rho, dtype=np.float32))
         wp.launch(sph.equation_of_state_pass, dim=m.n_fluid, inputs=[state.rho, m.params], outputs=[state.pressure], device=m.device)
 
-    def step(self, state: FluidState, dt: wp.array) -> None:
-        """One step of length dt[0] (dt is a one-element device array): grid, neighbour lists, density
-        (summation, or continuity advanced by dt) and pressure, acceleration and XSPH, semi-implicit Euler."""
+    def step(self, state: FluidState, ts: TimeStep) -> None:
+        """One step of length ts.dt (kernels read it from the device array ts.dt_array): neighbour lists,
+        density (summation, or continuity advanced by dt) and pressure, density diffusion, acceleration and
+        XSPH, semi-implicit Euler. A variant (rockwave/ghost.py) adds its terms through the hooks
+        ``_neighbour_lists``, ``_density`` and ``_extra_forces``; it never copies this sequence."""
         m = self.model
         if m.n_fluid == 0:
             return
+        dt = ts.dt_array
+        density_done = self._neighbour_lists(state, dt)
+        self._density(state, dt, density_done)
+        if m.density_diffusion > 0.0 and m.density is Density.CONTINUITY:
+            self._density_diffusion(state, dt)
+        self._launch(sph.particle_acceleration_list, m.n_fluid,
+                     [self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
+                      m.particle_mass, m.params],
+                     [state.accel, state.xsph_dv], block_dim=self._block_dim)
+        self._launch(sph.particle_acceleration_overflow, m.n_fluid,
+                     [self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
+                      state.v, state.rho, state.pressure, m.particle_mass, m.params],
+                     [state.accel, state.xsph_dv])
+        self._extra_forces(state)
+        self._launch(sph.integrate_particles, m.n_fluid, [state.accel, state.xsph_dv, dt], [state.x, state.v])
+
+    def _neighbour_lists(self, state: FluidState, dt: wp.array) -> bool:
+        """Hook: the cell grid and Verlet lists, rebuilt when the skin check says so. Returns True when the
+        density was computed in the same pass (fused_density)."""
+        m = self.model
         guard = self._list_guard(state)
         # the fused list build + density needs the host to know that the list is rebuilt this step
         fused = self.fused_density and guard is self._always
@@ -546,36 +628,32 @@ class FluidSolver:
         if guard is not None:
             self.build_cells(state, guard)
             if fused:
-                mode = sph.DENSITY_SUMMATION if m.density_mode == "summation" else sph.DENSITY_CONTINUITY
-                wp.launch(sph.neighbour_list_density, dim=m.n_fluid,
-                          inputs=[self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, m.particle_mass, dt,
-                                  m.params, mode],
-                          outputs=[self._nbr_count, self._nbr, state.drho_dt, state.rho, state.pressure, self._pr2,
-                                   self._x_build], device=m.device)
+                self._launch(sph.neighbour_list_density, m.n_fluid,
+                             [self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, m.particle_mass, dt,
+                              m.params, int(m.density)],
+                             [self._nbr_count, self._nbr, state.drho_dt, state.rho, state.pressure, self._pr2,
+                              self._x_build])
                 self._flag_overflow(guard)
             else:
                 self.build_neighbour_lists(state, guard)
             self._lists_built()
-        if not fused:
-            if m.density_mode == "summation":
-                self.compute_density(state, lists=True)
-            else:
-                wp.launch(sph.particle_density_continuity_list, dim=m.n_fluid,
-                          inputs=[self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
-                          outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
-                self._density_overflow(state, dt, summation=False)
-        if m.density_diffusion > 0.0 and m.density_mode == "continuity":
-            self._density_diffusion(state, dt)
-        wp.launch(sph.particle_acceleration_list, dim=m.n_fluid,
-                  inputs=[self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
-                          m.particle_mass, m.params],
-                  outputs=[state.accel, state.xsph_dv], device=m.device, block_dim=self._block_dim)
-        wp.launch(sph.particle_acceleration_overflow, dim=m.n_fluid,
-                  inputs=[self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
-                          state.v, state.rho, state.pressure, m.particle_mass, m.params],
-                  outputs=[state.accel, state.xsph_dv], device=m.device)
-        wp.launch(sph.integrate_particles, dim=m.n_fluid, inputs=[state.accel, state.xsph_dv, dt],
-                  outputs=[state.x, state.v], device=m.device)
+        return fused
+
+    def _density(self, state: FluidState, dt: wp.array, done: bool) -> None:
+        """Hook: density and pressure over the lists (unless the list pass computed them)."""
+        if done:
+            return
+        m = self.model
+        if m.density is Density.SUMMATION:
+            self.compute_density(state, lists=True)
+        else:
+            self._launch(sph.particle_density_continuity_list, m.n_fluid,
+                         [self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
+                         [state.drho_dt, state.rho, state.pressure, self._pr2])
+            self._density_overflow(state, dt, summation=False)
+
+    def _extra_forces(self, state: FluidState) -> None:
+        """Hook: accelerations a variant adds after the pair forces (none here)."""
 
     def _density_diffusion(self, state: FluidState, dt: wp.array) -> None:
         """delta-SPH density diffusion after the continuity density (opt-in; kernels/diffusion.py)."""
@@ -590,12 +668,38 @@ class FluidSolver:
         wp.launch(diffusion.apply_density_diffusion, dim=m.n_fluid, inputs=[self._diff_rate, dt, m.params],
                   outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
 
+    # ---------------------------------------------------------------- checkpoint ------------
+    def checkpoint_arrays(self) -> dict[str, wp.array]:
+        """What the solver keeps between steps beyond the state: the positions of the last list build and the
+        rebuild flag (the lists themselves are rebuilt from them on restore, in the same order)."""
+        return {"x_build": self._x_build, "rebuild": self._rebuild}
+
+    def checkpoint_meta(self) -> dict:
+        """Host values the solver keeps between steps (none here)."""
+        return {}
+
+    def restore_checkpoint(self, state: FluidState, arrays: dict, meta: dict) -> None:
+        """After ``state`` was restored: the particle order flag and the neighbour lists of the checkpointed
+        run, rebuilt from its list-build positions (the same lists, in the same order: a resumed run is
+        bit-identical on the CPU)."""
+        m = self.model
+        nf = m.n_fluid
+        self._in_original_order = bool(np.array_equal(state.ids.numpy(), np.arange(nf)))
+        if nf == 0:
+            return
+        x = wp.clone(state.x)
+        wp.copy(x, wp.array(np.asarray(arrays["x_build"], np.float32), dtype=wp.vec3, device=m.device), 0, 0, nf)
+        at_build = SimpleNamespace(x=x)  # the list builds read positions only
+        self.build_cells(at_build)
+        self.build_neighbour_lists(at_build)
+        self._rebuild.assign(np.asarray(arrays["rebuild"], np.int32))
+
     def list_overflow(self) -> int:
         """Fluid particles whose last neighbour list overflowed the capacity (summed by a cell-grid query)."""
         return int((self._nbr_count.numpy() > self.neighbour_cap).sum()) if self.model.n_fluid else 0
 
-    def stable_dt(self, state: FluidState, cfl: float) -> float:
-        """Largest stable step for the current motion (one host read):
+    def stable_dt(self, state: FluidState, cfl: float | None = None) -> float:
+        """Largest stable step for the current motion (one host read; cfl: default ``cfl_number``):
         min(C h/(c0 (1 + 0.6 alpha) + u_max), 0.25 sqrt(h/a_max), 0.125 h^2/nu), h = H/2 (Monaghan 1992)."""
         m = self.model
         self._extrema.zero_()
@@ -604,7 +708,7 @@ class FluidSolver:
             wp.launch(sph.motion_extrema, dim=stride, inputs=[state.v, state.accel, m.n_fluid, stride], outputs=[self._extrema],
                       device=m.device)
         vmax2, amax2 = (float(a) for a in self._extrema.numpy())
-        return fluid_dt_limit(m, cfl, math.sqrt(vmax2), math.sqrt(amax2))
+        return fluid_dt_limit(m, self.cfl_number if cfl is None else cfl, math.sqrt(vmax2), math.sqrt(amax2))
 
     def neighbour_counts(self, state: FluidState) -> np.ndarray:
         m = self.model
@@ -678,7 +782,8 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
     model = FluidModel(
         dim=dim, up=dim - 1, n_fluid=nf, n_boundary=nb, spacing=spacing, support_radius=params.H,
         particle_mass=masses, params=params, sound_speed=params.sound_speed,
-        kinematic_viscosity=params.mu / params.rest_density, density_mode=scene_fluid["density"],
+        kinematic_viscosity=params.mu / params.rest_density,
+        density=Density.SUMMATION if scene_fluid["density"] == "summation" else Density.CONTINUITY,
         domain_lo=lo, domain_hi=hi, initial_positions=x, initial_velocities=v, device=wp.get_device(device),
         density_diffusion=float(scene_fluid.get("density_diffusion", 0.0) or 0.0),
         boundary_spacing=float(bstep) if nb else 0.0,

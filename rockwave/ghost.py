@@ -45,14 +45,16 @@ latency and host work, not by the device.
 
 from __future__ import annotations
 
+import enum
 import math
 import time
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
-from rockwave.fluid import FluidModel, FluidSolver, FluidState, _grid_dims
+from rockwave.fluid import Density, FluidModel, FluidOptions, FluidSolver, FluidState, _grid_dims
 from rockwave.kernels import ghost as gk
 from rockwave.kernels import sph
 
@@ -153,6 +155,40 @@ def tile_offsets(points: np.ndarray, k: int, dim: int) -> np.ndarray:
     return out
 
 
+class Sampler(str, enum.Enum):
+    """How ghost positions are drawn (``fluid.ghost.sampler``), chosen once at build time."""
+
+    TILE = "tile"  # the points of a periodic Poisson-disk tile that pass the liquid rules (one launch)
+    DARTS = "darts"  # dart throwing in the background cells in 3^d phases (persistent ghosts)
+
+
+@dataclass
+class GhostOptions:
+    """How the ghosts are sampled (Python API; none changes which ghosts are placed except tile_points).
+
+    phase_launches: on the CPU too, one dart launch per phase sized by the host bound (the GPU's pattern; tests).
+    shortcuts: skip cells without a query where every dart would fall near a ghost (False: the same ghosts,
+        more queries; tests compare both).
+    parallel_darts: screen every dart of every active cell in one launch, the dependent phase launches only test
+        darts against the new ghosts (the same ghosts as the serial throw; None: on CUDA, where a phase launch
+        lasts as long as its slowest thread).
+    parallel_bound_max: parallel darts without a host read while the phase bound is at most this.
+    graph_darts: on CUDA, a round of parallel darts sized by the host bound replays as one CUDA graph.
+    conflict_span: dart_conflicts threads per (cell, cell of its 5^d block) (1) or per row of 5 (5); None: 1 in
+        3D (H100, 3D drop 0.44 -> 0.32 ms a step), 5 in 2D.
+    tile_points: the tile's points in cell units instead of poisson_disk_tile's (tests).
+    dart_launch_size: parallel darts: at most this many threads along a phase's cells (tests)."""
+
+    phase_launches: bool = False
+    shortcuts: bool = True
+    parallel_darts: bool | None = None
+    parallel_bound_max: int = 1 << 16
+    graph_darts: bool = True
+    conflict_span: int | None = None
+    tile_points: np.ndarray | None = None
+    dart_launch_size: int | None = None
+
+
 class GhostFluidSolver(FluidSolver):
     """FluidSolver with ghost air particles (Schechter & Bridson 2012).
 
@@ -166,30 +202,27 @@ class GhostFluidSolver(FluidSolver):
         sample_seconds: wall time spent in ghost sampling (only counted when ``profile`` is true).
     """
 
-    reorder_interval = 0  # the grid also holds the ghosts: particles keep their order
-    phase_launches = False  # True: one dart launch per phase sized by phase_bound on the CPU too (the GPU path)
-    shortcuts = True  # False: no cell skips without a query (kernels/ghost.py); the same ghosts, for tests
-    # parallel darts (kernels/ghost.py dart_screen/dart_conflicts/place_darts): every query of the
-    # sampling in one launch over the active cells, the dependent phase launches only test darts
-    # against the new ghosts. The same ghosts as throw_darts (tests/test_ghost.py). None: on CUDA
-    # (where a phase launch lasts as long as its slowest thread); the CPU runs one thread, where
-    # throw_darts' skips (no query for a cell whose darts all fall near a ghost) do less work.
-    parallel_darts = None
-    # parallel darts without a host read while phase_bound is at most this (a dart_conflicts launch has
-    # 5^(d-1) threads per cell of the bound); above it the per-phase counts are read back
-    parallel_bound_max = 1 << 16
-    recorded_launches = True  # FluidSolver._launch: the ghost step cannot run in a CUDA graph (host reads)
-    graph_darts = True  # CUDA: a round of parallel darts sized by the host bound replays as one CUDA graph
-    # dart_conflicts: a thread per (cell, cell of its 5^d block) (1) or per (cell, row of 5 cells) (5):
-    # the same bits. None: 1 in 3D (each thread's chain of dependent reads is shorter: H100, 3D drop
-    # 0.44 -> 0.32 ms a step, dam break 0.66 -> 0.54), 5 in 2D (no gain measured there)
-    conflict_span = None
+    default_reorder_interval = 0  # the grid also holds the ghosts: particles keep their order
+    default_recorded_launches = True  # FluidSolver._launch: the ghost step cannot run in a CUDA graph (host reads)
+    capturable = False  # one host read a step (the ghost count)
     default_sampler = "tile"
-    tile_points = None  # tests: the tile (points in cell units) instead of poisson_disk_tile's
-    dart_launch_size = None  # parallel darts: at most this many threads along a phase's cells (tests; None: see _parallel_darts)
 
-    def __init__(self, model: FluidModel, cfg=None):
-        super().__init__(model)
+    def __init__(self, model: FluidModel, cfg=None, options: FluidOptions | None = None,
+                 ghost_options: GhostOptions | None = None):
+        if options is not None and options.reorder_interval:
+            raise ValueError(f"FluidOptions.reorder_interval = {options.reorder_interval}: Ghost SPH keeps the particle "
+                             "order (its grid also holds the ghosts); leave it None or 0")
+        super().__init__(model, options)
+        go = ghost_options or GhostOptions()
+        self.ghost_options = go
+        self.phase_launches = go.phase_launches
+        self.shortcuts = go.shortcuts
+        self.parallel_darts = go.parallel_darts
+        self.parallel_bound_max = go.parallel_bound_max
+        self.graph_darts = go.graph_darts
+        self.conflict_span = go.conflict_span
+        self.tile_points = go.tile_points
+        self.dart_launch_size = go.dart_launch_size
         cfg = cfg or {}
         d = model.device
         dim = model.dim
@@ -197,10 +230,11 @@ class GhostFluidSolver(FluidSolver):
         # "darts": dart throwing in the background cells each step; "tile": the points of a periodic
         # Poisson-disk tile that pass the liquid rules (poisson_disk_tile; one launch, no phases)
         persistent = bool(cfg.get("persistent", False))
-        self.sampler = str(cfg.get("sampler") or ("darts" if persistent else self.default_sampler))
-        if self.sampler not in ("darts", "tile"):
-            raise ValueError(f"fluid.ghost.sampler = {self.sampler!r}: expected 'darts' or 'tile'")
-        if self.sampler == "tile" and persistent:
+        name = str(cfg.get("sampler") or ("darts" if persistent else self.default_sampler))
+        if name not in ("darts", "tile"):
+            raise ValueError(f"fluid.ghost.sampler = {name!r}: expected 'darts' or 'tile'")
+        self.sampler = Sampler(name)
+        if self.sampler is Sampler.TILE and persistent:
             raise ValueError("fluid.ghost.sampler = 'tile' does not keep ghosts (persistent = true needs 'darts')")
         self.r = float(cfg.get("sample_radius_ratio") or DEFAULT_RADIUS_RATIO[dim]) * model.spacing
         self.layer = float(cfg.get("layer_ratio") or 1.0) * model.support_radius
@@ -273,7 +307,7 @@ class GhostFluidSolver(FluidSolver):
         self.n_phases = 27 if dim == 3 else 9
         self.tile_k = 0
         tile = np.full((1, 3), -1.0, dtype=np.float32)
-        if self.sampler == "tile":
+        if self.sampler is Sampler.TILE:
             k = TILE_CELLS[dim]
             pts = self.tile_points if self.tile_points is not None else poisson_disk_tile(k, dim)
             tile = tile_offsets(pts, k, dim)
@@ -427,7 +461,7 @@ class GhostFluidSolver(FluidSolver):
                 # GPU: no host read; each phase launch covers the bound on its active cells, and
                 # threads past phase_count[k] return at once
                 counts = np.full(self.n_phases, self.phase_bound)
-            if self.sampler == "tile":
+            if self.sampler is Sampler.TILE:
                 # one launch over every phase's listed cells: the tile points are r apart already
                 most = int(counts.max())
                 if most:
@@ -435,7 +469,7 @@ class GhostFluidSolver(FluidSolver):
                                  [self.grid.id, self.x_ext, self.v_ext, m.n_fluid, ns, self.bg, m.params, self.phase_count,
                                   self.phase_list, self.phase_cap, self.tile, self.tile_k, self.count, self.capacity, most],
                                  [self.x_ext, self.v_ext, self.ghost_of])
-            for rnd in range(self.rounds if self.sampler == "darts" else 0):
+            for rnd in range(self.rounds if self.sampler is Sampler.DARTS else 0):
                 seed = self.seed + rnd
                 if self.fresh_darts:
                     self._seed += 1
@@ -458,7 +492,7 @@ class GhostFluidSolver(FluidSolver):
             n, dropped = int(read[0]), int(read[1])
             self._last_counts = read[2:].copy()
             if n <= self.capacity:
-                if parallel and n > n_old and self.sampler == "darts":
+                if parallel and n > n_old and self.sampler is Sampler.DARTS:
                     # the new ghosts' velocity and owner: the nearest liquid particle
                     self._launch(gk.ghost_nearest_liquid, n - n_old,
                                  [self.grid.id, m.n_fluid, ns, self.bg, n_old],
@@ -642,17 +676,17 @@ class GhostFluidSolver(FluidSolver):
                           self._near_stamp, self._near],
                          [state.drho_dt, state.rho, state.pressure, self._pr2])
 
-    def step(self, state: FluidState, dt: wp.array) -> None:
-        """Lists, ghost sampling, density over the lists plus the ghosts' part, forces over the lists plus
-        the ghosts' pressure term, semi-implicit Euler. The same sums as one hash-grid query over fluid +
-        boundary + ghosts per pass, summed in another order."""
-        m = self.model
-        if m.n_fluid == 0:
-            return
+    # FluidSolver.step's hooks: the ghost step is the fluid step with these three terms
+    def _neighbour_lists(self, state: FluidState, dt: wp.array) -> bool:
+        """The liquid and boundary lists (never fused with the density: the ghosts come first)."""
         self._update_lists(state)
-        continuity = m.density_mode != "summation"
-        # continuity over liquid and boundary, in sample_ghosts' div x pass (ghosts only with ghost_continuity:
-        # see __init__); the overflowed lists' rate below
+        return False
+
+    def _density(self, state: FluidState, dt: wp.array, done: bool) -> None:
+        """Ghost sampling, then the density over the lists plus the ghosts' part. Continuity: the rate over
+        liquid and boundary is summed in sample_ghosts' div x pass (ghosts only with ghost_continuity, see
+        __init__), the overflowed lists' rate here."""
+        continuity = self.model.density is Density.CONTINUITY
         self.sample_ghosts(state, dt if continuity else None)
         if not continuity:
             self._summation_density(state)
@@ -660,21 +694,46 @@ class GhostFluidSolver(FluidSolver):
             self._density_overflow(state, dt, summation=False)
             if self.ghost_continuity:
                 self._ghost_density(state, dt, 2)
-        self._launch(sph.particle_acceleration_list, m.n_fluid,
-                     [self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2, m.particle_mass,
-                      m.params],
-                     [state.accel, state.xsph_dv], block_dim=self._block_dim)
-        self._launch(sph.particle_acceleration_overflow, m.n_fluid,
-                     [self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
-                      state.v, state.rho, state.pressure, m.particle_mass, m.params],
-                     [state.accel, state.xsph_dv])
+
+    def _extra_forces(self, state: FluidState) -> None:
+        """The ghosts' pressure term (they enter only through the liquid particle's own p_i/rho_i^2)."""
+        m = self.model
         if self.n_ghost and self.ghost_pressure_term:
             self._launch(gk.ghost_pressure_force, m.n_fluid,
                          [self.ghost_grid.id, self.x_ext, self.mass_ext, self._pr2, m.params, m.n_total, self._near_stamp,
                           self._near],
                          [state.accel])
-        self._launch(sph.integrate_particles, m.n_fluid, [state.accel, state.xsph_dv, dt],
-                     [state.x, state.v])
+
+    # ------------------------------------------------------------------ checkpoint -----------
+    def checkpoint_arrays(self) -> dict:
+        """FluidSolver's, plus the ghosts of the last sampling (kept ones seed the next with persistent)."""
+        out = super().checkpoint_arrays()
+        ns, n = self.model.n_total, self.n_ghost
+        if self.persistent and n:
+            out.update(ghost_x=self.x_ext[: ns + n], ghost_v=self.v_ext[: ns + n], ghost_mass=self.mass_ext[: ns + n],
+                       ghost_of=self.ghost_of[:n])
+        return out
+
+    def checkpoint_meta(self) -> dict:
+        return {"n_ghost": self.n_ghost, "seed_counter": self._seed}
+
+    def restore_checkpoint(self, state: FluidState, arrays: dict, meta: dict) -> None:
+        super().restore_checkpoint(state, arrays, meta)
+        self._seed = int(meta.get("seed_counter", 0))
+        n = int(meta.get("n_ghost", 0))
+        self.n_ghost = 0
+        if self.persistent and n and "ghost_x" in arrays:
+            ns = self.model.n_total
+            if n > self.capacity:
+                self._alloc(int(1.5 * n) + 1024)
+            d = self.model.device
+            wp.copy(self.x_ext, wp.array(arrays["ghost_x"], dtype=wp.vec3, device=d), 0, 0, ns + n)
+            wp.copy(self.v_ext, wp.array(arrays["ghost_v"], dtype=wp.vec3, device=d), 0, 0, ns + n)
+            wp.copy(self.mass_ext, wp.array(arrays["ghost_mass"], dtype=float, device=d), 0, 0, ns + n)
+            wp.copy(self.ghost_of, wp.array(arrays["ghost_of"], dtype=int, device=d), 0, 0, n)
+            # the grid the next sampling moves the kept ghosts with: over the liquid and ghosts of the last one
+            self.grid.build(self._x_view(0, ns + n), self.model.support_radius)
+            self.n_ghost = n
 
     # ------------------------------------------------------------------ reading --------------
     def ghost_positions(self) -> np.ndarray:
@@ -693,26 +752,30 @@ class GhostFluidSolver(FluidSolver):
         return self.div.numpy().astype(np.float64)
 
 
-def drop_simulation(scene, radius: float, velocity=None, device: str | None = None, pressure=None):
+def drop_simulation(scene, radius: float, velocity=None, device: str | None = None, pressure=None, options=None):
     """A Simulation of the scene's fluid cut to a disc (2D) or ball (3D) of ``radius`` about the
     origin, for the drop scenes (scene regions are boxes). ``velocity(x) -> (n, 3)`` sets the initial
     velocities (default: at rest). Continuity density starts at rho0, or, with ``pressure(x) -> (n,)``
-    [Pa], at the density that the EOS maps to that pressure; summation recomputes it."""
+    [Pa], at the density that the EOS maps to that pressure; summation recomputes it. ``options``:
+    rockwave.simulation.SimulationOptions."""
     import rockwave
     from rockwave.fluid import build_fluid_model
-    from rockwave.simulation import boundary_lattice, seed_particles
+    from rockwave.build import boundary_lattice, seed_particles
 
-    sim = rockwave.Simulation(scene, device=device)
+    sim = rockwave.Simulation(scene, device=device, options=options)
     with wp.ScopedDevice(sim.device):
         xf, _, _, xb = seed_particles(scene, sim.device)
         xf = xf[np.linalg.norm(xf, axis=1) < radius]
         vf = np.zeros_like(xf) if velocity is None else np.asarray(velocity(xf), float)
         bstep, layers = boundary_lattice(scene)
         sim.fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, sim.device, bstep, layers)
-        sim.fluid_solver = type(sim.fluid_solver)(sim.fluid, scene.fluid.ghost) if scene.fluid.method == "ghost" else type(sim.fluid_solver)(sim.fluid)
+        old = sim.fluid_solver
+        if scene.fluid.method == "ghost":
+            sim.fluid_solver = GhostFluidSolver(sim.fluid, scene.fluid.ghost, options=old.options, ghost_options=old.ghost_options)
+        else:
+            sim.fluid_solver = FluidSolver(sim.fluid, options=old.options)
         sim.state = sim.fluid.state()
-        sim.fluid_solver.build_grid(sim.state)
-        if sim.fluid.density_mode == "summation":
+        if sim.fluid.density is Density.SUMMATION:
             sim.fluid_solver.compute_density(sim.state)
         elif pressure is not None:
             sim.fluid_solver.set_density(sim.state, density_for_pressure(sim.fluid.params, np.asarray(pressure(xf), float)))

@@ -6,7 +6,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 import rockwave
-from rockwave.ghost import GhostFluidSolver, drop_simulation, elliptical_drop_simulation, ellipse_semi_axes
+from rockwave.fluid import FluidOptions
+from rockwave.ghost import GhostFluidSolver, GhostOptions, drop_simulation, elliptical_drop_simulation, ellipse_semi_axes
+from rockwave.simulation import SimulationOptions
 
 from benchmarks.ghost_accuracy import elastic_energy
 from conftest import DEVICE
@@ -18,7 +20,12 @@ def _scene(name, **changes):
     return rockwave.parse_scene(with_changes(d, **changes), name, ROOT / "scenes")
 
 
-def _sampled(dim, sampler=None):
+def _options(fluid=None, **ghost) -> SimulationOptions:
+    """Simulation options with these GhostOptions fields (and FluidOptions ``fluid``)."""
+    return SimulationOptions(fluid=fluid, ghost=GhostOptions(**ghost))
+
+
+def _sampled(dim, sampler=None, options=None):
     """A resting square/cube block (lattice) with ghosts sampled once (``sampler``: fluid.ghost.sampler, the
     2D scene's persistent ghosts off for 'tile')."""
     name = "drop_zero_g_2d.toml" if dim == 2 else "drop_zero_g_3d.toml"
@@ -29,7 +36,7 @@ def _sampled(dim, sampler=None):
         if sampler == "tile":
             changes["fluid.ghost.persistent"] = False
     sc = _scene(name, **changes)
-    sim = rockwave.Simulation(sc, device=DEVICE)
+    sim = rockwave.Simulation(sc, device=DEVICE, options=options)
     assert isinstance(sim.fluid_solver, GhostFluidSolver)
     return sim, half
 
@@ -285,11 +292,11 @@ def test_elliptical_drop_summation_ghosts_beat_basic():
     assert ghost.fluid_solver.n_ghost > 0
 
 
-def _dam_break(case, dx=0.03, sampler=None):
+def _dam_break(case, dx=0.03, sampler=None, options=None):
     changes = {"fluid.spacing_m": dx}
     if sampler:
         changes["fluid.ghost.sampler"] = sampler
-    return rockwave.Simulation(_scene(f"ghost_dam_break_case{case}.toml", **changes), device=DEVICE)
+    return rockwave.Simulation(_scene(f"ghost_dam_break_case{case}.toml", **changes), device=DEVICE, options=options)
 
 
 def test_ghost_dam_break_case1_front_against_martin_moyce():
@@ -350,35 +357,35 @@ def test_phase_launches_without_host_read_match_serial_sampling(dim):
     assert b.phase_count.numpy().max() <= b.phase_bound
 
 
-def _stepped_case(case):
+def _stepped_case(case, options=None):
     """The scenes of the same-ghosts tests (darts sampler), stepped: lattice blocks (2D, 3D; 4 steps), case 1
     at 0.03 m, the persistent-ghost zero-g disc, case 1 with two rounds of 6 darts (20 steps)."""
     if case.startswith("block"):
-        sim, _ = _sampled(int(case[5]), "darts")
+        sim, _ = _sampled(int(case[5]), "darts", options)
     elif case == "case1":
-        sim = _dam_break(1, 0.03, sampler="darts")
+        sim = _dam_break(1, 0.03, sampler="darts", options=options)
     elif case == "rounds2":
         sim = rockwave.Simulation(_scene("ghost_dam_break_case1.toml", **{"fluid.spacing_m": 0.03, "fluid.ghost.attempts": 6,
                                                                           "fluid.ghost.rounds": 2,
-                                                                          "fluid.ghost.sampler": "darts"}), device=DEVICE)
+                                                                          "fluid.ghost.sampler": "darts"}), device=DEVICE,
+                                  options=options)
     else:
-        sim = drop_simulation(_scene("drop_zero_g_2d.toml"), 0.15, device=DEVICE)
+        sim = drop_simulation(_scene("drop_zero_g_2d.toml"), 0.15, device=DEVICE, options=options)
     for _ in range(4 if case.startswith("block") else 20):
         sim.step()
     return sim
 
 
 @pytest.mark.parametrize("case", ["block2d", "block3d", "case1", "drop2d"])
-def test_cell_skips_place_the_same_ghosts(case, monkeypatch):
+def test_cell_skips_place_the_same_ghosts(case):
     """The cell skips without a hash query (cells wholly within r_liquid of a liquid or wall particle
     closed before the listing, cells wholly within r of a new ghost closed, darts tested against the
     ghosts before the cell's query) place exactly the ghosts of the plain per-cell classification
-    (GhostFluidSolver.shortcuts = False), bit for bit, over several steps: resampled ghosts on lattice
+    (GhostOptions.shortcuts = False), bit for bit, over several steps: resampled ghosts on lattice
     blocks (2D, 3D), a dam break with walls (case 1, 0.03 m), persistent ghosts (zero-g disc)."""
     runs = []
     for shortcuts in (True, False):
-        monkeypatch.setattr(GhostFluidSolver, "shortcuts", shortcuts)
-        runs.append(_stepped_case(case))
+        runs.append(_stepped_case(case, _options(shortcuts=shortcuts)))
     a, b = (sim.fluid_solver for sim in runs)
     assert a.n_ghost == b.n_ghost > 0
     assert np.array_equal(a.ghost_positions(), b.ghost_positions())
@@ -387,7 +394,7 @@ def test_cell_skips_place_the_same_ghosts(case, monkeypatch):
 
 
 @pytest.mark.parametrize("case", ["block2d", "block3d", "case1", "drop2d", "rounds2"])
-def test_parallel_darts_place_the_same_ghosts(case, monkeypatch):
+def test_parallel_darts_place_the_same_ghosts(case):
     """The parallel darts (the GPU path: every dart screened against liquid, walls, kept ghosts and the
     layer and colour rules in one launch, the phase launches only test new ghosts)
     accept exactly the darts of the per-cell serial throw_darts, bit for bit, over several steps:
@@ -395,11 +402,9 @@ def test_parallel_darts_place_the_same_ghosts(case, monkeypatch):
     two rounds of darts. The CPU runs the GPU's per-phase launches here (phase_launches)."""
     runs = []
     for parallel in (True, False):
-        monkeypatch.setattr(GhostFluidSolver, "parallel_darts", parallel)
-        monkeypatch.setattr(GhostFluidSolver, "phase_launches", parallel)
         # launches over the host bound (no read), or over the counts read back
-        monkeypatch.setattr(GhostFluidSolver, "parallel_bound_max", 0 if case in ("block3d", "drop2d") else 1 << 16)
-        runs.append(_stepped_case(case))
+        runs.append(_stepped_case(case, _options(parallel_darts=parallel, phase_launches=parallel,
+                                                 parallel_bound_max=0 if case in ("block3d", "drop2d") else 1 << 16)))
     a, b = (sim.fluid_solver for sim in runs)
     assert a.n_ghost == b.n_ghost > 0
     assert np.array_equal(a.ghost_positions(), b.ghost_positions())
@@ -409,17 +414,15 @@ def test_parallel_darts_place_the_same_ghosts(case, monkeypatch):
 
 
 @pytest.mark.parametrize("case", ["block2d", "block3d", "case1"])
-def test_parallel_darts_in_small_launches_place_the_same_ghosts(case, monkeypatch):
+def test_parallel_darts_in_small_launches_place_the_same_ghosts(case):
     """A dart launch smaller than its phase's active cells (each thread takes every size-th cell: on a GPU
     the launches are sized from the last sampling's counts) places the same ghosts as a launch of a thread
     per cell: the same positions, velocities and owners (the slots come in another order)."""
-    monkeypatch.setattr(GhostFluidSolver, "parallel_darts", True)
-    monkeypatch.setattr(GhostFluidSolver, "phase_launches", True)
-    sim = _stepped_case(case)
+    sim = _stepped_case(case, _options(parallel_darts=True, phase_launches=True))
     s = sim.fluid_solver
     out = []
     for size in (None, 3):
-        monkeypatch.setattr(GhostFluidSolver, "dart_launch_size", size)
+        s.dart_launch_size = size  # (an instance setting of this solver, GhostOptions.dart_launch_size)
         s.sample_ghosts(sim.state)
         x = s.ghost_positions()
         order = np.lexsort(x.T[::-1])
@@ -431,16 +434,14 @@ def test_parallel_darts_in_small_launches_place_the_same_ghosts(case, monkeypatc
 
 
 @pytest.mark.parametrize("sampler", ["tile", "darts"])
-def test_recorded_launches_match_plain_launches(sampler, monkeypatch):
+def test_recorded_launches_match_plain_launches(sampler):
     """The ghost step's recorded, replayed launches (GhostFluidSolver._launch: arguments packed once,
     scalars and sizes updated) give the plain wp.launch results bit for bit over 30 steps of case 1
     (0.03 m), with the GPU path's parallel darts and per-phase launches, and with the tile sampler."""
     runs = []
     for recorded in (True, False):
-        monkeypatch.setattr(GhostFluidSolver, "recorded_launches", recorded)
-        monkeypatch.setattr(GhostFluidSolver, "parallel_darts", True)
-        monkeypatch.setattr(GhostFluidSolver, "phase_launches", True)
-        sim = _dam_break(1, 0.03, sampler=sampler)
+        sim = _dam_break(1, 0.03, sampler=sampler,
+                         options=_options(FluidOptions(recorded_launches=recorded), parallel_darts=True, phase_launches=True))
         for _ in range(30):
             sim.step()
         runs.append(sim)

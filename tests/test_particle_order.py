@@ -6,18 +6,30 @@ import pytest
 import warp as wp
 
 import rockwave
+from rockwave.fluid import FluidOptions
 from rockwave.scene import load_scene
+from rockwave.simulation import SimulationOptions
+from rockwave.solver import TimeStep
 
 from conftest import DEVICE
 from helpers import ROOT
 
 
-def _sim(spacing=0.08, continuity=False):
+def _options(**fluid) -> SimulationOptions:
+    return SimulationOptions(fluid=FluidOptions(**fluid))
+
+
+def _sim(spacing=0.08, continuity=False, **fluid):
     scene = load_scene(ROOT / "scenes" / "dam_break_3d.toml")
     scene.fluid["spacing_m"] = spacing
     scene.fluid["density"] = "continuity" if continuity else "summation"  # the scene's default is continuity
     scene.output["gauges"] = []
-    return rockwave.Simulation(scene, device=DEVICE)
+    return rockwave.Simulation(scene, device=DEVICE, options=_options(**fluid))
+
+
+def _ts(dt: wp.array) -> TimeStep:
+    """A fluid step of the length held in the device array dt."""
+    return TimeStep(float(dt.numpy()[0]), 0.0, dt)
 
 
 def test_reorder_is_a_permutation_and_unsort_restores_it():
@@ -35,8 +47,11 @@ def test_reorder_is_a_permutation_and_unsort_restores_it():
     x1 = sim.state.x.numpy()
     assert np.array_equal(x1[:nf], x0[ids]) and np.array_equal(x1[nf:], x0[nf:])  # boundary untouched
     assert np.array_equal(sim.state.v.numpy()[:nf], v0[ids])
-    assert np.allclose(sim.positions(), x0[:nf, :3])  # reads restore the original order
-    assert np.array_equal(sim.state.ids.numpy(), np.arange(nf))
+    assert np.allclose(sim.positions(), x0[:nf, :3])  # reads give the seeded order
+    assert np.array_equal(sim.state.ids.numpy(), ids)  # and leave the state as it is
+    with wp.ScopedDevice(sim.device):
+        fs.unsort(sim.state)
+    assert np.array_equal(sim.state.ids.numpy(), np.arange(nf)) and np.array_equal(sim.state.x.numpy(), x0)
 
 
 @pytest.mark.parametrize("continuity", [False, True])
@@ -61,7 +76,7 @@ def test_boundary_particles_are_in_cell_order():
     assert np.all(np.diff(key) >= 0)
 
 
-def _random_model(dim, monkeypatch, wrapped, n_side=7):
+def _random_model(dim, wrapped, n_side=7):
     from rockwave.fluid import FluidSolver, build_fluid_model
     from test_sph import _fluid_section
     from rockwave.sampling import box_lattice
@@ -76,23 +91,21 @@ def _random_model(dim, monkeypatch, wrapped, n_side=7):
     xb = box_lattice([0.0] * dim, [n_side * s, 2 * s] + [n_side * s] * (dim - 2), s)  # a wall layer
     xb = np.concatenate([xb, np.zeros((len(xb), 3 - dim))], axis=1)
     xb[:, 1] -= 2.5 * s
-    if wrapped:  # force the cell grid to wrap (hash) in every dimension
-        monkeypatch.setattr(FluidSolver, "min_cells", 16)
-        monkeypatch.setattr(FluidSolver, "cells_per_particle", 0)
     model = build_fluid_model(x, rng.normal(0, 0.5, x.shape) * ([1] * dim + [0] * (3 - dim)), xb, fl, dim,
                               [0.0] * dim, DEVICE)
-    solver = FluidSolver(model)
+    # wrapped: force the cell grid to wrap (hash) in every dimension
+    solver = FluidSolver(model, options=FluidOptions(min_cells=16, cells_per_particle=0) if wrapped else None)
     return model, solver
 
 
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("wrapped", [False, True])
 @pytest.mark.parametrize("skin", [0.0, 0.2])
-def test_neighbour_lists_match_brute_force(dim, wrapped, skin, monkeypatch):
+def test_neighbour_lists_match_brute_force(dim, wrapped, skin):
     """The cell grid (x-cells R/4, y/z cells R, culled column runs; wrapped like a hash grid when the
     domain needs too many cells) finds exactly the particles within the list radius R = (1 + skin) H of
     each fluid particle, fluid and boundary, self excluded."""
-    model, solver = _random_model(dim, monkeypatch, wrapped)
+    model, solver = _random_model(dim, wrapped)
     solver.set_neighbour_skin(skin)
     if wrapped:
         g = solver.cells
@@ -113,12 +126,12 @@ def test_neighbour_lists_match_brute_force(dim, wrapped, skin, monkeypatch):
         assert cnt[i] == len(want) and got == want, f"particle {i}"
 
 
-def test_neighbour_list_overflow_falls_back_to_cell_query(monkeypatch):
+def test_neighbour_list_overflow_falls_back_to_cell_query():
     """Particles with more neighbours than the list holds get the same density and acceleration
     from the cell-grid query."""
     from rockwave.kernels import sph
 
-    model, solver = _random_model(3, monkeypatch, wrapped=False)
+    model, solver = _random_model(3, wrapped=False)
     s = model.state()
     n = model.n_fluid
 
@@ -145,18 +158,6 @@ def test_neighbour_list_overflow_falls_back_to_cell_query(monkeypatch):
 
 # ---------------------------------------------------------------- neighbour skin (Verlet lists) ----------
 
-def _with_skin(make, skin, monkeypatch=None):
-    """A simulation built by make() whose fluid solver uses the given neighbour skin."""
-    from rockwave.fluid import FluidSolver
-
-    old = FluidSolver.neighbour_skin
-    FluidSolver.neighbour_skin = skin
-    try:
-        return make()
-    finally:
-        FluidSolver.neighbour_skin = old
-
-
 class _BuildCounter:
     """Counts list builds of a solver from its stored build positions (works in the device-flag mode too)."""
 
@@ -173,12 +174,8 @@ class _BuildCounter:
 _STATE_FIELDS = ("x", "v", "rho", "pressure", "accel", "xsph_dv", "drho_dt", "ids")
 
 
-def _dam_break(density):
-    scene = load_scene(ROOT / "scenes" / "dam_break_3d.toml")
-    scene.fluid["spacing_m"] = 0.08
-    scene.fluid["density"] = density
-    scene.output["gauges"] = []
-    return rockwave.Simulation(scene, device=DEVICE)
+def _dam_break(density, **fluid):
+    return _sim(continuity=density == "continuity", **fluid)
 
 
 @pytest.mark.parametrize("density", ["summation", "continuity"])
@@ -187,16 +184,17 @@ def test_neighbour_skin_matches_rebuilding_every_step(density, host_decides):
     """With a skin the list is kept over several steps and the density and force passes skip its pairs
     at r >= H: after a stretch of flowing dam break the state equals the run that rebuilds every step
     (summation order only), in both the CPU's host-decided and the GPU's device-flag mode."""
-    a = _with_skin(lambda: _dam_break(density), 0.0)
+    a = _dam_break(density, neighbour_skin=0.0)
     a.advance(0.3)  # a flowing collapse, not the start at rest
-    b = _with_skin(lambda: _dam_break(density), 0.1)
+    b = _dam_break(density, neighbour_skin=0.1)
     assert b.fluid.density_mode == density
     fs = b.fluid_solver
     fs.host_decides = host_decides
-    a._canonical()
+    with wp.ScopedDevice(a.device):
+        a.fluid_solver.unsort(a.state)  # (the CPU steps one by one: already in the seeded order)
     for k in _STATE_FIELDS:
         getattr(b.state, k).assign(getattr(a.state, k))
-    b._set_dt(a.dt)
+    b.clock.set_dt(a.dt)
     count = _BuildCounter(fs)
     n = 24
     for _ in range(n):
@@ -216,8 +214,8 @@ def test_neighbour_skin_coupled_scene_matches():
     """A coupled scene (the coupling moves fluid particles after the fluid step): the same motion with
     and without the skin."""
     def run(skin):
-        sim = _with_skin(lambda: rockwave.Simulation(load_scene(ROOT / "scenes" / "sliding_wedge_small.toml"), device=DEVICE),
-                         skin)
+        sim = rockwave.Simulation(load_scene(ROOT / "scenes" / "sliding_wedge_small.toml"), device=DEVICE,
+                                  options=_options(neighbour_skin=skin))
         count = _BuildCounter(sim.fluid_solver)
         for _ in range(120):
             sim.step()
@@ -233,11 +231,11 @@ def test_neighbour_skin_coupled_scene_matches():
 
 
 @pytest.mark.parametrize("host_decides", [True, False])
-def test_neighbour_skin_rebuilds_after_large_displacement(host_decides, monkeypatch):
+def test_neighbour_skin_rebuilds_after_large_displacement(host_decides):
     """A list is kept while every particle moved less than skin/2 since the build and rebuilt (equal to
     brute force within the list radius at the new positions) as soon as one moves further, whatever moved
     it (here: the positions assigned directly)."""
-    model, solver = _random_model(3, monkeypatch, wrapped=False)
+    model, solver = _random_model(3, wrapped=False)
     solver.set_neighbour_skin(0.2)
     solver.host_decides = host_decides
     s = model.state()
@@ -257,13 +255,13 @@ def test_neighbour_skin_rebuilds_after_large_displacement(host_decides, monkeypa
 
     with wp.ScopedDevice(DEVICE):
         X0 = s.x.numpy().astype(np.float64)
-        solver.step(s, dt)
+        solver.step(s, _ts(dt))
         assert lists() == brute(X0)
         # a small move of one particle (< skin/2): the list is kept
         x = s.x.numpy()
         x[5] += np.array([0.4 * 0.5 * 0.2 * H, 0.0, 0.0], dtype=np.float32)
         s.x.assign(x)
-        solver.step(s, dt)
+        solver.step(s, _ts(dt))
         assert np.array_equal(solver._x_build.numpy()[:n], X0[:n].astype(np.float32))
         assert lists() == brute(X0)
         # one particle jumps by 0.6 H: the list is rebuilt at the new positions
@@ -271,7 +269,7 @@ def test_neighbour_skin_rebuilds_after_large_displacement(host_decides, monkeypa
         x[7] += np.array([0.0, 0.6 * H, 0.0], dtype=np.float32)
         s.x.assign(x)
         X1 = s.x.numpy().astype(np.float64)
-        solver.step(s, dt)
+        solver.step(s, _ts(dt))
         assert np.array_equal(solver._x_build.numpy()[:n], X1[:n].astype(np.float32))
         assert lists() == brute(X1)
         # a large velocity for every particle: rebuilt each step
@@ -279,15 +277,15 @@ def test_neighbour_skin_rebuilds_after_large_displacement(host_decides, monkeypa
                    (np.arange(model.n_total) < n)[:, None])
         for _ in range(2):
             X = s.x.numpy().astype(np.float64)
-            solver.step(s, dt)
+            solver.step(s, _ts(dt))
             assert lists() == brute(X)
         # and the rates equal a solver without a skin on the same state
         ref = FluidSolver_with_skin(model, 0.0)
         s2 = model.state()
         for k in _STATE_FIELDS:
             getattr(s2, k).assign(getattr(s, k))
-        solver.step(s, dt)
-        ref.step(s2, dt)
+        solver.step(s, _ts(dt))
+        ref.step(s2, _ts(dt))
         for k in ("rho", "accel", "xsph_dv", "x"):
             u, w = getattr(s, k).numpy(), getattr(s2, k).numpy()
             assert np.allclose(u, w, rtol=1e-5, atol=1e-5 * np.abs(w).max()), k
@@ -300,7 +298,7 @@ def FluidSolver_with_skin(model, skin):
 
 
 def test_reorder_and_unsort_force_a_rebuild():
-    sim = _with_skin(lambda: _sim(), 0.1)
+    sim = _sim(neighbour_skin=0.1)
     fs = sim.fluid_solver
     sim.step()
     assert int(fs._rebuild.numpy()[0]) == 0
@@ -309,18 +307,19 @@ def test_reorder_and_unsort_force_a_rebuild():
     assert int(fs._rebuild.numpy()[0]) == 1
     sim.step()
     assert int(fs._rebuild.numpy()[0]) == 0
-    sim._canonical()
+    with wp.ScopedDevice(sim.device):
+        fs.unsort(sim.state)
     assert int(fs._rebuild.numpy()[0]) == 1
 
 
 @pytest.mark.parametrize("host_decides", [True, False])
-def test_neighbour_skin_overflow_fallback_on_a_kept_grid(host_decides, monkeypatch):
+def test_neighbour_skin_overflow_fallback_on_a_kept_grid(host_decides):
     """Overflowed lists are summed by a cell query of radius H + skin on the grid of the last build,
     which is kept with the list: after every particle moved (less than skin/2) without a rebuild, the
     rates equal those of a solver without a skin and with room for every neighbour."""
     from rockwave.fluid import FluidSolver
 
-    model, solver = _random_model(3, monkeypatch, wrapped=False)
+    model, solver = _random_model(3, wrapped=False)
     solver.set_neighbour_skin(0.2)
     solver.host_decides = host_decides
     n, H = model.n_fluid, model.support_radius
@@ -330,7 +329,7 @@ def test_neighbour_skin_overflow_fallback_on_a_kept_grid(host_decides, monkeypat
     s, s2 = model.state(), model.state()
     dt = wp.array([1e-7], dtype=float, device=DEVICE)
     with wp.ScopedDevice(DEVICE):
-        solver.step(s, dt)
+        solver.step(s, _ts(dt))
         xb = solver._x_build.numpy().copy()
         assert solver.list_overflow() > 0.5 * n
         d = np.random.default_rng(2).normal(size=(model.n_total, 3))
@@ -340,8 +339,8 @@ def test_neighbour_skin_overflow_fallback_on_a_kept_grid(host_decides, monkeypat
             getattr(s2, k).assign(getattr(s, k))
         s.x.assign(x)
         s2.x.assign(x)
-        solver.step(s, dt)
-        ref.step(s2, dt)
+        solver.step(s, _ts(dt))
+        ref.step(s2, _ts(dt))
         assert np.array_equal(solver._x_build.numpy(), xb)  # the list and grid were kept
     for k in ("rho", "accel", "xsph_dv"):
         u, w = getattr(s, k).numpy(), getattr(s2, k).numpy()
@@ -349,22 +348,15 @@ def test_neighbour_skin_overflow_fallback_on_a_kept_grid(host_decides, monkeypat
 
 
 def test_relative_skin_check_keeps_every_neighbour_and_rebuilds_less():
-    """The relative skin check (FluidSolver.skin_check = "relative": rebuild when two particles in the same
+    """The relative skin check (FluidOptions.skin_check = "relative": rebuild when two particles in the same
     or adjacent 2H cells may have moved s H relative to each other, or one moved (2H - H)/2): over a
     flowing 3D dam break every pair closer than H is in the list at every step (brute force), and the
     lists are rebuilt less often than with the absolute check (any particle moved s H / 2). Measured
     (this test): 200 steps, relative 19 builds, absolute 33; at 10,850 particles over 0.3 s 196 vs 330."""
-    from rockwave.fluid import FluidSolver
-
-    assert FluidSolver.skin_check == "relative"
+    assert FluidOptions().skin_check == "relative"
     builds = {}
     for mode in ("relative", "absolute"):
-        old = FluidSolver.skin_check
-        FluidSolver.skin_check = mode
-        try:
-            sim = _dam_break("continuity")
-        finally:
-            FluidSolver.skin_check = old
+        sim = _dam_break("continuity", skin_check=mode)
         fs = sim.fluid_solver
         assert (fs._check is not None) == (mode == "relative")
         H = sim.fluid.support_radius

@@ -748,7 +748,7 @@ def test_registered_state_travels_in_checkpoints(tmp_path):
     arrays, groups = checkpoint.pack(sim, checkpoint.capture(sim))
     meta = {"scene": checkpoint.scene_identity(sim), "groups": groups}
     sim.ghost = _Ghost(9)  # a different count: reallocated on restore
-    sim.time = 5.0
+    sim.clock.time = 5.0
     checkpoint.restore(sim, arrays, meta)
     assert sim.ghost.pos.shape[0] == 5 and np.array_equal(sim.ghost.pos.numpy()[4], [12, 13, 14]) and sim.time == 0.0
 

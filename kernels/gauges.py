@@ -1,0 +1,112 @@
+"""Gauge kernels, launched by rockwave/readers.py (Gauges): free-surface height and pressure probes
+evaluated on the device from the current state; one host read returns every gauge's value."""
+
+import warp as wp
+
+from rockwave.kernels.sph import SPHParams, kernel_w
+
+@wp.kernel
+def gauge_height(
+    x: wp.array(dtype=wp.vec3),
+    gauge_pos: wp.array(dtype=wp.vec3),
+    up: int,
+    radius: float,
+    cell: float,
+    m: int,
+    top: wp.array2d(dtype=float),
+):
+    """Column tops for the free-surface gauges (launched over fluid particles x gauges).
+
+    Around each gauge's vertical line the horizontal plane is cut into square columns of width `cell`
+    on a (2m)^2 grid centred on the line (2D, up == 1: one row of 2m columns); the columns whose centre
+    lies within `radius` of the line are used whole (no slivers: a clipped column would see only part of
+    its particles and read low). top[g, c] is the highest up-coordinate of the fluid particles in column c
+    (-1e30 where it holds none); gauge_median reduces them to one reading."""
+    i, g = wp.tid()
+    d = x[i] - gauge_pos[g]
+    a0 = int(0)
+    a1 = int(2)
+    if up == 0:
+        a0 = 1
+    elif up == 2:
+        a1 = 1
+    n2 = 2 * m
+    ca = int(wp.floor(d[a0] / cell)) + m
+    cb = m
+    oa = (float(ca - m) + 0.5) * cell
+    ob = float(0.0)
+    if up != 1:
+        cb = int(wp.floor(d[a1] / cell)) + m
+        ob = (float(cb - m) + 0.5) * cell
+    if ca >= 0 and ca < n2 and cb >= 0 and cb < n2:
+        if oa * oa + ob * ob < radius * radius:
+            wp.atomic_max(top, g, ca * n2 + cb, x[i][up])
+
+
+@wp.kernel
+def gauge_pressure(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    gauge_pos: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    out: wp.array(dtype=float),
+):
+    """Shepard-normalised SPH interpolation p(x) = sum V_j p_j W / sum V_j W over fluid particles."""
+    g = wp.tid()
+    xg = gauge_pos[g]
+    num = float(0.0)
+    den = float(0.0)
+    q = wp.hash_grid_query(grid, xg, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j < p.n_fluid:
+            w = particle_mass[j] / rho[j] * kernel_w(wp.length_sq(xg - x[j]), p)
+            num += w * pressure[j]
+            den += w
+    if den > 0.0:
+        out[g] = num / den
+    else:
+        out[g] = 0.0
+
+
+@wp.kernel
+def gauge_median(top: wp.array2d(dtype=float), is_height: wp.array(dtype=int), out: wp.array(dtype=float)):
+    """Median of the wet column tops of each height gauge (top > -1e29; NaN when none is wet), as
+    numpy.median: the mean of the two middle values for an even count. One thread per gauge
+    (a few dozen columns: rank counting, no sort)."""
+    g = wp.tid()
+    if is_height[g] == 0:
+        return
+    n = top.shape[1]
+    k = int(0)
+    for c in range(n):
+        if top[g, c] > -1.0e29:
+            k += 1
+    if k == 0:
+        out[g] = wp.nan
+        return
+    lo_rank = (k - 1) / 2
+    hi_rank = k / 2
+    a = float(0.0)
+    b = float(0.0)
+    for c in range(n):
+        v = top[g, c]
+        if v > -1.0e29:
+            below = int(0)
+            equal = int(0)
+            for e in range(n):
+                u = top[g, e]
+                if u > -1.0e29:
+                    if u < v:
+                        below += 1
+                    elif u == v:
+                        equal += 1
+            # v holds ranks below .. below + equal - 1
+            if lo_rank >= below and lo_rank < below + equal:
+                a = v
+            if hi_rank >= below and hi_rank < below + equal:
+                b = v
+    out[g] = (a + b) * 0.5

@@ -1,0 +1,204 @@
+"""Scene -> models and states: everything a :class:`rockwave.Simulation` is made of, built once.
+
+- :func:`seed_particles`: fluid particles filling the scene's regions, boundary particles of the
+  tank walls and obstacles (host arrays);
+- :func:`build_fluid`: :class:`rockwave.fluid.FluidModel`, its state at the hydrostatic start and
+  the fluid solver the scene asks for (basic or Ghost SPH);
+- :func:`build_blocks`: :class:`rockwave.blocks.BlockModel`, its state and solver;
+- :func:`build_coupling`: the penalty coupling of water and blocks (only when both are present).
+
+Nothing here steps or writes; bad input becomes a :class:`rockwave.scene.SceneError` naming the key.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+import warp as wp
+
+from rockwave import sampling
+from rockwave.scene import Scene, SceneError
+
+
+def pad3(v) -> list[float]:
+    """A 2- or 3-vector as 3 components (z = 0 in 2D)."""
+    return list(v) + [0.0] * (3 - len(v))
+
+
+def hydrostatic_density(model, g_depth: np.ndarray) -> np.ndarray:
+    """Density that makes p = rho0 g d under the EOS (validation/README.md, Hydrostatics):
+    Tait rho = rho0 (1 + rho0 g d / B)^(1/gamma); linear rho = rho0 + rho0 g d / k."""
+    p = model.params
+    rho0 = p.rest_density
+    if p.eos == 0:
+        return rho0 * (1.0 + rho0 * g_depth / p.eos_b) ** (1.0 / p.eos_gamma)
+    return rho0 + rho0 * g_depth / p.eos_b
+
+
+def boundary_lattice(scene: Scene) -> tuple[float, int]:
+    """Boundary particle spacing and number of layers for a scene."""
+    t, spacing = scene.tank, scene.fluid.spacing_m
+    if t is None:  # water held by fixed blocks only (rockwave/coupling.py): no boundary particles
+        return spacing, 1
+    bstep = spacing * t.boundary_spacing_ratio
+    H = scene.fluid.support_radius_ratio * spacing
+    return bstep, (t.layers or max(1, int(math.ceil(H / bstep - 1e-9))))
+
+
+def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fluid positions, velocities, depths below their region's top (for the hydrostatic start),
+    and boundary positions for a scene (positions (n, 3), z = 0 in 2D)."""
+    fl, dim = scene.fluid, scene.dim
+    up = dim - 1
+    spacing = fl.spacing_m
+    xs, vs, ds = [], [], []
+    for r in fl.regions:
+        try:
+            p = sampling.fill_region(r, spacing, dim, device)
+        except sampling.MeshInputError as e:
+            raise SceneError(scene.path, [("fluid.regions", str(e))]) from None
+        xs.append(p)
+        ds.append(p[:, up].max() + 0.5 * spacing - p[:, up] if len(p) else np.zeros(0))
+        vel = pad3(r.velocity_m_s) if r.velocity_m_s is not None else [0.0, 0.0, 0.0]
+        vs.append(np.tile(np.asarray(vel, float), (len(p), 1)))
+    x = np.concatenate(xs) if xs else np.zeros((0, 3))
+    v = np.concatenate(vs) if vs else np.zeros((0, 3))
+    depth = np.concatenate(ds) if ds else np.zeros(0)
+    # Boundary particles: tank walls and obstacles.
+    t = scene.tank
+    bstep, layers = boundary_lattice(scene)
+    parts = []
+    try:
+        if t is None:  # walls from fixed blocks (rockwave/coupling.py)
+            keep = np.ones(len(x), bool)
+        elif t.box_min_m is not None:
+            parts.append(sampling.box_shell(t.box_min_m, t.box_max_m, bstep, layers, True, t.open_top, up))
+            keep = np.all((x[:, :dim] > np.asarray(t.box_min_m)) & (x[:, :dim] < np.asarray(t.box_max_m)), axis=1)
+        else:
+            parts.append(sampling.mesh_shell(t.mesh, t.mesh_scale, t.mesh_offset_m, bstep, layers, True, device))
+            tm = sampling.load_trimesh(t.mesh, t.mesh_scale, t.mesh_offset_m)
+            keep = sampling.mesh_signed_distance(tm, x, device) < 0
+    except sampling.MeshInputError as e:
+        raise SceneError(scene.path, [("tank.mesh", str(e))]) from None
+    x, v, depth = x[keep], v[keep], depth[keep]
+    for i, ob in enumerate(scene.obstacles):
+        try:
+            if ob.box_min_m is not None:
+                parts.append(sampling.box_shell(ob.box_min_m, ob.box_max_m, bstep, layers, False, False, up))
+            else:
+                parts.append(sampling.mesh_shell(ob.mesh, ob.mesh_scale, ob.mesh_offset_m, bstep, layers, False, device))
+            inside = sampling.inside_obstacle(x, ob, dim, device)
+        except sampling.MeshInputError as e:
+            raise SceneError(scene.path, [(f"obstacles[{i}].mesh", str(e))]) from None
+        x, v, depth = x[~inside], v[~inside], depth[~inside]
+    b = np.concatenate(parts) if parts else np.zeros((0, 3))
+    return x, v, depth, b
+
+
+@dataclass
+class Parts:
+    """What a scene is made of on the device (None where the scene has none of it).
+
+    fluid (FluidModel), state (FluidState), fluid_solver; blocks (BlockModel), block_state,
+    block_solver; coupling; removed_inside_blocks: fluid particles dropped at seeding because they lay
+    inside a block (or within half the contact distance of its faces)."""
+
+    fluid: object = None
+    state: object = None
+    fluid_solver: object = None
+    blocks: object = None
+    block_state: object = None
+    block_solver: object = None
+    coupling: object = None
+    removed_inside_blocks: int = 0
+    planar: tuple | None = None  # 2D: (z0, kinds) for the planar constraint of the blocks
+
+
+def build(scene: Scene, device: str, options=None) -> Parts:
+    """All parts of ``scene`` on ``device`` (``options``: rockwave.simulation.SimulationOptions)."""
+    parts = Parts()
+    with wp.ScopedDevice(device):
+        if scene.blocks:
+            build_blocks(scene, device, parts, options)
+        if scene.fluid is not None:
+            build_fluid(scene, device, parts, options)
+        if parts.blocks is not None and parts.fluid is not None and parts.fluid.n_fluid:
+            build_coupling(scene, parts, options)
+    return parts
+
+
+def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
+    from rockwave.fluid import Density, FluidOptions, FluidSolver, build_fluid_model
+
+    xf, vf, depth, xb = seed_particles(scene, device)
+    if parts.blocks is not None:
+        xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth)
+    bstep, layers = boundary_lattice(scene)
+    fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, device, bstep, layers)
+    fopts = getattr(options, "fluid", None) or FluidOptions()
+    if fopts.cfl_number is None:  # the adaptive step's Courant number comes from the scene
+        fopts = replace(fopts, cfl_number=scene.simulation.cfl_number)
+    if scene.fluid.method == "ghost":
+        from rockwave.ghost import GhostFluidSolver, GhostOptions, warn_unstable_step  # basic scenes never load it
+
+        warn_unstable_step(scene)
+        gopts = getattr(options, "ghost", None) or GhostOptions()
+        solver = GhostFluidSolver(fluid, scene.fluid.ghost, options=fopts, ghost_options=gopts)
+    else:
+        solver = FluidSolver(fluid, options=fopts)
+    state = fluid.state()
+    if fluid.n_fluid:
+        if fluid.density is Density.SUMMATION:
+            solver.compute_density(state)
+        else:
+            g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
+            solver.set_density(state, hydrostatic_density(fluid, g * depth))
+    parts.fluid, parts.state, parts.fluid_solver = fluid, state, solver
+
+
+def build_blocks(scene: Scene, device: str, parts: Parts, options=None) -> None:
+    from rockwave.blocks import BlockModel, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
+    from rockwave.geometry import GeometryError
+    from rockwave.rocks import block_specs
+
+    specs = block_specs(scene)
+    host_check = len(specs) <= 2000  # exact host test for small sets; device FCP for large ones
+    try:
+        blocks = BlockModel(specs, device=device, gravity=pad3(scene.gravity.acceleration_m_s2), check_overlap=host_check)
+        solver = BlockSolver(blocks)
+        state = blocks.state()
+        if not host_check:
+            check_initial_overlap_on_device(solver, state)
+    except (BlockOverlapError, GeometryError, ValueError) as e:
+        raise SceneError(scene.path, [("blocks", str(e))]) from None
+    parts.blocks, parts.block_state, parts.block_solver = blocks, state, solver
+    if scene.dim == 2:  # 2D: extruded prisms moving in the x-y plane (rockwave/coupling.py)
+        z0 = wp.array(blocks.base_position[:, 2].astype(np.float32), dtype=float, device=device)
+        parts.planar = (z0, blocks.kinds)
+
+
+def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth):
+    """Drop fluid particles inside a block, or closer to its faces than half the contact distance
+    (rockwave/coupling.py); the count goes to ``parts.removed_inside_blocks`` and run.json."""
+    from rockwave.coupling import DEFAULT_D0_RATIO, block_signed_distance
+
+    c = scene.coupling
+    ratio = c.contact_distance_ratio if c is not None and c.contact_distance_ratio is not None else DEFAULT_D0_RATIO
+    dist, _ = block_signed_distance(parts.blocks, parts.block_state, xf)
+    keep = dist >= 0.5 * ratio * scene.fluid.spacing_m
+    parts.removed_inside_blocks = int((~keep).sum())
+    return xf[keep], vf[keep], depth[keep]
+
+
+def build_coupling(scene: Scene, parts: Parts, options=None) -> None:
+    from rockwave.coupling import Coupling
+
+    c = scene.coupling
+    kw = {}
+    if c is not None:
+        kw = dict(stiffness_factor=c.stiffness_factor, damping_ratio=c.damping_ratio, k_s=c.stiffness_n_m, k_d=c.damping_n_s_m,
+                  d0=None if c.contact_distance_ratio is None else c.contact_distance_ratio * parts.fluid.spacing,
+                  squeeze_out=c.squeeze_out is not False)
+    parts.coupling = Coupling(parts.fluid, parts.blocks, scene.dim, **kw)

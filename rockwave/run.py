@@ -1,0 +1,202 @@
+"""The run loop: a simulation advanced frame by frame, its outputs recorded, checkpointed and
+guarded.
+
+``run(sim, out_dir)`` (also ``Simulation.run`` and ``python -m rockwave run``): after each output
+frame the state is read once into a :class:`rockwave.export.recorders.Frame`, checked by the blow-up
+guard (rockwave/guard.py) and handed to the recorders; a device-side copy of the state is kept for
+the checkpoint (rockwave/checkpoint.py), written every ``output.checkpoint_interval_s`` of wall time,
+on a blow-up and on Ctrl-C. The summary goes to ``run.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+from rockwave import checkpoint as ckpt
+from rockwave.export import recorders as rec
+
+
+def _summary_path(out: Path) -> Path:
+    return out / "run.json"
+
+
+def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress: bool = True,
+        resume: bool = False, checkpoint_interval_s: float | None = None) -> dict:
+    """Run ``sim``'s scene for ``duration`` (default: the scene's), writing outputs into ``out_dir``.
+    Returns the run summary (also written as ``run.json``).
+
+    ``resume``: continue from ``out_dir/checkpoint.npz`` (rockwave/checkpoint.py) with the outputs
+    written so far. ``checkpoint_interval_s``: wall-clock seconds between checkpoints (default
+    ``output.checkpoint_interval_s``; 0: none, except on a blow-up or Ctrl-C). Ctrl-C finishes the
+    current frame, writes a checkpoint, closes the USD stage and raises KeyboardInterrupt."""
+    from rockwave.progress import Progress
+    from rockwave.simulation import SimulationError
+
+    scene = sim.scene
+    out = Path(out_dir)
+    resumed = ckpt.read_file(out / ckpt.FILE_NAME) if resume else None
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write_test"
+        probe.write_bytes(b"ok")
+        probe.unlink()
+    except OSError as e:
+        raise SimulationError(f"output folder {out} is not writable: {e}") from None
+    duration = scene.simulation.duration_s if duration is None else duration
+    fps = scene.output.frame_rate_hz
+    if resumed is not None:
+        ckpt.restore(sim, *resumed)
+    else:
+        ckpt.clear(out)
+    n_frames = int(math.floor(duration * fps + 1e-9))
+    frame_dt = 1.0 / fps
+    nf = sim.n_fluid
+
+    # recorders (rockwave/export/recorders.py)
+    from rockwave.export import surface as surf
+
+    o = scene.output
+    surface = None
+    if nf and (o.usd or o.get("vtk")):  # the surface goes nowhere else
+        surface = surf.extractor_for(scene, sim.fluid, sim.device)
+    usd = rec.UsdRecorder(sim, out / o.usd, surface) if o.usd else None
+    gauges = rec.gauge_csv(out / o.gauges_csv, sim.gauge_names) if sim.gauge_names else None
+    blocks = rec.block_csv(out / o.blocks_csv, sim.blocks.names) if sim.blocks is not None and o.blocks_csv else None
+    vtk = rec.VtkRecorder(sim, out / o.vtk) if o.get("vtk") else None
+    recorders = [r for r in (usd, vtk, blocks, gauges) if r is not None]
+
+    bar = Progress(duration, nf if nf else (sim.blocks.num_blocks if sim.blocks is not None else 0), enabled=progress,
+                   unit="particles" if nf else "blocks")
+    wall0 = time.perf_counter()
+    escaped = 0
+    t0 = sim.time
+    interrupted = False
+    first, steps0 = 0, sim.steps
+    if resumed is not None:  # outputs continue where the checkpoint was taken
+        meta = resumed[1]
+        t0, first, escaped = meta["t0"], meta["frame"] + 1, meta["escaped"]
+        try:
+            if usd is not None:
+                usd.restore(meta["usd"])
+            if gauges is not None:
+                gauges.restore(meta["csv"].get("gauges"))
+            if blocks is not None:
+                blocks.restore(meta["csv"].get("blocks"))
+        except (OSError, ValueError) as e:
+            raise ckpt.CheckpointError(f"cannot resume in {out}: {e}") from None
+        if vtk is not None:
+            vtk.restore(meta.get("vtk"))
+    else:
+        from rockwave import preflight
+
+        preflight.check_disk(sim, out, n_frames)
+    interval = o.get("checkpoint_interval_s", 600.0) if checkpoint_interval_s is None else checkpoint_interval_s
+    checkpointer = ckpt.RunCheckpointer(sim, out, interval, t0, lambda: {
+        "usd": usd, "escaped": escaped, "vtk": vtk, "csv": {"gauges": gauges, "blocks": blocks}})
+
+    def write_frame(index: int) -> None:
+        nonlocal escaped
+        f = rec.Frame(sim, index, surface)
+        if sim.fluid is not None:
+            escaped = sim.check_health(f.x[:, : scene.dim], f.v[:, : scene.dim])
+        else:
+            sim.check_health(f.x[:, : scene.dim], f.v[:, : scene.dim])
+        for r in recorders:
+            r.frame(f)
+
+    stop = []
+
+    def on_sigint(signum, frm):
+        if stop:  # a second Ctrl-C stops at once
+            raise KeyboardInterrupt
+        stop.append(True)
+        print("\ninterrupted: finishing the current frame, then writing a checkpoint (Ctrl-C again to stop at once)",
+              file=sys.stderr)
+
+    old_handler = signal.signal(signal.SIGINT, on_sigint) if threading.current_thread() is threading.main_thread() else None
+    failed = False
+    try:
+        if first == 0:
+            write_frame(0)
+            checkpointer.frame_done(0)
+        for f in range(max(first, 1), n_frames + 1):
+            if stop:
+                break
+            sim.advance(t0 + f * frame_dt - sim.time)
+            write_frame(f)
+            checkpointer.frame_done(f)
+            bar.update(sim.time - t0, sim.steps)
+        if stop:
+            interrupted = True
+            checkpointer.write("interrupt")
+        else:
+            rest = t0 + duration - sim.time
+            if rest > 1e-9:
+                sim.advance(rest)
+            if checkpointer.interval > 0:
+                checkpointer.write("end")
+    except KeyboardInterrupt:
+        interrupted = True
+    except SimulationError as e:  # blow-up: the outputs end at the last good frame, which is checkpointed
+        failed = True
+        try:
+            path = checkpointer.write("blow-up")
+            kept = f"; frames up to {checkpointer.frame} are kept in {out}" if checkpointer.frame >= 0 else ""
+            more = f"; checkpoint of frame {checkpointer.frame} written to {path} (continue with --resume)" if path else ""
+        except OSError as we:
+            kept, more = "", f"; no checkpoint written ({we})"
+        err = SimulationError(f"{e}{kept}{more}")
+        err.__dict__.update(e.__dict__)
+        raise err from None
+    except OSError as e:  # full disk, folder removed: what was written stays as it was
+        failed = True
+        last = checkpointer.written_frame
+        raise SimulationError(f"cannot write the outputs in {out}: {e}; the files written before are intact "
+                              f"(last frame computed {checkpointer.frame}"
+                              f"{', last checkpoint frame ' + str(last) if last is not None else ''})") from None
+    finally:
+        if old_handler is not None:
+            signal.signal(signal.SIGINT, old_handler)
+        for r in recorders:
+            try:
+                r.close()
+            except OSError:
+                if not failed:
+                    raise
+        bar.close()
+    wall = time.perf_counter() - wall0
+    summary = {
+        "scene": str(Path(scene.path).resolve()) if scene.path != "<scene>" else scene.path,
+        "device": sim.device,
+        "fluid_particles": nf,
+        "boundary_particles": sim.fluid.n_boundary if sim.fluid is not None else 0,
+        "blocks": sim.blocks.num_blocks if sim.blocks is not None else 0,
+        "removed_inside_blocks": sim.removed_inside_blocks,
+        "simulated_s": sim.time - t0,
+        "steps": sim.steps,
+        "step_limited_by": sim.clock.limiting,
+        "wall_s": wall,
+        "particle_steps_per_s": nf * (sim.steps - steps0) / wall if wall > 0 and nf else None,
+        "block_steps_per_s": sim.blocks.num_blocks * (sim.steps - steps0) / wall if wall > 0 and sim.blocks is not None else None,
+        "particles_outside_domain": escaped,
+        "usd": str(out / o.usd) if usd is not None else None,
+        "interrupted": interrupted,
+        "resumed_from_frame": resumed[1]["frame"] if resumed is not None else None,
+        "checkpoint": str(checkpointer.path) if checkpointer.written_frame is not None else None,
+    }
+    atomic_write_text(_summary_path(out), json.dumps(summary, indent=2))
+    if interrupted:
+        raise KeyboardInterrupt
+    return summary
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Temporary file, fsync, rename (rockwave/checkpoint.py): a failure leaves the old file as it was."""
+    ckpt.atomic_write(path, text.encode())
