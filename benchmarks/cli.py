@@ -135,7 +135,7 @@ def merge(files: list, out, force: bool = False) -> dict:
                                    "time_utc": r.get("time_utc"), "suite_wall_s": r.get("suite_wall_s"),
                                    "load_average": r.get("load_average")})
     res["parts_done"] = [p for p in PARTS if p in done]
-    res["parts_pending"] = []
+    res["parts_pending"] = [p for p in PARTS if p not in done and any(p in r.get("parts_pending", []) for _, r in recs)]
     res["suite_wall_s"] = sum(r.get("suite_wall_s") or 0.0 for _, r in recs)
     out = Path(out)
     res["record"] = rel(out)
