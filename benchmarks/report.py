@@ -27,7 +27,8 @@ def _f(v, fmt: str = ".3f", missing: str = "-") -> str:
 
 
 def _table(head: list[str], rows: list[list]) -> list[str]:
-    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    return lines + ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
 
 
 def commits(res: dict) -> str:
@@ -130,7 +131,8 @@ def _peers(pe: dict) -> list[str]:
     if "throughput_ratio" in w:
         we, r = w["warp_example"], w["rockwave"]
         L += _table(["code", "particles", "neighbours", "particle-steps/s", "ratio rockwave / example"],
-                    [["Warp example_sph.py", we["particles"], _f(we["neighbours"], ".1f"), _f(we["particle_steps_per_s"], ".3g"), ""],
+                    [["Warp example_sph.py", we["particles"], _f(we["neighbours"], ".1f"),
+                      _f(we["particle_steps_per_s"], ".3g"), ""],
                      ["rockwave 3D dam break", r.get("particles", "-"), _f(r["neighbours"], ".1f"),
                       _f(r["particle_steps_per_s"], ".3g"), _f(w["throughput_ratio"], ".2f")]]) + [""]
     else:
@@ -162,7 +164,8 @@ def _ghost_cost(gc: dict) -> list[str]:
         b = r.get("ghost_busy")
         if b:
             top = ", ".join(f"{k} {v:.3f}" for k, v in list(b["top_ms"].items())[:6])
-            L.append(f"- {r['scene']} {r['spacing_m']:g} m: ghost step {b['gpu_busy_ms']:.3f} ms GPU busy of {b['wall_ms']:.3f} ms wall, "
+            L.append(f"- {r['scene']} {r['spacing_m']:g} m: ghost step {b['gpu_busy_ms']:.3f} ms GPU busy "
+                     f"of {b['wall_ms']:.3f} ms wall, "
                      f"{b['launches_per_step']:.0f} launches; top kernels (ms): {top}")
     return L + [""]
 
@@ -172,7 +175,8 @@ def _ghost_accuracy(ga: dict) -> list[str]:
     rows = []
     for r in ga["rows"]:
         if r["case"] == 1:
-            what = f"front vs Martin & Moyce: mean {_f(r['front_error_mean'], '+.1%')}, largest {_f(r['front_error_max'], '+.1%')}"
+            what = (f"front vs Martin & Moyce: mean {_f(r['front_error_mean'], '+.1%')}, "
+                    f"largest {_f(r['front_error_max'], '+.1%')}")
         elif r["case"] == 2:
             what = (f"centroid {_f(r['centroid_dx'])} dx, front difference {_f(r['front_difference_dx'])} dx, "
                     f"mirror distance {_f(r['mirror_distance_dx'], '.2f')} dx")
@@ -181,7 +185,8 @@ def _ghost_accuracy(ga: dict) -> list[str]:
         else:
             what = (f"max E/E(0) {_f(r['max_E_over_E0'])}, largest rise {_f(r['largest_rise_over_E0'], '+.4f')} E(0), "
                     f"deepest past a face {_f(r['deepest_past_wall_dx'], '.2f')} dx, {r['over_top']} over the open top")
-        rows.append([r["case"], r["method"], _f(r["spacing"], "g"), r["n_fluid"], what, _f(r.get("wall_s"), ".0f"), r.get("commit", "")])
+        rows.append([r["case"], r["method"], _f(r["spacing"], "g"), r["n_fluid"], what, _f(r.get("wall_s"), ".0f"),
+                     r.get("commit", "")])
     head = ["case", "method", "spacing m", "fluid", "result", "wall s"]
     if not any(r.get("commit") for r in ga["rows"]):
         rows = [r[:-1] for r in rows]
@@ -316,9 +321,11 @@ def charts(res: dict, stem: str, out_dir=None) -> list[str]:
                 rr = [r for r in rows if r["variant"] == v]
                 ax.scatter([r["wall_per_sim_s"] for r in rr], [r["error"] for r in rr], marker=marks[j % len(marks)], label=v)
                 for r in rr:
-                    ax.annotate(r["resolution"], (r["wall_per_sim_s"], r["error"]), fontsize=6, xytext=(3, 2), textcoords="offset points")
+                    ax.annotate(r["resolution"], (r["wall_per_sim_s"], r["error"]), fontsize=6, xytext=(3, 2),
+                                textcoords="offset points")
             pf = sorted([r for r in rows if r.get("pareto")], key=lambda r: r["wall_per_sim_s"])
-            ax.step([r["wall_per_sim_s"] for r in pf], [r["error"] for r in pf], where="post", color="k", lw=1, label="Pareto front")
+            ax.step([r["wall_per_sim_s"] for r in pf], [r["error"] for r in pf], where="post", color="k", lw=1,
+                    label="Pareto front")
             ax.set_xscale("log")
             ax.set_yscale("log")
             ax.set_xlabel("wall-clock seconds per simulated second")

@@ -181,7 +181,8 @@ def test_ghost_parts_tables():
     cost = {"cases": [{"scene": "ghost_dam_break_case1.toml", "spacing_m": 0.01, "fluid": 3600, "ghosts": 137, "basic_ms": 0.536,
                        "ghost_ms": 0.771, "ratio": 1.4384, "sampling_share": 0.25, "basic_graph_ms": 0.09, "ratio_graph": 8.57},
                       {"scene": "dam_break_3d.toml", "spacing_m": 0.01, "error": "RuntimeError: out of memory"}]}
-    acc = {"rows": [{"case": 1, "method": "tile", "spacing": 0.01, "n_fluid": 3600, "front_error_mean": 0.106, "front_error_max": 0.151},
+    acc = {"rows": [{"case": 1, "method": "tile", "spacing": 0.01, "n_fluid": 3600, "front_error_mean": 0.106,
+                     "front_error_max": 0.151},
                     {"case": 3, "method": "basic", "spacing": 0.01, "n_fluid": 3600, "finite": False}]}
     md = markdown({"suite": "full", "device": "cuda:0", "device_name": "GPU", "date": "d", "commit": "c", "ghost_cost": cost,
                    "ghost_accuracy": acc})

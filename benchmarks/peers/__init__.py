@@ -26,7 +26,8 @@ def run(dev: str, cfg: dict) -> dict:
         out["warp_example"] = w = warp_example.compare(cfg["warp_example_spacing"], dev)
         log(f"  Warp example_sph at {w['warp_example']['particles']} particles ({w['warp_example']['neighbours']:.1f} nbrs): "
             f"{w['warp_example']['particle_steps_per_s']:.3g} particle-steps/s; rockwave "
-            f"{w['rockwave']['particle_steps_per_s']:.3g} ({w['rockwave']['neighbours']:.1f} nbrs); ratio {w['throughput_ratio']:.2f}")
+            f"{w['rockwave']['particle_steps_per_s']:.3g} ({w['rockwave']['neighbours']:.1f} nbrs); "
+            f"ratio {w['throughput_ratio']:.2f}")
     except Exception as e:
         out["warp_example"] = {"error": f"{type(e).__name__}: {e}"[:300]}
         log(f"  Warp example failed: {out['warp_example']['error']}")
