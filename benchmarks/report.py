@@ -220,8 +220,9 @@ def markdown(res: dict, level: int = 2) -> str:
         facts.append(f"Record: `{res['record']}`.")
     L = ["#" * level + " " + title(res), "", " ".join(facts), ""]
     for m in res.get("merged_from", []):
+        wall = f", {m['suite_wall_s']:.0f} s" if m.get("suite_wall_s") else ""
         L.append(f"- part file `{m['file']}`: {', '.join(m['parts'])}; commit {m.get('commit')}, {m.get('date')} "
-                 f"{m.get('time_utc') or ''} UTC, {_f(m.get('suite_wall_s'), '.0f')} s")
+                 f"{m.get('time_utc') or ''} UTC{wall}")
     if res.get("merged_from"):
         L.append("")
     if res.get("note"):
