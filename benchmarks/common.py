@@ -1,8 +1,7 @@
-"""Shared helpers for the benchmark scripts: device facts, timing, result files."""
+"""Shared helpers of the benchmark parts: paths, device facts, timing, result files."""
 
 from __future__ import annotations
 
-import datetime
 import json
 import os
 import platform
@@ -10,13 +9,19 @@ import subprocess
 import time
 from pathlib import Path
 
-import warp as wp
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 
 
+def log(msg: str) -> None:
+    print(msg, flush=True)
+
+
 def device_name(device: str) -> str:
+    import warp as wp
+
     d = wp.get_device(device)
     if d.is_cuda:
         return d.name
@@ -31,12 +36,16 @@ def device_name(device: str) -> str:
 
 def commit() -> str:
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip() or "unknown"
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+        return out.stdout.strip() or "unknown"
     except OSError:
         return "unknown"
 
 
 def timed(fn, device: str) -> float:
+    """Wall seconds of fn(), synchronised with the device before and after."""
+    import warp as wp
+
     wp.synchronize_device(device)
     t = time.perf_counter()
     fn()
@@ -44,11 +53,30 @@ def timed(fn, device: str) -> float:
     return time.perf_counter() - t
 
 
-def save(name: str, device: str, payload: dict) -> Path:
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    stamp = datetime.date.today().isoformat()
-    tag = device.replace(":", "")
-    path = RESULTS / f"{stamp}-{name}-{tag}.json"
-    payload = {"benchmark": name, "device": device, "device_name": device_name(device), "date": stamp, "commit": commit(), **payload}
-    path.write_text(json.dumps(payload, indent=2))
-    return path
+def rel(path) -> str:
+    """A path relative to the repository where it lies inside it."""
+    try:
+        return str(Path(path).resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
+def jdefault(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def write_json(res: dict, path) -> None:
+    """Write a result JSON atomically (temp file in the same folder, then rename): a run killed while
+    writing leaves the previous complete file, never a truncated one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "w") as f:
+        json.dump(res, f, indent=1, default=jdefault)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)

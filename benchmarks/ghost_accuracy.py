@@ -1,9 +1,6 @@
-"""Accuracy of basic SPH and Ghost SPH (both ghost samplers) on the report's scenes.
-
-    python -m benchmarks.ghost_accuracy --device cuda:0                 # 0.01 m, the report's resolution
-    python -m benchmarks.ghost_accuracy --device cpu --spacing 0.03     # the tests' resolution
-
-For each method (``basic``, ``tile``, ``darts``) and the same scene settings otherwise:
+"""Part ``ghost_accuracy``: accuracy of basic SPH and Ghost SPH (both ghost samplers) on the report's
+scenes (scenes/ghost_dam_break_case1..3.toml; the full suite at their 0.01 m, the quick one at the tests'
+0.03 m). For each method (``basic``, ``tile``, ``darts``) and the same scene settings otherwise:
 
 - case 1 (column against the left wall): surge front Z = (max x + dx/2) / a against Martin & Moyce
   (1952, n^2 = 1) at their times up to T = t sqrt(g/a) = 1.62 (before the far wall): mean and largest
@@ -17,31 +14,36 @@ For each method (``basic``, ``tile``, ``darts``) and the same scene settings oth
   every 0.02 s: the run-up jet at 0.01 m, basic SPH too) and their highest point; of the others the
   deepest past a tank face or into the obstacle / dx (a wall leak).
 
-Prints one row per method and case; ``--json`` writes them. Wall time per case is printed too (the
-runs go through Simulation.advance, so it includes the host reads of the checks).
+``ghost_repeats`` runs each case and method several times (on a GPU runs differ: atomics order);
+``ghost_set``: (dotted key, value) scene changes (for ghost runs only where the key is under fluid.ghost).
+Wall time per case is recorded (the runs go through Simulation.advance, so it includes the host reads of
+the checks).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
-from pathlib import Path
 
 import numpy as np
-import warp as wp
 
-import rockwave
+from benchmarks.common import ROOT, log
 from benchmarks.harness import martin_moyce
 
-ROOT = Path(__file__).resolve().parent.parent
+CONFIG = {
+    "quick": dict(ghost_spacing=0.03, ghost_methods=["basic", "tile", "darts"], ghost_accuracy_cases=[1, 2, 3],
+                  ghost_repeats_accuracy=1, ghost_set=[]),
+    "full": dict(ghost_spacing=None, ghost_methods=["basic", "tile", "darts"], ghost_accuracy_cases=[1, 2, 3],
+                 ghost_repeats_accuracy=3, ghost_set=[]),
+}
 TANK_LO, TANK_HI = np.array([0.0, 0.0]), np.array([1.6, 3.5])
 OBSTACLE_LO, OBSTACLE_HI = np.array([1.0, 0.0]), np.array([1.12, 0.12])
 
 
-def simulation(case: int, method: str, spacing: float | None, device: str, changes=()) -> rockwave.Simulation:
+def simulation(case: int, method: str, spacing: float | None, device: str, changes=()):
     """Scene ghost_dam_break_case<case>.toml with fluid.method basic, or ghost with the given sampler;
     ``changes``: (dotted key, value) pairs applied to the scene (ghost runs only for fluid.ghost keys)."""
+    import rockwave
+
     path = ROOT / "scenes" / f"ghost_dam_break_case{case}.toml"
     d = rockwave.load_scene(path).raw
     for key, value in changes:
@@ -75,7 +77,7 @@ def elastic_energy(params, rho: np.ndarray) -> np.ndarray:
     return B * ((rho ** (g - 1) - rho0 ** (g - 1)) / ((g - 1) * rho0**g) + 1.0 / rho - 1.0 / rho0)
 
 
-def case1_front(sim: rockwave.Simulation, a: float = 0.6) -> dict:
+def case1_front(sim, a: float = 0.6) -> dict:
     dx = sim.fluid.spacing
     errors = []
     for T, Z in martin_moyce("front_n2_1"):
@@ -88,7 +90,7 @@ def case1_front(sim: rockwave.Simulation, a: float = 0.6) -> dict:
     return {"front_error_mean": float(e.mean()), "front_error_max": float(e[np.argmax(np.abs(e))]), "samples": len(e)}
 
 
-def case2_symmetry(sim: rockwave.Simulation, t: float = 0.2) -> dict:
+def case2_symmetry(sim, t: float = 0.2) -> dict:
     from scipy.spatial import cKDTree
 
     dx = sim.fluid.spacing
@@ -101,7 +103,7 @@ def case2_symmetry(sim: rockwave.Simulation, t: float = 0.2) -> dict:
             "mirror_distance_dx": float(cKDTree(x).query(mirror)[0].mean() / dx)}
 
 
-def case3_energy(sim: rockwave.Simulation) -> dict:
+def case3_energy(sim) -> dict:
     dx = sim.fluid.spacing
     n = sim.fluid.n_fluid
     w = sim.fluid.particle_mass.numpy()[:n].astype(np.float64)
@@ -139,24 +141,12 @@ def case3_energy(sim: rockwave.Simulation) -> dict:
             "passed_obstacle": bool(sim.positions()[:, 0].max() > OBSTACLE_HI[0])}
 
 
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--spacing", type=float, default=None, help="fluid spacing [m] (default: the scenes' 0.01 m)")
-    ap.add_argument("--methods", default="basic,tile,darts")
-    ap.add_argument("--cases", default="1,2,3")
-    ap.add_argument("--repeats", type=int, default=1,
-                    help="runs of each case and method (on a GPU runs differ: atomics order)")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="scene change, e.g. fluid.ghost.sample_radius_ratio=0.8 (value parsed as JSON)")
-    ap.add_argument("--json", default=None)
-    a = ap.parse_args(argv)
-    wp.config.quiet = True
+def run(dev: str, cfg: dict) -> dict:
     rows = []
-    for case in [int(c) for c in a.cases.split(",")]:
-        for method in [m for m in a.methods.split(",") for _ in range(a.repeats)]:
-            changes = [(kv.split("=", 1)[0], json.loads(kv.split("=", 1)[1])) for kv in a.set]
-            sim = simulation(case, method, a.spacing, a.device, changes)
+    changes = [tuple(kv) for kv in cfg["ghost_set"]]
+    for case in cfg["ghost_accuracy_cases"]:
+        for method in [m for m in cfg["ghost_methods"] for _ in range(cfg["ghost_repeats_accuracy"])]:
+            sim = simulation(case, method, cfg["ghost_spacing"], dev, changes)
             t0 = time.perf_counter()
             res = {1: case1_front, 2: case2_symmetry, 3: case3_energy}[case](sim)
             res.update(case=case, method=method, spacing=sim.fluid.spacing, n_fluid=sim.n_fluid,
@@ -164,10 +154,5 @@ def main(argv=None) -> None:
             rows.append(res)
             shown = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in res.items()
                      if k not in ("case", "method", "device", "spacing")}
-            print(f"case {case} {method:6s} {shown}", flush=True)
-    if a.json:
-        Path(a.json).write_text(json.dumps({"device": wp.get_device(a.device).name, "rows": rows}, indent=1))
-
-
-if __name__ == "__main__":
-    main()
+            log(f"  case {case} {method:6s} {shown}")
+    return {"rows": rows}

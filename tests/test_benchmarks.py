@@ -76,23 +76,42 @@ def _header(device="cpu", commit="abc1234", wall=10.0, **parts):
 def test_run_writes_json_after_each_part_and_keeps_finished_parts_when_killed(tmp_path, monkeypatch):
     import json
 
-    import benchmarks.__main__ as B
+    from benchmarks import accuracy, cli, report, stability
 
     def killed(dev, cfg):  # a call cut off by its time limit, not an exception the harness would record
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(B, "part_accuracy", lambda dev, cfg: _acc_rows())
-    monkeypatch.setattr(B, "part_stability", killed)
+    monkeypatch.setattr(accuracy, "run", lambda dev, cfg: _acc_rows())
+    monkeypatch.setattr(stability, "run", killed)
     out = tmp_path / "part.json"
     try:
-        B.main(["run", "--device", "cpu", "--suite", "quick", "--only", "accuracy", "stability", "--out", str(out)])
+        cli.main(["run", "--device", "cpu", "--suite", "quick", "--only", "accuracy", "stability", "--out", str(out)])
     except KeyboardInterrupt:
         pass
     res = json.loads(out.read_text())
     assert res["parts_done"] == ["accuracy"] and res["parts_pending"] == ["stability"]
     assert res["accuracy"]["dam_break_2d"][0]["variant"] == "tait" and "stability" not in res
+    assert res["device_name"] and res["date"] and res["commit"] and res["config"]["dam_res"] == [10, 14, 20]
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]  # the write is atomic: no leftovers
-    assert "incomplete" in B.summary(res)
+    assert "Incomplete: not run or not finished: stability" in report.markdown(res)
+
+
+def test_a_failing_part_is_recorded_and_the_others_run(tmp_path, monkeypatch):
+    import json
+
+    from benchmarks import cli, wave_maker
+
+    def broken(dev, cfg):
+        raise RuntimeError("no such scene")
+
+    monkeypatch.setattr(wave_maker, "run", broken)
+    monkeypatch.setattr(cli.report, "charts", lambda res, stem, out_dir=None: [])
+    monkeypatch.setattr("benchmarks.peers.run", lambda dev, cfg: _peers())
+    cli.main(["run", "--device", "cpu", "--only", "wave_maker", "peers", "--out-dir", str(tmp_path)])
+    (out,) = tmp_path.glob("*-cpu-quick-peers-wave_maker.json")
+    res = json.loads(out.read_text())
+    assert res["parts_done"] == ["peers", "wave_maker"] and "wave_maker" not in res
+    assert res["wave_maker_error"].startswith("RuntimeError: no such scene") and res["peers"] == _peers()
 
 
 def test_merge_parts_redraws_charts_and_refuses_mixed_devices(tmp_path):
@@ -100,24 +119,24 @@ def test_merge_parts_redraws_charts_and_refuses_mixed_devices(tmp_path):
 
     import pytest
 
-    import benchmarks.__main__ as B
+    from benchmarks import cli, report
 
     a, b = tmp_path / "a.json", tmp_path / "b.json"
     a.write_text(json.dumps(_header("cuda:0", "aaa1111", 385.0, accuracy=_acc_rows())))
     b.write_text(json.dumps(_header("cuda:0", "bbb2222", 305.0, peers=_peers())))
     out = tmp_path / "merged" / "full.json"
-    B.main(["merge", str(a), str(b), "--out", str(out)])
+    cli.main(["merge", str(a), str(b), "--out", str(out)])
     res = json.loads(out.read_text())
-    assert res["parts_done"] == ["accuracy", "peers"] and res["parts_pending"] == ["stability", "scaling", "wave_maker"]
+    assert res["parts_done"] == ["accuracy", "peers"] and res["parts_pending"] == []
     assert res["suite_wall_s"] == 690.0 and [m["commit"] for m in res["merged_from"]] == ["aaa1111", "bbb2222"]
     assert (out.parent / "full-accuracy-dam_break_2d.png").stat().st_size > 0
-    md = B.markdown(res)
-    assert "NVIDIA H100" in md and "CPU's cores" not in md and "aaa1111, bbb2222" in md
-    assert "pysplishsplash is not installed" in B.summary(res)
+    md = report.markdown(res)
+    assert "NVIDIA H100" in md and "Commit: aaa1111, bbb2222." in md and "other processes share the CPU" not in md
+    assert "| tait | a/20 | 800 | 0.070 * |" in md and "SPlisHSPlasH: pysplishsplash is not installed" in md
     (tmp_path / "c.json").write_text(json.dumps(_header("cpu", peers=_peers())))
     with pytest.raises(ValueError, match="device"):
-        B.merge([a, tmp_path / "c.json"], tmp_path / "x.json")
-    B.main(["charts", str(out), "--out-dir", str(tmp_path / "redrawn")])
+        cli.merge([a, tmp_path / "c.json"], tmp_path / "x.json")
+    cli.main(["charts", str(out), "--out-dir", str(tmp_path / "redrawn")])
     assert (tmp_path / "redrawn" / "full-accuracy-dam_break_2d.png").is_file()
 
 
@@ -144,17 +163,59 @@ def test_splash_scene_matches_rockwave_lattice_and_eos():
 
 
 def test_wave_maker_part_reports_the_10_percent_check():
-    """The harness's wave_maker part (issue 4's piston check at full size) is summarised and written to
-    RESULTS markdown with its class; a record with the H100 figures (16 / 128 layers per depth)."""
-    from benchmarks.__main__ import markdown, summary
+    """The wave_maker part's table (issue 4's piston check at full size), from a record with the H100
+    figures (16 / 128 layers per depth)."""
+    from benchmarks.report import markdown
 
-    rows = [dict(layers=16, particles=2048, error_gauge1=-0.196, error_gauge2=-0.364, wall_s=5.0, class_="outside 10%"),
-            dict(layers=128, particles=131072, error_gauge1=-0.074, error_gauge2=-0.175, wall_s=169.0, class_="within 10%")]
-    for r in rows:
-        r["class"] = r.pop("class_")
+    rows = [dict(layers=16, particles=2048, error_gauge1=-0.196, error_gauge2=-0.364, wall_s=5.0, **{"class": "outside 10%"}),
+            dict(layers=128, particles=131072, error_gauge1=-0.074, error_gauge2=-0.175, wall_s=169.0, **{"class": "within 10%"})]
     res = {"suite": "full", "device": "cuda:0", "device_name": "NVIDIA H100 80GB HBM3", "date": "2026-11-22", "commit": "x",
            "warp": "1.19.0", "load_average": [0.0, 0.0, 0.0], "wave_maker": {"piston": rows}}
-    s = summary(res)
-    assert "128 layers/depth  131072 particles gauge_1 -7.4%" in s and "within 10%" in s and "outside 10%" in s
     md = markdown(res)
-    assert "| 128 | 131072 | -7.4% | -17.5% | 169 | within 10% |" in md
+    assert "| 128 | 131072 | -7.4% | -17.5% | 169 | within 10% |" in md and "| 16 | 2048 | -19.6% |" in md
+
+
+def test_ghost_parts_tables():
+    from benchmarks.report import markdown
+
+    cost = {"cases": [{"scene": "ghost_dam_break_case1.toml", "spacing_m": 0.01, "fluid": 3600, "ghosts": 137, "basic_ms": 0.536,
+                       "ghost_ms": 0.771, "ratio": 1.4384, "sampling_share": 0.25, "basic_graph_ms": 0.09, "ratio_graph": 8.57},
+                      {"scene": "dam_break_3d.toml", "spacing_m": 0.01, "error": "RuntimeError: out of memory"}]}
+    acc = {"rows": [{"case": 1, "method": "tile", "spacing": 0.01, "n_fluid": 3600, "front_error_mean": 0.106,
+                     "front_error_max": 0.151},
+                    {"case": 3, "method": "basic", "spacing": 0.01, "n_fluid": 3600, "finite": False}]}
+    md = markdown({"suite": "full", "device": "cuda:0", "device_name": "GPU", "date": "d", "commit": "c", "ghost_cost": cost,
+                   "ghost_accuracy": acc})
+    assert "| ghost_dam_break_case1.toml | 0.01 | 3600 | 137 | 0.536 | 0.771 | 1.44 | 0.090 (8.57) | 25% |" in md
+    assert "RuntimeError: out of memory" in md
+    assert "mean +10.6%, largest +15.1%" in md and "non-finite state" in md
+
+
+def test_parts_share_one_cli_and_disjoint_config_keys():
+    """Every part has a quick and a full configuration; the keys of different parts never collide (a run of
+    several parts merges them into one configuration)."""
+    from benchmarks import cli
+
+    seen = {}
+    for name in cli.PARTS:
+        mod = cli.part(name)
+        assert callable(mod.run) and set(mod.CONFIG) == set(cli.SUITES), name
+        assert set(mod.CONFIG["quick"]) == set(mod.CONFIG["full"]), name
+        for key in mod.CONFIG["quick"]:
+            assert key not in seen, f"{name} and {seen.get(key)} both use {key}"
+            seen[key] = name
+
+
+def test_results_md_is_generated_from_the_records():
+    """benchmarks/RESULTS.md is what `python -m benchmarks report` writes from benchmarks/results/*.json;
+    every record keeps the device name, date and commit, and the charts it names exist."""
+    from benchmarks import report
+    from benchmarks.common import RESULTS, ROOT
+
+    assert (RESULTS.parent / "RESULTS.md").read_text() == report.render_results(), "run python -m benchmarks report"
+    recs = report.records()
+    assert len(recs) >= 5
+    for path, r in recs:
+        assert r["device_name"] and r["date"] and r["commit"] not in ("", "unknown"), path.name
+        for c in r.get("charts", []):
+            assert (ROOT / c).is_file(), (path.name, c)

@@ -97,7 +97,8 @@ def splash_scene(spacing: float, c0: float, dt: float, a: float = H.A_MM, stiffn
                        "viscosityBoundary": 0.0}],
         "RigidBodies": [{
             "geometryFile": unit_box(), "translation": [L / 2, Ht / 2, w / 2], "rotationAxis": [1, 0, 0],
-            "rotationAngle": 0, "scale": [L + 2 * spacing, Ht + 2 * spacing, w + 2 * spacing], "isDynamic": False, "isWall": True, "mapInvert": True,
+            "rotationAngle": 0, "scale": [L + 2 * spacing, Ht + 2 * spacing, w + 2 * spacing], "isDynamic": False,
+            "isWall": True, "mapInvert": True,
             "mapThickness": 0.0, "mapResolution": [40, 30, 15], "samplingMode": 1,
         }],
         "FluidBlocks": [{"denseMode": 0, "start": [-e, -e, -e], "end": [a + e, 2 * a + e, w + e], "translation": [0, 0, 0],
@@ -231,8 +232,10 @@ def compare(spacing_ratio: float = 10, c0: float = 15.0, t_end: float | None = N
     res = {"scene": f"3D Martin & Moyce n^2 = 2 dam break, a = {a} m, slab depth a, spacing a/{spacing_ratio:g}",
            "spacing_m": spacing, "c0_m_s": c0, "dt_s": dt, "t_end_s": t_end, "suite_device": device, "run_on": "cpu",
            "kernel": "cubic spline, support 2 x spacing",
-           "eos": f"p = B((rho/rho0)^7 - 1), p >= 0; rockwave Tait B = c0^2 rho0/7 = {tait_b(c0):.6g} Pa = SPlisHSPlasH WCSPH stiffness, exponent 7",
-           "viscosity": f"rockwave artificial alpha {ALPHA}; SPlisHSPlasH standard nu = alpha c0 h/10 = {splash_viscosity(ALPHA, c0, spacing):.4g} m^2/s"}
+           "eos": f"p = B((rho/rho0)^7 - 1), p >= 0; rockwave Tait B = c0^2 rho0/7 = {tait_b(c0):.6g} Pa "
+                  "= SPlisHSPlasH WCSPH stiffness, exponent 7",
+           "viscosity": f"rockwave artificial alpha {ALPHA}; SPlisHSPlasH standard nu = alpha c0 h/10 = "
+                        f"{splash_viscosity(ALPHA, c0, spacing):.4g} m^2/s"}
     ok, why = available()
     if not ok:  # checked first: nothing runs for a comparison that cannot happen
         res["splash"] = {"skipped": why}

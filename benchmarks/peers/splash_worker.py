@@ -42,7 +42,8 @@ def main() -> None:
 
     def apply_settings():
         if "viscosity" in settings:
-            sim.getFluidModel(0).getViscosityBase().setValueFloat(sph.Viscosity_Standard.VISCOSITY_COEFFICIENT, float(settings["viscosity"]))
+            sim.getFluidModel(0).getViscosityBase().setValueFloat(sph.Viscosity_Standard.VISCOSITY_COEFFICIENT,
+                                                                  float(settings["viscosity"]))
 
     def parameters():
         """The parameters SPlisHSPlasH actually uses (a misspelt or unread scene key is silently ignored)."""
@@ -53,7 +54,8 @@ def main() -> None:
                 "time_step": float(tm.getTimeStepSize())}
         for name, get in (("stiffness", lambda: sim.getTimeStep().getValueFloat(sph.TimeStepWCSPH.STIFFNESS)),
                           ("exponent", lambda: sim.getTimeStep().getValueFloat(sph.TimeStepWCSPH.EXPONENT)),
-                          ("viscosity", lambda: fm.getViscosityBase().getValueFloat(sph.Viscosity_Standard.VISCOSITY_COEFFICIENT)),
+                          ("viscosity",
+                           lambda: fm.getViscosityBase().getValueFloat(sph.Viscosity_Standard.VISCOSITY_COEFFICIENT)),
                           ("viscosity_method", lambda: type(fm.getViscosityBase()).__name__)):
             try:
                 used[name] = get()

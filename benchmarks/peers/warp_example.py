@@ -67,10 +67,10 @@ def run(n_target: int, device: str, frames: int = 2) -> dict:
 
 
 def compare(spacing: float, device: str, steps: int = 20) -> dict:
-    """rockwave's 3D dam break at ``spacing`` (fluid_bench.run) and the example at its particle count."""
-    from benchmarks import fluid_bench
+    """rockwave's 3D dam break at ``spacing`` (the scaling part's fluid throughput) and the example at its particle count."""
+    from benchmarks import scaling
 
-    r = fluid_bench.run(device, spacing, steps, warmup=5)
+    r = scaling.fluid(device, spacing, steps, warmup=5)
     w = run(r["particles"], device)
     return {"rockwave": r, "warp_example": w, "throughput_ratio": r["particle_steps_per_s"] / w["particle_steps_per_s"],
             "note": "example: Mueller kernels, linear EOS, clamped walls, ~6 neighbours; rockwave: ~30 neighbours "

@@ -1,24 +1,20 @@
-"""Piston wave maker against linear wavemaker theory as the resolution grows (issue 4, full size of
-the test tests/test_coupling.py::test_piston_wave_maker_linear_theory): scenes/wave_maker_small.toml
-(2D, h = 0.2 m, S = 0.03 m, f = 1.297 Hz, kh = 1.5) at 16, 32, 64 ... particle layers per depth;
-first-harmonic wave height at gauge_1 (0.35 m) and gauge_2 (0.7 m) over the two periods ending at
-2.6 s, against H/S = 2 (cosh 2kh - 1)/(sinh 2kh + 2kh). JSON lines on stdout.
-
-    python -m benchmarks.wave_maker_accuracy --device cuda:0 --layers 16 32 64 128
+"""Part ``wave_maker``: the piston wave maker against linear wavemaker theory as the resolution grows
+(issue 4, full size of tests/test_coupling.py::test_piston_wave_maker_linear_theory):
+scenes/wave_maker_small.toml (2D, h = 0.2 m, S = 0.03 m, f = 1.297 Hz, kh = 1.5) at 16, 32, 64 ... particle
+layers per depth; first-harmonic wave height at gauge_1 (0.35 m) and gauge_2 (0.7 m) over the two periods
+ending at 2.6 s, against H/S = 2 (cosh 2kh - 1)/(sinh 2kh + 2kh); class "within 10%" or "outside 10%" at gauge_1.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import time
 
 import numpy as np
-import warp as wp
 
-import rockwave
-from benchmarks.common import ROOT, device_name
+from benchmarks.common import ROOT, log
+
+CONFIG = {"quick": dict(wave_layers=[16]), "full": dict(wave_layers=[16, 32, 64, 128])}
 
 
 def first_harmonic_height(t, y, omega):
@@ -37,7 +33,9 @@ def theory(h=0.2, S=0.03, f=1.2970):
     return 2 * (math.cosh(2 * k * h) - 1) / (math.sinh(2 * k * h) + 2 * k * h) * S, om
 
 
-def run(device, layers, t_end=2.6):
+def piston(device, layers, t_end=2.6):
+    import rockwave
+
     scene = rockwave.load_scene(ROOT / "scenes" / "wave_maker_small.toml")
     scene.fluid["spacing_m"] = 0.2 / layers
     H_th, om = theory()
@@ -59,16 +57,12 @@ def run(device, layers, t_end=2.6):
                 H_theory_m=H_th, H_gauge1_m=h1, H_gauge2_m=h2, error_gauge1=h1 / H_th - 1, error_gauge2=h2 / H_th - 1)
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--device", default="cpu")
-    ap.add_argument("--layers", type=int, nargs="+", default=[16, 32])
-    a = ap.parse_args(argv)
-    wp.config.quiet = True
-    print(json.dumps({"device": device_name(a.device), "date": time.strftime("%Y-%m-%d")}), flush=True)
-    for n in a.layers:
-        print(json.dumps(run(a.device, n)), flush=True)
-
-
-if __name__ == "__main__":
-    main()
+def run(dev: str, cfg: dict) -> dict:
+    rows = []
+    for n in cfg["wave_layers"]:
+        r = piston(dev, n)
+        r["class"] = "within 10%" if abs(r["error_gauge1"]) <= 0.10 else "outside 10%"
+        rows.append(r)
+        log(f"  wave maker {n:4d} layers/depth n={r['particles']:7d} gauge_1 {r['error_gauge1']:+.1%} gauge_2 "
+            f"{r['error_gauge2']:+.1%} ({r['wall_s']:.0f} s)  {r['class']}")
+    return {"piston": rows}
