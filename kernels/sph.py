@@ -52,17 +52,6 @@ class SPHParams:
 
 
 @wp.func
-def poly6(r2: float, H: float, dim: int) -> float:
-    # Mueller 2003: W = 315/(64 pi H^9) (H^2 - r^2)^3 (3D);  4/(pi H^8) (H^2 - r^2)^3 (2D)
-    if r2 >= H * H:
-        return 0.0
-    d = H * H - r2
-    if dim == 3:
-        return 315.0 / (64.0 * PI * wp.pow(H, 9.0)) * d * d * d
-    return 4.0 / (PI * wp.pow(H, 8.0)) * d * d * d
-
-
-@wp.func
 def spiky_grad(rij: wp.vec3, r: float, H: float, dim: int) -> wp.vec3:
     # Mueller 2003: grad W = -45/(pi H^6) (H - r)^2 r_hat (3D);  -30/(pi H^5) (H - r)^2 r_hat (2D)
     if r >= H or r < 1.0e-9 * H:
@@ -72,16 +61,6 @@ def spiky_grad(rij: wp.vec3, r: float, H: float, dim: int) -> wp.vec3:
     if dim == 2:
         c = 30.0 / (PI * wp.pow(H, 5.0))
     return (-c * d * d / r) * rij
-
-
-@wp.func
-def viscosity_laplacian(r: float, H: float, dim: int) -> float:
-    # Mueller 2003: lap W = 45/(pi H^6) (H - r) (3D);  40/(pi H^5) (H - r) (2D)
-    if r >= H:
-        return 0.0
-    if dim == 3:
-        return 45.0 / (PI * wp.pow(H, 6.0)) * (H - r)
-    return 40.0 / (PI * wp.pow(H, 5.0)) * (H - r)
 
 
 @wp.func
@@ -153,7 +132,8 @@ def wendland_grad(rij: wp.vec3, r: float, H: float, dim: int) -> wp.vec3:
 
 @wp.func
 def kernel_w(r2: float, p: SPHParams) -> float:
-    if p.kernel == KERNEL_MULLER:  # poly6 with the precomputed constant
+    if p.kernel == KERNEL_MULLER:
+        # Mueller 2003 poly6: W = w_coef (H^2 - r^2)^3, w_coef = 315/(64 pi H^9) (3D), 4/(pi H^8) (2D)
         if r2 >= p.H * p.H:
             return 0.0
         d = p.H * p.H - r2
@@ -178,7 +158,8 @@ def kernel_grad(rij: wp.vec3, r: float, p: SPHParams) -> wp.vec3:
 
 @wp.func
 def kernel_laplacian(r: float, p: SPHParams) -> float:
-    # Mueller's viscosity Laplacian for both kernel choices (it is positive everywhere: stable viscosity)
+    # Mueller 2003 viscosity Laplacian for every kernel choice (positive everywhere: stable viscosity):
+    # lap W = lap_coef (H - r), lap_coef = 45/(pi H^6) (3D), 40/(pi H^5) (2D)
     if r >= p.H:
         return 0.0
     return p.lap_coef * (p.H - r)
@@ -220,27 +201,6 @@ def boundary_volume(
 
 
 @wp.kernel
-def particle_density_summation(
-    grid: wp.uint64,
-    x: wp.array(dtype=wp.vec3),
-    particle_mass: wp.array(dtype=float),
-    p: SPHParams,
-    rho: wp.array(dtype=float),
-    pressure: wp.array(dtype=float),
-):
-    """rho_i = sum_j m_j W_ij (fluid and boundary neighbours, self included), then p_i = EOS(rho_i)."""
-    i = wp.tid()
-    xi = x[i]
-    s = float(0.0)
-    q = wp.hash_grid_query(grid, xi, p.H)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
-    rho[i] = s
-    pressure[i] = equation_of_state(s, p)
-
-
-@wp.kernel
 def lattice_moments(
     x: wp.array(dtype=wp.vec3),
     p: SPHParams,
@@ -269,20 +229,6 @@ def lattice_moments(
 def equation_of_state_pass(rho: wp.array(dtype=float), p: SPHParams, pressure: wp.array(dtype=float)):
     i = wp.tid()
     pressure[i] = equation_of_state(rho[i], p)
-
-
-@wp.kernel
-def integrate_density(
-    drho_dt: wp.array(dtype=float),
-    dt: wp.array(dtype=float),
-    p: SPHParams,
-    rho: wp.array(dtype=float),
-    pressure: wp.array(dtype=float),
-):
-    i = wp.tid()
-    r = rho[i] + dt[0] * drho_dt[i]
-    rho[i] = r
-    pressure[i] = equation_of_state(r, p)
 
 
 @wp.func
