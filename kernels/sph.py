@@ -863,7 +863,14 @@ def pair_acceleration_fluid(
     return a, dv
 
 
-@wp.kernel
+# The force pass is launched with its own block size on CUDA (rockwave.fluid.FluidSolver._block_dim: 128,
+# every other launch 256). Warp builds a module once per block size, so in this module it would build
+# all of rockwave.kernels.sph twice (and again after every change of the module); it lives in a module
+# of its own, built only at the force pass's block size.
+FORCE_PASS_MODULE = "rockwave.kernels.sph_force_pass"
+
+
+@wp.kernel(module=FORCE_PASS_MODULE)
 def particle_acceleration_list(
     count: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
@@ -1102,6 +1109,15 @@ def gather_by(perm: wp.array(dtype=int), src: wp.array(dtype=Any), dst: wp.array
 def scatter_by(ids: wp.array(dtype=int), src: wp.array(dtype=Any), dst: wp.array(dtype=Any)):
     i = wp.tid()
     dst[ids[i]] = src[i]
+
+
+# The permutations run on vec3, float and int arrays. Their overloads are declared here, with the module:
+# an overload made at the first launch of a new dtype changes the module's hash, and Warp then rebuilds
+# the whole module (one full build per new dtype, on each device).
+for _permute_kernel in (gather_by, scatter_by):
+    for _dtype in (wp.vec3, float, int):
+        wp.overload(_permute_kernel, [wp.array(dtype=int), wp.array(dtype=_dtype), wp.array(dtype=_dtype)])
+del _permute_kernel, _dtype
 
 
 @wp.kernel
