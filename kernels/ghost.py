@@ -1,4 +1,4 @@
-"""Ghost SPH kernels (Warp; same code on CPU and CUDA).
+"""Ghost SPH kernels (Warp; same code on CPU and CUDA), launched by rockwave/ghost.py (GhostFluidSolver).
 
 Schechter & Bridson, "Ghost SPH for animating water", ACM TOG 31(4), 2012: each step, free-surface
 particles are found, and "ghost" air particles are seeded around them by Poisson-disk sampling out

@@ -1,4 +1,8 @@
-"""Weakly compressible SPH kernels (Warp). Same code on CPU and CUDA.
+"""Weakly compressible SPH kernels (Warp; same code on CPU and CUDA), launched by rockwave/fluid.py
+(FluidSolver: neighbour search, density, forces, integration, particle order; the lattice calibration
+and boundary volumes of build_fluid_model), by rockwave/ghost.py (GhostFluidSolver reuses the list
+passes) and by rockwave/simulation.py (the gauges). The force pass, particle_acceleration_list, is
+compiled in a Warp module of its own (FORCE_PASS_MODULE, below).
 
 Conventions: particle arrays hold the fluid particles first (indices < n_fluid) and the static
 boundary particles after them. ``particle_mass[j]`` is the mass of a fluid particle, and for a
