@@ -4,7 +4,7 @@ Each module's docstring names the host module that launches it: sph with rockwav
 fluid; also reused by rockwave/ghost.py and the gauges of rockwave/simulation.py), ghost with
 rockwave/ghost.py, diffusion with the density diffusion of rockwave/fluid.py, sampling with
 rockwave/sampling.py, surface with rockwave/export/surface.py, dda with rockwave/blocks.py and coupling
-with rockwave/coupling.py. Each module docstring names its launcher.
+with rockwave/coupling.py.
 
 Each Warp module is built once per device (tests/test_kernel_loads.py): declare a generic kernel's
 overloads with the module, define every kernel at import (no kernels made in functions or on first
