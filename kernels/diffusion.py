@@ -1,6 +1,6 @@
-"""Density diffusion (delta-SPH) for continuity density: an opt-in pass after the density pass
-(rockwave/fluid.py FluidSolver.step, scene key fluid.density_diffusion), so the default step launches
-nothing of it.
+"""Density diffusion (delta-SPH) for continuity density, launched by rockwave/fluid.py
+(FluidSolver._density_diffusion): an opt-in pass after the density pass of FluidSolver.step (scene key
+fluid.density_diffusion), so the default step launches nothing of it.
 
 Molteni & Colagrossi (2009) added to the continuity equation
 

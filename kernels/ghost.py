@@ -1,4 +1,4 @@
-"""Ghost SPH kernels (Warp; same code on CPU and CUDA).
+"""Ghost SPH kernels (Warp; same code on CPU and CUDA), launched by rockwave/ghost.py (GhostFluidSolver).
 
 Schechter & Bridson, "Ghost SPH for animating water", ACM TOG 31(4), 2012: each step, free-surface
 particles are found, and "ghost" air particles are seeded around them by Poisson-disk sampling out
@@ -43,7 +43,7 @@ thread (tests/test_ghost.py::test_parallel_darts_place_the_same_ghosts).
 
 import warp as wp
 
-from rockwave.kernels.sph import SPHParams, equation_of_state, kernel_grad, kernel_w, store_density
+from rockwave.kernels.sph import SPHParams, kernel_grad, kernel_w, store_density
 
 
 @wp.struct
@@ -1065,64 +1065,6 @@ def ghost_nearest_liquid(
     v[o] = v[nearest]
 
 
-@wp.kernel
-def density_rate_with_ghosts(
-    grid: wp.uint64,
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    particle_mass: wp.array(dtype=float),
-    p: SPHParams,
-    n_static: int,
-    ghost_mode: int,
-    drho_dt: wp.array(dtype=float),
-):
-    """Continuity: d rho_i/dt = sum_j m_j (v_i - v_j) . grad W_ij (Monaghan 1992) over liquid, boundary
-    (v = 0) and, with ``ghost_mode`` 1, ghost neighbours (v = the nearest liquid particle's velocity,
-    Schechter & Bridson 2012); index >= ``n_static`` is a ghost."""
-    i = wp.tid()
-    xi = x[i]
-    vi = v[i]
-    s = float(0.0)
-    q = wp.hash_grid_query(grid, xi, p.H)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        if j != i:
-            rij = xi - x[j]
-            r = wp.length(rij)
-            if r < p.H:
-                vj = v[j]
-                if j >= n_static:
-                    if ghost_mode == 0:
-                        continue
-                s += particle_mass[j] * wp.dot(vi - vj, kernel_grad(rij, r, p))
-    drho_dt[i] = s
-
-
-@wp.kernel
-def ghost_mass(
-    grid: wp.uint64,
-    x: wp.array(dtype=wp.vec3),
-    p: SPHParams,
-    n_static: int,
-    particle_mass: wp.array(dtype=float),
-):
-    """Ghost mass from its number density (as Akinci et al. 2012 do for boundary particles):
-    m_g = rho0 / sum_k W_gk over liquid and ghost neighbours (self included). On a lattice of
-    spacing dx this is the liquid particle mass; a ghost that the random sampling placed close to
-    others gets less, which cancels most of the density noise of a random ghost layer.
-    Launched over ghosts."""
-    gi = wp.tid() + n_static
-    xg = x[gi]
-    s = float(0.0)
-    q = wp.hash_grid_query(grid, xg, p.H)
-    k = int(0)
-    while wp.hash_grid_query_next(q, k):
-        if k < p.n_fluid or k >= n_static:
-            s += kernel_w(wp.length_sq(xg - x[k]), p)
-    particle_mass[gi] = p.rest_density / s
-
-
-
 # ------------------------------------------------------------------ persistent ghosts ----------
 # With ``fluid.ghost.persistent`` the ghosts of the last step are kept: moved with their owner (the
 # liquid particle that was nearest), dropped only when they clearly break the ghost rules (with a
@@ -1303,39 +1245,6 @@ def compact_ghosts(
     owner_out[k] = ghost_of[gi]
 
 
-@wp.kernel
-def density_summation_capped(
-    grid: wp.uint64,
-    x: wp.array(dtype=wp.vec3),
-    particle_mass: wp.array(dtype=float),
-    p: SPHParams,
-    n_static: int,
-    rho: wp.array(dtype=float),
-    pressure: wp.array(dtype=float),
-):
-    """Summation density where the ghosts fill the missing part of the kernel support and no more:
-    rho_i = S_i + min(G_i, max(rho0 - S_i, 0)), S_i over liquid and boundary particles (self
-    included), G_i over ghosts. Air at p = 0 completes a surface particle's density up to rho0
-    (no spurious negative pressure: no clumping) but cannot compress it: the random layer's
-    density excess (a new ghost at 0.9 dx adds ~0.12 rho0) would push the particle away from the
-    liquid, and its ghosts, carried with it, keep pushing (ejected surface particles)."""
-    i = wp.tid()
-    xi = x[i]
-    s = float(0.0)
-    gs = float(0.0)
-    q = wp.hash_grid_query(grid, xi, p.H)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        w = particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
-        if j < n_static:
-            s += w
-        else:
-            gs += w
-    r = s + wp.min(gs, wp.max(p.rest_density - s, 0.0))
-    rho[i] = r
-    pressure[i] = equation_of_state(r, p)
-
-
 # ------------------------------------------------------------------ step over the neighbour lists ------
 # The ghost step reuses the fluid solver's cell grid and Verlet neighbour lists (kernels/sph.py) for
 # every liquid-liquid and liquid-boundary pair (position divergence, density, forces) and reaches the
@@ -1482,9 +1391,12 @@ def ghost_mass_split(
     particle_mass: wp.array(dtype=float),
 ):
     """Marks the liquid particles within H of a ghost (``near[i] = stamp``: the ghost passes of the step
-    skip the others without a query) and, with ``set_mass``, ghost_mass with the liquid neighbours from
-    ``grid`` (fluid + boundary [+ old ghosts]) and the ghosts from ``ghost_grid`` (ghosts only, index k
-    is slot n_static + k). Launched over the ghosts (threads at or past count[0] return)."""
+    skip the others without a query) and, with ``set_mass``, the ghost mass from its number density (as
+    Akinci et al. 2012 do for boundary particles): m_g = rho0 / sum_k W_gk over the liquid neighbours from
+    ``grid`` (fluid + boundary [+ old ghosts]; liquid only) and the ghosts from ``ghost_grid`` (ghosts only,
+    index k is slot n_static + k), self included. On a lattice of spacing dx this is the liquid particle
+    mass; a ghost that the random sampling placed close to others gets less, which cancels most of the
+    density noise of a random ghost layer. Launched over the ghosts (threads at or past count[0] return)."""
     gi = wp.tid()
     if gi >= count[0]:
         return
@@ -1526,9 +1438,12 @@ def ghost_density(
     pr2: wp.array(dtype=float),
 ):
     """The ghosts' part of the density, after the list pass over liquid and boundary (rho_i = S_i):
-    mode 0 summation rho_i = S_i + G_i; mode 1 capped rho_i = S_i + min(G_i, max(rho0 - S_i, 0))
-    (density_summation_capped); mode 2 continuity with ghosts in the rate, rho_i += dt sum_g m_g
-    (v_i - v_g) . grad W_ig (density_rate_with_ghosts, ghost_mode 1). Then p_i and p_i/rho_i^2.
+    mode 0 summation rho_i = S_i + G_i; mode 1 capped rho_i = S_i + min(G_i, max(rho0 - S_i, 0)): the
+    ghosts fill the missing part of the kernel support and no more (air at p = 0 completes a surface
+    particle's density up to rho0 but cannot compress it: the random layer's density excess would push the
+    particle away from the liquid, and its ghosts, carried with it, keep pushing); mode 2 continuity with
+    ghosts in the rate, rho_i += dt sum_g m_g (v_i - v_g) . grad W_ig (ghost velocity: the nearest liquid
+    particle's, Schechter & Bridson 2012). Then p_i and p_i/rho_i^2.
     Particles with no ghost within H (near[i] != stamp) keep the list pass's values without a query."""
     i = wp.tid()
     if near[i] != stamp:

@@ -1,4 +1,4 @@
-"""Kernels for seeding particles in and around triangle meshes (Warp)."""
+"""Kernels for seeding particles in and around triangle meshes (Warp), launched by rockwave/sampling.py."""
 
 import warp as wp
 

@@ -1,4 +1,8 @@
-"""Weakly compressible SPH kernels (Warp). Same code on CPU and CUDA.
+"""Weakly compressible SPH kernels (Warp; same code on CPU and CUDA), launched by rockwave/fluid.py
+(FluidSolver: neighbour search, density, forces, integration, particle order; the lattice calibration
+and boundary volumes of build_fluid_model), by rockwave/ghost.py (GhostFluidSolver reuses the list
+passes) and by rockwave/simulation.py (the gauges). The force pass, particle_acceleration_list, is
+compiled in a Warp module of its own (FORCE_PASS_MODULE, below).
 
 Conventions: particle arrays hold the fluid particles first (indices < n_fluid) and the static
 boundary particles after them. ``particle_mass[j]`` is the mass of a fluid particle, and for a
@@ -52,17 +56,6 @@ class SPHParams:
 
 
 @wp.func
-def poly6(r2: float, H: float, dim: int) -> float:
-    # Mueller 2003: W = 315/(64 pi H^9) (H^2 - r^2)^3 (3D);  4/(pi H^8) (H^2 - r^2)^3 (2D)
-    if r2 >= H * H:
-        return 0.0
-    d = H * H - r2
-    if dim == 3:
-        return 315.0 / (64.0 * PI * wp.pow(H, 9.0)) * d * d * d
-    return 4.0 / (PI * wp.pow(H, 8.0)) * d * d * d
-
-
-@wp.func
 def spiky_grad(rij: wp.vec3, r: float, H: float, dim: int) -> wp.vec3:
     # Mueller 2003: grad W = -45/(pi H^6) (H - r)^2 r_hat (3D);  -30/(pi H^5) (H - r)^2 r_hat (2D)
     if r >= H or r < 1.0e-9 * H:
@@ -72,16 +65,6 @@ def spiky_grad(rij: wp.vec3, r: float, H: float, dim: int) -> wp.vec3:
     if dim == 2:
         c = 30.0 / (PI * wp.pow(H, 5.0))
     return (-c * d * d / r) * rij
-
-
-@wp.func
-def viscosity_laplacian(r: float, H: float, dim: int) -> float:
-    # Mueller 2003: lap W = 45/(pi H^6) (H - r) (3D);  40/(pi H^5) (H - r) (2D)
-    if r >= H:
-        return 0.0
-    if dim == 3:
-        return 45.0 / (PI * wp.pow(H, 6.0)) * (H - r)
-    return 40.0 / (PI * wp.pow(H, 5.0)) * (H - r)
 
 
 @wp.func
@@ -153,7 +136,8 @@ def wendland_grad(rij: wp.vec3, r: float, H: float, dim: int) -> wp.vec3:
 
 @wp.func
 def kernel_w(r2: float, p: SPHParams) -> float:
-    if p.kernel == KERNEL_MULLER:  # poly6 with the precomputed constant
+    if p.kernel == KERNEL_MULLER:
+        # Mueller 2003 poly6: W = w_coef (H^2 - r^2)^3, w_coef = 315/(64 pi H^9) (3D), 4/(pi H^8) (2D)
         if r2 >= p.H * p.H:
             return 0.0
         d = p.H * p.H - r2
@@ -178,7 +162,8 @@ def kernel_grad(rij: wp.vec3, r: float, p: SPHParams) -> wp.vec3:
 
 @wp.func
 def kernel_laplacian(r: float, p: SPHParams) -> float:
-    # Mueller's viscosity Laplacian for both kernel choices (it is positive everywhere: stable viscosity)
+    # Mueller 2003 viscosity Laplacian for every kernel choice (positive everywhere: stable viscosity):
+    # lap W = lap_coef (H - r), lap_coef = 45/(pi H^6) (3D), 40/(pi H^5) (2D)
     if r >= p.H:
         return 0.0
     return p.lap_coef * (p.H - r)
@@ -220,27 +205,6 @@ def boundary_volume(
 
 
 @wp.kernel
-def particle_density_summation(
-    grid: wp.uint64,
-    x: wp.array(dtype=wp.vec3),
-    particle_mass: wp.array(dtype=float),
-    p: SPHParams,
-    rho: wp.array(dtype=float),
-    pressure: wp.array(dtype=float),
-):
-    """rho_i = sum_j m_j W_ij (fluid and boundary neighbours, self included), then p_i = EOS(rho_i)."""
-    i = wp.tid()
-    xi = x[i]
-    s = float(0.0)
-    q = wp.hash_grid_query(grid, xi, p.H)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
-    rho[i] = s
-    pressure[i] = equation_of_state(s, p)
-
-
-@wp.kernel
 def lattice_moments(
     x: wp.array(dtype=wp.vec3),
     p: SPHParams,
@@ -269,20 +233,6 @@ def lattice_moments(
 def equation_of_state_pass(rho: wp.array(dtype=float), p: SPHParams, pressure: wp.array(dtype=float)):
     i = wp.tid()
     pressure[i] = equation_of_state(rho[i], p)
-
-
-@wp.kernel
-def integrate_density(
-    drho_dt: wp.array(dtype=float),
-    dt: wp.array(dtype=float),
-    p: SPHParams,
-    rho: wp.array(dtype=float),
-    pressure: wp.array(dtype=float),
-):
-    i = wp.tid()
-    r = rho[i] + dt[0] * drho_dt[i]
-    rho[i] = r
-    pressure[i] = equation_of_state(r, p)
 
 
 @wp.func
@@ -917,7 +867,14 @@ def pair_acceleration_fluid(
     return a, dv
 
 
-@wp.kernel
+# The force pass is launched with its own block size on CUDA (rockwave.fluid.FluidSolver._block_dim: 128,
+# every other launch 256). Warp builds a module once per block size, so in this module it would build
+# all of rockwave.kernels.sph twice (and again after every change of the module); it lives in a module
+# of its own, built only at the force pass's block size.
+FORCE_PASS_MODULE = "rockwave.kernels.sph_force_pass"
+
+
+@wp.kernel(module=FORCE_PASS_MODULE)
 def particle_acceleration_list(
     count: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
@@ -1086,6 +1043,15 @@ def gather_by(perm: wp.array(dtype=int), src: wp.array(dtype=Any), dst: wp.array
 def scatter_by(ids: wp.array(dtype=int), src: wp.array(dtype=Any), dst: wp.array(dtype=Any)):
     i = wp.tid()
     dst[ids[i]] = src[i]
+
+
+# The permutations run on vec3, float and int arrays. Their overloads are declared here, with the module:
+# an overload made at the first launch of a new dtype changes the module's hash, and Warp then rebuilds
+# the whole module (one full build per new dtype, on each device).
+for _permute_kernel in (gather_by, scatter_by):
+    for _dtype in (wp.vec3, float, int):
+        wp.overload(_permute_kernel, [wp.array(dtype=int), wp.array(dtype=_dtype), wp.array(dtype=_dtype)])
+del _permute_kernel, _dtype
 
 
 @wp.kernel

@@ -89,9 +89,10 @@ class SurfaceExtractor:
         R = self.radius
         v_r = 32.0 * math.pi * R**3 / 105.0 if self.dim == 3 else math.pi * R * R / 3.0
         self.metaball_norm = self.spacing**self.dim / v_r
-        dims = (64, 64, 64) if self.dim == 3 else (256, 256, 1)
-        self.grid = wp.HashGrid(*dims, device=self.device)
         self.last_cell = self.cell
+        # nodes per thread along x in the field gather (kernels/surface.py fluid_field): they share the
+        # bookkeeping of the rows of cells they visit; fewer on a GPU, which wants threads
+        self.node_run = 4 if self.device.is_cuda else 32
 
     def field(self, x: wp.array, rho: wp.array, lo: np.ndarray, hi: np.ndarray):
         """The scalar field on the grid covering [lo, hi] padded by R + one cell.
@@ -110,13 +111,43 @@ class SurfaceExtractor:
                 break
             cell *= 1.25
         self.last_cell = cell
+        lower32 = wp.vec3(*lower.astype(np.float32))
         f = wp.zeros(tuple(int(c) for c in n), dtype=float, device=self.device)
         with wp.ScopedDevice(self.device):
-            self.grid.build(x, self.radius)
-            wp.launch(K.fluid_field, dim=f.shape,
-                      inputs=[self.grid.id, x, rho, self.mass, wp.vec3(*lower.astype(np.float32)), float(cell), self.radius,
-                              self.kind, self.dim, float(self.metaball_norm)], outputs=[f])
+            g = self._particle_cells(x, rho, lower, (n - 1) * cell)
+            run = self.node_run
+            wp.launch(K.fluid_field, dim=((f.shape[0] + run - 1) // run, f.shape[1], f.shape[2]),
+                      inputs=[g, lower32, float(cell), self.radius, self.kind, self.dim, float(self.metaball_norm), run],
+                      outputs=[f])
         return f, lower, cell
+
+    def _particle_cells(self, x: wp.array, rho: wp.array, lower: np.ndarray, extent: np.ndarray) -> K.ParticleCells:
+        """The particles sorted by cell of a dense grid over the field's box (cells of width R/2, wider when
+        the box would need more than max_grid_nodes cells; kernels/surface.py), for the gather."""
+        n = len(x)
+        c = 0.5 * self.radius
+        while True:
+            nc = np.maximum(np.floor(np.asarray(extent, np.float64) / c).astype(np.int64) + 1, 1)
+            if self.dim == 2:
+                nc[2] = 1
+            if int(np.prod(nc)) <= self.max_nodes:
+                break
+            c *= 1.25
+        g = K.ParticleCells()
+        g.lo = wp.vec3(*np.asarray(lower, np.float32)[:3])
+        g.c = float(c)
+        g.inv_c = float(1.0 / c)
+        g.nx, g.ny, g.nz = (int(v) for v in nc)
+        keys = wp.empty(2 * n, dtype=int)  # radix_sort_pairs sorts in place and needs 2 n of room
+        order = wp.empty(2 * n, dtype=int)
+        wp.launch(K.particle_cell_keys, dim=n, inputs=[g, x], outputs=[keys, order])
+        wp.utils.radix_sort_pairs(keys, order, n)
+        g.first = wp.empty(int(np.prod(nc)) + 1, dtype=int)
+        wp.launch(K.cell_starts, dim=g.first.shape[0], inputs=[keys, n], outputs=[g.first])
+        g.x_sorted = wp.empty(n, dtype=wp.vec3)
+        g.w_sorted = wp.empty(n, dtype=float)
+        wp.launch(K.gather_sorted_particles, dim=n, inputs=[order, x, rho, self.mass], outputs=[g.x_sorted, g.w_sorted])
+        return g
 
     def extract(self, x: wp.array, rho: wp.array, lo=None, hi=None) -> SurfaceMesh:
         """Surface of the fluid particles ``x`` (wp.array of vec3, fluid only) with densities
