@@ -31,6 +31,7 @@ from rockwave import sampling
 from rockwave.fluid import FluidSolver, build_fluid_model, fluid_dt_limit
 from rockwave.kernels import sph
 from rockwave.scene import Scene, SceneError, load_scene
+from rockwave.solver import TimeStep
 
 
 class SimulationError(RuntimeError):
@@ -209,16 +210,17 @@ class Simulation:
                                    dtype=wp.vec3, device=self.device)
 
     def _build_blocks(self) -> None:
-        from rockwave.blocks import BlockModel, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
+        from rockwave.blocks import BlockModel, BlockOptions, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
         from rockwave.geometry import GeometryError
         from rockwave.rocks import block_specs
 
         specs = block_specs(self.scene)
         host_check = len(specs) <= 2000  # exact host test for small sets; device FCP for large ones
         try:
+            # 2D: extruded prisms moving in the x-y plane (planar: the block step keeps them there)
             self.blocks = BlockModel(specs, device=self.device, gravity=_pad3(self.scene.gravity.acceleration_m_s2),
-                                     check_overlap=host_check)
-            self.block_solver = BlockSolver(self.blocks)
+                                     check_overlap=host_check, planar=self.scene.dim == 2)
+            self.block_solver = BlockSolver(self.blocks, options=BlockOptions.from_scene(self.scene))
             self.block_state = self.blocks.state()
             if not host_check:
                 check_initial_overlap_on_device(self.block_solver, self.block_state)
@@ -226,33 +228,22 @@ class Simulation:
             raise SceneError(self.scene.path, [("blocks", str(e))]) from None
         except (GeometryError, ValueError) as e:
             raise SceneError(self.scene.path, [("blocks", str(e))]) from None
-        self._planar = None
-        if self.scene.dim == 2:  # 2D: extruded prisms moving in the x-y plane (rockwave/coupling.py)
-            z0 = wp.array(self.blocks.base_position[:, 2].astype(np.float32), dtype=float, device=self.device)
-            self._planar = (z0, self.blocks.kinds)
 
     def _remove_inside_blocks(self, xf, vf, depth):
         """Drop fluid particles inside a block, or closer to its faces than half the contact distance
         (rockwave/coupling.py); the count is kept in ``removed_inside_blocks`` and run.json."""
-        from rockwave.coupling import DEFAULT_D0_RATIO, block_signed_distance
+        from rockwave.coupling import CouplingOptions, block_signed_distance
 
-        c = self.scene.coupling
-        ratio = c.contact_distance_ratio if c is not None and c.contact_distance_ratio is not None else DEFAULT_D0_RATIO
+        ratio = CouplingOptions.from_scene(self.scene).contact_distance_ratio
         dist, _ = block_signed_distance(self.blocks, self.block_state, xf)
         keep = dist >= 0.5 * ratio * self.scene.fluid.spacing_m
         self.removed_inside_blocks = int((~keep).sum())
         return xf[keep], vf[keep], depth[keep]
 
     def _build_coupling(self) -> None:
-        from rockwave.coupling import Coupling
+        from rockwave.coupling import Coupling, CouplingOptions
 
-        c = self.scene.coupling
-        kw = {}
-        if c is not None:
-            kw = dict(stiffness_factor=c.stiffness_factor, damping_ratio=c.damping_ratio, k_s=c.stiffness_n_m, k_d=c.damping_n_s_m,
-                      d0=None if c.contact_distance_ratio is None else c.contact_distance_ratio * self.fluid.spacing,
-                      squeeze_out=c.squeeze_out is not False)
-        self.coupling = Coupling(self.fluid, self.blocks, self.scene.dim, **kw)
+        self.coupling = Coupling(self.fluid, self.blocks, self.scene.dim, options=CouplingOptions.from_scene(self.scene))
 
     def _adaptive_dt(self, initial: bool = False) -> float:
         """The smaller of the fluid's CFL/force/viscous step and half the critical DDA step."""
@@ -264,9 +255,9 @@ class Simulation:
             else:
                 dts.append(self.fluid_solver.stable_dt(self.state, sim.cfl_number))
         if self.block_solver is not None:
-            dts.append(self.block_solver.stable_dt(sim.block_dt_safety))
+            dts.append(self.block_solver.stable_dt(self.block_state))  # BlockOptions.dt_safety x critical
         if self.coupling is not None:
-            dts.append(0.5 * self.coupling.critical_dt())
+            dts.append(self.coupling.stable_dt())  # CouplingOptions.dt_safety (0.5) x critical
         return min(dts) if dts else sim.duration_s
 
     # ---------------------------------------------------------------- stepping --------------
@@ -289,18 +280,15 @@ class Simulation:
         the fluid particles by cell (FluidSolver.reorder)."""
         if reorder:
             self.fluid_solver.reorder(self.state)
+        ts = TimeStep(self.dt, self.time, self._dt_dev)
         if self.coupling is not None:  # forces from the state at t (rockwave/coupling.py)
-            self.coupling.compute(self.state, self.block_state, self._dt_dev)
+            self.coupling.compute(self.state, self.block_state, ts)
         if self.fluid_solver is not None:
             self.fluid_solver.step(self.state, self._dt_dev)
         if self.coupling is not None:
-            self.coupling.apply(self.state, self._dt_dev)
+            self.coupling.apply(self.state, ts)
         if self.block_solver is not None:
-            self.block_solver.step(self.block_state, self.dt, self.time)
-            if self._planar is not None:
-                from rockwave.coupling import planar_constraint
-
-                planar_constraint(self.block_state, *self._planar)
+            self.block_solver.step(self.block_state, ts)  # 2D: with the planar constraint
 
     # Chunks (step_many; advance on a GPU): a reorder of the fluid by cell, then
     # fluid_solver.reorder_interval steps. A fluid-only scene on a GPU replays a chunk as one CUDA
