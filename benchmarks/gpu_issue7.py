@@ -303,8 +303,6 @@ def blocks_phases(device, count, steps=20, settle=300, joint=0.0002):
     for _ in range(settle):
         sim.step()
     bs, st = sim.block_solver, sim.block_state
-    from rockwave.kernels import dda as K
-
     m = sim.blocks
     dt = sim.dt
     times = {"prepare": 0.0, "broad_phase": 0.0, "narrow_phase": 0.0, "integrate": 0.0}
@@ -318,13 +316,7 @@ def blocks_phases(device, count, steps=20, settle=300, joint=0.0002):
             times["prepare"] += _sync_time(lambda: bs._prepare(st), device)
             times["broad_phase"] += _sync_time(lambda: bs._broad_phase(), device)
             times["narrow_phase"] += _sync_time(lambda: bs._narrow_phase(st, dt), device)
-            times["integrate"] += _sync_time(lambda: wp.launch(
-                K.integrate_blocks, dim=m.num_blocks,
-                inputs=[m.kinds, m.inv_mass, m.inertia_body, m.inv_inertia_body, m.strain_minv, m.strain_k,
-                        m.strain_damp, wp.vec3(*m.gravity), float(sim.time + dt), float(dt), m.base_x, m.motion_type,
-                        m.motion_amp, m.motion_freq, m.motion_phase, m.table_start, m.table_count, m.table_t,
-                        m.table_x, st.x, st.q, st.v, st.w, st.strain, st.strain_rate,
-                        st.force, st.torque, st.strain_force, st.ext_force, st.ext_torque]), device)
+            times["integrate"] += _sync_time(lambda: bs._integrate(st, dt, sim.time), device)
     r = {"blocks": m.num_blocks, "joint_m": joint, "settle_steps": settle, "pairs_touching": float(np.mean(touching)),
          "touching_neighbours_per_block": 2.0 * float(np.mean(touching)) / m.num_blocks, "pairs": bs.pair_count, "pair_cap": bs.pair_cap, "table_cap": st.table_cap,
          "contact_points_per_block": float(np.mean(points)), "setup_s": setup,
@@ -370,16 +362,19 @@ def coupled_split(device, scale, steps=50, without=()):
     from rockwave.kernels import coupling as CK
 
     nf = sim.n_fluid
+    from rockwave.solver import TimeStep
+
+    ts = TimeStep(sim.dt, sim.time, sim._dt_dev)
     with wp.ScopedDevice(device):
         parts = {
-            "coupling_compute": lambda: c.compute(st, bst, sim._dt_dev),
-            "coupling_apply": lambda: c.apply(st, sim._dt_dev),
+            "coupling_compute": lambda: c.compute(st, bst, ts),
+            "coupling_apply": lambda: c.apply(st, ts),
             "fluid_bounds": lambda: (wp.copy(c.bounds, c._bounds_init),
                                      wp.launch(CK.fluid_bounds, dim=min(nf, 16384), inputs=[st.x, nf, min(nf, 16384)],
                                                outputs=[c.bounds])),
             "broad_phase": lambda: c._broad_phase(st, bst),
             "fluid_step": lambda: fs.step(st, sim._dt_dev),
-            "block_step": lambda: sim.block_solver.step(bst, sim.dt, sim.time),
+            "block_step": lambda: sim.block_solver.step(bst, ts),
         }
         r = {"scale": scale, "without": list(without), "particles": nf, "blocks": sim.blocks.num_blocks, "step_ms": full * 1e3,
              "chunked_step_ms": chunked * 1e3, "particle_steps_per_s": nf / full, "particle_steps_per_s_chunked": nf / chunked}

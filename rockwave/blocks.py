@@ -1,10 +1,27 @@
-"""Explicit 3D DDA rock-block solver (host side): specs -> BlockModel + BlockState -> BlockSolver.step.
+"""Explicit 3D DDA rock-block solver (host side).
 
-Data flow (DESIGN.md §1, §3): ``BlockSpec`` list -> ``BlockModel`` (static device arrays: concatenated
-vertices / faces / half-edges with per-block offsets, masses, inertia, kinds, materials) ->
-``BlockModel.state()`` -> ``BlockSolver(model).step(state, dt, t)`` runs, all as Warp kernels on the
-model's device: world vertices + AABBs, uniform-grid broad phase, Fast Common Plane narrow phase with
-multi-point contacts, penalty contact forces with per-pair history, explicit integration.
+What lives where:
+
+* ``BlockSpec`` (with ``ContactMaterial``, ``KinematicMotion``): one block as a scene gives it
+  (rockwave/rocks.py builds them from ``[[blocks]]``).
+* ``BlockModel``: the static description, device arrays that never change during a run: concatenated
+  vertices / faces / half-edges with per-block offsets, masses, inertia, kinds, materials, kinematic
+  motions, and their kernel argument groups (``topology``, ``props``, ``material``, ``motion``:
+  kernels/dda.py structs). ``planar=True`` (2D scenes): blocks are prisms extruded along z that move
+  in their x-y plane only (z fixed, rotation about z only).
+* ``BlockState``: everything that changes in time: poses, velocities, strains, load accumulators
+  (``ext_force`` / ``ext_torque``, where the coupling adds its reactions), world vertices, the two
+  contact-history tables (swapped each step) and ``time``; kernel views ``bodies``, ``loads``,
+  ``table_views``. A checkpoint of it is a complete restart point.
+* ``BlockOptions``: the solver's knobs (dt safety, broad-phase cell and margin, capacity paths),
+  defaults equal to the shipped values; ``BlockOptions.from_scene(scene)``.
+* ``BlockSolver(model, options=...)``: the solver contract of rockwave/solver.py:
+  ``stable_dt(state)`` = options.dt_safety x ``critical_dt()`` (the physical limit 2/omega_max), and
+  ``step(state, ts)`` (ts: rockwave.solver.TimeStep; refuses ts.dt above ``critical_dt()``) = world
+  vertices + AABBs, uniform-grid broad phase, Fast Common Plane narrow phase with multi-point
+  contacts, penalty contact forces with per-pair history, explicit integration and, for a planar
+  model, the 2D constraint. All as Warp kernels on the model's device (kernels/dda.py). The solver
+  keeps buffers only (capacities, the pair list between broad phases, diagnostics).
 
 Units SI, z up, quaternions (x, y, z, w).  Contact stiffness is *per contact point* (a face resting
 on a face gets >= 3 points, each with k_n), so a box resting on its face sinks m g / (n_points k_n).

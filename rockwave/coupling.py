@@ -1,5 +1,22 @@
 """Two-way coupling between the SPH water and the DDA rock blocks (DESIGN.md §4).
 
+What lives where:
+
+* ``CouplingOptions``: the penalty and broad-phase knobs (contact distance ratio, stiffness factor /
+  damping ratio or explicit K_s / K_d, squeeze-out, dt safety, capacity paths), defaults equal to the
+  shipped values; ``CouplingOptions.from_scene(scene)`` reads the scene's ``[coupling]`` section.
+* ``Coupling(fluid_model, block_model, dim, options=...)``: the model-level data (body-frame face
+  planes, 2D depths, penalty constants) and its work buffers (broad phase, impulses ``dv``); it keeps
+  nothing from one step to the next. ``compute`` reads a FluidState and a BlockState and writes ``dv``
+  and the blocks' ``ext_force`` / ``ext_torque``; ``apply`` adds ``dv`` to the fluid. Per step
+  (one rockwave.solver.TimeStep, dt read on the device from ``ts.dt_array``):
+  ``compute(fluid_state, block_state, ts)`` before the fluid step, ``apply(fluid_state, ts)`` after
+  it, then the block step. Step limits: ``critical_dt()`` is the particle-wall spring's stability
+  limit (a fixed step must stay below it); ``stable_dt()`` = options.dt_safety (0.5) x that is the
+  coupling's share of the adaptive step.
+* ``block_signed_distance``, ``default_penalty``: helpers (start-up particle removal, tests).
+* Kernels: kernels/coupling.py.
+
 Penalty method of the SPH-DDA paper (Eq. 22): a fluid particle closer than the contact distance
 d0 to a block face (or inside the block) is pushed out along the face's outward normal n by
 
@@ -58,7 +75,7 @@ therefore equal and opposite within each step: water + blocks conserve momentum 
 external forces (gravity, fixed walls, kinematic blocks, tank particles).
 
 2D scenes: blocks are 3D prisms extruded along z (their z-extent is their depth; they move in the
-x-y plane only, Simulation enforces it). A 2D particle's mass and forces are per metre of depth,
+x-y plane only: BlockModel(planar=True), enforced inside BlockSolver.step). A 2D particle's mass and forces are per metre of depth,
 so the block receives f times its z-extent.
 
 Deformable blocks are coupled through their rigid motion (faces moved rigidly; their strains,
@@ -226,12 +243,11 @@ class Coupling:
         self.faces.kinds, self.faces.depth_scale = blocks.kinds, self.depth_scale
         self.grid = CK.CouplingGrid()
         self.grid.large, self.grid.counters, self.grid.box_lo, self.grid.box_hi = self.large, self.counters, self.box_lo, self.box_hi
-        self.track_walls = bool(opt.track_walls)
         self.params = CK.CouplingParams()
         p = self.params
         p.k_s, p.k_d, p.d0 = self.k_s, self.k_d, self.d0
         p.inv_s = 1.0 / self.cell
-        p.track_walls = 1 if self.track_walls else 0
+        p.track_walls = 1 if opt.track_walls else 0
         p.squeeze_gap = self.squeeze_gap
         # Few blocks: every particle tests every block's grown box (no hash). Up to 2^20 possible entries
         # (blocks x max_cells): the entry capacity is allocated whole and the step reads nothing back (the
@@ -246,6 +262,11 @@ class Coupling:
         self.active_blocks = 0  # blocks near water in the last step (host copy, diagnostics)
         self._n_large = 0
         self._total = 0
+
+    @property
+    def track_walls(self) -> bool:
+        """options.track_walls: fixed at construction (the kernel parameters are built once)."""
+        return self.options.track_walls
 
     @property
     def n_large(self) -> int:
