@@ -9,6 +9,10 @@ Conventions: z up, SI units, float32.  Quaternions are Warp's (x, y, z, w).  A p
 A < B; the common-plane normal n points from A to B; the force on B is +F, on A is -F.
 Strain vector s (wp.spatial_vector) = (eps_x, eps_y, eps_z, gamma_yz, gamma_zx, gamma_xy) in the
 block's body frame (engineering shear strains).
+
+Kernel arguments come in groups (wp.structs below) built once on the host: BlockTopology,
+BlockProps, BlockMaterial, BlockMotion (BlockModel), BlockBodies, BlockLoads, ContactTable
+(BlockState), BroadPhaseGrid, PairList (BlockSolver). Kernels copy the fields they use into locals.
 """
 
 import warp as wp

@@ -234,6 +234,8 @@ class BlockModel:
     fixed/kinematic), inertia_body / inv_inertia_body (mat33, kg m^2, body frame), block_size (bounding
     diameter m), materials k_n, k_s (N/m per point), tan_phi, cohesion (Pa), tensile (Pa), zeta;
     deformable: strain_minv, strain_k (spatial_matrix), strain_damp (1/s).
+    Kernel argument groups (kernels/dda.py structs over the arrays above): topology, props, material,
+    motion. planar (2D scenes): blocks keep z = planar_z (the specs' z) and turn about z only.
     """
 
     def __init__(
@@ -457,7 +459,9 @@ class BlockState:
     gamma_xy, body frame; zero for non-deformable), ext_force / ext_torque (N, vec3 N, N m about the
     centroid, world; other modules atomically add here before step, the solver zeroes them after use),
     force / torque / strain_force (contact accumulators), contact_count (N, int: contact points of the
-    last step), world_verts (V, vec3), time (s), contact history tables (two, swapped each step).
+    last step), world_verts (V, vec3), time (s), contact history tables (two dicts of arrays, swapped
+    each step by swap_tables). Kernel views (kernels/dda.py structs): bodies (x, q, v, w, strain,
+    strain_rate), loads (force ... contact_count), table_views (one per table, swapped with them).
     """
 
     def __init__(self, model: BlockModel):
