@@ -68,6 +68,55 @@ def face_planes(
     d_out[f] = wp.dot(n, bx[b]) + body_offset[f]
 
 
+@wp.struct
+class CouplingParams:
+    """The penalty law and broad-phase cell of a Coupling (built once)."""
+
+    k_s: float  # penalty stiffness K_s [N/m per particle; N/m per m of depth in 2D]
+    k_d: float  # penalty damping K_d [N s/m]
+    d0: float  # contact distance [m]
+    inv_s: float  # 1 / broad-phase cell size
+    track_walls: int  # 1: sum the forces of fixed/kinematic blocks on the water (diagnostics)
+    squeeze_gap: float  # gap w_s between two opposing solid faces below which pinched water is squeezed out (0: off)
+
+
+@wp.struct
+class CouplingGrid:
+    """Blocks near the water (Coupling's broad phase): each block's cell range, cell count and the
+    exclusive scan of the counts (its first entry); the hashed buckets of (block, cell) entries
+    (nbuckets, start, count, fill; entry block and cell), the large blocks every particle tests
+    (counters[1] of them), the counters ([0] entries, [1] large blocks) and each block's grown,
+    clipped box."""
+
+    cell_lo: wp.array(dtype=wp.vec3i)
+    cell_hi: wp.array(dtype=wp.vec3i)
+    ncell: wp.array(dtype=int)
+    cell_offset: wp.array(dtype=int)
+    nbuckets: int
+    bucket_start: wp.array(dtype=int)
+    bucket_count: wp.array(dtype=int)
+    bucket_fill: wp.array(dtype=int)
+    entry_block: wp.array(dtype=int)
+    entry_cell: wp.array(dtype=wp.vec3i)
+    large: wp.array(dtype=int)
+    counters: wp.array(dtype=int)
+    box_lo: wp.array(dtype=wp.vec3)
+    box_hi: wp.array(dtype=wp.vec3)
+
+
+@wp.struct
+class BlockFaces:
+    """World face planes n . x = d of the blocks (face_planes), each block's range of faces, its kind
+    and its z-extent (2D: forces per metre of depth times it; 3D: 1)."""
+
+    face_start: wp.array(dtype=int)
+    face_count: wp.array(dtype=int)
+    plane_n: wp.array(dtype=wp.vec3)
+    plane_d: wp.array(dtype=float)
+    kinds: wp.array(dtype=int)
+    depth_scale: wp.array(dtype=float)
+
+
 @wp.func
 def cell_of(p: wp.vec3, inv_s: float):
     return wp.vec3i(int(wp.floor(p[0] * inv_s)), int(wp.floor(p[1] * inv_s)), int(wp.floor(p[2] * inv_s)))
@@ -88,17 +137,13 @@ def block_cells(
     reach: float,
     inv_s: float,
     max_cells: int,
-    cell_lo: wp.array(dtype=wp.vec3i),
-    cell_hi: wp.array(dtype=wp.vec3i),
-    ncell: wp.array(dtype=int),
-    large: wp.array(dtype=int),
-    counters: wp.array(dtype=int),
-    box_lo: wp.array(dtype=wp.vec3),
-    box_hi: wp.array(dtype=wp.vec3),
+    grid: CouplingGrid,
 ):
     """Per block: AABB grown by `reach`, clipped to the fluid AABB (box_lo/hi: every point within reach
     of the block lies inside); cell range and count (0 when the block is away from all water; blocks over
     max_cells cells go to the large list, all of them when max_cells < 0)."""
+    ncell = grid.ncell
+    counters = grid.counters
     b = wp.tid()
     s = vert_start[b]
     lo = wv[s]
@@ -116,18 +161,18 @@ def block_cells(
         lo[k] = l
         hi[k] = h
     ncell[b] = 0
-    box_lo[b] = lo
-    box_hi[b] = hi
+    grid.box_lo[b] = lo
+    grid.box_hi[b] = hi
     if empty == 1:
         return
     cl = cell_of(lo, inv_s)
     ch = cell_of(hi, inv_s)
-    cell_lo[b] = cl
-    cell_hi[b] = ch
+    grid.cell_lo[b] = cl
+    grid.cell_hi[b] = ch
     n = (ch[0] - cl[0] + 1) * (ch[1] - cl[1] + 1) * (ch[2] - cl[2] + 1)
     if n > max_cells or n < 0:
         slot = wp.atomic_add(counters, 1, 1)
-        large[slot] = b
+        grid.large[slot] = b
         return
     ncell[b] = n
     wp.atomic_add(counters, 0, n)
@@ -161,83 +206,26 @@ def bucket_count_cell(cl: wp.vec3i, ch: wp.vec3i, e: int, nbuckets: int, bucket_
 
 
 @wp.kernel
-def count_buckets(
-    cell_lo: wp.array(dtype=wp.vec3i),
-    cell_hi: wp.array(dtype=wp.vec3i),
-    cell_offset: wp.array(dtype=int),
-    nbuckets: int,
-    counters: wp.array(dtype=int),
-    bucket_count: wp.array(dtype=int),
-):
+def count_buckets(grid: CouplingGrid):
     # one thread per (block, cell) entry, cell_offset = exclusive scan of ncell (a serial loop per
     # block made this phase 1.7 ms of a 6.3 ms coupled step at 1.2 M particles on an H100); launched
     # over the entry capacity, the threads past the device count (counters[0]) stop
-    if wp.tid() >= counters[0]:
+    if wp.tid() >= grid.counters[0]:
         return
-    b, e = entry_of(wp.tid(), cell_offset)
-    bucket_count_cell(cell_lo[b], cell_hi[b], e, nbuckets, bucket_count)
+    b, e = entry_of(wp.tid(), grid.cell_offset)
+    bucket_count_cell(grid.cell_lo[b], grid.cell_hi[b], e, grid.nbuckets, grid.bucket_count)
 
 
 @wp.kernel
-def fill_buckets(
-    cell_lo: wp.array(dtype=wp.vec3i),
-    cell_hi: wp.array(dtype=wp.vec3i),
-    cell_offset: wp.array(dtype=int),
-    nbuckets: int,
-    bucket_start: wp.array(dtype=int),
-    bucket_fill: wp.array(dtype=int),
-    counters: wp.array(dtype=int),
-    entry_block: wp.array(dtype=int),
-    entry_cell: wp.array(dtype=wp.vec3i),
-):
-    if wp.tid() >= counters[0]:
+def fill_buckets(grid: CouplingGrid):
+    if wp.tid() >= grid.counters[0]:
         return
-    b, e = entry_of(wp.tid(), cell_offset)  # as count_buckets
-    c = nth_cell(cell_lo[b], cell_hi[b], e)
-    h = bucket_of(c, nbuckets)
-    slot = bucket_start[h] + wp.atomic_add(bucket_fill, h, 1)
-    entry_block[slot] = b
-    entry_cell[slot] = c
-
-
-@wp.struct
-class CouplingParams:
-    k_s: float  # penalty stiffness K_s [N/m per particle; N/m per m of depth in 2D]
-    k_d: float  # penalty damping K_d [N s/m]
-    d0: float  # contact distance [m]
-    inv_s: float  # 1 / broad-phase cell size
-    nbuckets: int
-    track_walls: int  # 1: sum the forces of fixed/kinematic blocks on the water (diagnostics)
-    squeeze_gap: float  # gap w_s between two opposing solid faces below which pinched water is squeezed out (0: off)
-
-
-@wp.struct
-class CouplingGrid:
-    """Blocks near the water (Coupling's broad phase): hashed buckets of (block, cell) entries (start,
-    count; entry block and cell), the large blocks every particle tests (counters[1] of them), the
-    counters ([0] entries, [1] large blocks) and each block's grown, clipped box."""
-
-    bucket_start: wp.array(dtype=int)
-    bucket_count: wp.array(dtype=int)
-    entry_block: wp.array(dtype=int)
-    entry_cell: wp.array(dtype=wp.vec3i)
-    large: wp.array(dtype=int)
-    counters: wp.array(dtype=int)
-    box_lo: wp.array(dtype=wp.vec3)
-    box_hi: wp.array(dtype=wp.vec3)
-
-
-@wp.struct
-class BlockFaces:
-    """World face planes n . x = d of the blocks (face_planes), each block's range of faces, its kind
-    and its z-extent (2D: forces per metre of depth times it; 3D: 1)."""
-
-    face_start: wp.array(dtype=int)
-    face_count: wp.array(dtype=int)
-    plane_n: wp.array(dtype=wp.vec3)
-    plane_d: wp.array(dtype=float)
-    kinds: wp.array(dtype=int)
-    depth_scale: wp.array(dtype=float)
+    b, e = entry_of(wp.tid(), grid.cell_offset)  # as count_buckets
+    c = nth_cell(grid.cell_lo[b], grid.cell_hi[b], e)
+    h = bucket_of(c, grid.nbuckets)
+    slot = grid.bucket_start[h] + wp.atomic_add(grid.bucket_fill, h, 1)
+    grid.entry_block[slot] = b
+    grid.entry_cell[slot] = c
 
 
 PINCH_COS = wp.constant(0.7071)  # two faces oppose (pinch a gap) when n_a . n_b < -cos 45 deg
@@ -370,7 +358,7 @@ def particle_block_forces(
     xi = x[i]
     vi = v[i]
     c = cell_of(xi, p.inv_s)
-    h = bucket_of(c, p.nbuckets)
+    h = bucket_of(c, grid.nbuckets)
     s = bucket_start[h]
     # pass 1: nearest block
     ba = int(-1)

@@ -241,8 +241,9 @@ class Coupling:
         self.faces.face_start, self.faces.face_count = blocks.face_start, blocks.face_count
         self.faces.plane_n, self.faces.plane_d = self.plane_n, self.plane_d
         self.faces.kinds, self.faces.depth_scale = blocks.kinds, self.depth_scale
-        self.grid = CK.CouplingGrid()
-        self.grid.large, self.grid.counters, self.grid.box_lo, self.grid.box_hi = self.large, self.counters, self.box_lo, self.box_hi
+        g = self.grid = CK.CouplingGrid()
+        g.cell_lo, g.cell_hi, g.ncell, g.cell_offset = self.cell_lo, self.cell_hi, self.ncell, self.cell_offset
+        g.large, g.counters, g.box_lo, g.box_hi = self.large, self.counters, self.box_lo, self.box_hi
         self.params = CK.CouplingParams()
         p = self.params
         p.k_s, p.k_d, p.d0 = self.k_s, self.k_d, self.d0
@@ -283,9 +284,9 @@ class Coupling:
         self.bucket_start = wp.zeros(self.nbuckets, dtype=int, device=d)
         self.bucket_fill = wp.zeros(self.nbuckets, dtype=int, device=d)
         g = self.grid
+        g.nbuckets = self.nbuckets
         g.entry_block, g.entry_cell = self.entry_block, self.entry_cell
-        g.bucket_count, g.bucket_start = self.bucket_count, self.bucket_start
-        self.params.nbuckets = self.nbuckets
+        g.bucket_count, g.bucket_start, g.bucket_fill = self.bucket_count, self.bucket_start, self.bucket_fill
 
     def critical_dt(self) -> float:
         """Stability limit of the particle-wall spring-dashpot [s] (a particle touching up to 3 faces):
@@ -320,9 +321,7 @@ class Coupling:
         self.counters.zero_()
         wp.launch(CK.block_cells, dim=m.num_blocks,
                   inputs=[self.wv, m.vert_start, m.vert_count, self.bounds, self.reach + 1e-6, 1.0 / self.cell,
-                          -1 if self.direct else self.max_cells],
-                  outputs=[self.cell_lo, self.cell_hi, self.ncell, self.large, self.counters, self.box_lo, self.box_hi],
-                  device=d)
+                          -1 if self.direct else self.max_cells, self.grid], device=d)
         self._hash_blocks()
 
     def _hash_none(self) -> None:
@@ -345,13 +344,9 @@ class Coupling:
         if total:
             # one thread per (block, cell) entry, not a serial loop per block (kernels/coupling.py)
             wp.utils.array_scan(self.ncell, self.cell_offset, inclusive=False)
-            wp.launch(CK.count_buckets, dim=total, inputs=[self.cell_lo, self.cell_hi, self.cell_offset, self.nbuckets,
-                                                          self.counters], outputs=[self.bucket_count], device=d)
+            wp.launch(CK.count_buckets, dim=total, inputs=[self.grid], device=d)
             wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
-            wp.launch(CK.fill_buckets, dim=total,
-                      inputs=[self.cell_lo, self.cell_hi, self.cell_offset, self.nbuckets, self.bucket_start, self.bucket_fill,
-                              self.counters],
-                      outputs=[self.entry_block, self.entry_cell], device=d)
+            wp.launch(CK.fill_buckets, dim=total, inputs=[self.grid], device=d)
         self._total = total
 
     def _nothing_near(self) -> bool:
