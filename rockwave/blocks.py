@@ -781,15 +781,20 @@ class BlockSolver:
         # Many blocks (the counter-read path): the pair list is kept while every block's AABB grown by
         # margin/2 stays inside the box (grown by margin) of the last broad phase (kernels/dda.py
         # aabbs_left_pair_boxes; one flag read joins the step's counter read). Few blocks: every step.
-        self.keep_pairs = (not self.sync_free) if opt.keep_pairs is None else bool(opt.keep_pairs)
+        self._keep_pairs = (not self.sync_free) if opt.keep_pairs is None else bool(opt.keep_pairs)
         self.lo_bp = wp.zeros(n, dtype=wp.vec3, device=d)
         self.hi_bp = wp.zeros(n, dtype=wp.vec3, device=d)
         self._moved = wp.ones(1, dtype=int, device=d)
         self.broad_phases = 0  # broad phases run (diagnostics)
         # the paths, chosen once
         self._grid_pass = self._grid_pass_sync_free if self.sync_free else self._grid_pass_counted
-        self._step_broad_phase = self._broad_phase_if_moved if self.keep_pairs else self._broad_phase_always
+        self._step_broad_phase = self._broad_phase_if_moved if self._keep_pairs else self._broad_phase_always
         self._contact_forces = self._contact_forces_all if self.has_free_blocks else self._no_contacts
+
+    @property
+    def keep_pairs(self) -> bool:
+        """Whether the pair list is kept between broad phases (options.keep_pairs, resolved at construction)."""
+        return self._keep_pairs
 
     @property
     def pair_count(self) -> int:
