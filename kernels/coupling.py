@@ -24,6 +24,8 @@ reads only the bucket of its own cell. Blocks covering more than ``max_cells`` c
 
 import warp as wp
 
+from rockwave.kernels.dda import BlockBodies, BlockLoads
+
 KIND_FIXED = wp.constant(2)
 KIND_KINEMATIC = wp.constant(3)
 BIG = wp.constant(1.0e30)
@@ -66,6 +68,55 @@ def face_planes(
     d_out[f] = wp.dot(n, bx[b]) + body_offset[f]
 
 
+@wp.struct
+class CouplingParams:
+    """The penalty law and broad-phase cell of a Coupling (built once)."""
+
+    k_s: float  # penalty stiffness K_s [N/m per particle; N/m per m of depth in 2D]
+    k_d: float  # penalty damping K_d [N s/m]
+    d0: float  # contact distance [m]
+    inv_s: float  # 1 / broad-phase cell size
+    track_walls: int  # 1: sum the forces of fixed/kinematic blocks on the water (diagnostics)
+    squeeze_gap: float  # gap w_s between two opposing solid faces below which pinched water is squeezed out (0: off)
+
+
+@wp.struct
+class CouplingGrid:
+    """Blocks near the water (Coupling's broad phase): each block's cell range, cell count and the
+    exclusive scan of the counts (its first entry); the hashed buckets of (block, cell) entries
+    (nbuckets, start, count, fill; entry block and cell), the large blocks every particle tests
+    (counters[1] of them), the counters ([0] entries, [1] large blocks) and each block's grown,
+    clipped box."""
+
+    cell_lo: wp.array(dtype=wp.vec3i)
+    cell_hi: wp.array(dtype=wp.vec3i)
+    ncell: wp.array(dtype=int)
+    cell_offset: wp.array(dtype=int)
+    nbuckets: int
+    bucket_start: wp.array(dtype=int)
+    bucket_count: wp.array(dtype=int)
+    bucket_fill: wp.array(dtype=int)
+    entry_block: wp.array(dtype=int)
+    entry_cell: wp.array(dtype=wp.vec3i)
+    large: wp.array(dtype=int)
+    counters: wp.array(dtype=int)
+    box_lo: wp.array(dtype=wp.vec3)
+    box_hi: wp.array(dtype=wp.vec3)
+
+
+@wp.struct
+class BlockFaces:
+    """World face planes n . x = d of the blocks (face_planes), each block's range of faces, its kind
+    and its z-extent (2D: forces per metre of depth times it; 3D: 1)."""
+
+    face_start: wp.array(dtype=int)
+    face_count: wp.array(dtype=int)
+    plane_n: wp.array(dtype=wp.vec3)
+    plane_d: wp.array(dtype=float)
+    kinds: wp.array(dtype=int)
+    depth_scale: wp.array(dtype=float)
+
+
 @wp.func
 def cell_of(p: wp.vec3, inv_s: float):
     return wp.vec3i(int(wp.floor(p[0] * inv_s)), int(wp.floor(p[1] * inv_s)), int(wp.floor(p[2] * inv_s)))
@@ -86,17 +137,13 @@ def block_cells(
     reach: float,
     inv_s: float,
     max_cells: int,
-    cell_lo: wp.array(dtype=wp.vec3i),
-    cell_hi: wp.array(dtype=wp.vec3i),
-    ncell: wp.array(dtype=int),
-    large: wp.array(dtype=int),
-    counters: wp.array(dtype=int),
-    box_lo: wp.array(dtype=wp.vec3),
-    box_hi: wp.array(dtype=wp.vec3),
+    grid: CouplingGrid,
 ):
     """Per block: AABB grown by `reach`, clipped to the fluid AABB (box_lo/hi: every point within reach
     of the block lies inside); cell range and count (0 when the block is away from all water; blocks over
     max_cells cells go to the large list, all of them when max_cells < 0)."""
+    ncell = grid.ncell
+    counters = grid.counters
     b = wp.tid()
     s = vert_start[b]
     lo = wv[s]
@@ -114,18 +161,18 @@ def block_cells(
         lo[k] = l
         hi[k] = h
     ncell[b] = 0
-    box_lo[b] = lo
-    box_hi[b] = hi
+    grid.box_lo[b] = lo
+    grid.box_hi[b] = hi
     if empty == 1:
         return
     cl = cell_of(lo, inv_s)
     ch = cell_of(hi, inv_s)
-    cell_lo[b] = cl
-    cell_hi[b] = ch
+    grid.cell_lo[b] = cl
+    grid.cell_hi[b] = ch
     n = (ch[0] - cl[0] + 1) * (ch[1] - cl[1] + 1) * (ch[2] - cl[2] + 1)
     if n > max_cells or n < 0:
         slot = wp.atomic_add(counters, 1, 1)
-        large[slot] = b
+        grid.large[slot] = b
         return
     ncell[b] = n
     wp.atomic_add(counters, 0, n)
@@ -159,54 +206,26 @@ def bucket_count_cell(cl: wp.vec3i, ch: wp.vec3i, e: int, nbuckets: int, bucket_
 
 
 @wp.kernel
-def count_buckets(
-    cell_lo: wp.array(dtype=wp.vec3i),
-    cell_hi: wp.array(dtype=wp.vec3i),
-    cell_offset: wp.array(dtype=int),
-    nbuckets: int,
-    counters: wp.array(dtype=int),
-    bucket_count: wp.array(dtype=int),
-):
+def count_buckets(grid: CouplingGrid):
     # one thread per (block, cell) entry, cell_offset = exclusive scan of ncell (a serial loop per
     # block made this phase 1.7 ms of a 6.3 ms coupled step at 1.2 M particles on an H100); launched
     # over the entry capacity, the threads past the device count (counters[0]) stop
-    if wp.tid() >= counters[0]:
+    if wp.tid() >= grid.counters[0]:
         return
-    b, e = entry_of(wp.tid(), cell_offset)
-    bucket_count_cell(cell_lo[b], cell_hi[b], e, nbuckets, bucket_count)
+    b, e = entry_of(wp.tid(), grid.cell_offset)
+    bucket_count_cell(grid.cell_lo[b], grid.cell_hi[b], e, grid.nbuckets, grid.bucket_count)
 
 
 @wp.kernel
-def fill_buckets(
-    cell_lo: wp.array(dtype=wp.vec3i),
-    cell_hi: wp.array(dtype=wp.vec3i),
-    cell_offset: wp.array(dtype=int),
-    nbuckets: int,
-    bucket_start: wp.array(dtype=int),
-    bucket_fill: wp.array(dtype=int),
-    counters: wp.array(dtype=int),
-    entry_block: wp.array(dtype=int),
-    entry_cell: wp.array(dtype=wp.vec3i),
-):
-    if wp.tid() >= counters[0]:
+def fill_buckets(grid: CouplingGrid):
+    if wp.tid() >= grid.counters[0]:
         return
-    b, e = entry_of(wp.tid(), cell_offset)  # as count_buckets
-    c = nth_cell(cell_lo[b], cell_hi[b], e)
-    h = bucket_of(c, nbuckets)
-    slot = bucket_start[h] + wp.atomic_add(bucket_fill, h, 1)
-    entry_block[slot] = b
-    entry_cell[slot] = c
-
-
-@wp.struct
-class CouplingParams:
-    k_s: float  # penalty stiffness K_s [N/m per particle; N/m per m of depth in 2D]
-    k_d: float  # penalty damping K_d [N s/m]
-    d0: float  # contact distance [m]
-    inv_s: float  # 1 / broad-phase cell size
-    nbuckets: int
-    track_walls: int  # 1: sum the forces of fixed/kinematic blocks on the water (diagnostics)
-    squeeze_gap: float  # gap w_s between two opposing solid faces below which pinched water is squeezed out (0: off)
+    b, e = entry_of(wp.tid(), grid.cell_offset)  # as count_buckets
+    c = nth_cell(grid.cell_lo[b], grid.cell_hi[b], e)
+    h = bucket_of(c, grid.nbuckets)
+    slot = grid.bucket_start[h] + wp.atomic_add(grid.bucket_fill, h, 1)
+    grid.entry_block[slot] = b
+    grid.entry_cell[slot] = c
 
 
 PINCH_COS = wp.constant(0.7071)  # two faces oppose (pinch a gap) when n_a . n_b < -cos 45 deg
@@ -269,42 +288,33 @@ def exit_direction(
 
 @wp.func
 def block_contact(
-    i: int,
     b: int,
     xi: wp.vec3,
     vi: wp.vec3,
     p: CouplingParams,
     squeeze: wp.vec3,
-    face_start: wp.array(dtype=int),
-    face_count: wp.array(dtype=int),
-    plane_n: wp.array(dtype=wp.vec3),
-    plane_d: wp.array(dtype=float),
-    kinds: wp.array(dtype=int),
-    bx: wp.array(dtype=wp.vec3),
-    bv: wp.array(dtype=wp.vec3),
-    bw: wp.array(dtype=wp.vec3),
-    depth_scale: wp.array(dtype=float),
-    ext_force: wp.array(dtype=wp.vec3),
-    ext_torque: wp.array(dtype=wp.vec3),
+    faces: BlockFaces,
+    bodies: BlockBodies,
+    loads: BlockLoads,
     wall_force: wp.array(dtype=wp.vec3),
 ):
-    """Penalty force of block b on particle i; ``squeeze`` (lambda t, zero outside a pinch) turns
-    the force to n + lambda t: the squeeze-out push along the gap (module docstring)."""
-    dist, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
+    """Penalty force of block b on a particle at xi moving at vi; ``squeeze`` (lambda t, zero outside
+    a pinch) turns the force to n + lambda t: the squeeze-out push along the gap (module docstring)."""
+    dist, n = block_distance(b, xi, faces.face_start, faces.face_count, faces.plane_n, faces.plane_d)
     f = wp.vec3(0.0)
     if dist < p.d0:
-        c = bx[b]
+        c = bodies.x[b]
         xc = xi - dist * n  # projection onto the face plane (same line of action as f)
-        vs = bv[b] + wp.cross(bw[b], xc - c)
+        vs = bodies.v[b] + wp.cross(bodies.w[b], xc - c)
         vn = wp.dot(vi - vs, n)
         mag = p.k_s * (p.d0 - dist) - p.k_d * vn
         if mag > 0.0:
             f = mag * (n + squeeze)
-            kind = kinds[b]
+            kind = faces.kinds[b]
             if kind != KIND_FIXED and kind != KIND_KINEMATIC:
-                fb = -depth_scale[b] * f
-                wp.atomic_add(ext_force, b, fb)
-                wp.atomic_add(ext_torque, b, wp.cross(xc - c, fb))
+                fb = -faces.depth_scale[b] * f
+                wp.atomic_add(loads.ext_force, b, fb)
+                wp.atomic_add(loads.ext_torque, b, wp.cross(xc - c, fb))
             elif p.track_walls != 0:
                 wp.atomic_add(wall_force, 0, f)
     return f
@@ -317,39 +327,38 @@ def particle_block_forces(
     particle_mass: wp.array(dtype=float),
     dt: wp.array(dtype=float),
     p: CouplingParams,
-    bucket_start: wp.array(dtype=int),
-    bucket_count: wp.array(dtype=int),
-    entry_block: wp.array(dtype=int),
-    entry_cell: wp.array(dtype=wp.vec3i),
-    large: wp.array(dtype=int),
-    counters: wp.array(dtype=int),
-    box_lo: wp.array(dtype=wp.vec3),
-    box_hi: wp.array(dtype=wp.vec3),
-    face_start: wp.array(dtype=int),
-    face_count: wp.array(dtype=int),
-    plane_n: wp.array(dtype=wp.vec3),
-    plane_d: wp.array(dtype=float),
-    kinds: wp.array(dtype=int),
-    bx: wp.array(dtype=wp.vec3),
-    bv: wp.array(dtype=wp.vec3),
-    bw: wp.array(dtype=wp.vec3),
-    depth_scale: wp.array(dtype=float),
-    ext_force: wp.array(dtype=wp.vec3),
-    ext_torque: wp.array(dtype=wp.vec3),
+    grid: CouplingGrid,
+    faces: BlockFaces,
+    bodies: BlockBodies,
+    loads: BlockLoads,
     wall_force: wp.array(dtype=wp.vec3),
     dv: wp.array(dtype=wp.vec3),
 ):
     """Penalty force of every nearby block on fluid particle i, stored as the velocity change
-    dv_i = dt f_i / m_i (applied after the fluid step); reactions go to the blocks.
+    dv_i = dt f_i / m_i (applied after the fluid step); reactions go to the blocks (loads.ext_force,
+    loads.ext_torque).
 
     Three passes over the candidate blocks (the bucket of the particle's cell and the large list):
     the nearest block a; if the particle touches it (dist < d0), the nearest block b whose face
     opposes a's (a pinch: the particle is in a gap of width w = dist_a + dist_b); then the forces."""
+    bucket_start = grid.bucket_start
+    bucket_count = grid.bucket_count
+    entry_block = grid.entry_block
+    entry_cell = grid.entry_cell
+    large = grid.large
+    counters = grid.counters
+    box_lo = grid.box_lo
+    box_hi = grid.box_hi
+    face_start = faces.face_start
+    face_count = faces.face_count
+    plane_n = faces.plane_n
+    plane_d = faces.plane_d
+    kinds = faces.kinds
     i = wp.tid()
     xi = x[i]
     vi = v[i]
     c = cell_of(xi, p.inv_s)
-    h = bucket_of(c, p.nbuckets)
+    h = bucket_of(c, grid.nbuckets)
     s = bucket_start[h]
     # pass 1: nearest block
     ba = int(-1)
@@ -417,8 +426,7 @@ def particle_block_forces(
             sq = zero
             if b == ba or b == bb:  # only the two faces of the pinch push along the gap
                 sq = squeeze
-            f += block_contact(i, b, xi, vi, p, sq, face_start, face_count, plane_n, plane_d, kinds, bx, bv, bw,
-                               depth_scale, ext_force, ext_torque, wall_force)
+            f += block_contact(b, xi, vi, p, sq, faces, bodies, loads, wall_force)
     for k in range(counters[1]):
         b = large[k]
         if not in_box(xi, box_lo[b], box_hi[b]):
@@ -426,8 +434,7 @@ def particle_block_forces(
         sq = zero
         if b == ba or b == bb:
             sq = squeeze
-        f += block_contact(i, b, xi, vi, p, sq, face_start, face_count, plane_n, plane_d, kinds, bx, bv, bw,
-                           depth_scale, ext_force, ext_torque, wall_force)
+        f += block_contact(b, xi, vi, p, sq, faces, bodies, loads, wall_force)
     dv[i] = (dt[0] / particle_mass[i]) * f
 
 
@@ -439,23 +446,6 @@ def apply_dv(dv: wp.array(dtype=wp.vec3), dt: wp.array(dtype=float), x: wp.array
     d = dv[i]
     v[i] = v[i] + d
     x[i] = x[i] + dt[0] * d
-
-
-@wp.kernel
-def planar_blocks(z0: wp.array(dtype=float), kinds: wp.array(dtype=int), x: wp.array(dtype=wp.vec3), q: wp.array(dtype=wp.quat),
-                  v: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.vec3)):
-    """2D scenes: blocks move in the x-y plane only (z fixed, spin about z only)."""
-    b = wp.tid()
-    if kinds[b] == KIND_FIXED:
-        return
-    p = x[b]
-    x[b] = wp.vec3(p[0], p[1], z0[b])
-    u = v[b]
-    v[b] = wp.vec3(u[0], u[1], 0.0)
-    o = w[b]
-    w[b] = wp.vec3(0.0, 0.0, o[2])
-    r = q[b]
-    q[b] = wp.normalize(wp.quat(0.0, 0.0, r[2], r[3]))
 
 
 @wp.kernel

@@ -9,6 +9,10 @@ Conventions: z up, SI units, float32.  Quaternions are Warp's (x, y, z, w).  A p
 A < B; the common-plane normal n points from A to B; the force on B is +F, on A is -F.
 Strain vector s (wp.spatial_vector) = (eps_x, eps_y, eps_z, gamma_yz, gamma_zx, gamma_xy) in the
 block's body frame (engineering shear strains).
+
+Kernel arguments come in groups (wp.structs below) built once on the host: BlockTopology,
+BlockProps, BlockMaterial, BlockMotion (BlockModel), BlockBodies, BlockLoads, ContactTable
+(BlockState), BroadPhaseGrid, PairList (BlockSolver). Kernels copy the fields they use into locals.
 """
 
 import warp as wp
@@ -18,7 +22,6 @@ KIND_DEFORMABLE = wp.constant(1)
 KIND_FIXED = wp.constant(2)
 KIND_KINEMATIC = wp.constant(3)
 
-MOTION_NONE = wp.constant(0)
 MOTION_SINE = wp.constant(1)
 MOTION_TABLE = wp.constant(2)
 
@@ -32,6 +35,151 @@ FLAG_ENTRY_OVERFLOW = wp.constant(1)
 FLAG_LARGE_OVERFLOW = wp.constant(2)
 FLAG_PAIR_OVERFLOW = wp.constant(4)
 FLAG_CONTACT_OVERFLOW = wp.constant(8)
+
+
+# ----------------------------------------------------------------------------------------------
+# argument groups: device-array views built once (BlockModel, BlockState, BlockSolver) and passed
+# to the kernels whole instead of dozens of separate arrays
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.struct
+class BlockTopology:
+    """Static geometry of all blocks (BlockModel): per-block ranges into the concatenated vertex and
+    face arrays, the half-edge mesh (global indices) and each block's bounding diameter [m]."""
+
+    vert_start: wp.array(dtype=int)
+    vert_count: wp.array(dtype=int)
+    face_start: wp.array(dtype=int)
+    face_count: wp.array(dtype=int)
+    face_he: wp.array(dtype=int)
+    vertex_out_he: wp.array(dtype=int)
+    he_vertex: wp.array(dtype=int)
+    he_next: wp.array(dtype=int)
+    he_prev: wp.array(dtype=int)
+    he_twin: wp.array(dtype=int)
+    block_size: wp.array(dtype=float)
+
+
+@wp.struct
+class BlockProps:
+    """Static per-block mass properties (BlockModel): kind, 1/m (0 for fixed and kinematic blocks),
+    body-frame inertia and its inverse, deformable blocks' strain-mode inverse mass, stiffness and
+    damping rate [1/s]."""
+
+    kinds: wp.array(dtype=int)
+    inv_mass: wp.array(dtype=float)
+    inertia_body: wp.array(dtype=wp.mat33)
+    inv_inertia_body: wp.array(dtype=wp.mat33)
+    strain_minv: wp.array(dtype=wp.spatial_matrix)
+    strain_k: wp.array(dtype=wp.spatial_matrix)
+    strain_damp: wp.array(dtype=float)
+
+
+@wp.struct
+class BlockMaterial:
+    """Contact law of each block's surface (BlockModel): k_n, k_s [N/m per point], tan(phi),
+    cohesion and tensile strength [Pa], dashpot damping ratio zeta."""
+
+    k_n: wp.array(dtype=float)
+    k_s: wp.array(dtype=float)
+    tan_phi: wp.array(dtype=float)
+    cohesion: wp.array(dtype=float)
+    tensile: wp.array(dtype=float)
+    zeta: wp.array(dtype=float)
+
+
+@wp.struct
+class BlockMotion:
+    """Prescribed motion of kinematic blocks (BlockModel): base position, motion type (MOTION_*),
+    sine amplitude/frequency/phase, and the rows of the displacement tables."""
+
+    base_x: wp.array(dtype=wp.vec3)
+    motion_type: wp.array(dtype=int)
+    motion_amp: wp.array(dtype=wp.vec3)
+    motion_freq: wp.array(dtype=float)
+    motion_phase: wp.array(dtype=float)
+    table_start: wp.array(dtype=int)
+    table_count: wp.array(dtype=int)
+    table_t: wp.array(dtype=float)
+    table_x: wp.array(dtype=wp.vec3)
+
+
+@wp.struct
+class BlockBodies:
+    """Pose and velocity of every block (BlockState): centroid x, orientation q, velocity v,
+    angular velocity w (world), strain and strain rate (body frame)."""
+
+    x: wp.array(dtype=wp.vec3)
+    q: wp.array(dtype=wp.quat)
+    v: wp.array(dtype=wp.vec3)
+    w: wp.array(dtype=wp.vec3)
+    strain: wp.array(dtype=wp.spatial_vector)
+    strain_rate: wp.array(dtype=wp.spatial_vector)
+
+
+@wp.struct
+class BlockLoads:
+    """Force accumulators of every block (BlockState): contact force, torque and generalised strain
+    force, external force and torque (added by other modules), contact points of the step."""
+
+    force: wp.array(dtype=wp.vec3)
+    torque: wp.array(dtype=wp.vec3)
+    strain_force: wp.array(dtype=wp.spatial_vector)
+    ext_force: wp.array(dtype=wp.vec3)
+    ext_torque: wp.array(dtype=wp.vec3)
+    contact_count: wp.array(dtype=int)
+
+
+@wp.struct
+class ContactTable:
+    """Contact history hash table (BlockState, two of them swapped each step): per slot the pair key
+    (-1 empty), common-plane normal, gap or its lower bound, contact point count; per point
+    (slot * K_MAX + k) the feature key, shear spring force, position, depth and normal force."""
+
+    keys: wp.array(dtype=wp.int64)
+    normal: wp.array(dtype=wp.vec3)
+    gapb: wp.array(dtype=float)
+    nc: wp.array(dtype=int)
+    ckey: wp.array(dtype=wp.vec2i)
+    shear: wp.array(dtype=wp.vec3)
+    pos: wp.array(dtype=wp.vec3)
+    depth: wp.array(dtype=float)
+    fn: wp.array(dtype=float)
+
+
+@wp.struct
+class BroadPhaseGrid:
+    """Uniform-grid broad phase (BlockSolver): each block's AABB (lo, hi, grown by the margin), 1 / cell
+    size [1/m], the hashed buckets of (block, cell) entries (counting sort: count, start, fill), the
+    entries, and the large blocks (over large_cells cells) tested against every block."""
+
+    lo: wp.array(dtype=wp.vec3)
+    hi: wp.array(dtype=wp.vec3)
+    inv_s: float
+    large_cells: int
+    nbuckets: int
+    bucket_count: wp.array(dtype=int)
+    bucket_start: wp.array(dtype=int)
+    bucket_fill: wp.array(dtype=int)
+    entry_block: wp.array(dtype=int)
+    entry_cell: wp.array(dtype=wp.vec3i)
+    is_large: wp.array(dtype=int)
+    large_list: wp.array(dtype=int)
+
+
+@wp.struct
+class PairList:
+    """Candidate pairs of the broad phase (BlockSolver): pairs (A < B), the counters ([0] pairs,
+    [1] overflow flags, [2] large blocks, [3] active pairs), the compact list of pairs not certified
+    separated, each pair's history slots (this step, last step: -1 none) and gap [m]."""
+
+    pairs: wp.array(dtype=wp.vec2i)
+    counters: wp.array(dtype=int)
+    active: wp.array(dtype=int)
+    slot: wp.array(dtype=int)
+    oslot: wp.array(dtype=int)
+    gap: wp.array(dtype=float)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -524,66 +672,48 @@ def cell_range(l: wp.vec3, h: wp.vec3, inv_s: float):
 
 
 @wp.kernel
-def bp_count(
-    lo: wp.array(dtype=wp.vec3),
-    hi: wp.array(dtype=wp.vec3),
-    inv_s: float,
-    large_cells: int,
-    nbuckets: int,
-    bucket_count: wp.array(dtype=int),
-    is_large: wp.array(dtype=int),
-    large_list: wp.array(dtype=int),
-    counters: wp.array(dtype=int),
-):
+def bp_count(grid: BroadPhaseGrid, counters: wp.array(dtype=int)):
     # counters: [0] pairs, [1] overflow flags, [2] large blocks
+    large_cells = grid.large_cells
+    large_list = grid.large_list
     b = wp.tid()
-    c0, c1 = cell_range(lo[b], hi[b], inv_s)
+    c0, c1 = cell_range(grid.lo[b], grid.hi[b], grid.inv_s)
     nx = c1[0] - c0[0] + 1
     ny = c1[1] - c0[1] + 1
     nz = c1[2] - c0[2] + 1
     # blocks spanning many cells (floors, slopes) are tested against all blocks instead
     if nx > large_cells or ny > large_cells or nz > large_cells or nx * ny * nz > large_cells:
-        is_large[b] = 1
+        grid.is_large[b] = 1
         k = wp.atomic_add(counters, 2, 1)
         if k < large_list.shape[0]:
             large_list[k] = b
         else:
             wp.atomic_or(counters, 1, FLAG_LARGE_OVERFLOW)
         return
-    is_large[b] = 0
+    grid.is_large[b] = 0
     for i in range(nx):
         for j in range(ny):
             for k in range(nz):
-                hb = hash_cell(c0[0] + i, c0[1] + j, c0[2] + k, nbuckets)
-                wp.atomic_add(bucket_count, hb, 1)
+                hb = hash_cell(c0[0] + i, c0[1] + j, c0[2] + k, grid.nbuckets)
+                wp.atomic_add(grid.bucket_count, hb, 1)
 
 
 @wp.kernel
-def bp_fill(
-    lo: wp.array(dtype=wp.vec3),
-    hi: wp.array(dtype=wp.vec3),
-    inv_s: float,
-    nbuckets: int,
-    is_large: wp.array(dtype=int),
-    bucket_start: wp.array(dtype=int),
-    bucket_fill: wp.array(dtype=int),
-    entry_block: wp.array(dtype=int),
-    entry_cell: wp.array(dtype=wp.vec3i),
-    counters: wp.array(dtype=int),
-):
+def bp_fill(grid: BroadPhaseGrid, counters: wp.array(dtype=int)):
+    entry_block = grid.entry_block
     b = wp.tid()
-    if is_large[b] != 0:
+    if grid.is_large[b] != 0:
         return
-    c0, c1 = cell_range(lo[b], hi[b], inv_s)
+    c0, c1 = cell_range(grid.lo[b], grid.hi[b], grid.inv_s)
     for i in range(c1[0] - c0[0] + 1):
         for j in range(c1[1] - c0[1] + 1):
             for k in range(c1[2] - c0[2] + 1):
                 c = wp.vec3i(c0[0] + i, c0[1] + j, c0[2] + k)
-                hb = hash_cell(c[0], c[1], c[2], nbuckets)
-                e = bucket_start[hb] + wp.atomic_add(bucket_fill, hb, 1)
+                hb = hash_cell(c[0], c[1], c[2], grid.nbuckets)
+                e = grid.bucket_start[hb] + wp.atomic_add(grid.bucket_fill, hb, 1)
                 if e < entry_block.shape[0]:
                     entry_block[e] = b
-                    entry_cell[e] = c
+                    grid.entry_cell[e] = c
                 else:
                     wp.atomic_or(counters, 1, FLAG_ENTRY_OVERFLOW)
 
@@ -603,23 +733,19 @@ def emit_pair(i: int, j: int, pairs: wp.array(dtype=wp.vec2i), counters: wp.arra
 
 
 @wp.kernel
-def bp_pairs(
-    lo: wp.array(dtype=wp.vec3),
-    hi: wp.array(dtype=wp.vec3),
-    inv_s: float,
-    nbuckets: int,
-    kinds: wp.array(dtype=int),
-    bucket_start: wp.array(dtype=int),
-    bucket_count: wp.array(dtype=int),
-    entry_block: wp.array(dtype=int),
-    entry_cell: wp.array(dtype=wp.vec3i),
-    pairs: wp.array(dtype=wp.vec2i),
-    counters: wp.array(dtype=int),
-):
+def bp_pairs(grid: BroadPhaseGrid, kinds: wp.array(dtype=int), pl: PairList):
     # one thread per (block, cell) entry e1, against the later entries of its bucket (a bucket's
     # entries are contiguous after the counting sort); a pair is emitted only from the cell holding
     # the min corner of the AABB overlap, so it appears exactly once however many cells the two
     # blocks share. (One thread per bucket looped over ~n^2/2 entry pairs serially: few, long threads.)
+    lo = grid.lo
+    hi = grid.hi
+    inv_s = grid.inv_s
+    nbuckets = grid.nbuckets
+    bucket_start = grid.bucket_start
+    bucket_count = grid.bucket_count
+    entry_block = grid.entry_block
+    entry_cell = grid.entry_cell
     e1 = wp.tid()
     ntot = bucket_start[nbuckets - 1] + bucket_count[nbuckets - 1]
     if e1 >= wp.min(ntot, entry_block.shape[0]):
@@ -648,32 +774,27 @@ def bp_pairs(
         m = wp.max(li, lj)
         c0, c1 = cell_range(m, m, inv_s)
         if c0[0] == ci[0] and c0[1] == ci[1] and c0[2] == ci[2]:
-            emit_pair(i, j, pairs, counters)
+            emit_pair(i, j, pl.pairs, pl.counters)
 
 
 @wp.kernel
-def bp_large_pairs(
-    lo: wp.array(dtype=wp.vec3),
-    hi: wp.array(dtype=wp.vec3),
-    kinds: wp.array(dtype=int),
-    is_large: wp.array(dtype=int),
-    large_list: wp.array(dtype=int),
-    pairs: wp.array(dtype=wp.vec2i),
-    counters: wp.array(dtype=int),
-):
+def bp_large_pairs(grid: BroadPhaseGrid, kinds: wp.array(dtype=int), pl: PairList):
     # large block L (from the list) against every block j by AABB
+    lo = grid.lo
+    hi = grid.hi
+    large_list = grid.large_list
     k, j = wp.tid()
-    if k >= wp.min(counters[2], large_list.shape[0]):
+    if k >= wp.min(pl.counters[2], large_list.shape[0]):
         return
     L = large_list[k]
     if j == L:
         return
-    if is_large[j] != 0 and j < L:
+    if grid.is_large[j] != 0 and j < L:
         return
     if not (movable(kinds[L]) or movable(kinds[j])):
         return
     if aabb_overlap(lo[L], hi[L], lo[j], hi[j]):
-        emit_pair(L, j, pairs, counters)
+        emit_pair(L, j, pl.pairs, pl.counters)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -709,27 +830,16 @@ def add_contact(
 
 @wp.kernel
 def narrow_screen(
-    pairs: wp.array(dtype=wp.vec2i),
-    counters: wp.array(dtype=int),
+    pl: PairList,
     nblocks: int,
     screen: int,
     wv: wp.array(dtype=wp.vec3),
-    vert_start: wp.array(dtype=int),
-    vert_count: wp.array(dtype=int),
-    x: wp.array(dtype=wp.vec3),
+    topo: BlockTopology,
+    bodies: BlockBodies,
     dx: wp.array(dtype=wp.vec3),
     rho: wp.array(dtype=float),
-    old_keys: wp.array(dtype=wp.int64),
-    old_normal: wp.array(dtype=wp.vec3),
-    old_gapb: wp.array(dtype=float),
-    new_keys: wp.array(dtype=wp.int64),
-    new_normal: wp.array(dtype=wp.vec3),
-    new_gapb: wp.array(dtype=float),
-    new_nc: wp.array(dtype=int),
-    pair_gap: wp.array(dtype=float),
-    pair_slot: wp.array(dtype=int),
-    pair_oslot: wp.array(dtype=int),
-    active: wp.array(dtype=int),
+    prev: ContactTable,
+    cur: ContactTable,
 ):
     # one thread per candidate pair: history slots, then the separation certificate. The warm-start
     # plane (last step's common plane, else the PB of the centroids) is FCP's step i; if it already
@@ -738,113 +848,100 @@ def narrow_screen(
     # separated pair (plane kept, nc = 0, no shear carried), its gap is a lower bound of FCP's.
     # The other pairs go to the compact list `active` (count in counters[3]) for narrow_phase.
     # screen = 0 (diagnostics, detect()): every pair goes to the list and gets FCP's gap.
+    pairs = pl.pairs
+    counters = pl.counters
+    x = bodies.x
     tid = wp.tid()
     if tid >= wp.min(counters[0], pairs.shape[0]):
         return
     A = pairs[tid][0]
     B = pairs[tid][1]
     key = wp.int64(A) * wp.int64(nblocks) + wp.int64(B)
-    slot = table_insert(key, new_keys, new_keys.shape[0])
-    pair_slot[tid] = slot
+    slot = table_insert(key, cur.keys, cur.keys.shape[0])
+    pl.slot[tid] = slot
     if slot < 0:
         wp.atomic_or(counters, 1, FLAG_CONTACT_OVERFLOW)
         return
-    oslot = table_find(key, old_keys, old_keys.shape[0])
-    pair_oslot[tid] = oslot
+    oslot = table_find(key, prev.keys, prev.keys.shape[0])
+    pl.oslot[tid] = oslot
     if screen != 0:
         if oslot >= 0:
-            # last step's plane had gap G at the reference poses (old_gapb, exact or a lower bound);
+            # last step's plane had gap G at the reference poses (prev.gapb, exact or a lower bound);
             # with vertices moved by dx + dev (|dev| <= rho) its gap is now >= G + n.(dx_B - dx_A)
             # - rho_A - rho_B: if that is > 0 the pair is still separated, no vertex is read
-            nb = old_normal[oslot]
-            gb = old_gapb[oslot] + wp.dot(nb, dx[B] - dx[A]) - rho[A] - rho[B]
+            nb = prev.normal[oslot]
+            gb = prev.gapb[oslot] + wp.dot(nb, dx[B] - dx[A]) - rho[A] - rho[B]
             if gb > 0.0:
-                new_normal[slot] = nb
-                new_gapb[slot] = gb
-                pair_gap[tid] = gb
-                new_nc[slot] = 0
+                cur.normal[slot] = nb
+                cur.gapb[slot] = gb
+                pl.gap[tid] = gb
+                cur.nc[slot] = 0
                 return
         n0 = x[B] - x[A]
         if oslot >= 0:
-            n0 = old_normal[oslot]
+            n0 = prev.normal[oslot]
         if wp.length(n0) < 1.0e-12:
             n0 = wp.vec3(0.0, 0.0, 1.0)
-        n, gap = signed_gap(wp.normalize(n0), vert_start[A], vert_count[A], vert_start[B], vert_count[B], wv)
+        n, gap = signed_gap(wp.normalize(n0), topo.vert_start[A], topo.vert_count[A], topo.vert_start[B], topo.vert_count[B], wv)
         if gap > 0.0:
-            new_normal[slot] = n
-            new_gapb[slot] = gap
-            pair_gap[tid] = gap
-            new_nc[slot] = 0
+            cur.normal[slot] = n
+            cur.gapb[slot] = gap
+            pl.gap[tid] = gap
+            cur.nc[slot] = 0
             return
     k = wp.atomic_add(counters, 3, 1)
-    active[k] = tid
+    pl.active[k] = tid
 
 
 @wp.kernel
 def narrow_phase(
-    pairs: wp.array(dtype=wp.vec2i),
-    counters: wp.array(dtype=int),
-    active: wp.array(dtype=int),
-    pair_oslot: wp.array(dtype=int),
+    pl: PairList,
     dt: float,
-    # geometry
     wv: wp.array(dtype=wp.vec3),
-    vert_start: wp.array(dtype=int),
-    vert_count: wp.array(dtype=int),
-    face_start: wp.array(dtype=int),
-    face_count: wp.array(dtype=int),
-    face_he: wp.array(dtype=int),
-    vertex_out_he: wp.array(dtype=int),
-    he_vertex: wp.array(dtype=int),
-    he_next: wp.array(dtype=int),
-    he_prev: wp.array(dtype=int),
-    he_twin: wp.array(dtype=int),
-    block_size: wp.array(dtype=float),
-    # block state
-    kinds: wp.array(dtype=int),
-    inv_mass: wp.array(dtype=float),
-    x: wp.array(dtype=wp.vec3),
-    q: wp.array(dtype=wp.quat),
-    v: wp.array(dtype=wp.vec3),
-    w: wp.array(dtype=wp.vec3),
-    strain_rate: wp.array(dtype=wp.spatial_vector),
-    # materials
-    k_n: wp.array(dtype=float),
-    k_s: wp.array(dtype=float),
-    tan_phi: wp.array(dtype=float),
-    cohesion: wp.array(dtype=float),
-    tensile: wp.array(dtype=float),
-    zeta: wp.array(dtype=float),
-    # history: previous table (read) and current table (write)
-    old_normal: wp.array(dtype=wp.vec3),
-    old_nc: wp.array(dtype=int),
-    old_ckey: wp.array(dtype=wp.vec2i),
-    old_shear: wp.array(dtype=wp.vec3),
-    new_normal: wp.array(dtype=wp.vec3),
-    new_gapb: wp.array(dtype=float),
-    new_nc: wp.array(dtype=int),
-    new_ckey: wp.array(dtype=wp.vec2i),
-    new_shear: wp.array(dtype=wp.vec3),
-    new_pos: wp.array(dtype=wp.vec3),
-    new_depth: wp.array(dtype=float),
-    new_fn: wp.array(dtype=float),
-    # outputs
-    pair_gap: wp.array(dtype=float),
-    pair_slot: wp.array(dtype=int),
-    force: wp.array(dtype=wp.vec3),
-    torque: wp.array(dtype=wp.vec3),
-    strain_force: wp.array(dtype=wp.spatial_vector),
-    contact_count: wp.array(dtype=int),
+    topo: BlockTopology,
+    props: BlockProps,
+    mat: BlockMaterial,
+    bodies: BlockBodies,
+    prev: ContactTable,
+    cur: ContactTable,
+    loads: BlockLoads,
 ):
+    """FCP narrow phase and contact forces: world vertices wv, previous contact history `prev` (read),
+    this step's `cur` (written: planes, gaps, points, shear springs), forces into `loads`."""
+    # local names for the grouped arrays (the arithmetic below reads them as before)
+    vert_start = topo.vert_start
+    vert_count = topo.vert_count
+    face_start = topo.face_start
+    face_count = topo.face_count
+    face_he = topo.face_he
+    vertex_out_he = topo.vertex_out_he
+    he_vertex = topo.he_vertex
+    he_next = topo.he_next
+    he_prev = topo.he_prev
+    he_twin = topo.he_twin
+    block_size = topo.block_size
+    kinds = props.kinds
+    inv_mass = props.inv_mass
+    x = bodies.x
+    q = bodies.q
+    v = bodies.v
+    w = bodies.w
+    strain_rate = bodies.strain_rate
+    new_pos = cur.pos
+    new_depth = cur.depth
+    new_ckey = cur.ckey
+    force = loads.force
+    torque = loads.torque
+    strain_force = loads.strain_force
     # one thread per pair of the compact list from narrow_screen (pairs not certified separated)
     li = wp.tid()
-    if li >= counters[3]:
+    if li >= pl.counters[3]:
         return
-    tid = active[li]
-    A = pairs[tid][0]
-    B = pairs[tid][1]
-    slot = pair_slot[tid]
-    oslot = pair_oslot[tid]
+    tid = pl.active[li]
+    A = pl.pairs[tid][0]
+    B = pl.pairs[tid][1]
+    slot = pl.slot[tid]
+    oslot = pl.oslot[tid]
     sA = vert_start[A]
     cA = vert_count[A]
     sB = vert_start[B]
@@ -852,7 +949,7 @@ def narrow_phase(
     # FCP step i: warm start from last step's plane, else PB of the centroids
     n0 = x[B] - x[A]
     if oslot >= 0:
-        n0 = old_normal[oslot]
+        n0 = prev.normal[oslot]
     if wp.length(n0) < 1.0e-12:
         n0 = wp.vec3(0.0, 0.0, 1.0)
     # FCP's tie tolerance for closest vertices: float32 rounding of n.x (~1e-7 (|x| + size)) well inside
@@ -909,10 +1006,10 @@ def narrow_phase(
         if g1 > gap + 1.0e-7:
             n, gap = fcp_plane(n1, tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv,
                                vertex_out_he, he_vertex, he_next, he_prev, he_twin)
-    new_normal[slot] = n
-    new_gapb[slot] = gap
-    pair_gap[tid] = gap
-    new_nc[slot] = 0
+    cur.normal[slot] = n
+    cur.gapb[slot] = gap
+    pl.gap[tid] = gap
+    cur.nc[slot] = 0
     if gap > 0.0:
         return
     size = wp.min(block_size[A], block_size[B])
@@ -996,7 +1093,7 @@ def narrow_phase(
             h = he_twin[he_prev[h]]
             if h == h0:
                 break
-    new_nc[slot] = nc
+    cur.nc[slot] = nc
     if nc == 0:
         return
     base = slot * K_MAX
@@ -1027,12 +1124,12 @@ def narrow_phase(
     area = wp.abs(area)
     a_share = area / float(nc)
     # material of the pair: the weaker of the two blocks
-    kn = wp.min(k_n[A], k_n[B])
-    ks = wp.min(k_s[A], k_s[B])
-    mu = wp.min(tan_phi[A], tan_phi[B])
-    coh = wp.min(cohesion[A], cohesion[B])
-    ten = wp.min(tensile[A], tensile[B])
-    zt = wp.max(zeta[A], zeta[B])
+    kn = wp.min(mat.k_n[A], mat.k_n[B])
+    ks = wp.min(mat.k_s[A], mat.k_s[B])
+    mu = wp.min(mat.tan_phi[A], mat.tan_phi[B])
+    coh = wp.min(mat.cohesion[A], mat.cohesion[B])
+    ten = wp.min(mat.tensile[A], mat.tensile[B])
+    zt = wp.max(mat.zeta[A], mat.zeta[B])
     im = inv_mass[A] + inv_mass[B]
     m_eff = float(0.0)
     if im > 0.0:
@@ -1042,7 +1139,7 @@ def narrow_phase(
     cs = 2.0 * zt * wp.sqrt(ks * m_eff / float(nc))
     onc = int(0)
     if oslot >= 0:
-        onc = old_nc[oslot]
+        onc = prev.nc[oslot]
     for k in range(nc):
         c = base + k
         p = new_pos[c]
@@ -1057,9 +1154,9 @@ def narrow_phase(
         fs = wp.vec3(0.0, 0.0, 0.0)
         ck = new_ckey[c]
         for m in range(onc):
-            ok = old_ckey[oslot * K_MAX + m]
+            ok = prev.ckey[oslot * K_MAX + m]
             if ok[0] == ck[0] and ok[1] == ck[1]:
-                fo = old_shear[oslot * K_MAX + m]
+                fo = prev.shear[oslot * K_MAX + m]
                 mag = wp.length(fo)
                 fp = fo - wp.dot(fo, n) * n
                 lp = wp.length(fp)
@@ -1077,8 +1174,8 @@ def narrow_phase(
             fs_tot = fs
         else:
             fs_tot = fs - cs * vt
-        new_shear[c] = fs
-        new_fn[c] = fn
+        cur.shear[c] = fs
+        cur.fn[c] = fn
         f = fn * n + fs_tot  # force on B
         if movable(kinds[B]):
             wp.atomic_add(force, B, f)
@@ -1092,40 +1189,27 @@ def narrow_phase(
             if kinds[A] == KIND_DEFORMABLE:
                 Xa = wp.quat_rotate_inv(q[A], p - x[A])
                 wp.atomic_add(strain_force, A, strain_gen_force(Xa, wp.quat_rotate_inv(q[A], -f)))
-    wp.atomic_add(contact_count, A, nc)
-    wp.atomic_add(contact_count, B, nc)
+    wp.atomic_add(loads.contact_count, A, nc)
+    wp.atomic_add(loads.contact_count, B, nc)
 
 
 @wp.kernel
-def rehash_table(
-    old_keys: wp.array(dtype=wp.int64),
-    old_normal: wp.array(dtype=wp.vec3),
-    old_gapb: wp.array(dtype=float),
-    old_nc: wp.array(dtype=int),
-    old_ckey: wp.array(dtype=wp.vec2i),
-    old_shear: wp.array(dtype=wp.vec3),
-    new_keys: wp.array(dtype=wp.int64),
-    new_normal: wp.array(dtype=wp.vec3),
-    new_gapb: wp.array(dtype=float),
-    new_nc: wp.array(dtype=int),
-    new_ckey: wp.array(dtype=wp.vec2i),
-    new_shear: wp.array(dtype=wp.vec3),
-):
+def rehash_table(prev: ContactTable, cur: ContactTable):
     # move the contact history into a larger table (capacity growth)
     s = wp.tid()
-    key = old_keys[s]
+    key = prev.keys[s]
     if key < wp.int64(0):
         return
-    t = table_insert(key, new_keys, new_keys.shape[0])
+    t = table_insert(key, cur.keys, cur.keys.shape[0])
     if t < 0:
         return
-    new_normal[t] = old_normal[s]
-    new_gapb[t] = old_gapb[s]
-    nc = old_nc[s]
-    new_nc[t] = nc
+    cur.normal[t] = prev.normal[s]
+    cur.gapb[t] = prev.gapb[s]
+    nc = prev.nc[s]
+    cur.nc[t] = nc
     for k in range(nc):
-        new_ckey[t * K_MAX + k] = old_ckey[s * K_MAX + k]
-        new_shear[t * K_MAX + k] = old_shear[s * K_MAX + k]
+        cur.ckey[t * K_MAX + k] = prev.ckey[s * K_MAX + k]
+        cur.shear[t * K_MAX + k] = prev.shear[s * K_MAX + k]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1134,28 +1218,19 @@ def rehash_table(
 
 
 @wp.func
-def kinematic_motion(
-    b: int,
-    t: float,
-    motion_type: wp.array(dtype=int),
-    motion_amp: wp.array(dtype=wp.vec3),
-    motion_freq: wp.array(dtype=float),
-    motion_phase: wp.array(dtype=float),
-    table_start: wp.array(dtype=int),
-    table_count: wp.array(dtype=int),
-    table_t: wp.array(dtype=float),
-    table_x: wp.array(dtype=wp.vec3),
-):
+def kinematic_motion(b: int, t: float, mo: BlockMotion):
     # displacement and velocity of a prescribed motion at time t:
     # sine: u = A sin(2 pi f t + phase), du/dt = 2 pi f A cos(...); table: piecewise linear in t
-    mt = motion_type[b]
+    mt = mo.motion_type[b]
     if mt == MOTION_SINE:
-        om = 6.283185307179586 * motion_freq[b]
-        arg = om * t + motion_phase[b]
-        return motion_amp[b] * wp.sin(arg), motion_amp[b] * (om * wp.cos(arg))
+        om = 6.283185307179586 * mo.motion_freq[b]
+        arg = om * t + mo.motion_phase[b]
+        return mo.motion_amp[b] * wp.sin(arg), mo.motion_amp[b] * (om * wp.cos(arg))
     if mt == MOTION_TABLE:
-        s = table_start[b]
-        n = table_count[b]
+        table_t = mo.table_t
+        table_x = mo.table_x
+        s = mo.table_start[b]
+        n = mo.table_count[b]
         if t <= table_t[s]:
             return table_x[s], wp.vec3(0.0, 0.0, 0.0)
         for k in range(n - 1):
@@ -1170,54 +1245,42 @@ def kinematic_motion(
 
 @wp.kernel
 def integrate_blocks(
-    kinds: wp.array(dtype=int),
-    inv_mass: wp.array(dtype=float),
-    inertia_body: wp.array(dtype=wp.mat33),
-    inv_inertia_body: wp.array(dtype=wp.mat33),
-    strain_minv: wp.array(dtype=wp.spatial_matrix),
-    strain_k: wp.array(dtype=wp.spatial_matrix),
-    strain_damp: wp.array(dtype=float),
+    props: BlockProps,
+    motion: BlockMotion,
     gravity: wp.vec3,
     t_next: float,
     dt: float,
-    base_x: wp.array(dtype=wp.vec3),
-    motion_type: wp.array(dtype=int),
-    motion_amp: wp.array(dtype=wp.vec3),
-    motion_freq: wp.array(dtype=float),
-    motion_phase: wp.array(dtype=float),
-    table_start: wp.array(dtype=int),
-    table_count: wp.array(dtype=int),
-    table_t: wp.array(dtype=float),
-    table_x: wp.array(dtype=wp.vec3),
-    x: wp.array(dtype=wp.vec3),
-    q: wp.array(dtype=wp.quat),
-    v: wp.array(dtype=wp.vec3),
-    w: wp.array(dtype=wp.vec3),
-    strain: wp.array(dtype=wp.spatial_vector),
-    strain_rate: wp.array(dtype=wp.spatial_vector),
-    force: wp.array(dtype=wp.vec3),
-    torque: wp.array(dtype=wp.vec3),
-    strain_force: wp.array(dtype=wp.spatial_vector),
-    ext_force: wp.array(dtype=wp.vec3),
-    ext_torque: wp.array(dtype=wp.vec3),
+    bodies: BlockBodies,
+    loads: BlockLoads,
 ):
+    """One explicit step of every block: kinematic blocks follow their motion at t_next, rigid and
+    deformable ones integrate the contact and external loads (then zeroed) and gravity."""
+    x = bodies.x
+    q = bodies.q
+    v = bodies.v
+    w = bodies.w
+    force = loads.force
+    torque = loads.torque
+    strain_force = loads.strain_force
+    ext_force = loads.ext_force
+    ext_torque = loads.ext_torque
     b = wp.tid()
-    kind = kinds[b]
+    kind = props.kinds[b]
     if kind == KIND_KINEMATIC:
-        u, uv = kinematic_motion(b, t_next, motion_type, motion_amp, motion_freq, motion_phase, table_start, table_count, table_t, table_x)
-        x[b] = base_x[b] + u
+        u, uv = kinematic_motion(b, t_next, motion)
+        x[b] = motion.base_x[b] + u
         v[b] = uv
         w[b] = wp.vec3(0.0, 0.0, 0.0)
     elif kind != KIND_FIXED:
-        im = inv_mass[b]
+        im = props.inv_mass[b]
         # translation: m dv/dt = F_contact + F_ext + m g
         vn = v[b] + dt * ((force[b] + ext_force[b]) * im + gravity)
         x[b] = x[b] + dt * vn
         v[b] = vn
         # rotation (world frame): I_w dw/dt = tau - w x (I_w w),  I_w = R I_b R^T
         R = wp.quat_to_matrix(q[b])
-        Iw = R * inertia_body[b] * wp.transpose(R)
-        Iwinv = R * inv_inertia_body[b] * wp.transpose(R)
+        Iw = R * props.inertia_body[b] * wp.transpose(R)
+        Iwinv = R * props.inv_inertia_body[b] * wp.transpose(R)
         om = w[b]
         tau = torque[b] + ext_torque[b] - wp.cross(om, Iw * om)
         om = om + dt * (Iwinv * tau)
@@ -1230,12 +1293,12 @@ def integrate_blocks(
         q[b] = wp.normalize(qn)
         if kind == KIND_DEFORMABLE:
             # Shi's strain DOFs: M_e de'/dt = Q - V D e - 2 zeta w_e M_e e'
-            s = strain[b]
-            sr = strain_rate[b]
-            acc = strain_minv[b] * (strain_force[b] - strain_k[b] * s) - strain_damp[b] * sr
+            s = bodies.strain[b]
+            sr = bodies.strain_rate[b]
+            acc = props.strain_minv[b] * (strain_force[b] - props.strain_k[b] * s) - props.strain_damp[b] * sr
             sr = sr + dt * acc
-            strain_rate[b] = sr
-            strain[b] = s + dt * sr
+            bodies.strain_rate[b] = sr
+            bodies.strain[b] = s + dt * sr
     force[b] = wp.vec3(0.0, 0.0, 0.0)
     torque[b] = wp.vec3(0.0, 0.0, 0.0)
     strain_force[b] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
@@ -1244,12 +1307,29 @@ def integrate_blocks(
 
 
 @wp.kernel
-def clear_forces(
-    force: wp.array(dtype=wp.vec3),
-    torque: wp.array(dtype=wp.vec3),
-    strain_force: wp.array(dtype=wp.spatial_vector),
-):
+def planar_blocks(z0: wp.array(dtype=float), kinds: wp.array(dtype=int), bodies: BlockBodies):
+    """2D scenes (BlockModel.planar): blocks move in the x-y plane only (z fixed at z0, spin about z
+    only); fixed blocks are left as they are."""
     b = wp.tid()
-    force[b] = wp.vec3(0.0, 0.0, 0.0)
-    torque[b] = wp.vec3(0.0, 0.0, 0.0)
-    strain_force[b] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    if kinds[b] == KIND_FIXED:
+        return
+    x = bodies.x
+    v = bodies.v
+    w = bodies.w
+    q = bodies.q
+    p = x[b]
+    x[b] = wp.vec3(p[0], p[1], z0[b])
+    u = v[b]
+    v[b] = wp.vec3(u[0], u[1], 0.0)
+    o = w[b]
+    w[b] = wp.vec3(0.0, 0.0, o[2])
+    r = q[b]
+    q[b] = wp.normalize(wp.quat(0.0, 0.0, r[2], r[3]))
+
+
+@wp.kernel
+def clear_forces(loads: BlockLoads):
+    b = wp.tid()
+    loads.force[b] = wp.vec3(0.0, 0.0, 0.0)
+    loads.torque[b] = wp.vec3(0.0, 0.0, 0.0)
+    loads.strain_force[b] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)

@@ -1,10 +1,27 @@
-"""Explicit 3D DDA rock-block solver (host side): specs -> BlockModel + BlockState -> BlockSolver.step.
+"""Explicit 3D DDA rock-block solver (host side).
 
-Data flow (DESIGN.md §1, §3): ``BlockSpec`` list -> ``BlockModel`` (static device arrays: concatenated
-vertices / faces / half-edges with per-block offsets, masses, inertia, kinds, materials) ->
-``BlockModel.state()`` -> ``BlockSolver(model).step(state, dt, t)`` runs, all as Warp kernels on the
-model's device: world vertices + AABBs, uniform-grid broad phase, Fast Common Plane narrow phase with
-multi-point contacts, penalty contact forces with per-pair history, explicit integration.
+What lives where:
+
+* ``BlockSpec`` (with ``ContactMaterial``, ``KinematicMotion``): one block as a scene gives it
+  (rockwave/rocks.py builds them from ``[[blocks]]``).
+* ``BlockModel``: the static description, device arrays that never change during a run: concatenated
+  vertices / faces / half-edges with per-block offsets, masses, inertia, kinds, materials, kinematic
+  motions, and their kernel argument groups (``topology``, ``props``, ``material``, ``motion``:
+  kernels/dda.py structs). ``planar=True`` (2D scenes): blocks are prisms extruded along z that move
+  in their x-y plane only (z fixed, rotation about z only).
+* ``BlockState``: everything that changes in time: poses, velocities, strains, load accumulators
+  (``ext_force`` / ``ext_torque``, where the coupling adds its reactions), world vertices, the two
+  contact-history tables (swapped each step) and ``time``; kernel views ``bodies``, ``loads``,
+  ``table_views``. A checkpoint of it is a complete restart point.
+* ``BlockOptions``: the solver's knobs (dt safety, broad-phase cell and margin, capacity paths),
+  defaults equal to the shipped values; ``BlockOptions.from_scene(scene)``.
+* ``BlockSolver(model, options=...)``: the solver contract of rockwave/solver.py:
+  ``stable_dt(state)`` = options.dt_safety x ``critical_dt()`` (the physical limit 2/omega_max), and
+  ``step(state, ts)`` (ts: rockwave.solver.TimeStep; refuses ts.dt above ``critical_dt()``) = world
+  vertices + AABBs, uniform-grid broad phase, Fast Common Plane narrow phase with multi-point
+  contacts, penalty contact forces with per-pair history, explicit integration and, for a planar
+  model, the 2D constraint. All as Warp kernels on the model's device (kernels/dda.py). The solver
+  keeps buffers only (capacities, the pair list between broad phases, diagnostics).
 
 Units SI, z up, quaternions (x, y, z, w).  Contact stiffness is *per contact point* (a face resting
 on a face gets >= 3 points, each with k_n), so a box resting on its face sinks m g / (n_points k_n).
@@ -21,6 +38,7 @@ import warp as wp
 
 from rockwave.geometry import ConvexPolyhedron, GeometryError, quat_to_matrix
 from rockwave.kernels import dda as K
+from rockwave.solver import TimeStep
 
 __all__ = [
     "ContactMaterial",
@@ -29,6 +47,7 @@ __all__ = [
     "BlockModel",
     "BlockState",
     "BlockSolver",
+    "BlockOptions",
     "BlockOverlapError",
     "check_initial_overlap",
     "KINDS",
@@ -215,6 +234,8 @@ class BlockModel:
     fixed/kinematic), inertia_body / inv_inertia_body (mat33, kg m^2, body frame), block_size (bounding
     diameter m), materials k_n, k_s (N/m per point), tan_phi, cohesion (Pa), tensile (Pa), zeta;
     deformable: strain_minv, strain_k (spatial_matrix), strain_damp (1/s).
+    Kernel argument groups (kernels/dda.py structs over the arrays above): topology, props, material,
+    motion. planar (2D scenes): blocks keep z = planar_z (the specs' z) and turn about z only.
     """
 
     def __init__(
@@ -224,6 +245,7 @@ class BlockModel:
         gravity=(0.0, 0.0, -9.81),
         check_overlap: bool = True,
         overlap_tol: float | None = None,
+        planar: bool = False,
     ):
         if not specs:
             raise ValueError("BlockModel needs at least one block")
@@ -386,6 +408,25 @@ class BlockModel:
         self.base_position = np.array([np.asarray(s.position, float).reshape(3) for s in specs])
         self.base_x = arr(self.base_position.astype(np.float32), wp.vec3)
         self.d50 = float(np.median(size))
+        # 2D scenes: blocks are prisms extruded along z that move in their x-y plane (z fixed at the
+        # spec's, rotation about z only); BlockSolver.step applies it after each integration
+        self.planar = bool(planar)
+        self.planar_z = arr(self.base_position[:, 2].astype(np.float32), f32) if self.planar else None
+        # kernel argument groups (kernels/dda.py), built once
+        self.topology = K.BlockTopology()
+        for name in ("vert_start", "vert_count", "face_start", "face_count", "face_he", "vertex_out_he", "he_vertex",
+                     "he_next", "he_prev", "he_twin", "block_size"):
+            setattr(self.topology, name, getattr(self, name))
+        self.props = K.BlockProps()
+        for name in ("kinds", "inv_mass", "inertia_body", "inv_inertia_body", "strain_minv", "strain_k", "strain_damp"):
+            setattr(self.props, name, getattr(self, name))
+        self.material = K.BlockMaterial()
+        for name in ("k_n", "k_s", "tan_phi", "cohesion", "tensile", "zeta"):
+            setattr(self.material, name, getattr(self, name))
+        self.motion = K.BlockMotion()
+        for name in ("base_x", "motion_type", "motion_amp", "motion_freq", "motion_phase", "table_start", "table_count",
+                     "table_t", "table_x"):
+            setattr(self.motion, name, getattr(self, name))
         if check_overlap:
             check_initial_overlap(self, tol=overlap_tol)
 
@@ -402,8 +443,12 @@ class BlockModel:
         """Allocate a BlockState at the specs' initial conditions."""
         return BlockState(self)
 
-    def world_vertices_host(self, b: int, position, quat) -> np.ndarray:
-        return self.specs[b].geometry.transformed_vertices(position, quat)
+
+def _table_view(t: dict) -> "K.ContactTable":
+    v = K.ContactTable()
+    for name, a in t.items():
+        setattr(v, name, a)
+    return v
 
 
 class BlockState:
@@ -414,7 +459,9 @@ class BlockState:
     gamma_xy, body frame; zero for non-deformable), ext_force / ext_torque (N, vec3 N, N m about the
     centroid, world; other modules atomically add here before step, the solver zeroes them after use),
     force / torque / strain_force (contact accumulators), contact_count (N, int: contact points of the
-    last step), world_verts (V, vec3), time (s), contact history tables (two, swapped each step).
+    last step), world_verts (V, vec3), time (s), contact history tables (two dicts of arrays, swapped
+    each step by swap_tables). Kernel views (kernels/dda.py structs): bodies (x, q, v, w, strain,
+    strain_rate), loads (force ... contact_count), table_views (one per table, swapped with them).
     """
 
     def __init__(self, model: BlockModel):
@@ -454,7 +501,16 @@ class BlockState:
         self.motion_dx = wp.zeros(n, dtype=wp.vec3, device=d)
         self.motion_rho = wp.zeros(n, dtype=wp.float32, device=d)
         self.time = 0.0
+        # kernel argument groups (kernels/dda.py) over the arrays above, built once (the arrays are
+        # only ever assigned in place, e.g. by a checkpoint restore)
+        self.bodies = K.BlockBodies()
+        for name in ("x", "q", "v", "w", "strain", "strain_rate"):
+            setattr(self.bodies, name, getattr(self, name))
+        self.loads = K.BlockLoads()
+        for name in ("force", "torque", "strain_force", "ext_force", "ext_torque", "contact_count"):
+            setattr(self.loads, name, getattr(self, name))
         self.tables = [None, None]
+        self.table_views = [None, None]  # K.ContactTable over tables[0], tables[1] (swapped with them)
         self.alloc_tables(_next_pow2(4 * (8 * n + 64)))
 
     def alloc_tables(self, cap: int):
@@ -476,15 +532,15 @@ class BlockState:
 
         old = self.tables[0]
         self.tables = [make(), make()]
+        self.table_views = [_table_view(t) for t in self.tables]
         self.table_cap = cap
         if old is not None:  # keep the contact history (rehash into the larger table)
-            t = self.tables[0]
-            wp.launch(
-                K.rehash_table, dim=old["keys"].shape[0],
-                inputs=[old["keys"], old["normal"], old["gapb"], old["nc"], old["ckey"], old["shear"],
-                        t["keys"], t["normal"], t["gapb"], t["nc"], t["ckey"], t["shear"]],
-                device=d,
-            )
+            wp.launch(K.rehash_table, dim=old["keys"].shape[0], inputs=[_table_view(old), self.table_views[0]], device=d)
+
+    def swap_tables(self) -> None:
+        """tables[0] <-> tables[1] (after a narrow phase: tables[0] holds this step's history)."""
+        self.tables = [self.tables[1], self.tables[0]]
+        self.table_views = [self.table_views[1], self.table_views[0]]
 
     # ---- read-back helpers (host sync) ----
     def positions_numpy(self) -> np.ndarray:
@@ -626,35 +682,87 @@ def check_initial_overlap_on_device(solver: "BlockSolver", state: "BlockState", 
             f"(tolerance {tol:.3g} m); move them apart")
 
 
-class BlockSolver:
-    """Explicit DDA solver: ``step(state, dt, t)`` = broad phase, FCP, contact forces, integration.
+@dataclass(frozen=True)
+class BlockOptions:
+    """Knobs of the DDA block solver: ``BlockSolver(model, options=BlockOptions(...))``. The defaults are
+    the shipped values; ``BlockOptions.from_scene(scene)`` reads the ones a scene sets."""
 
-    cell_factor: broad-phase cell size S = cell_factor x median block bounding size (Nezami: 1.5).
-    cell_size: explicit S (m), overrides cell_factor.  aabb_margin: AABB inflation (m), default 0.05 D50.
-    contact_points_for_dt: contact points assumed on one block in the critical-step estimate.
+    dt_safety: float = 0.5
+    """stable_dt = dt_safety x critical_dt() [-] (scene: ``simulation.block_dt_safety``)."""
+
+    cell_factor: float = 1.5
+    """Broad-phase cell size S = cell_factor x median block bounding size D50 [-] (Nezami: 1.5)."""
+
+    cell_size_m: float | None = None
+    """Explicit broad-phase cell size S [m]; overrides cell_factor."""
+
+    aabb_margin_m: float | None = None
+    """Inflation of each block's AABB in the broad phase [m]; None: 0.05 D50."""
+
+    contact_points_for_dt: int = 8
+    """Contact points assumed on one block in the critical-step estimate (critical_dt) [-]."""
+
+    large_block_cells: int = 27
+    """A block whose AABB covers more broad-phase cells than this (per axis or in all) is "large": it
+    is tested against every block instead of being hashed into cells [cells]."""
+
+    sync_free_max_blocks: int = 64
+    """Up to this many blocks the broad phase runs at capacities that cannot overflow and the step
+    reads nothing back from the device; above it capacities grow on demand (one counter read per
+    step) [blocks]."""
+
+    sync_check_interval_steps: int = 200
+    """Sync-free path: the overflow flags (a bug if set) are read back every this many steps [steps]."""
+
+    keep_pairs: bool | None = None
+    """Keep the pair list while every block's AABB grown by margin/2 stays inside the box of the last
+    broad phase (kernels/dda.py aabbs_left_pair_boxes); None: on for the counter-read path (more than
+    sync_free_max_blocks blocks), off for the sync-free one. False: a broad phase every step."""
+
+    @classmethod
+    def from_scene(cls, scene) -> "BlockOptions":
+        """The options a scene sets (``simulation.block_dt_safety``), defaults for the rest."""
+        safety = scene.simulation.get("block_dt_safety")
+        return cls() if safety is None else cls(dt_safety=float(safety))
+
+
+class BlockSolver:
+    """Explicit DDA solver (the rockwave/solver.py contract): ``stable_dt(state)`` and
+    ``step(state, ts)`` = broad phase, FCP narrow phase, contact forces, integration (and, for a planar
+    model, the 2D constraint). Knobs: ``options`` (BlockOptions). It keeps buffer capacities, the
+    kept pair list and diagnostics only; everything a step needs from the past is in the BlockState.
     """
 
-    def __init__(self, model: BlockModel, device=None, cell_factor: float = 1.5, cell_size: float | None = None,
-                 aabb_margin: float | None = None, contact_points_for_dt: int = 8):
+    def __init__(self, model: BlockModel, device=None, options: BlockOptions | None = None):
         self.model = model
+        self.options = opt = options if options is not None else BlockOptions()
         self.device = wp.get_device(device) if device is not None else model.device
         if self.device != model.device:
             raise ValueError(f"solver device {self.device} differs from model device {model.device}")
-        self.cell_size = float(cell_size) if cell_size else cell_factor * model.d50
-        self.margin = 0.05 * model.d50 if aabb_margin is None else float(aabb_margin)
-        self.contact_points_for_dt = contact_points_for_dt
-        self.large_cells = 27
+        if not 0.0 < opt.dt_safety <= 1.0:
+            raise ValueError(f"BlockOptions.dt_safety must be in (0, 1], got {opt.dt_safety}")
+        self.cell_size = float(opt.cell_size_m) if opt.cell_size_m else opt.cell_factor * model.d50
+        self.margin = 0.05 * model.d50 if opt.aabb_margin_m is None else float(opt.aabb_margin_m)
+        self.contact_points_for_dt = int(opt.contact_points_for_dt)
+        self.large_cells = int(opt.large_block_cells)
         n = model.num_blocks
         d = self.device
         self.lo = wp.zeros(n, dtype=wp.vec3, device=d)
         self.hi = wp.zeros(n, dtype=wp.vec3, device=d)
         self.is_large = wp.zeros(n, dtype=int, device=d)
         self.counters = wp.zeros(4, dtype=int, device=d)
+        self.grid = K.BroadPhaseGrid()  # kernel argument groups, refreshed when a capacity grows
+        self.grid.lo, self.grid.hi, self.grid.is_large = self.lo, self.hi, self.is_large
+        self.grid.inv_s = 1.0 / self.cell_size
+        self.grid.large_cells = self.large_cells
+        self.pair_list = K.PairList()
+        self.pair_list.counters = self.counters
         # Few blocks (the coupled scenes): capacities that cannot overflow (a block in more than
         # large_cells cells is "large"; each pair is emitted at most twice), so a step reads nothing
         # back and the GPU never waits for the host; the overflow flags are still checked every
-        # sync_check_interval steps. More blocks: capacities grow on demand (one counter read per step).
-        self.sync_free = n <= self.sync_free_max_blocks
+        # sync_check_interval_steps steps. More blocks: capacities grow on demand (one counter read per step).
+        self.sync_free = n <= opt.sync_free_max_blocks
+        self.sync_check_interval = int(opt.sync_check_interval_steps)
         # no rigid or deformable block: nothing can collide (fixed and kinematic blocks do not act on each
         # other), so a step only moves the kinematic blocks and clears the coupling's forces
         kinds = model.np["kinds"]
@@ -673,14 +781,20 @@ class BlockSolver:
         # Many blocks (the counter-read path): the pair list is kept while every block's AABB grown by
         # margin/2 stays inside the box (grown by margin) of the last broad phase (kernels/dda.py
         # aabbs_left_pair_boxes; one flag read joins the step's counter read). Few blocks: every step.
-        self.keep_pairs = not self.sync_free
+        self._keep_pairs = (not self.sync_free) if opt.keep_pairs is None else bool(opt.keep_pairs)
         self.lo_bp = wp.zeros(n, dtype=wp.vec3, device=d)
         self.hi_bp = wp.zeros(n, dtype=wp.vec3, device=d)
         self._moved = wp.ones(1, dtype=int, device=d)
         self.broad_phases = 0  # broad phases run (diagnostics)
+        # the paths, chosen once
+        self._grid_pass = self._grid_pass_sync_free if self.sync_free else self._grid_pass_counted
+        self._step_broad_phase = self._broad_phase_if_moved if self._keep_pairs else self._broad_phase_always
+        self._contact_forces = self._contact_forces_all if self.has_free_blocks else self._no_contacts
 
-    sync_free_max_blocks = 64
-    sync_check_interval = 200
+    @property
+    def keep_pairs(self) -> bool:
+        """Whether the pair list is kept between broad phases (options.keep_pairs, resolved at construction)."""
+        return self._keep_pairs
 
     @property
     def pair_count(self) -> int:
@@ -698,6 +812,7 @@ class BlockSolver:
     # ---- capacity management ----
     def _alloc_large(self, cap):
         self.large_list = wp.zeros(max(1, cap), dtype=int, device=self.device)
+        self.grid.large_list = self.large_list
 
     def _alloc_entries(self, cap):
         d = self.device
@@ -708,6 +823,10 @@ class BlockSolver:
         self.bucket_count = wp.zeros(self.nbuckets, dtype=int, device=d)
         self.bucket_start = wp.zeros(self.nbuckets, dtype=int, device=d)
         self.bucket_fill = wp.zeros(self.nbuckets, dtype=int, device=d)
+        g = self.grid
+        g.nbuckets = self.nbuckets
+        g.entry_block, g.entry_cell = self.entry_block, self.entry_cell
+        g.bucket_count, g.bucket_start, g.bucket_fill = self.bucket_count, self.bucket_start, self.bucket_fill
 
     def _alloc_pairs(self, cap):
         d = self.device
@@ -717,12 +836,15 @@ class BlockSolver:
         self.pair_slot = wp.zeros(cap, dtype=int, device=d)
         self.pair_oslot = wp.zeros(cap, dtype=int, device=d)
         self.active = wp.zeros(cap, dtype=int, device=d)  # pairs not certified separated (narrow_screen)
+        pl = self.pair_list
+        pl.pairs, pl.gap, pl.slot, pl.oslot, pl.active = self.pairs, self.pair_gap, self.pair_slot, self.pair_oslot, self.active
 
     # ---- time step limits ----
     def critical_dt(self) -> float:
-        """dt_crit = min over movable blocks of 2/omega (sqrt(1+zeta^2) - zeta), omega from
-        translation sqrt(k_n n_c / m), rotation sqrt(k_n n_c r^2 / I_min) (r = bounding radius) and,
-        for deformable blocks, the largest strain-mode frequency of M_e^-1 V D (~ 3.5 c / L)."""
+        """The physical limit [s]: dt_crit = min over movable blocks of 2/omega (sqrt(1+zeta^2) - zeta),
+        omega from translation sqrt(k_n n_c / m), rotation sqrt(k_n n_c r^2 / I_min) (r = bounding
+        radius, n_c = options.contact_points_for_dt) and, for deformable blocks, the largest strain-mode
+        frequency of M_e^-1 V D (~ 3.5 c / L). step() refuses a dt above it."""
         if self._dt_crit is None:
             m = self.model
             nc = self.contact_points_for_dt
@@ -742,8 +864,13 @@ class BlockSolver:
             self._dt_crit = best
         return self._dt_crit
 
-    def stable_dt(self, safety: float = 0.5) -> float:
-        return safety * self.critical_dt()
+    def stable_dt(self, state: BlockState) -> float:
+        """Largest step the clock should take [s]: options.dt_safety x critical_dt() (the DDA limit
+        depends on the model only, not on ``state``)."""
+        if isinstance(state, (int, float)):
+            raise TypeError("BlockSolver.stable_dt(state) takes the BlockState; the safety factor is "
+                            "BlockOptions.dt_safety")
+        return self.options.dt_safety * self.critical_dt()
 
     # ---- pipeline ----
     def _prepare(self, state: BlockState):
@@ -756,51 +883,62 @@ class BlockSolver:
                           state.contact_count], device=d)
 
     def _broad_phase(self, force: bool = False):
-        m, d = self.model, self.device
-        inv_s = 1.0 / self.cell_size
-        if self.keep_pairs and not force:
-            self._moved.zero_()
-            wp.launch(K.aabbs_left_pair_boxes, dim=m.num_blocks,
-                      inputs=[self.lo, self.hi, self.lo_bp, self.hi_bp, 0.5 * self.margin, self._moved], device=d)
-            if int(self._moved.numpy()[0]) == 0:
-                return
+        """Broad phase of this step: always when ``force``, else as options.keep_pairs chose."""
+        if force:
+            self._broad_phase_always()
+        else:
+            self._step_broad_phase()
+
+    def _broad_phase_if_moved(self):
+        self._moved.zero_()
+        wp.launch(K.aabbs_left_pair_boxes, dim=self.model.num_blocks,
+                  inputs=[self.lo, self.hi, self.lo_bp, self.hi_bp, 0.5 * self.margin, self._moved], device=self.device)
+        if int(self._moved.numpy()[0]) != 0:
+            self._broad_phase_always()
+
+    def _broad_phase_always(self):
         self.broad_phases += 1
         wp.copy(self.lo_bp, self.lo)
         wp.copy(self.hi_bp, self.hi)
-        while True:
-            self.counters.zero_()
-            self.bucket_count.zero_()
-            self.bucket_fill.zero_()
-            wp.launch(K.bp_count, dim=m.num_blocks,
-                      inputs=[self.lo, self.hi, inv_s, self.large_cells, self.nbuckets, self.bucket_count,
-                              self.is_large, self.large_list, self.counters], device=d)
-            wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
-            wp.launch(K.bp_fill, dim=m.num_blocks,
-                      inputs=[self.lo, self.hi, inv_s, self.nbuckets, self.is_large, self.bucket_start,
-                              self.bucket_fill, self.entry_block, self.entry_cell, self.counters], device=d)
-            wp.launch(K.bp_pairs, dim=self.entry_cap,
-                      inputs=[self.lo, self.hi, inv_s, self.nbuckets, m.kinds, self.bucket_start, self.bucket_count,
-                              self.entry_block, self.entry_cell, self.pairs, self.counters], device=d)
-            wp.launch(K.bp_large_pairs, dim=(self.large_list.shape[0], m.num_blocks),
-                      inputs=[self.lo, self.hi, m.kinds, self.is_large, self.large_list, self.pairs,
-                              self.counters], device=d)
-            if self.sync_free:  # launch dims at capacity; the kernels stop at the device counts
-                self._unchecked_steps += 1
-                if self._unchecked_steps >= self.sync_check_interval:
-                    self._unchecked_steps = 0
-                    self._check_capacity_flags()
-                return
-            c = self.counters.numpy()  # the one host sync per step: capacities
-            flags = int(c[1])
-            if flags == 0:
-                self._pair_count = int(c[0])
-                return
-            if flags & 1:
-                self._alloc_entries(2 * int(self.bucket_count.numpy().sum()))
-            if flags & 2:
-                self._alloc_large(2 * int(c[2]))
-            if flags & 4:
-                self._alloc_pairs(2 * int(c[0]))
+        while not self._grid_pass():
+            pass
+
+    def _grid_launches(self):
+        m, d = self.model, self.device
+        self.counters.zero_()
+        self.bucket_count.zero_()
+        self.bucket_fill.zero_()
+        wp.launch(K.bp_count, dim=m.num_blocks, inputs=[self.grid, self.counters], device=d)
+        wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
+        wp.launch(K.bp_fill, dim=m.num_blocks, inputs=[self.grid, self.counters], device=d)
+        wp.launch(K.bp_pairs, dim=self.entry_cap, inputs=[self.grid, m.kinds, self.pair_list], device=d)
+        wp.launch(K.bp_large_pairs, dim=(self.large_list.shape[0], m.num_blocks),
+                  inputs=[self.grid, m.kinds, self.pair_list], device=d)
+
+    def _grid_pass_sync_free(self) -> bool:
+        """Launch dims at capacity; the kernels stop at the device counts; nothing is read back."""
+        self._grid_launches()
+        self._unchecked_steps += 1
+        if self._unchecked_steps >= self.sync_check_interval:
+            self._unchecked_steps = 0
+            self._check_capacity_flags()
+        return True
+
+    def _grid_pass_counted(self) -> bool:
+        """One counter read (the host sync of the step); False after growing an overflowed capacity."""
+        self._grid_launches()
+        c = self.counters.numpy()
+        flags = int(c[1])
+        if flags == 0:
+            self._pair_count = int(c[0])
+            return True
+        if flags & 1:
+            self._alloc_entries(2 * int(self.bucket_count.numpy().sum()))
+        if flags & 2:
+            self._alloc_large(2 * int(c[2]))
+        if flags & 4:
+            self._alloc_pairs(2 * int(c[0]))
+        return False
 
     def _narrow_phase(self, state: BlockState, dt: float, screen: bool = True):
         """FCP narrow phase + contact forces. screen: pairs whose warm-start plane already separates
@@ -810,8 +948,8 @@ class BlockSolver:
         m, d = self.model, self.device
         if 2 * self.pair_cap > state.table_cap:
             state.alloc_tables(_next_pow2(4 * self.pair_cap))
-        old, new = state.tables
-        new["keys"].fill_(-1)
+        old, new = state.table_views
+        new.keys.fill_(-1)
         wp.launch(K.pose_motion, dim=m.num_blocks,
                   inputs=[state.world_verts, m.vert_start, m.vert_count, state.x, state.wv_ref, state.x_ref,
                           state.motion_dx, state.motion_rho], device=d)
@@ -819,53 +957,49 @@ class BlockSolver:
         if n > 0:
             self.counters[3:4].zero_()  # length of the active list
             wp.launch(K.narrow_screen, dim=n,
-                      inputs=[self.pairs, self.counters, m.num_blocks, int(screen), state.world_verts, m.vert_start,
-                              m.vert_count, state.x, state.motion_dx, state.motion_rho, old["keys"], old["normal"],
-                              old["gapb"], new["keys"], new["normal"], new["gapb"], new["nc"],
-                              self.pair_gap, self.pair_slot, self.pair_oslot, self.active], device=d)
+                      inputs=[self.pair_list, m.num_blocks, int(screen), state.world_verts, m.topology, state.bodies,
+                              state.motion_dx, state.motion_rho, old, new], device=d)
             wp.launch(K.narrow_phase, dim=n,
-                      inputs=[self.pairs, self.counters, self.active, self.pair_oslot, dt,
-                              state.world_verts, m.vert_start, m.vert_count, m.face_start, m.face_count, m.face_he,
-                              m.vertex_out_he, m.he_vertex, m.he_next, m.he_prev, m.he_twin, m.block_size,
-                              m.kinds, m.inv_mass, state.x, state.q, state.v, state.w, state.strain_rate,
-                              m.k_n, m.k_s, m.tan_phi, m.cohesion, m.tensile, m.zeta,
-                              old["normal"], old["nc"], old["ckey"], old["shear"],
-                              new["normal"], new["gapb"], new["nc"], new["ckey"], new["shear"], new["pos"],
-                              new["depth"], new["fn"],
-                              self.pair_gap, self.pair_slot, state.force, state.torque, state.strain_force,
-                              state.contact_count], device=d)
-        state.tables = [new, old]  # tables[0] now holds this step's history
+                      inputs=[self.pair_list, dt, state.world_verts, m.topology, m.props, m.material, state.bodies,
+                              old, new, state.loads], device=d)
+        state.swap_tables()  # tables[0] now holds this step's history
+
+    def _contact_forces_all(self, state: BlockState, dt: float):
+        self._prepare(state)
+        self._broad_phase()
+        self._narrow_phase(state, dt)
+
+    def _no_contacts(self, state: BlockState, dt: float):
+        pass
+
+    def _integrate(self, state: BlockState, dt: float, t: float):
+        """Integration from t to t + dt (and the planar constraint of a 2D model)."""
+        m, d = self.model, self.device
+        wp.launch(K.integrate_blocks, dim=m.num_blocks,
+                  inputs=[m.props, m.motion, wp.vec3(*m.gravity), float(t + dt), float(dt), state.bodies, state.loads],
+                  device=d)
+        if m.planar:
+            wp.launch(K.planar_blocks, dim=m.num_blocks, inputs=[m.planar_z, m.kinds, state.bodies], device=d)
 
     def detect(self, state: BlockState):
         """Collision detection only (world vertices, broad + narrow phase), forces discarded."""
         self._prepare(state)
         self._broad_phase(force=True)
         self._narrow_phase(state, 0.0, screen=False)
-        wp.launch(K.clear_forces, dim=self.model.num_blocks,
-                  inputs=[state.force, state.torque, state.strain_force], device=self.device)
+        wp.launch(K.clear_forces, dim=self.model.num_blocks, inputs=[state.loads], device=self.device)
 
-    def step(self, state: BlockState, dt: float, t: float | None = None):
-        """Advance state by dt from time t (default state.time); refuses dt above critical_dt()."""
+    def step(self, state: BlockState, ts: TimeStep):
+        """Advance state by ts.dt from ts.time; refuses a dt above critical_dt()."""
+        dt, t = ts.dt, ts.time
         if not dt > 0:
             raise ValueError(f"dt must be > 0, got {dt}")
         dc = self.critical_dt()
         if dt > dc:
             raise ValueError(f"dt = {dt:.4g} s exceeds the critical DDA time step {dc:.4g} s (2/omega_max); "
-                             f"use BlockSolver.stable_dt() = {self.stable_dt():.4g} s")
-        if t is None:
-            t = state.time
-        m, d = self.model, self.device
-        if self.has_free_blocks:
-            self._prepare(state)
-            self._broad_phase()
-            self._narrow_phase(state, dt)
-        wp.launch(K.integrate_blocks, dim=m.num_blocks,
-                  inputs=[m.kinds, m.inv_mass, m.inertia_body, m.inv_inertia_body, m.strain_minv, m.strain_k,
-                          m.strain_damp, wp.vec3(*m.gravity), float(t + dt), float(dt), m.base_x, m.motion_type,
-                          m.motion_amp, m.motion_freq, m.motion_phase, m.table_start, m.table_count, m.table_t,
-                          m.table_x, state.x, state.q, state.v, state.w, state.strain, state.strain_rate,
-                          state.force, state.torque, state.strain_force, state.ext_force, state.ext_torque],
-                  device=d)
+                             f"use BlockSolver.stable_dt(state) = {self.stable_dt(state):.4g} s "
+                             f"(BlockOptions.dt_safety = {self.options.dt_safety:g} of the critical step)")
+        self._contact_forces(state, dt)
+        self._integrate(state, dt, t)
         state.time = t + dt
 
     # ---- diagnostics ----

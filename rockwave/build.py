@@ -113,7 +113,6 @@ class Parts:
     block_solver: object = None
     coupling: object = None
     removed_inside_blocks: int = 0
-    planar: tuple | None = None  # 2D: (z0, kinds) for the planar constraint of the blocks
 
 
 def build(scene: Scene, device: str, options=None) -> Parts:
@@ -134,7 +133,7 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
 
     xf, vf, depth, xb = seed_particles(scene, device)
     if parts.blocks is not None:
-        xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth)
+        xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth, options)
     bstep, layers = boundary_lattice(scene)
     fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, device, bstep, layers)
     fopts = getattr(options, "fluid", None) or FluidOptions()
@@ -159,33 +158,31 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
 
 
 def build_blocks(scene: Scene, device: str, parts: Parts, options=None) -> None:
-    from rockwave.blocks import BlockModel, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
+    from rockwave.blocks import BlockModel, BlockOptions, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
     from rockwave.geometry import GeometryError
     from rockwave.rocks import block_specs
 
     specs = block_specs(scene)
     host_check = len(specs) <= 2000  # exact host test for small sets; device FCP for large ones
     try:
-        blocks = BlockModel(specs, device=device, gravity=pad3(scene.gravity.acceleration_m_s2), check_overlap=host_check)
-        solver = BlockSolver(blocks)
+        # 2D: extruded prisms moving in the x-y plane (planar: the block step keeps them there)
+        blocks = BlockModel(specs, device=device, gravity=pad3(scene.gravity.acceleration_m_s2), check_overlap=host_check,
+                            planar=scene.dim == 2)
+        solver = BlockSolver(blocks, options=getattr(options, "blocks", None) or BlockOptions.from_scene(scene))
         state = blocks.state()
         if not host_check:
             check_initial_overlap_on_device(solver, state)
     except (BlockOverlapError, GeometryError, ValueError) as e:
         raise SceneError(scene.path, [("blocks", str(e))]) from None
     parts.blocks, parts.block_state, parts.block_solver = blocks, state, solver
-    if scene.dim == 2:  # 2D: extruded prisms moving in the x-y plane (rockwave/coupling.py)
-        z0 = wp.array(blocks.base_position[:, 2].astype(np.float32), dtype=float, device=device)
-        parts.planar = (z0, blocks.kinds)
 
 
-def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth):
+def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options=None):
     """Drop fluid particles inside a block, or closer to its faces than half the contact distance
     (rockwave/coupling.py); the count goes to ``parts.removed_inside_blocks`` and run.json."""
-    from rockwave.coupling import DEFAULT_D0_RATIO, block_signed_distance
+    from rockwave.coupling import block_signed_distance
 
-    c = scene.coupling
-    ratio = c.contact_distance_ratio if c is not None and c.contact_distance_ratio is not None else DEFAULT_D0_RATIO
+    ratio = coupling_options(scene, options).contact_distance_ratio
     dist, _ = block_signed_distance(parts.blocks, parts.block_state, xf)
     keep = dist >= 0.5 * ratio * scene.fluid.spacing_m
     parts.removed_inside_blocks = int((~keep).sum())
@@ -195,10 +192,11 @@ def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth):
 def build_coupling(scene: Scene, parts: Parts, options=None) -> None:
     from rockwave.coupling import Coupling
 
-    c = scene.coupling
-    kw = {}
-    if c is not None:
-        kw = dict(stiffness_factor=c.stiffness_factor, damping_ratio=c.damping_ratio, k_s=c.stiffness_n_m, k_d=c.damping_n_s_m,
-                  d0=None if c.contact_distance_ratio is None else c.contact_distance_ratio * parts.fluid.spacing,
-                  squeeze_out=c.squeeze_out is not False)
-    parts.coupling = Coupling(parts.fluid, parts.blocks, scene.dim, **kw)
+    parts.coupling = Coupling(parts.fluid, parts.blocks, scene.dim, options=coupling_options(scene, options))
+
+
+def coupling_options(scene: Scene, options=None):
+    """The coupling's options: passed in Python, else the scene's ``[coupling]`` section."""
+    from rockwave.coupling import CouplingOptions
+
+    return getattr(options, "coupling", None) or CouplingOptions.from_scene(scene)

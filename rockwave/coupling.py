@@ -1,5 +1,22 @@
 """Two-way coupling between the SPH water and the DDA rock blocks (DESIGN.md §4).
 
+What lives where:
+
+* ``CouplingOptions``: the penalty and broad-phase knobs (contact distance ratio, stiffness factor /
+  damping ratio or explicit K_s / K_d, squeeze-out, dt safety, capacity paths), defaults equal to the
+  shipped values; ``CouplingOptions.from_scene(scene)`` reads the scene's ``[coupling]`` section.
+* ``Coupling(fluid_model, block_model, dim, options=...)``: the model-level data (body-frame face
+  planes, 2D depths, penalty constants) and its work buffers (broad phase, impulses ``dv``); it keeps
+  nothing from one step to the next. ``compute`` reads a FluidState and a BlockState and writes ``dv``
+  and the blocks' ``ext_force`` / ``ext_torque``; ``apply`` adds ``dv`` to the fluid. Per step
+  (one rockwave.solver.TimeStep, dt read on the device from ``ts.dt_array``):
+  ``compute(fluid_state, block_state, ts)`` before the fluid step, ``apply(fluid_state, ts)`` after
+  it, then the block step. Step limits: ``critical_dt()`` is the particle-wall spring's stability
+  limit (a fixed step must stay below it); ``stable_dt()`` = options.dt_safety (0.5) x that is the
+  coupling's share of the adaptive step.
+* ``block_signed_distance``, ``default_penalty``: helpers (start-up particle removal, tests).
+* Kernels: kernels/coupling.py.
+
 Penalty method of the SPH-DDA paper (Eq. 22): a fluid particle closer than the contact distance
 d0 to a block face (or inside the block) is pushed out along the face's outward normal n by
 
@@ -58,7 +75,7 @@ therefore equal and opposite within each step: water + blocks conserve momentum 
 external forces (gravity, fixed walls, kinematic blocks, tank particles).
 
 2D scenes: blocks are 3D prisms extruded along z (their z-extent is their depth; they move in the
-x-y plane only, Simulation enforces it). A 2D particle's mass and forces are per metre of depth,
+x-y plane only: BlockModel(planar=True), enforced inside BlockSolver.step). A 2D particle's mass and forces are per metre of depth,
 so the block receives f times its z-extent.
 
 Deformable blocks are coupled through their rigid motion (faces moved rigidly; their strains,
@@ -68,11 +85,15 @@ Deformable blocks are coupled through their rigid motion (faces moved rigidly; t
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
+from rockwave.geometry import quat_to_matrix
 from rockwave.kernels import coupling as CK
+from rockwave.kernels import dda as DK
+from rockwave.solver import TimeStep
 
 DEFAULT_D0_RATIO = 0.5
 DEFAULT_STIFFNESS_FACTOR = 1.0
@@ -90,36 +111,97 @@ def default_penalty(particle_mass: float, sound_speed: float, spacing: float,
     return ks, 2.0 * damping_ratio * math.sqrt(ks * particle_mass)
 
 
+@dataclass(frozen=True)
+class CouplingOptions:
+    """Knobs of the water-block coupling: ``Coupling(fluid, blocks, dim, options=CouplingOptions(...))``.
+    The defaults are the shipped values; ``CouplingOptions.from_scene(scene)`` reads the scene's
+    ``[coupling]`` section."""
+
+    contact_distance_ratio: float = DEFAULT_D0_RATIO
+    """Contact distance d0 / particle spacing [-] (scene: coupling.contact_distance_ratio)."""
+
+    stiffness_factor: float = DEFAULT_STIFFNESS_FACTOR
+    """K_s = stiffness_factor m c0^2 / s^2 [-] (scene: coupling.stiffness_factor)."""
+
+    damping_ratio: float = DEFAULT_DAMPING_RATIO
+    """K_d = 2 damping_ratio sqrt(K_s m) [-] (scene: coupling.damping_ratio)."""
+
+    stiffness_n_m: float | None = None
+    """Explicit K_s [N/m per particle; per metre of depth in 2D], overrides stiffness_factor
+    (scene: coupling.stiffness_n_m)."""
+
+    damping_n_s_m: float | None = None
+    """Explicit K_d [N s/m], overrides damping_ratio (scene: coupling.damping_n_s_m)."""
+
+    squeeze_out: bool = True
+    """Push water pinched between two opposing solid faces out along the gap (module docstring;
+    scene: coupling.squeeze_out)."""
+
+    dt_safety: float = 0.5
+    """stable_dt = dt_safety x critical_dt(): the coupling's share of the adaptive step [-]."""
+
+    cell_size_m: float | None = None
+    """Broad-phase cell size [m]; None: max(4 s, H) (s spacing, H kernel support radius)."""
+
+    max_cells: int = 4096
+    """A block whose grown box covers more cells than this goes to the large list that every
+    particle tests [cells]."""
+
+    direct_max_blocks: int = 16
+    """Up to this many blocks every particle tests every block's grown box directly (a few compares)
+    and the (block, cell) hash is not built [blocks]."""
+
+    sync_free_max_entries: int = 1 << 20
+    """Up to this many possible (block, cell) entries (blocks x max_cells) the entry capacity is
+    allocated whole and a step reads nothing back; above it, it grows on a counter read [entries]."""
+
+    track_walls: bool = False
+    """Sum the forces of fixed and kinematic blocks on the water into Coupling.wall_impulse [N s]
+    (diagnostics: one host read per step)."""
+
+    @classmethod
+    def from_scene(cls, scene) -> "CouplingOptions":
+        """The options of the scene's ``[coupling]`` section (defaults where it gives none)."""
+        c = scene.coupling
+        if c is None:
+            return cls()
+
+        def pick(key, default):
+            v = c.get(key)
+            return default if v is None else v
+
+        return cls(contact_distance_ratio=float(pick("contact_distance_ratio", DEFAULT_D0_RATIO)),
+                   stiffness_factor=float(pick("stiffness_factor", DEFAULT_STIFFNESS_FACTOR)),
+                   damping_ratio=float(pick("damping_ratio", DEFAULT_DAMPING_RATIO)),
+                   stiffness_n_m=c.get("stiffness_n_m"), damping_n_s_m=c.get("damping_n_s_m"),
+                   squeeze_out=c.get("squeeze_out") is not False)
+
+
 class Coupling:
     """Penalty coupling of a FluidModel/FluidState with a BlockModel/BlockState.
 
-    Build it only when a scene has both water and blocks. ``compute(fluid_state, block_state, dt)``
-    before the fluid step, ``apply(fluid_state, dt)`` after it, then the block step.
-    Attributes: k_s [N/m], k_d [N s/m], d0 [m], cell [m] (broad-phase cell), dim.
+    Build it only when a scene has both water and blocks. Each step: ``compute(fluid_state,
+    block_state, ts)`` before the fluid step, ``apply(fluid_state, ts)`` after it, then the block
+    step. Limits: ``critical_dt()`` (the particle-wall spring's stability limit, for a fixed step) and
+    ``stable_dt()`` = options.dt_safety x that (the adaptive step).
+    Attributes: options, k_s [N/m], k_d [N s/m], d0 [m], cell [m] (broad-phase cell), dim.
     """
 
-    sync_free_max_entries = 1 << 20
-    # Up to this many blocks, every particle tests every block's grown box (a few compares) and the
-    # spatial hash of (block, cell) entries is not built: no bucket zeroing and scans over the
-    # sync-free capacity (0.31 ms of broad phase per step for the 6-block sliding wedge on an H100).
-    direct_max_blocks = 16
-
-    def __init__(self, fluid, blocks, dim: int, d0: float | None = None, k_s: float | None = None, k_d: float | None = None,
-                 stiffness_factor: float = DEFAULT_STIFFNESS_FACTOR, damping_ratio: float = DEFAULT_DAMPING_RATIO,
-                 cell_size: float | None = None, max_cells: int = 4096, track_walls: bool = False, squeeze_out: bool = True):
+    def __init__(self, fluid, blocks, dim: int, options: CouplingOptions | None = None):
+        self.options = opt = options if options is not None else CouplingOptions()
         self.fluid, self.blocks, self.dim = fluid, blocks, dim
         self.device = fluid.device
         s = fluid.spacing
         m = fluid.fluid_mass
-        ks0, kd0 = default_penalty(m, fluid.sound_speed, s, stiffness_factor, damping_ratio)
-        self.k_s = float(k_s) if k_s is not None else ks0
-        self.k_d = float(k_d) if k_d is not None else (2.0 * damping_ratio * math.sqrt(self.k_s * m))
-        self.d0 = DEFAULT_D0_RATIO * s if d0 is None else float(d0)
+        ks0, kd0 = default_penalty(m, fluid.sound_speed, s, opt.stiffness_factor, opt.damping_ratio)
+        self.k_s = float(opt.stiffness_n_m) if opt.stiffness_n_m is not None else ks0
+        self.k_d = float(opt.damping_n_s_m) if opt.damping_n_s_m is not None else (2.0 * opt.damping_ratio * math.sqrt(self.k_s * m))
+        self.d0 = opt.contact_distance_ratio * s
         # squeeze-out gap w_s = 2 d0 + H (module docstring); 0: off
-        self.squeeze_gap = 2.0 * self.d0 + fluid.support_radius if squeeze_out else 0.0
+        self.squeeze_gap = 2.0 * self.d0 + fluid.support_radius if opt.squeeze_out else 0.0
         self.reach = max(self.d0, self.squeeze_gap)  # broad phase: blocks within reach of a particle are candidates
-        self.cell = float(cell_size) if cell_size else max(4.0 * s, fluid.support_radius)
-        self.max_cells = int(max_cells)
+        self.cell = float(opt.cell_size_m) if opt.cell_size_m else max(4.0 * s, fluid.support_radius)
+        self.max_cells = int(opt.max_cells)
         d = self.device
         nb = blocks.num_blocks
         # body-frame face planes (rigid motion) and each face's block
@@ -139,8 +221,6 @@ class Coupling:
         scale = np.ones(nb)
         if dim == 2:
             for b, spec in enumerate(blocks.specs):
-                from rockwave.geometry import quat_to_matrix
-
                 v = spec.geometry.vertices @ quat_to_matrix(np.asarray(spec.orientation, float)).T
                 scale[b] = float(v[:, 2].max() - v[:, 2].min())
         self.depth = scale
@@ -156,18 +236,38 @@ class Coupling:
         self.box_lo = wp.zeros(nb, dtype=wp.vec3, device=d)  # grown, clipped AABB of each block (block_cells)
         self.box_hi = wp.zeros(nb, dtype=wp.vec3, device=d)
         self.counters = wp.zeros(2, dtype=int, device=d)  # [0] (block, cell) entries, [1] large blocks
-        # Up to 2^20 possible entries (blocks x max_cells): the entry capacity is allocated whole and the
-        # step reads nothing back (the GPU never waits for the host); more: it grows on a counter read.
-        self.direct = nb <= self.direct_max_blocks
-        self.sync_free = self.direct or nb * self.max_cells <= self.sync_free_max_entries
+        # kernel argument groups (kernels/coupling.py), built once (grid: refreshed when it grows)
+        self.faces = CK.BlockFaces()
+        self.faces.face_start, self.faces.face_count = blocks.face_start, blocks.face_count
+        self.faces.plane_n, self.faces.plane_d = self.plane_n, self.plane_d
+        self.faces.kinds, self.faces.depth_scale = blocks.kinds, self.depth_scale
+        g = self.grid = CK.CouplingGrid()
+        g.cell_lo, g.cell_hi, g.ncell, g.cell_offset = self.cell_lo, self.cell_hi, self.ncell, self.cell_offset
+        g.large, g.counters, g.box_lo, g.box_hi = self.large, self.counters, self.box_lo, self.box_hi
+        self.params = CK.CouplingParams()
+        p = self.params
+        p.k_s, p.k_d, p.d0 = self.k_s, self.k_d, self.d0
+        p.inv_s = 1.0 / self.cell
+        p.track_walls = 1 if opt.track_walls else 0
+        p.squeeze_gap = self.squeeze_gap
+        # Few blocks: every particle tests every block's grown box (no hash). Up to 2^20 possible entries
+        # (blocks x max_cells): the entry capacity is allocated whole and the step reads nothing back (the
+        # GPU never waits for the host). More: it grows on a counter read. The path is chosen here, once.
+        self.direct = nb <= opt.direct_max_blocks
+        self.sync_free = self.direct or nb * self.max_cells <= opt.sync_free_max_entries
         self._alloc(16 if self.direct else nb * self.max_cells if self.sync_free else 1024)
+        self._hash_blocks = self._hash_none if self.direct else self._hash_sync_free if self.sync_free else self._hash_counted
         self.dv = wp.zeros(fluid.n_fluid, dtype=wp.vec3, device=d)
-        self.track_walls = bool(track_walls)
         self.wall_force = wp.zeros(1, dtype=wp.vec3, device=d)
         self.wall_impulse = np.zeros(3)  # sum of dt x (force of fixed/kinematic blocks on the water), when tracked
         self.active_blocks = 0  # blocks near water in the last step (host copy, diagnostics)
         self._n_large = 0
         self._total = 0
+
+    @property
+    def track_walls(self) -> bool:
+        """options.track_walls: fixed at construction (the kernel parameters are built once)."""
+        return self.options.track_walls
 
     @property
     def n_large(self) -> int:
@@ -183,14 +283,23 @@ class Coupling:
         self.bucket_count = wp.zeros(self.nbuckets, dtype=int, device=d)
         self.bucket_start = wp.zeros(self.nbuckets, dtype=int, device=d)
         self.bucket_fill = wp.zeros(self.nbuckets, dtype=int, device=d)
+        g = self.grid
+        g.nbuckets = self.nbuckets
+        g.entry_block, g.entry_cell = self.entry_block, self.entry_cell
+        g.bucket_count, g.bucket_start, g.bucket_fill = self.bucket_count, self.bucket_start, self.bucket_fill
 
     def critical_dt(self) -> float:
-        """Stability limit of the particle-wall spring-dashpot (a particle touching up to 3 faces):
-        2/omega (sqrt(1 + zeta^2) - zeta), omega = sqrt(3 K_s / m)."""
+        """Stability limit of the particle-wall spring-dashpot [s] (a particle touching up to 3 faces):
+        2/omega (sqrt(1 + zeta^2) - zeta), omega = sqrt(3 K_s / m). A fixed step must not exceed it."""
         m = self.fluid.fluid_mass
         om = math.sqrt(3.0 * self.k_s / m)
         z = self.k_d / (2.0 * math.sqrt(3.0 * self.k_s * m))
         return 2.0 / om * (math.sqrt(1.0 + z * z) - z)
+
+    def stable_dt(self, state=None) -> float:
+        """The coupling's limit on the adaptive step [s]: options.dt_safety x critical_dt() (it depends
+        on the fluid model and the penalty only, not on a state)."""
+        return self.options.dt_safety * self.critical_dt()
 
     # ------------------------------------------------------------------ geometry ----------
     def update_planes(self, block_state) -> None:
@@ -207,73 +316,69 @@ class Coupling:
         wp.copy(self.bounds, self._bounds_init)
         stride = min(nf, 16384)
         wp.launch(CK.fluid_bounds, dim=stride, inputs=[fluid_state.x, nf, stride], outputs=[self.bounds], device=d)
-        wp.launch(K_world_vertices(), dim=m.num_vertices,
+        wp.launch(DK.world_vertices, dim=m.num_vertices,
                   inputs=[m.body_verts, m.vert_block, block_state.x, block_state.q, block_state.strain, m.kinds, self.wv], device=d)
         self.counters.zero_()
         wp.launch(CK.block_cells, dim=m.num_blocks,
                   inputs=[self.wv, m.vert_start, m.vert_count, self.bounds, self.reach + 1e-6, 1.0 / self.cell,
-                          -1 if self.direct else self.max_cells],
-                  outputs=[self.cell_lo, self.cell_hi, self.ncell, self.large, self.counters, self.box_lo, self.box_hi],
-                  device=d)
-        if self.direct:  # every block near water is in the large list; the buckets stay empty
-            self._total = 0
-            return
-        if self.sync_free:
-            total = self.entry_cap  # launch dims; the kernels stop at counters[0]
-        else:
-            total, self._n_large = (int(c) for c in self.counters.numpy())  # one host read per step: capacity
-            if total > self.entry_cap:
-                self._alloc(2 * total)
+                          -1 if self.direct else self.max_cells, self.grid], device=d)
+        self._hash_blocks()
+
+    def _hash_none(self) -> None:
+        """Direct path: every block near water is in the large list; the buckets stay empty."""
+        self._total = 0
+
+    def _hash_sync_free(self) -> None:
+        self._fill_buckets(self.entry_cap)  # launch dims; the kernels stop at counters[0]
+
+    def _hash_counted(self) -> None:
+        total, self._n_large = (int(c) for c in self.counters.numpy())  # one host read per step: capacity
+        if total > self.entry_cap:
+            self._alloc(2 * total)
+        self._fill_buckets(total)
+
+    def _fill_buckets(self, total: int) -> None:
+        d = self.device
         self.bucket_count.zero_()
         self.bucket_fill.zero_()
         if total:
             # one thread per (block, cell) entry, not a serial loop per block (kernels/coupling.py)
             wp.utils.array_scan(self.ncell, self.cell_offset, inclusive=False)
-            wp.launch(CK.count_buckets, dim=total, inputs=[self.cell_lo, self.cell_hi, self.cell_offset, self.nbuckets,
-                                                          self.counters], outputs=[self.bucket_count], device=d)
+            wp.launch(CK.count_buckets, dim=total, inputs=[self.grid], device=d)
             wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
-            wp.launch(CK.fill_buckets, dim=total,
-                      inputs=[self.cell_lo, self.cell_hi, self.cell_offset, self.nbuckets, self.bucket_start, self.bucket_fill,
-                              self.counters],
-                      outputs=[self.entry_block, self.entry_cell], device=d)
+            wp.launch(CK.fill_buckets, dim=total, inputs=[self.grid], device=d)
         self._total = total
 
-    def compute(self, fluid_state, block_state, dt: wp.array) -> None:
-        """Penalty forces from the state at t: particle impulses into self.dv, reactions into
-        block_state.ext_force / ext_torque."""
+    def _nothing_near(self) -> bool:
+        """Counter-read path only: no block near water in the last broad phase (host counts)."""
+        return not self.sync_free and self._total == 0 and self._n_large == 0
+
+    def compute(self, fluid_state, block_state, ts: TimeStep) -> None:
+        """Penalty forces from the state at ts.time: particle impulses ts.dt f/m (dt read on the device
+        from ts.dt_array) into self.dv, reactions into block_state.ext_force / ext_torque."""
         nf = self.fluid.n_fluid
         if nf == 0:
             return
         self._broad_phase(fluid_state, block_state)
-        if not self.sync_free and self._total == 0 and self._n_large == 0:
+        if self._nothing_near():
             self.dv.zero_()
             return
         self.update_planes(block_state)
-        p = CK.CouplingParams()
-        p.k_s, p.k_d, p.d0 = self.k_s, self.k_d, self.d0
-        p.inv_s = 1.0 / self.cell
-        p.nbuckets = self.nbuckets
-        p.track_walls = 1 if self.track_walls else 0
-        p.squeeze_gap = self.squeeze_gap
         if self.track_walls:
             self.wall_force.zero_()
-        m = self.blocks
         wp.launch(CK.particle_block_forces, dim=nf,
-                  inputs=[fluid_state.x, fluid_state.v, self.fluid.particle_mass, dt, p, self.bucket_start, self.bucket_count,
-                          self.entry_block, self.entry_cell, self.large, self.counters, self.box_lo, self.box_hi,
-                          m.face_start, m.face_count,
-                          self.plane_n, self.plane_d,
-                          m.kinds, block_state.x, block_state.v, block_state.w, self.depth_scale,
-                          block_state.ext_force, block_state.ext_torque, self.wall_force],
+                  inputs=[fluid_state.x, fluid_state.v, self.fluid.particle_mass, ts.dt_array, self.params, self.grid,
+                          self.faces, block_state.bodies, block_state.loads, self.wall_force],
                   outputs=[self.dv], device=self.device)
         if self.track_walls:
-            self.wall_impulse += float(dt.numpy()[0]) * self.wall_force.numpy()[0].astype(np.float64)
+            self.wall_impulse += float(ts.dt_array.numpy()[0]) * self.wall_force.numpy()[0].astype(np.float64)
 
-    def apply(self, fluid_state, dt: wp.array) -> None:
+    def apply(self, fluid_state, ts: TimeStep) -> None:
+        """Add the impulses of the last compute to the fluid after its step (x += dt dv, v += dv)."""
         nf = self.fluid.n_fluid
-        if nf == 0 or (not self.sync_free and self._total == 0 and self._n_large == 0):
+        if nf == 0 or self._nothing_near():
             return
-        wp.launch(CK.apply_dv, dim=nf, inputs=[self.dv, dt], outputs=[fluid_state.x, fluid_state.v], device=self.device)
+        wp.launch(CK.apply_dv, dim=nf, inputs=[self.dv, ts.dt_array], outputs=[fluid_state.x, fluid_state.v], device=self.device)
 
     def candidate_blocks(self) -> set[int]:
         """Blocks that the last compute tested against particles (near water): in the (block, cell)
@@ -284,18 +389,6 @@ class Coupling:
     def active_block_count(self) -> int:
         """Blocks whose grown AABB touches the water's AABB (from the last compute)."""
         return int((self.ncell.numpy() > 0).sum()) + self.n_large
-
-
-def K_world_vertices():
-    from rockwave.kernels import dda
-
-    return dda.world_vertices
-
-
-def planar_constraint(block_state, z0: wp.array, kinds: wp.array) -> None:
-    """2D scenes: keep blocks in their x-y plane (z fixed, rotation about z only)."""
-    wp.launch(CK.planar_blocks, dim=block_state.x.shape[0], inputs=[z0, kinds],
-              outputs=[block_state.x, block_state.q, block_state.v, block_state.w], device=block_state.model.device)
 
 
 def block_signed_distance(blocks, block_state, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

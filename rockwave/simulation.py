@@ -61,11 +61,14 @@ class SimulationOptions:
     """Tuning of the parts, passed in Python (``Simulation(scene, options=...)``); defaults are the
     measured best (docs/notes.md). None: the part's own defaults.
 
-    fluid: rockwave.fluid.FluidOptions. ghost: rockwave.ghost.GhostOptions.
+    fluid: rockwave.fluid.FluidOptions. ghost: rockwave.ghost.GhostOptions. blocks: rockwave.blocks.BlockOptions
+    (None: BlockOptions.from_scene). coupling: rockwave.coupling.CouplingOptions (None: from the scene's [coupling]).
     cuda_graphs: replay a chunk of fluid-only steps as one CUDA graph on a GPU."""
 
     fluid: object = None
     ghost: object = None
+    blocks: object = None
+    coupling: object = None
     cuda_graphs: bool = True
 
 
@@ -91,7 +94,6 @@ class Simulation:
         self.blocks, self.block_state, self.block_solver = parts.blocks, parts.block_state, parts.block_solver
         self.coupling = parts.coupling
         self.removed_inside_blocks = parts.removed_inside_blocks
-        self._planar = parts.planar
         self.gravity = np.asarray(builder.pad3(scene.gravity.acceleration_m_s2))
         self.clock = Clock(scene, self.device, self._limits(), self._stability_bounds())
         self.gauge_names = [g.name for g in scene.output.gauges]
@@ -101,18 +103,17 @@ class Simulation:
     # ---------------------------------------------------------------- the clock's questions ----
     def _limits(self) -> dict:
         """Each present solver's stable step, f(initial) [s] (rockwave/clock.py)."""
-        sim = self.scene.simulation
         out = {}
         if self.fluid is not None and self.fluid.n_fluid:
             from rockwave.fluid import fluid_dt_limit
 
             g = gravity_norm(self.scene)
-            out["fluid"] = lambda initial: (fluid_dt_limit(self.fluid, sim.cfl_number, 0.0, g) if initial
+            out["fluid"] = lambda initial: (fluid_dt_limit(self.fluid, self.scene.simulation.cfl_number, 0.0, g) if initial
                                             else self.fluid_solver.stable_dt(self.state))
         if self.block_solver is not None:
-            out["blocks"] = lambda initial: self.block_solver.stable_dt(sim.block_dt_safety)
+            out["blocks"] = lambda initial: self.block_solver.stable_dt(self.block_state)  # dt_safety x critical
         if self.coupling is not None:
-            out["coupling"] = lambda initial: 0.5 * self.coupling.critical_dt()
+            out["coupling"] = lambda initial: self.coupling.stable_dt()  # dt_safety (0.5) x critical
         return out
 
     def _stability_bounds(self) -> list:
@@ -151,17 +152,13 @@ class Simulation:
         if reorder:
             self.fluid_solver.reorder(self.state)
         if self.coupling is not None:  # forces from the state at t (rockwave/coupling.py)
-            self.coupling.compute(self.state, self.block_state, ts.dt_array)
+            self.coupling.compute(self.state, self.block_state, ts)
         if self.fluid_solver is not None:
             self.fluid_solver.step(self.state, ts)
         if self.coupling is not None:
-            self.coupling.apply(self.state, ts.dt_array)
+            self.coupling.apply(self.state, ts)
         if self.block_solver is not None:
-            self.block_solver.step(self.block_state, ts.dt, ts.time)
-            if self._planar is not None:
-                from rockwave.coupling import planar_constraint
-
-                planar_constraint(self.block_state, *self._planar)
+            self.block_solver.step(self.block_state, ts)  # 2D: with the planar constraint
 
     # Chunks (step_many; advance on a GPU): a reorder of the fluid by cell, then reorder_interval
     # steps. A fluid-only scene on a GPU replays a chunk as one CUDA graph (dt is read from the device

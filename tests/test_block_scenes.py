@@ -126,25 +126,25 @@ def test_non_convex_mesh_refused(tmp_path):
     assert "blocks[1].mesh" in str(e.value) and "not convex" in str(e.value)
 
 
-def test_kept_pair_list_matches_a_broad_phase_every_step(monkeypatch):
+def test_kept_pair_list_matches_a_broad_phase_every_step():
     """Many blocks (the counter-read path): the DDA pair list is kept while every block's AABB grown by
-    margin/2 stays inside the box of the last broad phase (BlockSolver.keep_pairs); a jointed slope
+    margin/2 stays inside the box of the last broad phase (BlockOptions.keep_pairs); a jointed slope
     sliding for 300 steps moves as with a broad phase every step, with far fewer broad phases (measured:
     1 instead of 300, 596 pairs either way, positions equal)."""
-    from rockwave.blocks import BlockSolver
+    from rockwave.blocks import BlockOptions, BlockSolver
 
-    monkeypatch.setattr(BlockSolver, "sync_free_max_blocks", 0)  # the path of > 64 blocks
     out = {}
-    for keep in (False, True):
+    for keep in (False, None):  # None: the default of the counter-read path, which keeps the list
         scene = rockwave.load_scene(ROOT / "scenes" / "rock_slope_10k.toml")
         scene.blocks[1]["array"]["count"] = [6.0, 4.0, 3.0]
         sim = rockwave.Simulation(scene, device=DEVICE)
-        bs = sim.block_solver
-        assert not bs.sync_free and bs.keep_pairs
-        bs.keep_pairs = keep
+        # sync_free_max_blocks = 0: the path of > 64 blocks
+        options = BlockOptions(dt_safety=BlockOptions.from_scene(scene).dt_safety, sync_free_max_blocks=0, keep_pairs=keep)
+        sim.block_solver = bs = BlockSolver(sim.blocks, options=options)
+        assert not bs.sync_free and bs.keep_pairs == (keep is None)
         for _ in range(300):
             sim.step()
-        out[keep] = (sim.block_positions(), bs.broad_phases, bs.pair_count)
+        out[bool(bs.keep_pairs)] = (sim.block_positions(), bs.broad_phases, bs.pair_count)
     moved = np.abs(out[True][0] - rockwave.Simulation(scene, device=DEVICE).block_positions()).max()
     assert moved > 5e-4  # the blocks settled and slid (0.9 mm in 300 steps)
     assert np.allclose(out[True][0], out[False][0], atol=1e-5), np.abs(out[True][0] - out[False][0]).max()

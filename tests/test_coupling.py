@@ -24,6 +24,22 @@ def _sim(name: str) -> rockwave.Simulation:
     return rockwave.Simulation(load_scene(SCENES / name), device=DEVICE)
 
 
+def _rebuild(sim, blocks=None, coupling=None) -> None:
+    """Rebuild sim's block solver and coupling with changed options (before its first step: the
+    solvers then hold nothing but buffers); ``blocks`` / ``coupling``: dicts of option fields."""
+    from dataclasses import replace
+
+    from rockwave.blocks import BlockOptions, BlockSolver
+    from rockwave.coupling import Coupling, CouplingOptions
+
+    assert sim.steps == 0
+    if blocks:
+        sim.block_solver = BlockSolver(sim.blocks, options=replace(BlockOptions.from_scene(sim.scene), **blocks))
+    if coupling:
+        sim.coupling = Coupling(sim.fluid, sim.blocks, sim.scene.dim,
+                                options=replace(CouplingOptions.from_scene(sim.scene), **coupling))
+
+
 def _min_block_distance(sim) -> float:
     x = sim.state.x.numpy()[: sim.n_fluid]
     return float(block_signed_distance(sim.blocks, sim.block_state, x)[0].min())
@@ -178,7 +194,8 @@ def test_momentum_accounting_water_and_blocks():
     """Water + a free block in a tank of fixed blocks: the change of total momentum equals the
     impulse of gravity and of the fixed walls (tracked coupling forces) up to float32 round-off."""
     sim = _sim("sinking_block_small.toml")
-    sim.coupling.track_walls = True
+    _rebuild(sim, coupling=dict(track_walls=True))
+    assert sim.coupling.track_walls
     b = sim.blocks.names.index("block")
     depth = sim.coupling.depth[b]  # 2D: water momentum per metre of depth, the block's over its depth
 
@@ -200,7 +217,7 @@ def test_momentum_accounting_water_and_blocks():
     assert abs(walls[1]) > 0.5 * scale  # the floor carried the water: the check is not vacuous
 
 
-def test_scene_rules_and_broad_phase(monkeypatch):
+def test_scene_rules_and_broad_phase():
     base = {"simulation": {"dimension": 2, "duration_s": 0.1}, "fluid": {"spacing_m": 0.01, "eos": {"speed_of_sound_m_s": 10.0},
                                                                          "regions": [{"box_min_m": [0, 0], "box_max_m": [0.1, 0.1]}]}}
     with pytest.raises(SceneError, match="no walls"):
@@ -212,36 +229,34 @@ def test_scene_rules_and_broad_phase(monkeypatch):
         parse_scene(bad)
     # a block far above the water costs no coupling work: it never becomes a candidate, whether the
     # particles test the few blocks' grown boxes directly or look them up in the (block, cell) hash
-    from rockwave.coupling import Coupling
+    from rockwave.coupling import CouplingOptions
 
     far = dict(walls, blocks=walls["blocks"] + [{"shape": "box", "size_m": [0.1, 0.1, 0.1], "position_m": [0.05, 2.0, 0],
                                                  "material": {"normal_stiffness_n_m": 1e5}}])
-    for direct_max in (Coupling.direct_max_blocks, 0):
-        monkeypatch.setattr(Coupling, "direct_max_blocks", direct_max)
+    for direct_max in (CouplingOptions().direct_max_blocks, 0):
         sim = _sim("sinking_block_small.toml")
+        _rebuild(sim, coupling=dict(direct_max_blocks=direct_max))
         sim.step()
         assert sim.coupling.direct == (direct_max > 0)
         assert sim.blocks.names.index("block") in sim.coupling.candidate_blocks()
         sim2 = rockwave.Simulation(parse_scene(far), device=DEVICE)
+        _rebuild(sim2, coupling=dict(direct_max_blocks=direct_max))
         sim2.step()
         assert sim2.coupling.candidate_blocks() == {0}  # the floor only
         if direct_max == 0:
             assert sim2.coupling.ncell.numpy()[1] == 0 and sim2.coupling.n_large == 0
 
 
-def test_sync_free_step_matches_the_counter_read_path(monkeypatch):
+def test_sync_free_step_matches_the_counter_read_path():
     """With few blocks the coupling and DDA broad phases run at fixed capacities and read nothing back
     per step (launch dims at capacity, kernels stop at the device counts); the motion is the same as
     with the per-step counter reads and grown capacities."""
-    from rockwave.blocks import BlockSolver
-    from rockwave.coupling import Coupling
 
     def run(sync_free: bool):
-        if not sync_free:
-            monkeypatch.setattr(BlockSolver, "sync_free_max_blocks", 0)
-            monkeypatch.setattr(Coupling, "sync_free_max_entries", 0)
-            monkeypatch.setattr(Coupling, "direct_max_blocks", 0)
         sim = _sim("sliding_wedge_small.toml")
+        if not sync_free:
+            _rebuild(sim, blocks=dict(sync_free_max_blocks=0),
+                     coupling=dict(sync_free_max_entries=0, direct_max_blocks=0))
         assert sim.block_solver.sync_free == sync_free and sim.coupling.sync_free == sync_free
         for _ in range(150):
             sim.step()
@@ -254,3 +269,33 @@ def test_sync_free_step_matches_the_counter_read_path(monkeypatch):
     assert a.coupling.candidate_blocks() == b.coupling.candidate_blocks()
     assert np.allclose(a.block_positions(), b.block_positions(), atol=1e-6)
     assert np.allclose(a.positions(), b.positions(), atol=1e-6)
+
+
+def test_options_from_scene():
+    """BlockOptions / CouplingOptions read simulation.block_dt_safety and the [coupling] section; the
+    solvers use them (d0, K_s, K_d, squeeze gap, both step limits); no section: the defaults."""
+    import tomllib
+
+    from rockwave.blocks import BlockOptions
+    from rockwave.coupling import CouplingOptions, default_penalty
+
+    data = tomllib.loads((SCENES / "sinking_block_small.toml").read_text())
+    data.pop("coupling", None)
+    scene = parse_scene(data, SCENES / "sinking_block_small.toml")
+    assert CouplingOptions.from_scene(scene) == CouplingOptions() and BlockOptions.from_scene(scene) == BlockOptions()
+    data["simulation"]["block_dt_safety"] = 0.3
+    data["coupling"] = {"contact_distance_ratio": 0.4, "stiffness_factor": 2.0, "damping_ratio": 0.25,
+                        "damping_n_s_m": 3.0, "squeeze_out": False}
+    scene = parse_scene(data, SCENES / "sinking_block_small.toml")
+    co = CouplingOptions.from_scene(scene)
+    assert (co.contact_distance_ratio, co.stiffness_factor, co.damping_ratio, co.stiffness_n_m, co.damping_n_s_m,
+            co.squeeze_out) == (0.4, 2.0, 0.25, None, 3.0, False)
+    assert BlockOptions.from_scene(scene).dt_safety == 0.3
+    sim = rockwave.Simulation(scene, device=DEVICE)
+    c, s = sim.coupling, sim.fluid.spacing
+    assert c.options == co and c.d0 == pytest.approx(0.4 * s) and c.squeeze_gap == 0.0
+    assert c.k_s == pytest.approx(default_penalty(sim.fluid.fluid_mass, sim.fluid.sound_speed, s, 2.0, 0.25)[0])
+    assert c.k_d == 3.0
+    assert c.stable_dt() == pytest.approx(0.5 * c.critical_dt())
+    assert sim.block_solver.stable_dt(sim.block_state) == pytest.approx(0.3 * sim.block_solver.critical_dt())
+    assert sim.dt <= min(c.stable_dt(), sim.block_solver.stable_dt(sim.block_state))

@@ -17,12 +17,14 @@ from rockwave import geometry as G
 from rockwave.blocks import _sat_overlap
 from rockwave.blocks import (
     BlockModel,
+    BlockOptions,
     BlockOverlapError,
     BlockSolver,
     BlockSpec,
     ContactMaterial,
     KinematicMotion,
 )
+from rockwave.solver import TimeStep
 
 wp.config.quiet = True
 DEVICE = os.environ.get("ROCKWAVE_TEST_DEVICE", "cpu")
@@ -92,6 +94,17 @@ class Rotation:
 
 def quat(rot: Rotation):
     return tuple(rot.as_quat())  # scipy (x, y, z, w) == Warp order
+
+
+_DT_ARRAYS = {}
+
+
+def block_step(solver, state, dt):
+    """One block step of length dt from the state's time (the clock's TimeStep)."""
+    dt_array = _DT_ARRAYS.get(dt)
+    if dt_array is None:
+        dt_array = _DT_ARRAYS[dt] = wp.array([dt], dtype=float, device=DEVICE)
+    solver.step(state, TimeStep(dt, state.time, dt_array))
 
 
 def detect(specs, **kw):
@@ -293,10 +306,10 @@ def incline_specs(alpha_deg, blocks, slope_phi=60.0, kn=1e7, slope_size=(6.0, 4.
 def run(model, t_end, dt=None, record=None):
     state = model.state()
     solver = BlockSolver(model)
-    dt = dt or solver.stable_dt(0.5)
+    dt = dt or solver.stable_dt(state)
     nsteps = int(round(t_end / dt))
     for k in range(nsteps):
-        solver.step(state, dt)
+        block_step(solver, state, dt)
         if record is not None:
             record(k, state)
     return state, solver, nsteps * dt
@@ -330,10 +343,10 @@ def test_separation_screen_agrees_with_full_narrow_phase():
     model = BlockModel(specs, device=DEVICE, check_overlap=False)
     state = model.state()
     solver = BlockSolver(model)
-    dt = solver.stable_dt(0.5)
+    dt = solver.stable_dt(state)
     checked = 0
     for k in range(400):
-        solver.step(state, dt)
+        block_step(solver, state, dt)
         if k % 40 != 39:
             continue
         # screened narrow phase at the current poses (as the next step would run it), then the full one
@@ -453,7 +466,7 @@ def test_stack_of_five_stays_at_rest():
 
 
 def solver_dt(model, safety):
-    return BlockSolver(model).stable_dt(safety)
+    return BlockSolver(model, options=BlockOptions(dt_safety=safety)).stable_dt(model.state())
 
 
 def test_rigid_and_stiff_deformable_blocks_agree():
@@ -512,7 +525,7 @@ def test_kinematic_block_follows_sinusoid_exactly():
     solver = BlockSolver(model)
     dt = 1e-3
     for k in range(1, 301):
-        solver.step(state, dt)
+        block_step(solver, state, dt)
         t = k * dt
         if k % 50 == 0:
             x = state.positions_numpy()[0]
@@ -526,7 +539,7 @@ def test_kinematic_block_follows_sinusoid_exactly():
     state = model.state()
     solver = BlockSolver(model)
     for k in range(150):
-        solver.step(state, 1e-3)
+        block_step(solver, state, 1e-3)
     assert np.allclose(state.positions_numpy()[0], [0.1, 0.1, 0.0], atol=1e-5)
     assert np.allclose(state.velocities_numpy()[0], [0.0, 2.0, 0.0], atol=1e-4)
 
@@ -557,7 +570,7 @@ def test_external_force_hook():
     for _ in range(100):
         state.ext_force.assign(np.array([[1000.0, 0.0, 0.0]], np.float32))
         state.ext_torque.assign(np.array([[0.0, 0.0, 1000.0 / 6.0]], np.float32))
-        solver.step(state, dt)
+        block_step(solver, state, dt)
     assert state.velocities_numpy()[0] == pytest.approx([0.1, 0, 0], abs=1e-6)  # F/m t = 1 * 0.1
     assert state.angular_velocities_numpy()[0][2] == pytest.approx(0.1, rel=1e-4)  # tau / I t
     assert np.all(state.ext_force.numpy() == 0)  # zeroed after use
@@ -572,10 +585,16 @@ def test_dt_above_critical_refused():
     m = 2500 * 0.125
     om_t = math.sqrt(1e7 * 8 / m)
     assert dc < 2 / om_t  # rotation and damping make it stricter than the translational bound
-    assert solver.stable_dt() == pytest.approx(0.5 * dc)
+    assert solver.stable_dt(state) == pytest.approx(0.5 * dc)  # BlockOptions.dt_safety = 0.5
+    quarter = BlockSolver(model, options=BlockOptions(dt_safety=0.25))
+    assert quarter.stable_dt(state) == pytest.approx(0.25 * dc) and quarter.critical_dt() == dc
+    with pytest.raises(TypeError, match="dt_safety"):  # the old stable_dt(safety) call
+        solver.stable_dt(0.5)
+    with pytest.raises(ValueError, match="dt_safety"):
+        BlockSolver(model, options=BlockOptions(dt_safety=1.5))
     with pytest.raises(ValueError, match="critical"):
-        solver.step(state, 1.01 * dc)
-    solver.step(state, 0.99 * dc)  # just below is accepted
+        block_step(solver, state, 1.01 * dc)
+    block_step(solver, state, 0.99 * dc)  # just below is accepted
 
 
 def test_overlapping_initial_blocks_refused_naming_pair():
@@ -611,3 +630,33 @@ def test_free_fall_bounce_restitution():
     rebound = after.max() - 0.2
     # the floor is fixed (m_eff = m); zeta is calibrated for the no-pull contact, so e is exact
     assert rebound == pytest.approx(e * e * H, rel=0.02)
+
+
+def test_planar_model_moves_in_its_plane():
+    """A planar model (2D scenes) keeps blocks in their x-y plane inside BlockSolver.step: z stays at
+    the spec's, v_z = 0, spin about z only; fixed blocks are untouched. The same block in a 3D model
+    leaves the plane and tumbles."""
+    mat = ContactMaterial(normal_stiffness=1e6)
+    specs = [
+        BlockSpec(G.box((0.5, 0.5, 0.5)), position=(0.0, 0.0, 0.25), velocity=(1.0, 0.5, 2.0),
+                  angular_velocity=(3.0, -2.0, 1.0), material=mat, name="free"),
+        BlockSpec(G.box((0.5, 0.5, 0.5)), position=(5.0, 0.0, 0.3), kind="fixed", material=mat, name="wall"),
+    ]
+    out = {}
+    for planar in (False, True):
+        model = BlockModel(specs, device=DEVICE, gravity=(0.0, -9.81, -9.81), planar=planar)
+        assert model.planar == planar
+        state = model.state()
+        solver = BlockSolver(model)
+        for _ in range(10):
+            block_step(solver, state, 1e-3)
+        out[planar] = (state.positions_numpy(), state.velocities_numpy(), state.angular_velocities_numpy(),
+                       state.orientations_numpy())
+    x, v, w, q = out[True]
+    assert x[0, 2] == pytest.approx(0.25, abs=1e-7) and v[0, 2] == 0.0
+    assert x[0, 0] > 0.009 and v[0, 1] < 0.5  # it moves in the plane (and falls along -y)
+    assert w[0, 0] == 0.0 and w[0, 1] == 0.0 and w[0, 2] == pytest.approx(1.0, rel=1e-6)
+    assert q[0, 0] == 0.0 and q[0, 1] == 0.0 and q[0, 2] == pytest.approx(math.sin(0.005), rel=1e-4)
+    assert np.allclose(x[1], [5.0, 0.0, 0.3], atol=1e-7)
+    x3, v3, w3, q3 = out[False]
+    assert x3[0, 2] > 0.25 + 0.01 and abs(w3[0, 0]) > 1.0 and abs(q3[0, 0]) > 1e-3  # the check is not vacuous
