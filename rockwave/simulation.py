@@ -31,31 +31,11 @@ from rockwave import sampling
 from rockwave.fluid import FluidSolver, build_fluid_model, fluid_dt_limit
 from rockwave.kernels import sph
 from rockwave.scene import Scene, SceneError, load_scene
+from rockwave.device import resolve_device  # noqa: F401  (rockwave/device.py; re-exported)
 
 
 class SimulationError(RuntimeError):
     """The run cannot go on (blow-up, unwritable output); the message says where and why."""
-
-
-def resolve_device(name: str | None) -> str:
-    """'auto' -> 'cuda:0' when a GPU is present, else 'cpu'. Validates explicit names."""
-    wp.init()
-    name = (name or "auto").strip()
-    if name == "auto":
-        return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
-    if name == "cpu":
-        return "cpu"
-    if name == "cuda" or name.startswith("cuda:"):
-        n = wp.get_cuda_device_count()
-        idx = 0 if name == "cuda" else name.split(":", 1)[1]
-        try:
-            idx = int(idx)
-        except ValueError:
-            raise ValueError(f"device {name!r}: expected cuda:N with N an integer") from None
-        if idx >= n:
-            raise ValueError(f"device {name!r}: this machine has {n} CUDA device(s)")
-        return f"cuda:{idx}"
-    raise ValueError(f"device {name!r}: expected auto, cpu, cuda or cuda:N")
 
 
 def hydrostatic_density(model, g_depth: np.ndarray) -> np.ndarray:
@@ -527,7 +507,7 @@ class Simulation:
 
             writer = UsdFrameWriter(out / scene.output.usd, fps, "Z" if dim == 3 else "Y", setup, scene.output.chunk_frames)
         gauge_rows: list[list[float]] = []
-        gauge_path = out / scene.output.gauges_csv if self.gauge_names else None
+        gauge_path = out / scene.output.gauges_csv if self.gauge_names and scene.output.gauges_csv else None
         block_rows: list[list] = []
         block_path = out / scene.output.blocks_csv if self.blocks is not None and scene.output.blocks_csv else None
         bar = Progress(duration, nf if nf else (self.blocks.num_blocks if self.blocks is not None else 0), enabled=progress,
