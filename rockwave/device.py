@@ -25,7 +25,7 @@ def device_syntax_error(name) -> str | None:
         hint = f"; did you mean {low!r}?"
     elif low in ("gpu", "cuda0") or low.startswith("gpu"):
         hint = "; for a GPU write 'cuda' or 'cuda:0'"
-    return f"{name!r} is not a device; expected {ALLOWED}{hint}"
+    return f"{name!r} is not a device name; expected {ALLOWED}{hint}"
 
 
 def resolve_device(name: str | None) -> str:
@@ -34,7 +34,7 @@ def resolve_device(name: str | None) -> str:
     name = "auto" if name is None else name
     why = device_syntax_error(name)
     if why:
-        raise DeviceError(f"device {why}")
+        raise DeviceError(why)
     import warp as wp
 
     wp.init()
@@ -46,5 +46,5 @@ def resolve_device(name: str | None) -> str:
     idx = 0 if name == "cuda" else int(name.split(":", 1)[1])
     if idx >= n:
         have = "no CUDA device" if n == 0 else f"{n} CUDA device(s): cuda:0" + (f" .. cuda:{n - 1}" if n > 1 else "")
-        raise DeviceError(f"device {name!r}: this machine has {have}; use 'cpu' or 'auto'")
+        raise DeviceError(f"{name!r}: this machine has {have}; use 'cpu' or 'auto'")
     return f"cuda:{idx}"
