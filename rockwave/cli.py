@@ -50,7 +50,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--checkpoint-every", type=float, default=None, metavar="SECONDS",
                    help="wall-clock seconds between checkpoints (overrides output.checkpoint_interval_s; 0: none)")
     v = sub.add_parser("validate", help="check a scene file without running it: every check 'run' makes before its first step")
-    v.add_argument("scene")
+    v.add_argument("scene", nargs="?", default=None, help=f"scene TOML file (default: the built-in {DEFAULT_SCENE_NAME})")
     v.add_argument("--device", default=None, help="device the memory and run-length estimates are for (default: the scene's)")
     v.add_argument("--duration", type=float, default=None, help="simulated seconds (as for run)")
     v.add_argument("--yes", action="store_true", help="do not refuse a long run (as for run)")
@@ -140,8 +140,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{len(scene.blocks)} block entr{'y' if len(scene.blocks) == 1 else 'ies'}, duration {rl.duration:g} s; "
               f"on {device}: {rl.describe()})")
         return 0
-    # run
+    # run: the checks of validate that need no block model (Simulation builds the blocks and checks them)
     try:
+        preflight.check_scene(scene, device)
         preflight.check_run_length(scene, device, duration=args.duration, force=args.yes)
     except SceneError as e:
         return _fail(e.one_line())
