@@ -142,7 +142,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     # run: the checks of validate that need no block model (Simulation builds the blocks and checks them)
     try:
-        preflight.check_scene(scene, device)
+        meshes = preflight.check_meshes(scene)
+        preflight.check_scene(scene, device, meshes)
+        preflight.check_water_outside_blocks(scene, meshes)  # (scenes of water and blocks)
         preflight.check_run_length(scene, device, duration=args.duration, force=args.yes)
     except SceneError as e:
         return _fail(e.one_line())
@@ -159,6 +161,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         sim = Simulation(scene, device=device)
         sim.run_length_forced = bool(args.yes)  # --yes, for the run loop's own run-length check
+        if sim.fluid is not None and sim.fluid.n_fluid == 0:
+            raise SceneError(scene.path, [("fluid.regions", "no water particle is left after seeding (outside the tank, "
+                                                            "inside obstacles or blocks)")])
         if not args.quiet:
             parts = []
             if sim.fluid is not None:

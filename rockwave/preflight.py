@@ -281,10 +281,10 @@ def check_memory(scene: Scene, device: str, meshes: dict | None = None) -> Estim
     return est
 
 
-def check_scene(scene: Scene, device: str) -> Estimate:
+def check_scene(scene: Scene, device: str, meshes: dict | None = None) -> Estimate:
     """Mesh checks, the memory estimate, gauges against a mesh tank and fluid regions that seed no
-    particle; raises SceneError before anything is allocated."""
-    meshes = check_meshes(scene)
+    particle; raises SceneError before anything is allocated. ``meshes``: check_meshes(scene), if done."""
+    meshes = check_meshes(scene) if meshes is None else meshes
     est = check_memory(scene, device, meshes)
     check_gauges_in_mesh_tank(scene, meshes)
     check_regions_hold_water(scene, meshes)
@@ -313,17 +313,14 @@ def check_gauges_in_mesh_tank(scene: Scene, meshes: dict) -> None:
         raise SceneError(scene.path, errors)
 
 
-def check_regions_hold_water(scene: Scene, meshes: dict, device: str = "cpu") -> None:
-    """A fluid region none of whose lattice points survives seeding (all outside the tank or inside
-    obstacles) is an error naming the region, as in the seeding of rockwave/simulation.py."""
+def _region_points(scene: Scene, meshes: dict, device: str = "cpu"):
+    """Per fluid region: (index, key, lattice points left after the tank and obstacle filters (n, 3),
+    why it is empty) as seeded in rockwave/simulation.py; regions too large to seed twice are skipped."""
     from rockwave import sampling
 
     fl = scene.fluid
-    if fl is None:
-        return
     dim, s = scene.dim, fl.spacing_m
     t = scene.tank
-    errors = []
     for i, r in enumerate(fl.regions):
         key = f"fluid.regions[{i}]"
         if r.get("box_min_m") is not None:
@@ -338,21 +335,21 @@ def check_regions_hold_water(scene: Scene, meshes: dict, device: str = "cpu") ->
             x = sampling.box_lattice(m.bounds[0], m.bounds[1], s)
             x = x[sampling.mesh_signed_distance(m, x, device) < 0.0]
             if len(x) == 0:
-                errors.append((key, f"the mesh holds no lattice point at spacing {s:g} m (fluid.spacing_m); it is thinner than one spacing"))
+                yield i, key, x, f"the mesh holds no lattice point at spacing {s:g} m (fluid.spacing_m): it is thinner than one spacing"
                 continue
         else:
             continue
-        if dim == 2 and x.shape[1] == 2:
+        if x.shape[1] == 2:
             x = np.concatenate([x, np.zeros((len(x), 1))], axis=1)
         why = ""
         if t is not None and t.get("box_min_m") is not None:
-            keep = np.all((x[:, :dim] > np.asarray(t.box_min_m)) & (x[:, :dim] < np.asarray(t.box_max_m)), axis=1)
-            x = x[keep]
+            x = x[np.all((x[:, :dim] > np.asarray(t.box_min_m)) & (x[:, :dim] < np.asarray(t.box_max_m)), axis=1)]
             why = "outside the tank"
         elif t is not None and "tank" in meshes:
             x = x[sampling.mesh_signed_distance(meshes["tank"], x, device) < 0.0]
             why = "outside the tank mesh"
-        n_in_tank = len(x)
+        if len(x):
+            why = "inside the obstacles"
         for j, ob in enumerate(scene.obstacles):
             if len(x) == 0:
                 break
@@ -363,10 +360,44 @@ def check_regions_hold_water(scene: Scene, meshes: dict, device: str = "cpu") ->
             else:
                 continue
             x = x[~inside]
+        yield i, key, x, (f"seeds no water particle: every lattice point is {why}; move the region into the water's "
+                          f"part of the tank (or remove it)")
+
+
+def check_regions_hold_water(scene: Scene, meshes: dict, device: str = "cpu") -> None:
+    """A fluid region none of whose lattice points survives seeding (all outside the tank or inside
+    obstacles) is an error naming the region, as in the seeding of rockwave/simulation.py."""
+    if scene.fluid is None:
+        return
+    errors = [(key, why) for _, key, x, why in _region_points(scene, meshes, device) if len(x) == 0]
+    if errors:
+        raise SceneError(scene.path, errors)
+
+
+def check_water_outside_blocks(scene: Scene, meshes: dict | None = None, model=None) -> None:
+    """A fluid region all of whose particles lie inside blocks, or closer to their faces than half
+    the contact distance (removed at seeding, rockwave/simulation.py _remove_inside_blocks), is an
+    error naming the region. Builds the block model on the CPU when none is given."""
+    if scene.fluid is None or not scene.blocks:
+        return
+    from rockwave.coupling import DEFAULT_D0_RATIO, block_signed_distance
+
+    if meshes is None:
+        meshes = check_meshes(scene)
+    if model is None:
+        model = _block_model(scene, check_overlap=False)
+    state = model.state()
+    c = scene.coupling
+    ratio = c.contact_distance_ratio if c is not None and c.contact_distance_ratio is not None else DEFAULT_D0_RATIO
+    errors = []
+    for _, key, x, _ in _region_points(scene, meshes):
         if len(x) == 0:
-            where = why if n_in_tank == 0 else "inside the obstacles"
-            errors.append((key, f"seeds no water particle: every lattice point is {where}; move the region into the "
-                                f"water's part of the tank (or remove it)"))
+            continue
+        dist, _ = block_signed_distance(model, state, x)
+        if not (dist >= 0.5 * ratio * scene.fluid.spacing_m).any():
+            errors.append((key, f"seeds no water particle: every lattice point at spacing {scene.fluid.spacing_m:g} m "
+                                f"(fluid.spacing_m) is inside a block or within half the contact distance of one; "
+                                f"move the blocks or the region, or make the spacing finer"))
     if errors:
         raise SceneError(scene.path, errors)
 
@@ -376,28 +407,35 @@ def check_regions_hold_water(scene: Scene, meshes: dict, device: str = "cpu") ->
 # --------------------------------------------------------------------------------------------
 
 
-def check_blocks(scene: Scene) -> int:
-    """Block geometry (convex, closed, non-degenerate meshes and prisms), materials and the initial
-    overlap (blocks apart from each other and from fixed blocks such as a slope), on the host.
-    Returns the number of blocks. Raises SceneError like the run's block construction."""
-    if not scene.blocks:
-        return 0
+def _block_model(scene: Scene, check_overlap: bool = True):
+    """The scene's BlockModel on the CPU, built as the run builds it (SceneError naming the problem)."""
     from rockwave.blocks import BlockModel, BlockOverlapError
     from rockwave.geometry import GeometryError
     from rockwave.rocks import block_specs
 
     specs = block_specs(scene)  # SceneError naming blocks[i].mesh / vertices_m / size_m
     g = list(scene.gravity.acceleration_m_s2) + [0.0] * (3 - scene.dim)
-    host_check = len(specs) <= HOST_OVERLAP_CHECK_MAX  # as the run: exact host test, device FCP for large sets
+    host_check = check_overlap and len(specs) <= HOST_OVERLAP_CHECK_MAX  # as the run: exact host test, device FCP for large sets
     try:
         model = BlockModel(specs, device="cpu", gravity=g, check_overlap=host_check)
-        if not host_check:
+        if check_overlap and not host_check:
             from rockwave.blocks import BlockSolver, check_initial_overlap_on_device
 
             check_initial_overlap_on_device(BlockSolver(model), model.state())
     except (BlockOverlapError, GeometryError, ValueError, TypeError) as e:
         raise SceneError(scene.path, [("blocks", str(e))]) from None
-    return len(specs)
+    return model
+
+
+def check_blocks(scene: Scene) -> int:
+    """Block geometry (convex, closed, non-degenerate meshes and prisms), materials and the initial
+    overlap (blocks apart from each other and from fixed blocks such as a slope), on the host; and
+    water not all inside blocks. Returns the number of blocks. Raises SceneError like the run."""
+    if not scene.blocks:
+        return 0
+    model = _block_model(scene)
+    check_water_outside_blocks(scene, model=model)
+    return model.num_blocks
 
 
 # --------------------------------------------------------------------------------------------
