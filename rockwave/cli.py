@@ -7,24 +7,53 @@ import os
 import sys
 from pathlib import Path
 
-DEFAULT_SCENE = Path(__file__).resolve().parent.parent / "scenes" / "dam_break_3d.toml"
+DEFAULT_SCENE_NAME = "dam_break_3d.toml"
+
+
+def default_scene() -> Path:
+    """The built-in default scene: shipped inside the package as ``rockwave.scenes`` (the top-level
+    scenes/ folder of a checkout), so it is found from any install and any working folder."""
+    try:
+        from importlib.resources import files
+
+        p = files("rockwave.scenes") / DEFAULT_SCENE_NAME
+        if p.is_file():
+            return Path(str(p))
+    except (ImportError, OSError, TypeError):
+        pass
+    return Path(__file__).resolve().parent.parent / "scenes" / DEFAULT_SCENE_NAME
+
+
+def quiet_warp() -> None:
+    """No Warp banner, module-load lines or driver notes (set before wp.init(); Warp >= 1.19 reads
+    config.log_level, older versions config.quiet)."""
+    import warp as wp
+
+    wp.config.quiet = True
+    if hasattr(wp, "LOG_ERROR"):
+        wp.config.log_level = wp.LOG_ERROR
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m rockwave", description="rockwave: rock masses and water (SPH + DDA on NVIDIA Warp)")
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="run a scene and write USD frames, gauges and run.json")
-    r.add_argument("scene", nargs="?", default=None, help=f"scene TOML file (default: {DEFAULT_SCENE.name})")
+    r.add_argument("scene", nargs="?", default=None, help=f"scene TOML file (default: the built-in {DEFAULT_SCENE_NAME})")
     r.add_argument("--device", default=None, help="auto | cpu | cuda | cuda:N (default: the scene's, normally auto)")
     r.add_argument("--out", default=None, help="output folder (default: runs/<scene name>)")
     r.add_argument("--duration", type=float, default=None, help="simulated seconds (overrides simulation.duration_s)")
-    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--quiet", action="store_true", help="no progress bar and no Warp messages")
+    r.add_argument("--yes", action="store_true", help="run even when the run-length check estimates more than 1e7 steps or "
+                   "24 h of wall time, or a speed of sound below the expected flow speed")
     r.add_argument("--resume", action="store_true", help="continue from the output folder's checkpoint.npz (written every "
                    "output.checkpoint_interval_s of wall-clock time, on Ctrl-C and on a blow-up)")
     r.add_argument("--checkpoint-every", type=float, default=None, metavar="SECONDS",
                    help="wall-clock seconds between checkpoints (overrides output.checkpoint_interval_s; 0: none)")
-    v = sub.add_parser("validate", help="check a scene file without running it")
-    v.add_argument("scene")
+    v = sub.add_parser("validate", help="check a scene file without running it: every check 'run' makes before its first step")
+    v.add_argument("scene", nargs="?", default=None, help=f"scene TOML file (default: the built-in {DEFAULT_SCENE_NAME})")
+    v.add_argument("--device", default=None, help="device the memory and run-length estimates are for (default: the scene's)")
+    v.add_argument("--duration", type=float, default=None, help="simulated seconds (as for run)")
+    v.add_argument("--yes", action="store_true", help="do not refuse a long run (as for run)")
     sub.add_parser("info", help="Warp version and devices")
     sub.add_parser("schema", help="print the scene format as a Markdown table")
     pv = sub.add_parser("preview", help="draw one frame of a run as a PNG (particles coloured by speed or pressure, blocks outlined)")
@@ -48,6 +77,8 @@ def _fail(msg: str, code: int = 2) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if args.command != "run" or args.quiet:
+        quiet_warp()
     from rockwave.scene import SceneError, load_scene, scene_format_doc
 
     if args.command == "schema":
@@ -72,7 +103,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "info":
         import warp as wp
 
-        wp.config.quiet = True
         wp.init()
         print(f"rockwave {__import__('rockwave').__version__}, warp {wp.__version__}")
         for d in wp.get_devices():
@@ -81,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
                 extra = f", {d.total_memory / 2**30:.1f} GiB, sm_{d.arch}"
             print(f"  {d.alias}: {d.name}{extra}")
         return 0
-    scene_path = args.scene if args.scene else str(DEFAULT_SCENE)
+    scene_path = args.scene if args.scene else str(default_scene())
     try:
         scene = load_scene(scene_path)
     except SceneError as e:
@@ -89,16 +119,35 @@ def main(argv: list[str] | None = None) -> int:
             print(str(e), file=sys.stderr)
             return 2
         return _fail(e.one_line())
-    if args.command == "validate":
-        print(f"{scene_path}: ok ({scene.dim}D, {len(scene.fluid.regions) if scene.fluid is not None else 0} fluid region(s), "
-              f"{len(scene.blocks)} block entr{'y' if len(scene.blocks) == 1 else 'ies'}, duration {scene.simulation.duration_s:g} s)")
-        return 0
-    # run
     if args.duration is not None and not (args.duration > 0 and args.duration < float("inf")):
         return _fail(f"--duration must be a positive number of seconds, got {args.duration}")
-    import warp as wp
+    from rockwave.device import DeviceError, resolve_device
 
-    wp.config.quiet = True
+    try:
+        device = resolve_device(args.device if args.device is not None else scene.simulation.device)
+    except DeviceError as e:
+        return _fail(f"--device: {e}" if args.device is not None else f"{scene_path}: simulation.device: {e}")
+    from rockwave import preflight
+
+    if args.command == "validate":
+        try:
+            found = preflight.check_before_stepping(scene, device, duration=args.duration, force=args.yes)
+        except SceneError as e:
+            print(str(e), file=sys.stderr)
+            return 2
+        rl = found["run_length"]
+        print(f"{scene_path}: ok ({scene.dim}D, {len(scene.fluid.regions) if scene.fluid is not None else 0} fluid region(s), "
+              f"{len(scene.blocks)} block entr{'y' if len(scene.blocks) == 1 else 'ies'}, duration {rl.duration:g} s; "
+              f"on {device}: {rl.describe()})")
+        return 0
+    # run: the checks of validate that need no block model (Simulation builds the blocks and checks them)
+    try:
+        meshes = preflight.check_meshes(scene)
+        preflight.check_scene(scene, device, meshes)
+        preflight.check_water_outside_blocks(scene, meshes)  # (scenes of water and blocks)
+        preflight.check_run_length(scene, device, duration=args.duration, force=args.yes)
+    except SceneError as e:
+        return _fail(e.one_line())
     import warnings
 
     warnings.formatwarning = lambda msg, *a, **k: f"warning: {msg}\n"
@@ -110,7 +159,11 @@ def main(argv: list[str] | None = None) -> int:
 
     out = Path(args.out) if args.out else Path("runs") / scene.name
     try:
-        sim = Simulation(scene, device=args.device)
+        sim = Simulation(scene, device=device)
+        sim.run_length_forced = bool(args.yes)  # --yes, for the run loop's own run-length check
+        if sim.fluid is not None and sim.fluid.n_fluid == 0:
+            raise SceneError(scene.path, [("fluid.regions", "no water particle is left after seeding (outside the tank, "
+                                                            "inside obstacles or blocks)")])
         if not args.quiet:
             parts = []
             if sim.fluid is not None:
@@ -131,6 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"interrupted: frames written so far are in {out}; continue with --resume", file=sys.stderr)
         return 130
     rates = [f"{summary[k]:.3g} {k.replace('_per_s', '').replace('_', '-')}/s" for k in ("particle_steps_per_s", "block_steps_per_s") if summary.get(k)]
+    left = summary.get("particles_outside_domain") or 0
+    left = f"; {left} fluid particle(s) left the tank (particles_outside_domain in run.json)" if left else ""
     print(f"done: {summary['simulated_s']:.3g} s simulated in {summary['steps']} steps, {summary['wall_s']:.1f} s wall"
-          f" ({', '.join(rates)}); outputs in {out}")
+          f" ({', '.join(rates)}){left}; outputs in {out}")
     return 0

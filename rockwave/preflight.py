@@ -281,10 +281,161 @@ def check_memory(scene: Scene, device: str, meshes: dict | None = None) -> Estim
     return est
 
 
-def check_scene(scene: Scene, device: str) -> Estimate:
-    """Mesh checks and the memory estimate; raises SceneError before anything is allocated."""
-    meshes = check_meshes(scene)
-    return check_memory(scene, device, meshes)
+def check_scene(scene: Scene, device: str, meshes: dict | None = None) -> Estimate:
+    """Mesh checks, the memory estimate, gauges against a mesh tank and fluid regions that seed no
+    particle; raises SceneError before anything is allocated. ``meshes``: check_meshes(scene), if done."""
+    meshes = check_meshes(scene) if meshes is None else meshes
+    est = check_memory(scene, device, meshes)
+    check_gauges_in_mesh_tank(scene, meshes)
+    check_regions_hold_water(scene, meshes)
+    return est
+
+
+# --------------------------------------------------------------------------------------------
+# fluid regions and gauges
+# --------------------------------------------------------------------------------------------
+
+MAX_SEED_CHECK_POINTS = 2_000_000
+HOST_OVERLAP_CHECK_MAX = 2000  # as rockwave/simulation.py: above, the overlap test runs on the device (here: the CPU)  # larger regions are not seeded twice (one that large is not all covered)
+
+
+def check_gauges_in_mesh_tank(scene: Scene, meshes: dict) -> None:
+    """Gauges against the bounds of a mesh tank (box tanks: rockwave/scene.py)."""
+    from rockwave.scene import gauge_domain_errors
+
+    if scene.fluid is None or "tank" not in meshes or not scene.output.gauges:
+        return
+    errors: list[tuple[str, str]] = []
+    lo, hi = meshes["tank"].bounds
+    gauge_domain_errors(lambda k, m: errors.append((k, m)), scene.output.gauges, list(lo), list(hi), scene.dim,
+                        scene.fluid.spacing_m * scene.fluid.support_radius_ratio, "the tank mesh's bounds")
+    if errors:
+        raise SceneError(scene.path, errors)
+
+
+def _region_points(scene: Scene, meshes: dict, device: str = "cpu"):
+    """Per fluid region: (index, key, lattice points left after the tank and obstacle filters (n, 3),
+    why it is empty) as seeded in rockwave/simulation.py; regions too large to seed twice are skipped."""
+    from rockwave import sampling
+
+    fl = scene.fluid
+    dim, s = scene.dim, fl.spacing_m
+    t = scene.tank
+    for i, r in enumerate(fl.regions):
+        key = f"fluid.regions[{i}]"
+        if r.get("box_min_m") is not None:
+            n = float(np.prod(np.asarray(_box_cells(r["box_min_m"], r["box_max_m"], s), float)))
+            if n > MAX_SEED_CHECK_POINTS:
+                continue
+            x = sampling.box_lattice(r["box_min_m"], r["box_max_m"], s)
+        elif key in meshes:
+            m = meshes[key]
+            if float(np.prod(np.maximum(m.extents / s, 1.0))) > MAX_SEED_CHECK_POINTS:
+                continue
+            x = sampling.box_lattice(m.bounds[0], m.bounds[1], s)
+            x = x[sampling.mesh_signed_distance(m, x, device) < 0.0]
+            if len(x) == 0:
+                yield i, key, x, f"the mesh holds no lattice point at spacing {s:g} m (fluid.spacing_m): it is thinner than one spacing"
+                continue
+        else:
+            continue
+        if x.shape[1] == 2:
+            x = np.concatenate([x, np.zeros((len(x), 1))], axis=1)
+        why = ""
+        if t is not None and t.get("box_min_m") is not None:
+            x = x[np.all((x[:, :dim] > np.asarray(t.box_min_m)) & (x[:, :dim] < np.asarray(t.box_max_m)), axis=1)]
+            why = "outside the tank"
+        elif t is not None and "tank" in meshes:
+            x = x[sampling.mesh_signed_distance(meshes["tank"], x, device) < 0.0]
+            why = "outside the tank mesh"
+        if len(x):
+            why = "inside the obstacles"
+        for j, ob in enumerate(scene.obstacles):
+            if len(x) == 0:
+                break
+            if ob.get("box_min_m") is not None:
+                inside = sampling.inside_obstacle(x, ob, dim, device)
+            elif f"obstacles[{j}]" in meshes:
+                inside = sampling.mesh_signed_distance(meshes[f"obstacles[{j}]"], x, device) < 0.0
+            else:
+                continue
+            x = x[~inside]
+        yield i, key, x, (f"seeds no water particle: every lattice point is {why}; move the region into the water's "
+                          f"part of the tank (or remove it)")
+
+
+def check_regions_hold_water(scene: Scene, meshes: dict, device: str = "cpu") -> None:
+    """A fluid region none of whose lattice points survives seeding (all outside the tank or inside
+    obstacles) is an error naming the region, as in the seeding of rockwave/simulation.py."""
+    if scene.fluid is None:
+        return
+    errors = [(key, why) for _, key, x, why in _region_points(scene, meshes, device) if len(x) == 0]
+    if errors:
+        raise SceneError(scene.path, errors)
+
+
+def check_water_outside_blocks(scene: Scene, meshes: dict | None = None, model=None) -> None:
+    """A fluid region all of whose particles lie inside blocks, or closer to their faces than half
+    the contact distance (removed at seeding, rockwave/simulation.py _remove_inside_blocks), is an
+    error naming the region. Builds the block model on the CPU when none is given."""
+    if scene.fluid is None or not scene.blocks:
+        return
+    from rockwave.coupling import DEFAULT_D0_RATIO, block_signed_distance
+
+    if meshes is None:
+        meshes = check_meshes(scene)
+    if model is None:
+        model = _block_model(scene, check_overlap=False)
+    state = model.state()
+    c = scene.coupling
+    ratio = c.contact_distance_ratio if c is not None and c.contact_distance_ratio is not None else DEFAULT_D0_RATIO
+    errors = []
+    for _, key, x, _ in _region_points(scene, meshes):
+        if len(x) == 0:
+            continue
+        dist, _ = block_signed_distance(model, state, x)
+        if not (dist >= 0.5 * ratio * scene.fluid.spacing_m).any():
+            errors.append((key, f"seeds no water particle: every lattice point at spacing {scene.fluid.spacing_m:g} m "
+                                f"(fluid.spacing_m) is inside a block or within half the contact distance of one; "
+                                f"move the blocks or the region, or make the spacing finer"))
+    if errors:
+        raise SceneError(scene.path, errors)
+
+
+# --------------------------------------------------------------------------------------------
+# blocks (what the run checks when it builds the block model)
+# --------------------------------------------------------------------------------------------
+
+
+def _block_model(scene: Scene, check_overlap: bool = True):
+    """The scene's BlockModel on the CPU, built as the run builds it (SceneError naming the problem)."""
+    from rockwave.blocks import BlockModel, BlockOverlapError
+    from rockwave.geometry import GeometryError
+    from rockwave.rocks import block_specs
+
+    specs = block_specs(scene)  # SceneError naming blocks[i].mesh / vertices_m / size_m
+    g = list(scene.gravity.acceleration_m_s2) + [0.0] * (3 - scene.dim)
+    host_check = check_overlap and len(specs) <= HOST_OVERLAP_CHECK_MAX  # as the run: exact host test, device FCP for large sets
+    try:
+        model = BlockModel(specs, device="cpu", gravity=g, check_overlap=host_check)
+        if check_overlap and not host_check:
+            from rockwave.blocks import BlockSolver, check_initial_overlap_on_device
+
+            check_initial_overlap_on_device(BlockSolver(model), model.state())
+    except (BlockOverlapError, GeometryError, ValueError, TypeError) as e:
+        raise SceneError(scene.path, [("blocks", str(e))]) from None
+    return model
+
+
+def check_blocks(scene: Scene) -> int:
+    """Block geometry (convex, closed, non-degenerate meshes and prisms), materials and the initial
+    overlap (blocks apart from each other and from fixed blocks such as a slope), on the host; and
+    water not all inside blocks. Returns the number of blocks. Raises SceneError like the run."""
+    if not scene.blocks:
+        return 0
+    model = _block_model(scene)
+    check_water_outside_blocks(scene, model=model)
+    return model.num_blocks
 
 
 # --------------------------------------------------------------------------------------------
@@ -311,3 +462,274 @@ def check_disk(sim, out: Path, n_frames: int) -> None:
     if need > free:
         warnings.warn(f"{out}: the outputs may need about {_fmt_bytes(need)} but only {_fmt_bytes(free)} is free on that disk; "
                       f"a full disk stops the run with the frames written so far intact", stacklevel=2)
+
+
+# --------------------------------------------------------------------------------------------
+# run length: the number of steps and the wall time, before stepping
+# --------------------------------------------------------------------------------------------
+
+MAX_STEPS = 1.0e7  # above this many steps a run is refused unless forced (--yes / force=True)
+MAX_WALL_S = 24 * 3600.0  # above this estimated wall time likewise
+# Optimistic throughputs for the wall-time estimate before any step was measured (particle steps
+# and block steps per second): a scene refused with these would take longer still.
+NOMINAL_PARTICLE_STEPS_PER_S = {"cpu": 2.0e6, "cuda": 1.0e9}
+NOMINAL_BLOCK_STEPS_PER_S = {"cpu": 2.0e5, "cuda": 1.0e8}
+STEP_SECONDS_FLOOR = {"cpu": 2.0e-5, "cuda": 1.0e-4}  # launch overhead of one step, whatever its size
+CONTACT_POINTS_FOR_DT = 8  # as BlockSolver(contact_points_for_dt=8) in rockwave/blocks.py
+MIN_MACH_MARGIN = 1.0  # c0 below this x the expected flow speed: the water cannot stay weakly compressible
+
+
+@dataclass
+class RunLength:
+    """What :func:`estimate_run_length` found.
+
+    steps: simulated steps for ``duration`` s at ``dt`` s; dt_key: the scene key that sets the step
+    and dt_why the limit it comes from; seconds_per_step: measured (``measured``) or nominal cost of
+    one step on the device; wall_s: steps x seconds_per_step; wall_key: the key that makes a step
+    expensive (fluid.spacing_m for many particles, blocks for many blocks) or dt_key;
+    flow_speed: expected fastest water speed sqrt(2 g H) + initial speed (m/s), sound_speed: c0.
+    """
+
+    steps: float
+    dt: float
+    dt_key: str
+    dt_why: str
+    duration: float
+    particles: int
+    blocks: int
+    seconds_per_step: float
+    measured: bool
+    wall_s: float
+    wall_key: str
+    flow_speed: float = 0.0
+    sound_speed: float | None = None
+    flow_key: str = ""
+
+    def describe(self) -> str:
+        return (f"about {self.steps:.3g} steps of {self.dt:.3g} s for {self.duration:g} s "
+                f"(~{_fmt_wall(self.wall_s)} at {self.seconds_per_step:.3g} s/step{'' if self.measured else ' (nominal)'})")
+
+
+def _fmt_wall(s: float) -> str:
+    if not math.isfinite(s):
+        return "forever"
+    if s < 120:
+        return f"{s:.3g} s"
+    if s < 3 * 3600:
+        return f"{s / 60:.3g} min"
+    if s < 3 * 86400:
+        return f"{s / 3600:.3g} h"
+    if s < 3 * 365 * 86400:
+        return f"{s / 86400:.3g} days"
+    return f"{s / (365 * 86400):.3g} years"
+
+
+def _water_height_and_speed(scene: Scene) -> tuple[float, float]:
+    """Height of the water column above the lowest floor (box regions and a box tank; mesh regions
+    by the mesh file's bounds are not read here: 0) and the largest initial speed."""
+    fl, up = scene.fluid, scene.dim - 1
+    lo, hi, v0 = math.inf, -math.inf, 0.0
+    for r in fl.regions:
+        if r.get("box_min_m") is not None and r.get("box_max_m") is not None:
+            lo, hi = min(lo, r["box_min_m"][up]), max(hi, r["box_max_m"][up])
+        if r.get("velocity_m_s") is not None:
+            v0 = max(v0, math.sqrt(sum(c * c for c in r["velocity_m_s"])))
+    t = scene.tank
+    if t is not None and t.get("box_min_m") is not None and hi > -math.inf:
+        lo = min(lo, t.box_min_m[up])
+    return (hi - lo if hi > lo else 0.0), v0
+
+
+def _fluid_step(scene: Scene) -> tuple[float, str, str, float, float, str] | None:
+    """(dt, key, why, c0, flow speed, flow key) of the fluid's step limits at the start."""
+    from rockwave.fluid import sound_speed_from_eos
+
+    fl = scene.fluid
+    if fl is None:
+        return None
+    eos = fl.eos
+    c0 = float(sound_speed_from_eos(eos, fl.rest_density_kg_m3))
+    c_key = "fluid.eos.speed_of_sound_m_s" if eos.speed_of_sound_m_s is not None else (
+        "fluid.eos.b_pa" if eos.type == "tait" else "fluid.eos.k_m2_s2")
+    g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
+    H, v0 = _water_height_and_speed(scene)
+    u = math.sqrt(2.0 * g * H) + v0
+    h = 0.5 * fl.support_radius_ratio * fl.spacing_m  # as fluid_dt_limit in rockwave/fluid.py
+    c = c0 * (1.0 + 0.6 * fl.viscosity.artificial_alpha)
+    cfl = scene.simulation.cfl_number
+    flow_key = "gravity.acceleration_m_s2" if g > 100.0 else ("fluid.regions" if v0 > math.sqrt(2.0 * g * H) else c_key)
+    cands = [(cfl * h / (c + u), c_key if c0 >= 100.0 * max(u, 1.0) else (flow_key if u > c0 else "fluid.spacing_m"),
+              f"C h/(c0 + u_max) with h = {h:.3g} m, c0 = {c0:.3g} m/s, u_max = {u:.3g} m/s")]
+    if g > 0:
+        cands.append((0.25 * math.sqrt(h / g), "gravity.acceleration_m_s2", f"0.25 sqrt(h/|g|) with |g| = {g:.3g} m/s^2"))
+    mu = fl.viscosity.laplacian_pa_s
+    if mu > 0:
+        nu = mu / fl.rest_density_kg_m3
+        cands.append((0.125 * h * h / nu, "fluid.viscosity.laplacian_pa_s", f"0.125 h^2/nu with nu = {nu:.3g} m^2/s"))
+    dt, key, why = min(cands)
+    return dt, key, why, c0, u, flow_key
+
+
+def _block_step(scene: Scene) -> tuple[float, str, str] | None:
+    """(dt, key, why): block_dt_safety x the critical DDA step 2/omega (sqrt(1 + zeta^2) - zeta) of the
+    stiffest movable block entry, omega from k_n n_c / m and k_n n_c r^2 / I_min (rockwave/blocks.py)."""
+    from rockwave import blocks as B
+    from rockwave import geometry
+
+    best = None
+    for i, b in enumerate(scene.blocks):
+        if b.kind not in ("rigid", "deformable"):
+            continue
+        try:
+            if b.shape == "box":
+                parts = [geometry.box(b.size_m)]
+            elif b.shape == "prism":
+                parts = [geometry.prism(b.vertices_m)]
+            else:
+                loaded = geometry.load_mesh(b.mesh)
+                parts = loaded if isinstance(loaded, list) else [loaded]
+        except Exception:  # noqa: BLE001  (a bad shape is reported by the block checks, with its key)
+            continue
+        mat = b.material
+        E = B.DEFAULT_YOUNGS_MODULUS if b.youngs_modulus_pa is None else b.youngs_modulus_pa
+        try:
+            zeta = B.ContactMaterial(restitution=mat.restitution, damping_ratio=mat.damping_ratio).resolved_damping_ratio()
+        except ValueError:
+            continue
+        fac = math.sqrt(1.0 + zeta * zeta) - zeta
+        for g in parts:
+            scale = b.mesh_scale if b.shape == "mesh" else 1.0
+            vol_scale, len_scale = scale ** 3, scale
+            mass = g.mass(b.density_kg_m3) * vol_scale
+            imin = float(np.linalg.eigvalsh(g.inertia(b.density_kg_m3)).min()) * vol_scale * len_scale ** 2
+            r = g.bounding_radius * len_scale
+            kn = B.PENALTY_FACTOR * E * g.size * len_scale if mat.normal_stiffness_n_m is None else mat.normal_stiffness_n_m
+            if not (mass > 0 and imin > 0 and kn > 0):
+                continue
+            om = max(math.sqrt(kn * CONTACT_POINTS_FOR_DT / mass), math.sqrt(kn * CONTACT_POINTS_FOR_DT * r * r / imin))
+            dt = 2.0 / om * fac
+            if b.kind == "deformable":  # strain modes: ~3.5 c / L with c = sqrt(E / rho)
+                dt = min(dt, 2.0 / (3.5 * math.sqrt(E / b.density_kg_m3) / (g.size * len_scale)))
+            dt *= scene.simulation.block_dt_safety
+            if mat.normal_stiffness_n_m is not None and mat.normal_stiffness_n_m > B.PENALTY_FACTOR * E * g.size * len_scale:
+                key = f"blocks[{i}].material.normal_stiffness_n_m"
+            elif b.youngs_modulus_pa is not None and b.youngs_modulus_pa > 1e12:
+                key = f"blocks[{i}].youngs_modulus_pa"
+            elif b.density_kg_m3 < 100.0:
+                key = f"blocks[{i}].density_kg_m3"
+            else:
+                key = "simulation.block_dt_safety"
+            why = (f"the critical DDA step of {b.name!r} (blocks[{i}]: mass {mass:.3g} kg, contact stiffness k_n = {kn:.3g} N/m)")
+            if best is None or dt < best[0]:
+                best = (dt, key, why)
+    return best
+
+
+def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | None = None,
+                        seconds_per_step: float | None = None, dt: float | None = None) -> RunLength:
+    """Steps and wall time of a run, from the scene's stability limits alone (no allocation).
+
+    The step is the smallest of: the fluid's CFL step C h/(c0 + u_max) (u_max = sqrt(2 g H) for the
+    water height H, plus any initial speed), its force step 0.25 sqrt(h/g) and viscous step
+    0.125 h^2/nu; the blocks' critical DDA step times block_dt_safety; ``simulation.dt_s`` when the step
+    is fixed; or ``dt`` when given (the step a run actually uses). ``duration`` defaults to
+    simulation.duration_s. ``seconds_per_step``: the measured cost of one step (from the first steps of
+    a run); without it a nominal, optimistic cost for the device from the particle and block counts."""
+    sim = scene.simulation
+    duration = sim.duration_s if duration is None else float(duration)
+    cands = []
+    fs = _fluid_step(scene)
+    c0 = u = None
+    flow_key = ""
+    if fs is not None:
+        cands.append(fs[:3])
+        c0, u, flow_key = fs[3], fs[4], fs[5]
+    bs = _block_step(scene) if scene.blocks else None
+    if bs is not None:
+        cands.append(bs)
+    c = scene.coupling
+    if fs is not None and scene.blocks and c is not None and c.stiffness_n_m is not None:
+        m = scene.fluid.rest_density_kg_m3 * scene.fluid.spacing_m ** scene.dim
+        om = math.sqrt(3.0 * c.stiffness_n_m / m)
+        cands.append((0.5 * 2.0 / om, "coupling.stiffness_n_m", f"the fluid-block penalty spring K_s = {c.stiffness_n_m:.3g} N/m"))
+    if sim.time_step == "fixed" and sim.dt_s is not None:
+        cands = [(sim.dt_s, "simulation.dt_s", "the fixed step simulation.dt_s")]
+    if dt is not None:
+        step, why = float(dt), "the step in use"
+        key = min(cands)[1] if cands else "simulation.dt_s"
+    elif cands:
+        step, key, why = min(cands)
+    else:
+        step, key, why = duration, "simulation.duration_s", "one step"
+    steps = duration / step if step > 0 else math.inf
+    est = estimate(scene)
+    particles = est.fluid_particles + est.boundary_particles
+    kind = "cpu" if device == "cpu" else "cuda"
+    if seconds_per_step is None:
+        sps = max(STEP_SECONDS_FLOOR[kind], particles / NOMINAL_PARTICLE_STEPS_PER_S[kind]
+                  + est.blocks / NOMINAL_BLOCK_STEPS_PER_S[kind])
+        measured = False
+    else:
+        sps, measured = float(seconds_per_step), True
+    wall = steps * sps
+    if particles >= 1e6 and particles / NOMINAL_PARTICLE_STEPS_PER_S[kind] >= est.blocks / NOMINAL_BLOCK_STEPS_PER_S[kind]:
+        wall_key = "fluid.spacing_m"
+    elif est.blocks >= 1e5:
+        wall_key = "blocks"
+    elif step >= 1e-4:
+        wall_key = "simulation.duration_s"
+    else:
+        wall_key = key
+    return RunLength(steps=steps, dt=step, dt_key=key, dt_why=why, duration=duration, particles=particles, blocks=est.blocks,
+                     seconds_per_step=sps, measured=measured, wall_s=wall, wall_key=wall_key,
+                     flow_speed=u or 0.0, sound_speed=c0, flow_key=flow_key)
+
+
+def check_run_length(scene: Scene, device: str = "cpu", duration: float | None = None, seconds_per_step: float | None = None,
+                     dt: float | None = None, force: bool = False, max_steps: float | None = None,
+                     max_wall_s: float | None = None) -> RunLength:
+    """Refuse, before stepping, a run that cannot work or would not end: raises SceneError naming the
+    key to change (and saying that ``--yes`` / ``force=True`` runs it anyway) when
+
+    - the speed of sound c0 is below the expected flow speed u_max = sqrt(2 g H) (H: the water's
+      height; plus any initial speed): the water cannot stay weakly compressible and the step
+      collapses (e.g. gravity 1e6 m/s^2); WCSPH wants c0 >= 10 u_max;
+    - the run needs more than ``max_steps`` (default MAX_STEPS = 1e7) steps;
+    - or more than ``max_wall_s`` (default MAX_WALL_S = 24 h) of wall time, from ``seconds_per_step``
+      when measured (the run loop passes the cost of its first steps, the remaining ``duration`` and
+      the ``dt`` in use) or a nominal cost otherwise.
+
+    Returns the :class:`RunLength` (also when forced)."""
+    rl = estimate_run_length(scene, device, duration, seconds_per_step, dt)
+    if force:
+        return rl
+    max_steps = MAX_STEPS if max_steps is None else max_steps
+    max_wall_s = MAX_WALL_S if max_wall_s is None else max_wall_s
+    tail = "; or pass --yes (Python: force=True) to run it anyway"
+    if rl.sound_speed is not None and rl.flow_speed > 0 and rl.sound_speed < MIN_MACH_MARGIN * rl.flow_speed:
+        target = 10.0 * rl.flow_speed
+        raise SceneError(scene.path, [(rl.flow_key if rl.flow_key.startswith("gravity") else "fluid.eos.speed_of_sound_m_s",
+                                       f"the speed of sound c0 = {rl.sound_speed:.3g} m/s is below the expected flow speed "
+                                       f"u_max = sqrt(2 g H) = {rl.flow_speed:.3g} m/s: the water cannot stay weakly "
+                                       f"compressible (it leaks through walls, the step collapses or the run blows up); "
+                                       f"weakly compressible SPH wants c0 >= 10 u_max = {target:.3g} m/s "
+                                       f"(or check gravity.acceleration_m_s2){tail}")])
+    if not rl.steps <= max_steps:
+        raise SceneError(scene.path, [(rl.dt_key, f"the run needs {rl.describe()}, more than {max_steps:.3g} steps; the step is "
+                                                  f"set by {rl.dt_why}: check {rl.dt_key} (a unit mistake?){tail}")])
+    if not rl.wall_s <= max_wall_s:
+        raise SceneError(scene.path, [(rl.wall_key, f"the run needs {rl.describe()}, more than {_fmt_wall(max_wall_s)} on "
+                                                    f"{device} ({rl.particles:,} particles, {rl.blocks:,} blocks); "
+                                                    f"check {rl.wall_key}{tail}")])
+    return rl
+
+
+def check_before_stepping(scene: Scene, device: str, duration: float | None = None, force: bool = False) -> dict:
+    """Every check a run makes before its first step, without allocating the simulation: the scene
+    file (already loaded), meshes, memory, fluid regions and gauges (:func:`check_scene`), the block
+    geometry and initial overlaps (:func:`check_blocks`) and the run length (:func:`check_run_length`).
+    ``python -m rockwave validate`` runs this. Returns {"estimate", "blocks", "run_length"}."""
+    est = check_scene(scene, device)
+    nb = check_blocks(scene)
+    rl = check_run_length(scene, device, duration=duration, force=force)
+    return {"estimate": est, "blocks": nb, "run_length": rl}

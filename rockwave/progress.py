@@ -1,9 +1,15 @@
-"""A one-line progress bar on stderr: simulated time, steps/s, particle count, ETA."""
+"""A one-line progress bar on stderr: simulated time, steps/s, particle count, ETA.
+
+On a terminal the bar is redrawn in place (carriage return, no newline). While it is shown, a
+warning (warnings.warn) first ends the bar's line, so that the warning starts on a line of its own
+and the bar continues below it (:meth:`Progress.break_line`, installed as a warnings.showwarning hook
+until :meth:`Progress.close`)."""
 
 from __future__ import annotations
 
 import sys
 import time
+import warnings
 
 
 class Progress:
@@ -16,6 +22,25 @@ class Progress:
         self.t0 = time.perf_counter()
         self.last = 0.0
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self._open_line = False  # the bar is on screen without its newline
+        self._hook = None
+        self._previous_hook = None
+        if self.enabled and self.tty:
+            self._previous_hook = warnings.showwarning
+
+            def hook(*args, **kwargs):
+                self.break_line()
+                return self._previous_hook(*args, **kwargs)
+
+            self._hook = hook
+            warnings.showwarning = hook
+
+    def break_line(self) -> None:
+        """End the bar's line (if one is open) so that the next output starts on a fresh line."""
+        if self._open_line:
+            self.stream.write("\n")
+            self.stream.flush()
+            self._open_line = False
 
     def update(self, sim_time: float, steps: int, force: bool = False) -> None:
         if not self.enabled:
@@ -32,13 +57,19 @@ class Progress:
         bar = "#" * filled + "-" * (width - filled)
         line = (f"[{bar}] t = {sim_time:.3f}/{self.duration:.3f} s  {steps / wall if wall > 0 else 0:,.0f} steps/s  "
                 f"{self.particles:,} {self.unit}  ETA {_fmt(eta)}")
-        self.stream.write(("\r" + line) if self.tty else (line + "\n"))
+        if self.tty:
+            self.stream.write("\r" + line)
+            self._open_line = True
+        else:
+            self.stream.write(line + "\n")
         self.stream.flush()
 
     def close(self) -> None:
-        if self.enabled and self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+        self.break_line()
+        if self._hook is not None:
+            if warnings.showwarning is self._hook:  # someone else's hook installed since stays theirs
+                warnings.showwarning = self._previous_hook
+            self._hook = None
 
 
 def _fmt(s: float) -> str:

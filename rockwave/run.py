@@ -67,7 +67,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     if nf and (o.usd or o.get("vtk")):  # the surface goes nowhere else
         surface = surf.extractor_for(scene, sim.fluid, sim.device)
     usd = rec.UsdRecorder(sim, out / o.usd, surface) if o.usd else None
-    gauges = rec.gauge_csv(out / o.gauges_csv, sim.gauge_names) if sim.gauge_names else None
+    gauges = rec.gauge_csv(out / o.gauges_csv, sim.gauge_names) if sim.gauge_names and o.gauges_csv else None
     blocks = rec.block_csv(out / o.blocks_csv, sim.blocks.names) if sim.blocks is not None and o.blocks_csv else None
     vtk = rec.VtkRecorder(sim, out / o.vtk) if o.get("vtk") else None
     recorders = [r for r in (usd, vtk, blocks, gauges) if r is not None]

@@ -104,7 +104,7 @@ SCHEMA: dict[str, Key] = {
         spacing_m=Key("float", "initial particle spacing", required=True, min=0, min_open=True),
         rest_density_kg_m3=Key("float", "rest density rho0", default=1000.0, min=0, min_open=True),
         kernel=Key("str", "'muller': poly6 density, spiky pressure gradient, viscosity Laplacian (Mueller 2003); 'cubic_spline': Monaghan cubic spline for all; 'wendland': Wendland C2 (no pairing instability at large support_radius_ratio) for all; h = H/2 for the last two", default="muller", choices=("muller", "cubic_spline", "wendland")),
-        support_radius_ratio=Key("float", "kernel support radius / spacing (2.0 gives ~30 neighbours in 3D, ~12 in 2D)", default=2.0, min=1.0, max=5.0),
+        support_radius_ratio=Key("float", "kernel support radius / spacing (2.0 gives ~30 neighbours in 3D, ~12 in 2D; above 1: at 1 the nearest neighbours sit on the support's edge)", default=2.0, min=1.0, max=5.0, min_open=True),
         pressure_force=Key("str", "'momentum': -m_i sum m_j (p_i/rho_i^2 + p_j/rho_j^2) gradW; 'muller': -m_i/rho_i sum m_j (p_i+p_j)/(2 rho_j) gradW", default="momentum", choices=("momentum", "muller")),
         density=Key("str", "'continuity': d rho_i/dt = sum m_j (v_i - v_j).gradW_ij (keeps rho0 at a free surface); 'summation': rho_i = sum m_j W_ij", default="continuity", choices=("continuity", "summation")),
         clamp_negative_pressure=Key("bool", "clip p < 0 to 0 (prevents tensile clumping at a free surface with summation density)", default=True),
@@ -199,8 +199,8 @@ SCHEMA: dict[str, Key] = {
         usd=Key("str", "USD file of the frames ('.usdc' binary or '.usda' text); '' to skip", default="frames.usdc"),
         frame_rate_hz=Key("float", "frames written per simulated second", default=30.0, min=0, min_open=True, max=10000),
         chunk_frames=Key("int", "frames per USD clip file (a long run is a stage of value clips)", default=50, min=1),
-        gauges_csv=Key("str", "CSV of gauge readings per frame", default="gauges.csv"),
-        blocks_csv=Key("str", "CSV of block position, velocity, spin and contact count per frame", default="blocks.csv"),
+        gauges_csv=Key("str", "CSV of gauge readings per frame (a file name in the output folder); '' to skip", default="gauges.csv"),
+        blocks_csv=Key("str", "CSV of block position, velocity, spin and contact count per frame (a file name in the output folder); '' to skip", default="blocks.csv"),
         checkpoint_interval_s=Key("float", "wall-clock seconds between checkpoints (checkpoint.npz; 'run --resume' continues from it); 0: only on Ctrl-C or a blow-up", default=600.0, min=0.0),
         gauges=_list("probes read every frame",
                      name=Key("str", "column name in the CSV", required=True),
@@ -368,6 +368,8 @@ def _cross_checks(v: _Validator, s: Node) -> None:
     sim, fl = s["simulation"], s["fluid"]
     if sim["time_step"] == "fixed" and sim["dt_s"] is None:
         v.err("simulation.dt_s", "required when simulation.time_step = 'fixed'")
+    _check_run_settings(v, s)
+    _check_outputs(v, s)
     _check_blocks(v, s)
     if fl is None:
         if not s["blocks"]:
@@ -387,6 +389,8 @@ def _cross_checks(v: _Validator, s: Node) -> None:
         v.err(f"fluid.eos.{other_key}", f"does not apply to eos.type = {eos['type']!r} (use {const_key})")
     if (eos["speed_of_sound_m_s"] is None) == (eos[const_key] is None):
         v.err("fluid.eos", f"give exactly one of speed_of_sound_m_s or {const_key}")
+    else:
+        _check_eos_constant(v, fl)
 
     def check_region(r: Node, path: str, need: bool = True) -> None:
         has_box = r.get("box_min_m") is not None or r.get("box_max_m") is not None
@@ -428,10 +432,8 @@ def _cross_checks(v: _Validator, s: Node) -> None:
                         n *= (b - a) / fl["spacing_m"] if fl["spacing_m"] else 0
                     if n < 1:
                         v.err(f"fluid.regions[{i}]", f"box holds no particle at spacing {fl['spacing_m']} m")
-    names = [g["name"] for g in s["output"]["gauges"] if g.get("name")]
-    for n in set(names):
-        if names.count(n) > 1:
-            v.err("output.gauges", f"gauge name {n!r} is used more than once")
+    _check_region_overlaps(v, fl["regions"], fl["spacing_m"])
+    _check_gauges(v, s)
     usd = s["output"]["usd"]
     if usd and not (usd.endswith(".usdc") or usd.endswith(".usda") or usd.endswith(".usd")):
         v.err("output.usd", f"{usd!r}: expected a name ending in .usdc, .usda or .usd")
@@ -472,8 +474,148 @@ def _check_blocks(v: _Validator, s: Node) -> None:
         elif any(m[k] is not None for k in ("amplitude_m", "frequency_hz", "times_s", "displacements_m")):
             v.err(f"{path}.motion", f"only kinematic blocks take a motion (kind = {b['kind']!r})")
         cnt = b["array"]["count"]
-        if any(c < 1 or c != int(c) for c in cnt):
+        if cnt is not None and any(c < 1 or c != int(c) for c in cnt):
             v.err(f"{path}.array.count", f"expected whole numbers >= 1, got {cnt}")
+        if b["shape"] == "box" and b.get("size_m") is not None and any(c <= 0 for c in b["size_m"]):
+            v.err(f"{path}.size_m", f"box edge lengths must be > 0, got {b['size_m']}")
+    given: dict[str, int] = {}
+    for i, b in enumerate(blocks):
+        raw = v.raw_blocks[i] if i < len(v.raw_blocks) else {}
+        name = b.get("name")
+        if isinstance(raw, dict) and "name" in raw and isinstance(name, str):
+            if not name.strip() or any(ord(c) < 32 for c in name):
+                v.err(f"blocks[{i}].name", f"{name!r}: a block name must be non-empty and on one line")
+            elif name in given:
+                v.err(f"blocks[{i}].name", f"{name!r} is already the name of blocks[{given[name]}]; block names must be unique "
+                                           f"(the blocks of one entry's array or mesh get _0, _1, ... suffixes)")
+            else:
+                given[name] = i
+
+
+# the largest EOS constant (B or k, Pa) the float32 pressure arithmetic takes with room to spare
+MAX_EOS_CONSTANT_PA = 1.0e30
+OUTPUT_RESERVED = ("run.json", "checkpoint.npz")
+
+
+def _check_run_settings(v: _Validator, s: Node) -> None:
+    """The device name and the direction of gravity."""
+    from rockwave.device import device_syntax_error
+
+    dev = s["simulation"].get("device")
+    if dev is not None:
+        why = device_syntax_error(dev)
+        if why:
+            v.err("simulation.device", why)
+    g = s["gravity"].get("acceleration_m_s2")
+    up = v.dim - 1
+    if g is not None and len(g) == v.dim and g[up] > 0:
+        axis = "z" if v.dim == 3 else "y"
+        down = [0.0] * v.dim
+        down[up] = -g[up]
+        v.err("gravity.acceleration_m_s2", f"{g} points up (+{axis} is up in a {v.dim}D scene): the water and the blocks "
+                                           f"would fall out of the top; gravity pulls down, e.g. {down}")
+
+
+def _check_eos_constant(v: _Validator, fl: Node) -> None:
+    """B = c0^2 rho0 / gamma (Tait) or k = c0^2 (linear) must stay finite in float32."""
+    eos, rho0 = fl["eos"], fl["rest_density_kg_m3"]
+    c0 = eos["speed_of_sound_m_s"]
+    if c0 is None or rho0 is None:
+        const = eos["b_pa"] if eos["type"] == "tait" else eos["k_m2_s2"]
+        key = "b_pa" if eos["type"] == "tait" else "k_m2_s2"
+    else:
+        key = "speed_of_sound_m_s"
+        try:
+            const = c0 * c0 * (rho0 / (eos["gamma"] or 7.0) if eos["type"] == "tait" else 1.0)
+        except OverflowError:
+            const = math.inf
+    if const is not None and not const < MAX_EOS_CONSTANT_PA:
+        v.err(f"fluid.eos.{key}", f"gives an EOS stiffness of {const:.3g} (above {MAX_EOS_CONSTANT_PA:g}, out of float32 range); "
+                                  f"water needs c0 of about 10 x the fastest flow speed (a few to a few hundred m/s)")
+
+
+def _check_outputs(v: _Validator, s: Node) -> None:
+    """Output names are plain file names in the output folder, distinct from each other."""
+    out = s["output"]
+    seen: dict[str, str] = {}
+    for key in ("usd", "gauges_csv", "blocks_csv", "vtk"):
+        name = out.get(key)
+        if not isinstance(name, str) or name == "":
+            continue
+        path = f"output.{key}"
+        if "/" in name or "\\" in name or name in (".", "..") or any(ord(c) < 32 for c in name) or name.strip() != name:
+            v.err(path, f"{name!r}: expected a plain file name (written into the output folder), or '' to skip")
+        elif name in OUTPUT_RESERVED:
+            v.err(path, f"{name!r} is the name of the run's own {name} file; choose another name")
+        elif name in seen:
+            v.err(path, f"{name!r} is also output.{seen[name]}: two outputs cannot share one file")
+        else:
+            seen[name] = key
+
+
+def _box_of(r) -> tuple | None:
+    lo, hi = r.get("box_min_m"), r.get("box_max_m")
+    if lo is None or hi is None or r.get("mesh") is not None or len(lo) != len(hi) or any(b <= a for a, b in zip(lo, hi)):
+        return None
+    return lo, hi
+
+
+def _check_region_overlaps(v: _Validator, regions: list, spacing) -> None:
+    """Two fluid boxes that share volume would seed the shared part twice (twice the density)."""
+    boxes = [(i, _box_of(r)) for i, r in enumerate(regions)]
+    boxes = [(i, b) for i, b in boxes if b is not None]
+    tol = 1e-9 if not spacing else 1e-6 * spacing
+    for a in range(len(boxes)):
+        for b in range(a + 1, len(boxes)):
+            (i, (lo1, hi1)), (j, (lo2, hi2)) = boxes[a], boxes[b]
+            lo = [max(x, y) for x, y in zip(lo1, lo2)]
+            hi = [min(x, y) for x, y in zip(hi1, hi2)]
+            if all(h - l > tol for l, h in zip(lo, hi)):
+                v.err(f"fluid.regions[{j}]", f"overlaps fluid.regions[{i}] in the box {lo}..{hi}: the water there would be "
+                                             f"seeded twice (twice the density); make the boxes touch instead of overlap")
+
+
+def _check_gauges(v: _Validator, s: Node) -> None:
+    """Gauge names (unique, one line, not the time column) and positions (inside a box tank)."""
+    gauges = s["output"]["gauges"]
+    seen: dict[str, int] = {}
+    for i, g in enumerate(gauges):
+        n = g.get("name")
+        if not isinstance(n, str):
+            continue
+        if not n.strip() or any(ord(c) < 32 for c in n) or n != n.strip():
+            v.err(f"output.gauges[{i}].name", f"{n!r}: a gauge name is a CSV column header: non-empty, on one line, "
+                                              f"without leading or trailing spaces")
+        elif n == "time_s":
+            v.err(f"output.gauges[{i}].name", "'time_s' is the CSV's time column; choose another name")
+        elif n in seen:
+            v.err("output.gauges", f"gauge name {n!r} is used more than once (output.gauges[{seen[n]}] and [{i}])")
+        else:
+            seen[n] = i
+    t, fl = s["tank"], s["fluid"]
+    box = _box_of(t) if t is not None else None
+    if box is None or fl is None or not fl.get("spacing_m") or not gauges:
+        return  # mesh tanks: rockwave/preflight.py checks against the mesh's bounds
+    gauge_domain_errors(v.err, gauges, box[0], box[1], v.dim, fl["spacing_m"] * (fl.get("support_radius_ratio") or 2.0), "the tank")
+
+
+def gauge_domain_errors(err, gauges, lo, hi, dim: int, tol: float, what: str) -> None:
+    """A height gauge's horizontal position, or a pressure gauge's position, outside [lo, hi] by more than tol
+    (a pressure gauge above the top is allowed up to one tank height: splashes)."""
+    up = dim - 1
+    for i, g in enumerate(gauges):
+        p, kind = g.get("position_m"), g.get("kind")
+        if p is None or kind is None or len(p) != dim:
+            continue
+        axes = [a for a in range(dim) if a != up] if kind == "height" else list(range(dim))
+        for a in axes:
+            top = hi[a] + (hi[a] - lo[a] if a == up else 0.0)
+            if p[a] < lo[a] - tol or p[a] > top + tol:
+                name = "xyz"[a]
+                where = "below the floor of" if a == up and p[a] < lo[a] else "outside"
+                err(f"output.gauges[{i}].position_m", f"{p}: {name} = {p[a]:g} m is {where} {what} "
+                                                      f"({name} from {lo[a]:g} to {hi[a]:g} m); the gauge would read nothing")
+                break
 
 
 def parse_scene(data: dict, path: str | os.PathLike = "<scene>", base_dir: str | os.PathLike | None = None) -> Scene:
@@ -484,6 +626,8 @@ def parse_scene(data: dict, path: str | os.PathLike = "<scene>", base_dir: str |
     if isinstance(sim, dict) and sim.get("dimension") in (2, 3) and not isinstance(sim.get("dimension"), bool):
         dim = sim["dimension"]
     v = _Validator(base, dim)
+    raw_blocks = data.get("blocks", []) if isinstance(data, dict) else []
+    v.raw_blocks = raw_blocks if isinstance(raw_blocks, list) else []
     s = v.section(data, SCHEMA, "")
     if not v.errors or all(not e[0].startswith("simulation.dimension") for e in v.errors):
         _cross_checks(v, s)
@@ -507,9 +651,14 @@ def load_scene(path: str | os.PathLike) -> Scene:
             data = tomllib.load(f)
     except tomllib.TOMLDecodeError as e:
         raise SceneError(path, [("", f"not valid TOML: {e}")]) from None
+    except RecursionError:
+        raise SceneError(path, [("", "not a usable TOML file: arrays or tables nested too deeply")]) from None
     except (OSError, UnicodeDecodeError) as e:
         raise SceneError(path, [("", f"cannot read: {e}")]) from None
-    return parse_scene(data, p, p.parent)
+    try:
+        return parse_scene(data, p, p.parent)
+    except RecursionError:
+        raise SceneError(path, [("", "arrays or tables nested too deeply")]) from None
 
 
 def schema_markdown() -> str:

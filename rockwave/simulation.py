@@ -27,33 +27,13 @@ import warp as wp
 
 from rockwave import build as builder
 from rockwave.clock import Clock, gravity_norm
+from rockwave.device import resolve_device  # noqa: F401  (rockwave/device.py; re-exported)
 from rockwave.scene import Scene, load_scene
 from rockwave.solver import TimeStep
 
 
 class SimulationError(RuntimeError):
     """The run cannot go on (blow-up, unwritable output); the message says where and why."""
-
-
-def resolve_device(name: str | None) -> str:
-    """'auto' -> 'cuda:0' when a GPU is present, else 'cpu'. Validates explicit names."""
-    wp.init()
-    name = (name or "auto").strip()
-    if name == "auto":
-        return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
-    if name == "cpu":
-        return "cpu"
-    if name == "cuda" or name.startswith("cuda:"):
-        n = wp.get_cuda_device_count()
-        idx = 0 if name == "cuda" else name.split(":", 1)[1]
-        try:
-            idx = int(idx)
-        except ValueError:
-            raise ValueError(f"device {name!r}: expected cuda:N with N an integer") from None
-        if idx >= n:
-            raise ValueError(f"device {name!r}: this machine has {n} CUDA device(s)")
-        return f"cuda:{idx}"
-    raise ValueError(f"device {name!r}: expected auto, cpu, cuda or cuda:N")
 
 
 @dataclass
