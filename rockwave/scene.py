@@ -108,7 +108,7 @@ SCHEMA: dict[str, Key] = {
         pressure_force=Key("str", "'momentum': -m_i sum m_j (p_i/rho_i^2 + p_j/rho_j^2) gradW; 'muller': -m_i/rho_i sum m_j (p_i+p_j)/(2 rho_j) gradW", default="momentum", choices=("momentum", "muller")),
         density=Key("str", "'continuity': d rho_i/dt = sum m_j (v_i - v_j).gradW_ij (keeps rho0 at a free surface); 'summation': rho_i = sum m_j W_ij", default="continuity", choices=("continuity", "summation")),
         clamp_negative_pressure=Key("bool", "clip p < 0 to 0 (prevents tensile clumping at a free surface with summation density)", default=True),
-        density_diffusion=Key("float", "delta of the delta-SPH density diffusion with continuity density (Molteni & Colagrossi 2009, hydrostatic part removed as Fourtakas et al. 2019): d rho_i/dt += delta (H/2) c0 sum_j 2 (rho_j - rho_i - rho0 g.x_ji/c0^2) x_ji.grad_i W_ij/r^2 V_j; 0.1 typical, 0 = off; method basic only (kernels/diffusion.py)", default=0.0, min=0.0, max=1.0),
+        density_diffusion=Key("float", "delta of the delta-SPH density diffusion with continuity density (Molteni & Colagrossi 2009, hydrostatic part removed as Fourtakas et al. 2019): d rho_i/dt += delta (H/2) c0 sum_j 2 (rho_j - rho_i - rho0 g.x_ji/c0^2) x_ji.grad_i W_ij/r^2 V_j; 0.1 typical, 0 = off; continuity density only (kernels/diffusion.py)", default=0.0, min=0.0, max=1.0),
         method=Key("str", "'basic': WCSPH as above; 'ghost': Ghost SPH free surface (Schechter & Bridson 2012), ghost air particles seeded each step around the free surface ([fluid.ghost])", default="basic", choices=("basic", "ghost")),
         ghost=_sec(
             "Ghost SPH settings (used when method = 'ghost')",
@@ -380,6 +380,7 @@ def _cross_checks(v: _Validator, s: Node) -> None:
     gh = fl.get("ghost") or {}
     if gh.get("sampler") == "tile" and gh.get("persistent"):
         v.err("fluid.ghost.sampler", "the tile sampler does not keep ghosts: persistent = true needs sampler = 'darts'")
+    _check_method_options(v, fl)
     if s["tank"] is None and not any(b["kind"] in ("fixed", "kinematic") for b in s["blocks"]):
         v.err("tank", "the water has no walls: add a [tank] (box_min_m/box_max_m or mesh) or fixed [[blocks]] around it")
     eos = fl["eos"]
@@ -490,6 +491,33 @@ def _check_blocks(v: _Validator, s: Node) -> None:
                                            f"(the blocks of one entry's array or mesh get _0, _1, ... suffixes)")
             else:
                 given[name] = i
+
+
+# [fluid.ghost] keys that only the dart sampler reads
+DART_ONLY_KEYS = ("attempts", "rounds")
+
+
+def _check_method_options(v: _Validator, fl: Node) -> None:
+    """An option that the chosen method cannot honour is an error naming the key, never ignored."""
+    raw = getattr(v, "raw_fluid", {}) or {}
+    raw_ghost = raw.get("ghost") if isinstance(raw.get("ghost"), dict) else {}
+    if fl.get("method") != "ghost" and raw_ghost:
+        v.err("fluid.ghost", f"sets {sorted(raw_ghost)} but fluid.method = {fl.get('method')!r}: the ghost settings apply "
+                             "only with method = 'ghost' (set it, or remove the section)")
+    elif raw_ghost:
+        sampler = raw_ghost.get("sampler") or ("darts" if raw_ghost.get("persistent") else "tile")
+        if sampler == "tile":
+            for k in DART_ONLY_KEYS:
+                if k in raw_ghost:
+                    v.err(f"fluid.ghost.{k}", "applies to the dart sampler only; the tile sampler (the default without "
+                                              "persistent = true) places the tile's points: remove it or set sampler = 'darts'")
+        if raw_ghost.get("density_cap") and fl.get("density") != "summation":
+            v.err("fluid.ghost.density_cap", "caps the summation density; with fluid.density = 'continuity' the ghosts do "
+                                             "not enter the density: remove it or set fluid.density = 'summation'")
+    dd = fl.get("density_diffusion")
+    if isinstance(dd, (int, float)) and dd > 0 and fl.get("density") == "summation":
+        v.err("fluid.density_diffusion", "diffuses the continuity density; with fluid.density = 'summation' the density "
+                                         "is recomputed each step: remove it or set fluid.density = 'continuity'")
 
 
 # the largest EOS constant (B or k, Pa) the float32 pressure arithmetic takes with room to spare
@@ -628,6 +656,8 @@ def parse_scene(data: dict, path: str | os.PathLike = "<scene>", base_dir: str |
     v = _Validator(base, dim)
     raw_blocks = data.get("blocks", []) if isinstance(data, dict) else []
     v.raw_blocks = raw_blocks if isinstance(raw_blocks, list) else []
+    raw_fluid = data.get("fluid") if isinstance(data, dict) else None
+    v.raw_fluid = raw_fluid if isinstance(raw_fluid, dict) else {}
     s = v.section(data, SCHEMA, "")
     if not v.errors or all(not e[0].startswith("simulation.dimension") for e in v.errors):
         _cross_checks(v, s)

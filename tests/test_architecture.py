@@ -1,0 +1,225 @@
+"""The shape of the code, checked by behaviour: readers and recorders only read, the clock alone
+chooses the step and says which solver set it, the ghost step composes the fluid step, every solver
+state travels in a checkpoint, and an option a method cannot honour is a SceneError."""
+
+import copy
+
+import numpy as np
+import pytest
+import warp as wp
+
+import rockwave
+from rockwave import checkpoint
+from rockwave.scene import SceneError, load_scene, parse_scene
+
+from conftest import DEVICE
+from helpers import ROOT, tank_2d, with_changes
+
+
+def _dam_break_3d(spacing=0.08):
+    scene = load_scene(ROOT / "scenes" / "dam_break_3d.toml")
+    scene.fluid["spacing_m"] = spacing
+    return rockwave.Simulation(scene, device=DEVICE)
+
+
+def _solver_snapshot(sim) -> dict:
+    fs, st = sim.fluid_solver, sim.state
+    out = {k: getattr(st, k).numpy().copy() for k in ("x", "v", "rho", "pressure", "ids")}
+    out.update(nbr=fs._nbr.numpy().copy(), count=fs._nbr_count.numpy().copy(), x_build=fs._x_build.numpy().copy(),
+               rebuild=fs._rebuild.numpy().copy(), order=fs._cell_order.numpy().copy())
+    return out
+
+
+def test_readers_leave_the_state_lists_and_order_untouched():
+    """After reordered chunk steps (the particles sorted by cell), reading positions, velocities,
+    densities, pressures, gauges and the energy changes no array of the state or the solver (particle
+    order, neighbour lists, cell grid, rebuild flag), gives the particles in the seeded order, and a run
+    that reads after every step stays bit-identical to one that never reads."""
+    a, b = _dam_break_3d(), _dam_break_3d()
+    assert a.gauge_names, "the scene has gauges"
+    a.step_many(12)
+    b.step_many(12)
+    assert a.fluid_solver.sorted_by_cell
+    before = _solver_snapshot(a)
+    x, v = a.positions(), a.velocities()
+    rho, p = a.densities(), a.pressures()
+    g = a.gauges()
+    a.kinetic_energy()
+    after = _solver_snapshot(a)
+    for k in before:
+        assert np.array_equal(before[k], after[k]), f"reading changed {k}"
+    ids = before["ids"]
+    nf = a.n_fluid
+    assert np.array_equal(x[ids], before["x"][:nf, :3].astype(np.float64))  # seeded order
+    assert np.array_equal(v[ids], before["v"][:nf, :3].astype(np.float64))
+    assert np.array_equal(rho[ids], before["rho"].astype(np.float64))
+    assert np.array_equal(p[ids], before["pressure"].astype(np.float64))
+    assert set(g) == set(a.gauge_names)
+    for _ in range(6):
+        a.step()
+        a.positions(), a.gauges()
+        b.step()
+    assert np.array_equal(a.positions(), b.positions()) and np.array_equal(a.densities(), b.densities())
+
+
+def _gauge_reference(sim) -> dict:
+    """The gauges from their definition (rockwave/readers.py Gauges), in numpy."""
+    m = sim.fluid
+    x = sim.positions()
+    if x.shape[1] == 2:
+        x = np.concatenate([x, np.zeros((len(x), 1))], axis=1)
+    up = sim.scene.dim - 1
+    H, s = m.support_radius, m.spacing
+    cols = max(1, int(np.ceil(H / s - 1e-6)))
+    out = {}
+    for gg in sim.scene.output.gauges:
+        pos = np.array(list(gg.position_m) + [0.0] * (3 - len(gg.position_m)))
+        if gg.kind == "height":
+            horiz = [a for a in range(3) if a != up and (sim.scene.dim == 3 or a != 2)]
+            d = x - pos
+            tops = {}
+            ci = [np.floor(d[:, a] / s).astype(int) for a in horiz]
+            centres = [(c + 0.5) * s for c in ci]
+            inside = np.all([(c >= -cols) & (c < cols) for c in ci], axis=0)
+            inside &= sum(c * c for c in centres) < H * H
+            for i in np.flatnonzero(inside):
+                key = tuple(c[i] for c in ci)
+                tops[key] = max(tops.get(key, -np.inf), np.float32(x[i, up]))
+            out[gg.name] = float(np.median(np.array(list(tops.values()), np.float32))) + 0.5 * s if tops else float("nan")
+        else:
+            r2 = ((sim.state.x.numpy()[: m.n_fluid].astype(np.float64) - pos) ** 2).sum(1)
+            w = np.where(r2 < H * H, 1.0, 0.0)
+            out[gg.name] = w  # the pressure check below uses the Shepard sum
+    return out
+
+
+def test_gauges_on_the_device_match_their_definition():
+    """Height gauges: the median of the wet columns' tops + s/2 (numpy on the host); pressure gauges: a
+    Shepard interpolation, so within the range of the pressures of the particles in their support (how close
+    that is to hydrostatics is the accuracy issue's business, not the reader's)."""
+    d = tank_2d(width=0.4, depth=0.2, height=0.4, spacing=0.01)
+    d["output"] = {"gauges": [{"name": "h1", "kind": "height", "position_m": [0.1, 0.0]},
+                              {"name": "h2", "kind": "height", "position_m": [0.27, 0.0]},
+                              {"name": "p", "kind": "pressure", "position_m": [0.2, 0.05]}]}
+    sim = rockwave.Simulation(parse_scene(d, "g.toml"), device=DEVICE)
+    sim.advance(0.02)
+    got, ref = sim.gauges(), _gauge_reference(sim)
+    for name in ("h1", "h2"):
+        assert got[name] == pytest.approx(ref[name], abs=1e-6), name
+        assert got[name] == pytest.approx(0.2, abs=0.5 * 0.01)  # the water's depth at rest
+    p = sim.state.pressure.numpy()[ref["p"] > 0]
+    assert p.min() - 1e-3 <= got["p"] <= p.max() + 1e-3
+    assert got["p"] > 0  # below the surface
+
+
+def test_the_clock_alone_chooses_the_step_and_names_the_limit():
+    """The clock's target is the smallest of the present solvers' limits and it names that solver; the
+    fluid-only scene is fluid-limited, a blocks-only scene block-limited, and run.json says which."""
+    sim = rockwave.Simulation(parse_scene(tank_2d(), "t.toml"), device=DEVICE)
+    assert set(sim.clock.limits) == {"fluid"} and sim.clock.limiting == "fluid"
+    sim.advance(0.005)
+    sim.clock.steps = 0  # the next update evaluates the limits of the current motion
+    sim.clock.update_target()
+    assert sim.clock.target == sim.fluid_solver.stable_dt(sim.state)
+    blocks = rockwave.Simulation(load_scene(ROOT / "scenes" / "block_on_incline.toml"), device=DEVICE)
+    assert blocks.clock.limiting == "blocks" and blocks.clock.target == blocks.block_solver.stable_dt(blocks.block_state)
+    coupled = rockwave.Simulation(load_scene(ROOT / "scenes" / "floating_box_2d.toml"), device=DEVICE)
+    limits = {n: f(True) for n, f in coupled.clock.limits.items()}
+    assert set(limits) == {"fluid", "blocks", "coupling"}
+    assert coupled.clock.target == min(limits.values()) and coupled.clock.limiting == min(limits, key=limits.get)
+
+
+def test_recorded_run_is_bit_identical_to_advancing_without_outputs(tmp_path):
+    """The recorders (USD, gauge and block CSVs, ParaView) and the checkpoint captures only read: a run with
+    every output gives the same particles and blocks, bit for bit, as advancing frame by frame without any."""
+    scene = load_scene(ROOT / "scenes" / "floating_box_2d.toml")
+    scene.simulation["duration_s"] = 0.1  # 3 frames at 30 Hz
+    scene.output["vtk"] = "vtk"
+    a = rockwave.Simulation(scene, device=DEVICE)
+    a.run(tmp_path / "out", progress=False, checkpoint_interval_s=1e-9)  # a checkpoint written after every frame
+    b = rockwave.Simulation(scene, device=DEVICE)
+    fps = scene.output.frame_rate_hz
+    for f in range(1, int(np.floor(0.1 * fps + 1e-9)) + 1):
+        b.advance(f / fps - b.time)
+    assert a.steps == b.steps
+    assert np.array_equal(a.positions(), b.positions()) and np.array_equal(a.velocities(), b.velocities())
+    assert np.array_equal(a.block_positions(), b.block_positions())
+    assert (tmp_path / "out" / "vtk" / "rockwave.pvd").is_file() and (tmp_path / "out" / "checkpoint.npz").is_file()
+
+
+def _ghost_scene(name, **changes):
+    d = load_scene(ROOT / "scenes" / name).raw
+    return parse_scene(with_changes(copy.deepcopy(d), **changes), name, ROOT / "scenes")
+
+
+def test_ghost_step_composes_the_fluid_step_and_honours_density_diffusion():
+    """Ghost SPH adds its terms through FluidSolver.step's hooks (it has no step of its own), so density
+    diffusion, which the copied ghost step used to drop, acts there too: the same scene with and without
+    delta = 0.1 ends with other densities, and the added term keeps them bounded."""
+    from rockwave.fluid import FluidSolver
+    from rockwave.ghost import GhostFluidSolver
+
+    assert GhostFluidSolver.step is FluidSolver.step
+    runs = {}
+    for delta in (0.0, 0.1):
+        sim = rockwave.Simulation(_ghost_scene("ghost_dam_break_case1.toml", **{"fluid.spacing_m": 0.03,
+                                                                                 "fluid.density_diffusion": delta}),
+                                  device=DEVICE)
+        for _ in range(60):
+            sim.step()
+        runs[delta] = sim
+    r0, r1 = runs[0.0].densities(), runs[0.1].densities()
+    assert not np.array_equal(r0, r1)
+    assert runs[0.1].fluid_solver._diff_rate is not None
+    assert np.abs(r1 - r1.mean()).max() < 3 * np.abs(r0 - r0.mean()).max()  # no blow-up from the added term
+
+
+def test_persistent_ghosts_travel_in_checkpoints():
+    """The ghost solver's kept ghosts are part of the checkpoint: a simulation restored from a checkpoint
+    continues with the same ghosts and the same motion, bit for bit on the CPU, as the one that took it
+    (persistent ghosts, summation density: the zero-g disc)."""
+    scene = load_scene(ROOT / "scenes" / "drop_zero_g_2d.toml")
+    a = rockwave.Simulation(scene, device=DEVICE)
+    assert a.fluid_solver.persistent
+    for _ in range(5):
+        a.step()
+    arrays, groups = checkpoint.pack(a, checkpoint.capture(a))
+    meta = {"scene": checkpoint.scene_identity(a), "groups": groups}
+    assert "fluid/solver/ghost_x" in arrays
+    b = rockwave.Simulation(scene, device=DEVICE)
+    checkpoint.restore(b, arrays, meta)
+    assert b.fluid_solver.n_ghost == a.fluid_solver.n_ghost > 0
+    for _ in range(5):
+        a.step()
+        b.step()
+    assert np.array_equal(a.fluid_solver.ghost_positions(), b.fluid_solver.ghost_positions())
+    assert np.array_equal(a.positions(), b.positions())
+
+
+@pytest.mark.parametrize("changes, key", [
+    ({"fluid.method": "basic"}, "fluid.ghost"),
+    ({"fluid.ghost.persistent": False, "fluid.ghost.sampler": "tile", "fluid.ghost.attempts": 8}, "fluid.ghost.attempts"),
+    ({"fluid.density": "continuity", "fluid.ghost.density_cap": True}, "fluid.ghost.density_cap"),
+    ({"fluid.density_diffusion": 0.1}, "fluid.density_diffusion"),
+])
+def test_an_option_the_method_cannot_honour_is_a_scene_error(changes, key):
+    """Settings that the chosen method would ignore name their key (the zero-g drop: ghost method,
+    persistent darts, summation density, density cap)."""
+    with pytest.raises(SceneError) as e:
+        _ghost_scene("drop_zero_g_2d.toml", **changes)
+    assert key in str(e.value)
+    _ghost_scene("drop_zero_g_2d.toml")  # the shipped scene itself is fine
+
+
+def test_physics_modules_import_no_writer():
+    """Solvers, state and the facade load without the USD library or the writers (recorders live in
+    rockwave/export, the run loop imports them)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, rockwave, rockwave.fluid, rockwave.ghost, rockwave.blocks, rockwave.coupling, rockwave.clock, "
+            "rockwave.readers, rockwave.build; "
+            "bad = [m for m in sys.modules if m == 'pxr' or m.startswith('pxr.') or m.startswith('rockwave.export')]; "
+            "print(bad); sys.exit(1 if bad else 0)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stdout + r.stderr
