@@ -176,7 +176,7 @@ class Simulation:
             if not done:
                 t0 = clock.time
                 for j in range(k):  # each step at its own start time (kinematic blocks read it)
-                    self._launch_step(TimeStep(clock.dt, t0, clock.dt_array), reorder=j == 0)
+                    self._launch_step(TimeStep(clock.dt, t0 + j * clock.dt, clock.dt_array), reorder=j == 0)
                 self._chunks_plain = getattr(self, "_chunks_plain", 0) + 1
         clock.tick(k)
 
