@@ -364,8 +364,8 @@ def csv_restore(path: Path | None, state: dict | None, header: list[str]) -> lis
 
 
 class RunCheckpointer:
-    """Captures the state after every frame and writes ``checkpoint.npz`` every ``interval_s``
-    seconds of wall-clock time (0: only on a blow-up, Ctrl-C or at the end when asked)."""
+    """Captures the state after every frame and writes ``checkpoint.npz`` after the first computed frame,
+    then every ``interval_s`` seconds of wall-clock time (0: only on a blow-up, Ctrl-C or at the end when asked)."""
 
     def __init__(self, sim, out: Path, interval_s: float, t0: float, outputs: Callable[[], dict]):
         self.sim = sim
@@ -382,7 +382,9 @@ class RunCheckpointer:
     def frame_done(self, frame: int) -> None:
         self.snapshot = capture(self.sim)
         self.frame = frame
-        if self.interval > 0 and time.monotonic() >= self.next_due:
+        # the first computed frame is checkpointed at once (a run killed early can be resumed), then by wall time
+        first = self.written_frame is None and frame >= 1
+        if self.interval > 0 and (first or time.monotonic() >= self.next_due):
             self.write()
 
     def write(self, reason: str = "interval") -> Path | None:

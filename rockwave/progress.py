@@ -42,7 +42,9 @@ class Progress:
             self.stream.flush()
             self._open_line = False
 
-    def update(self, sim_time: float, steps: int, force: bool = False) -> None:
+    def update(self, sim_time: float, steps: int, force: bool = False, note: str = "") -> None:
+        """Redraw (at most every 0.2 s on a terminal, 5 s otherwise, unless ``force``); ``note`` is appended
+        (the run loop: which solver's limit sets the step)."""
         if not self.enabled:
             return
         now = time.perf_counter()
@@ -56,7 +58,7 @@ class Progress:
         filled = int(frac * width)
         bar = "#" * filled + "-" * (width - filled)
         line = (f"[{bar}] t = {sim_time:.3f}/{self.duration:.3f} s  {steps / wall if wall > 0 else 0:,.0f} steps/s  "
-                f"{self.particles:,} {self.unit}  ETA {_fmt(eta)}")
+                f"{self.particles:,} {self.unit}  ETA {_fmt(eta)}" + (f"  {note}" if note else ""))
         if self.tty:
             self.stream.write("\r" + line)
             self._open_line = True

@@ -23,19 +23,61 @@ from rockwave import checkpoint as ckpt
 from rockwave.export import recorders as rec
 
 
+WATCH_INTERVAL_S = 2.0  # wall seconds between progress lines and health checks inside a frame
+COST_STEPS = 5  # steps after the first whose measured cost feeds the run-length check
+
+
 def _summary_path(out: Path) -> Path:
     return out / "run.json"
 
 
+class _Watch:
+    """Called after every step (Simulation.advance's ``watch``): every WATCH_INTERVAL_S of wall time, whatever
+    the frame rate, it redraws the progress line and runs the blow-up guard on the current state (reads
+    only); once the first steps are done (kernels compiled), it checks the run length with their measured
+    cost (rockwave/preflight.py check_run_length: a run that would take days stops with the key to change)."""
+
+    def __init__(self, sim, bar, t_end: float, t0: float, force: bool, health):
+        self.sim, self.bar, self.t_end, self.t0, self.force, self.health = sim, bar, t_end, t0, force, health
+        self.last = time.perf_counter()
+        self.first = None  # (wall, steps) after the first step
+        self.cost_checked = False
+
+    def note(self) -> str:
+        return f"step {self.sim.dt:.3g} s ({self.sim.clock.limiting or 'fixed'})"
+
+    def __call__(self) -> None:
+        sim = self.sim
+        now = time.perf_counter()
+        if self.first is None:
+            self.first = (now, sim.steps)
+        elif not self.cost_checked and sim.steps - self.first[1] >= COST_STEPS and now - self.first[0] > 0.5:
+            from rockwave import preflight
+
+            per_step = (now - self.first[0]) / (sim.steps - self.first[1])
+            preflight.check_run_length(sim.scene, sim.device, duration=max(self.t_end - sim.time, 0.0),
+                                       seconds_per_step=per_step, dt=sim.dt, force=self.force)
+            self.cost_checked = True
+        if now - self.last >= WATCH_INTERVAL_S:
+            self.last = now
+            self.health()
+            self.bar.update(sim.time - self.t0, sim.steps, force=True, note=self.note())
+
+
 def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress: bool = True,
-        resume: bool = False, checkpoint_interval_s: float | None = None) -> dict:
+        resume: bool = False, checkpoint_interval_s: float | None = None, force: bool = False) -> dict:
     """Run ``sim``'s scene for ``duration`` (default: the scene's), writing outputs into ``out_dir``.
     Returns the run summary (also written as ``run.json``).
 
     ``resume``: continue from ``out_dir/checkpoint.npz`` (rockwave/checkpoint.py) with the outputs
     written so far. ``checkpoint_interval_s``: wall-clock seconds between checkpoints (default
     ``output.checkpoint_interval_s``; 0: none, except on a blow-up or Ctrl-C). Ctrl-C finishes the
-    current frame, writes a checkpoint, closes the USD stage and raises KeyboardInterrupt."""
+    current frame, writes a checkpoint, closes the USD stage and raises KeyboardInterrupt. ``force``: run even when
+    the measured cost of the first steps says the run would take longer than preflight.MAX_WALL_S (CLI --yes).
+
+    Outputs from the first frame on: the USD stage opens after frame 0 (its first chunks are short,
+    rockwave/export/usd.py), the first checkpoint is written after the first computed frame, then every
+    ``checkpoint_interval_s`` of wall time."""
     from rockwave.progress import Progress
     from rockwave.simulation import SimulationError
 
@@ -101,15 +143,20 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     checkpointer = ckpt.RunCheckpointer(sim, out, interval, t0, lambda: {
         "usd": usd, "escaped": escaped, "vtk": vtk, "csv": {"gauges": gauges, "blocks": blocks}})
 
-    def write_frame(index: int) -> None:
+    def check_health(f: rec.Frame) -> None:
         nonlocal escaped
-        f = rec.Frame(sim, index, surface)
+        left = sim.check_health(f.x[:, : scene.dim], f.v[:, : scene.dim])
         if sim.fluid is not None:
-            escaped = sim.check_health(f.x[:, : scene.dim], f.v[:, : scene.dim])
-        else:
-            sim.check_health(f.x[:, : scene.dim], f.v[:, : scene.dim])
+            escaped = left
+
+    def write_frame(index: int) -> None:
+        f = rec.Frame(sim, index, surface)
+        check_health(f)
         for r in recorders:
             r.frame(f)
+
+    watch = _Watch(sim, bar, t0 + duration, t0, force or bool(getattr(sim, "run_length_forced", False)),
+                   lambda: check_health(rec.Frame(sim, -1)))
 
     stop = []
 
@@ -129,18 +176,20 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         for f in range(max(first, 1), n_frames + 1):
             if stop:
                 break
-            sim.advance(t0 + f * frame_dt - sim.time)
+            sim.advance(t0 + f * frame_dt - sim.time, watch)
             write_frame(f)
             checkpointer.frame_done(f)
-            bar.update(sim.time - t0, sim.steps)
+            bar.update(sim.time - t0, sim.steps, note=watch.note())
         if stop:
             interrupted = True
             checkpointer.write("interrupt")
         else:
             rest = t0 + duration - sim.time
             if rest > 1e-9:
-                sim.advance(rest)
+                sim.advance(rest, watch)
             if checkpointer.interval > 0:
+                if usd is not None:  # the last chunk closed first: the checkpoint then holds no copy of it
+                    usd.writer.flush()
                 checkpointer.write("end")
     except KeyboardInterrupt:
         interrupted = True

@@ -198,7 +198,7 @@ SCHEMA: dict[str, Key] = {
         "what a run writes into its output folder",
         usd=Key("str", "USD file of the frames ('.usdc' binary or '.usda' text); '' to skip", default="frames.usdc"),
         frame_rate_hz=Key("float", "frames written per simulated second", default=30.0, min=0, min_open=True, max=10000),
-        chunk_frames=Key("int", "frames per USD clip file (a long run is a stage of value clips)", default=50, min=1),
+        chunk_frames=Key("int", "frames per USD clip file (a long run is a stage of value clips; the first clips hold 1, 2, 4, ... frames so the stage is readable from the first frame)", default=50, min=1),
         gauges_csv=Key("str", "CSV of gauge readings per frame (a file name in the output folder); '' to skip", default="gauges.csv"),
         blocks_csv=Key("str", "CSV of block position, velocity, spin and contact count per frame (a file name in the output folder); '' to skip", default="blocks.csv"),
         checkpoint_interval_s=Key("float", "wall-clock seconds between checkpoints (checkpoint.npz; 'run --resume' continues from it); 0: only on Ctrl-C or a blow-up", default=600.0, min=0.0),

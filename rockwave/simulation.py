@@ -189,8 +189,10 @@ class Simulation:
         for _ in range(n):
             self.step()
 
-    def advance(self, duration: float) -> None:
-        """Advance by ``duration`` seconds, landing exactly on the end time."""
+    def advance(self, duration: float, watch=None) -> None:
+        """Advance by ``duration`` seconds, landing exactly on the end time. ``watch()``, when given, is
+        called after every step or chunk (an observer: the run loop's wall-clock progress and health checks;
+        it must only read)."""
         clock = self.clock
         t_end = clock.time + duration
         while t_end - clock.time > 1e-12 * max(1.0, t_end):
@@ -201,8 +203,10 @@ class Simulation:
             if clock.chunk_allowed(k, n):
                 clock.set_dt(remaining / n)
                 self._run_chunk(k)
-                continue
-            self.step(remaining / n)
+            else:
+                self.step(remaining / n)
+            if watch is not None:
+                watch()
         clock.time = t_end
 
     # ---------------------------------------------------------------- reading -----------------
@@ -277,9 +281,9 @@ class Simulation:
 
     # ---------------------------------------------------------------- running -----------------
     def run(self, out_dir: str | os.PathLike, duration: float | None = None, progress: bool = True,
-            resume: bool = False, checkpoint_interval_s: float | None = None) -> dict:
+            resume: bool = False, checkpoint_interval_s: float | None = None, force: bool = False) -> dict:
         """Run the scene with outputs into ``out_dir``; see rockwave.run.run."""
         from rockwave.run import run
 
         return run(self, out_dir, duration=duration, progress=progress, resume=resume,
-                   checkpoint_interval_s=checkpoint_interval_s)
+                   checkpoint_interval_s=checkpoint_interval_s, force=force)

@@ -151,7 +151,7 @@ def test_stage_time_samples_match_frames_written(tmp_path):
     frames = list(range(6))  # 0.1 s at 50 Hz: frames 0..5
     st = Usd.Stage.Open(str(tmp_path / "frames.usdc"))
     assert (st.GetStartTimeCode(), st.GetEndTimeCode()) == (0, 5) and st.GetTimeCodesPerSecond() == 50.0
-    assert len(list((tmp_path / "frames.clips").glob("chunk_*.usdc"))) == 3
+    assert len(list((tmp_path / "frames.clips").glob("chunk_*.usdc"))) == 4  # frames [0], [1, 2], [3, 4], [5]
     fluid, surf = st.GetPrimAtPath("/World/fluid"), st.GetPrimAtPath("/World/fluid_surface")
     assert surf.GetTypeName() == "BasisCurves"
     for prim, attr in ((fluid, "points"), (fluid, "primvars:pressure"), (fluid, "primvars:density"), (surf, "points"), (surf, "curveVertexCounts")):

@@ -4,7 +4,8 @@ Layout of a run's USD output ``frames.usdc``:
 - ``frames.usdc``: the root layer: stage metadata (upAxis, metersPerUnit = 1,
   timeCodesPerSecond = framesPerSecond = frame rate, start/end time codes), the static parts of
   every prim (ids, widths, mesh topology) and the clip set that points at the chunks;
-- ``frames.clips/chunk_NNNN.usdc``: the time samples of ``chunk_frames`` frames each;
+- ``frames.clips/chunk_NNNN.usdc``: the time samples of 1, 2, 4, ... frames, then ``chunk_frames`` each (the
+  stage on disk holds the first frame at once);
 - ``frames.clips/manifest.usdc``: the clip manifest (which attributes vary in time).
 Every file is written to a temporary name and renamed into place, so a killed run leaves the
 frames written so far in a stage that opens, and never a torn file.
@@ -95,8 +96,13 @@ class UsdFrameWriter:
             layer.SetTimeSample(attr_path, float(frame), conv(value) if conv else value)
             self._attrs[(prim_path, name)] = type_name
         self._last_frame = frame
-        if frame - self._chunk_first + 1 >= self.chunk_frames:
+        if frame - self._chunk_first + 1 >= self.chunk_size(len(self.chunks)):
             self.flush()
+
+    def chunk_size(self, index: int) -> int:
+        """Frames in chunk ``index``: 1, 2, 4, ... up to chunk_frames, so the stage on disk holds the first
+        frame at once and a killed run keeps all but its last few frames (a dozen extra files at most)."""
+        return min(self.chunk_frames, 1 << min(index, 30))
 
     def flush(self) -> None:
         """Write the open chunk and rewrite the root layer so the stage includes it."""
