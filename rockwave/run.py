@@ -51,7 +51,8 @@ class _Watch:
         now = time.perf_counter()
         if self.first is None:
             self.first = (now, sim.steps)
-        elif not self.cost_checked and sim.steps - self.first[1] >= COST_STEPS and now - self.first[0] > 0.5:
+        elif not self.cost_checked and sim.steps - self.first[1] >= COST_STEPS and (
+                now - self.first[0] > 0.5 or sim.steps - self.first[1] >= 10 * COST_STEPS):
             from rockwave import preflight
 
             per_step = (now - self.first[0]) / (sim.steps - self.first[1])

@@ -223,3 +223,81 @@ def test_physics_modules_import_no_writer():
             "print(bad); sys.exit(1 if bad else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+# ------------------------------------------------------------------ the run loop ----------
+
+def _one_frame_scene(duration=0.03):
+    d = tank_2d(width=0.1, depth=0.05, height=0.1, spacing=0.01)
+    d["simulation"]["duration_s"] = duration
+    d["output"] = {"frame_rate_hz": 1.0 / duration}  # one frame: the whole run
+    return parse_scene(d, "one_frame.toml")
+
+
+def test_progress_and_health_checks_run_inside_a_frame(tmp_path, monkeypatch, capsys):
+    """Whatever the frame rate, the run loop redraws the progress line and runs the blow-up guard every
+    WATCH_INTERVAL_S of wall time inside a frame (here 0: after every step)."""
+    from rockwave import run as run_mod
+
+    monkeypatch.setattr(run_mod, "WATCH_INTERVAL_S", 0.0)
+    sim = rockwave.Simulation(_one_frame_scene(), device=DEVICE)
+    calls = []
+    check = sim.check_health
+    monkeypatch.setattr(sim, "check_health", lambda x, v: calls.append(sim.steps) or check(x, v))
+    sim.run(tmp_path, progress=True)
+    assert sim.steps > 5
+    assert len(calls) >= sim.steps  # frame 0, every step, frame 1
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if "steps/s" in ln]
+    assert len(lines) >= sim.steps and "(fluid)" in lines[0]  # the limit that sets the step
+
+
+def test_measured_cost_of_the_first_steps_stops_a_run_that_would_not_end(tmp_path, monkeypatch):
+    """After its first steps the run loop checks the run length with their measured cost: above the wall
+    limit it stops with a SceneError naming the key to change; force=True (CLI --yes) runs on."""
+    from rockwave import preflight
+
+    monkeypatch.setattr(preflight, "MAX_WALL_S", 1e-6)
+    sim = rockwave.Simulation(_one_frame_scene(0.05), device=DEVICE)
+    with pytest.raises(SceneError) as e:
+        sim.run(tmp_path / "a", progress=False)
+    assert "--yes" in str(e.value) and "simulation.duration_s" in str(e.value) and sim.steps <= 60  # stopped early
+    sim = rockwave.Simulation(_one_frame_scene(0.05), device=DEVICE)
+    assert sim.run(tmp_path / "b", progress=False, force=True)["simulated_s"] == pytest.approx(0.05)
+
+
+def test_a_run_killed_early_leaves_a_stage_and_a_checkpoint(tmp_path):
+    """Killed (SIGKILL) soon after its first frames, a run leaves a USD stage that opens with those frames
+    and a checkpoint that --resume continues from (before: nothing until 50 frames and 600 s)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from pxr import Usd
+
+    d = tank_2d(width=0.1, depth=0.05, height=0.1, spacing=0.01)
+    d["simulation"]["duration_s"] = 100.0
+    d["simulation"]["device"] = DEVICE
+    d["output"] = {"frame_rate_hz": 200.0}
+    from test_robustness import to_toml
+
+    scene = tmp_path / "long.toml"
+    scene.write_text(to_toml(d))
+    out = tmp_path / "out"
+    p = subprocess.Popen([sys.executable, "-m", "rockwave", "run", str(scene), "--out", str(out), "--quiet", "--yes"],
+                         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and not ((out / "checkpoint.npz").exists() and (out / "frames.clips").exists()
+                                              and len(list((out / "frames.clips").glob("chunk_*"))) >= 2):
+            time.sleep(0.2)
+            assert p.poll() is None, p.stderr.read().decode()
+    finally:
+        os.kill(p.pid, signal.SIGKILL)
+        p.wait()
+    stage = Usd.Stage.Open(str(out / "frames.usdc"))
+    assert stage.GetEndTimeCode() >= 1
+    r = subprocess.run([sys.executable, "-m", "rockwave", "run", str(scene), "--out", str(out), "--quiet", "--yes",
+                        "--resume", "--duration", "0.03"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
