@@ -38,6 +38,7 @@ PARTS = {
     "wave_maker": "benchmarks.wave_maker",
     "ghost_cost": "benchmarks.ghost_cost",
     "ghost_accuracy": "benchmarks.ghost_accuracy",
+    "readers": "benchmarks.readers",
 }
 SUITES = ("quick", "full")
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")

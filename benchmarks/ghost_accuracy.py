@@ -58,6 +58,7 @@ def simulation(case: int, method: str, spacing: float | None, device: str, chang
         d["fluid"]["spacing_m"] = spacing
     if method == "basic":
         d["fluid"]["method"] = "basic"
+        d["fluid"].pop("ghost", None)  # ghost settings with the basic method are a SceneError
     else:
         d["fluid"]["method"] = "ghost"
         d["fluid"].setdefault("ghost", {})["sampler"] = method

@@ -37,6 +37,8 @@ def make(scene_path, method, device, spacing, warm=20, attempts=None, rounds=Non
 
     d = rockwave.load_scene(scene_path).raw
     d["fluid"]["method"] = method
+    if method == "basic":
+        d["fluid"].pop("ghost", None)  # ghost settings with the basic method are a SceneError
     d.setdefault("output", {})["usd"] = ""
     if spacing:
         d["fluid"]["spacing_m"] = spacing

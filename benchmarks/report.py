@@ -15,7 +15,7 @@ from pathlib import Path
 
 from benchmarks.common import RESULTS, ROOT, rel
 
-PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy")
+PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -195,8 +195,15 @@ def _ghost_accuracy(ga: dict) -> list[str]:
     return L + _table(head, rows) + [""]
 
 
+def _readers(rd: dict) -> list[str]:
+    L = [f"Reading every gauge and all positions after every {rd['block_steps']} steps (benchmarks/readers.py):", ""]
+    return L + _table(["spacing m", "fluid particles", "gauges", "ms/step", "ms/step with reads", "overhead"],
+                      [[f"{r['spacing_m']:g}", r["particles"], r["gauges"], _f(r["step_ms"], ".3f"),
+                        _f(r["step_and_read_ms"], ".3f"), _f(r["overhead"], "+.1%")] for r in rd["cases"]]) + [""]
+
+
 TABLES = {"accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
-          "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy}
+          "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers}
 
 
 def title(res: dict) -> str:

@@ -43,8 +43,9 @@ PROBE = textwrap.dedent(
         print("probe scene", name, flush=True)
         sim = rockwave.Simulation(rockwave.parse_scene(d), device=device)
         sim.step_many(steps)  # a reorder chunk (reorder_interval steps) where the solver has one
-        sim.advance(2 * sim.dt)  # then back in the original order (unsort)
-        sim.gauges()
+        sim.advance(2 * sim.dt)
+        sim.gauges(), sim.positions(), sim.densities()  # the readers scatter into the seeded order
+        sim.fluid_solver.unsort(sim.state)
         m, nf = sim.fluid, sim.n_fluid
         for field in ("colour", "metaball"):
             ex = SurfaceExtractor(sim.scene.dim, m.spacing, m.fluid_mass, device, field=field)
