@@ -44,30 +44,31 @@ def gauge_height(
 
 
 @wp.kernel
-def gauge_pressure(
-    grid: wp.uint64,
+def gauge_pressure_sums(
     x: wp.array(dtype=wp.vec3),
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
     gauge_pos: wp.array(dtype=wp.vec3),
     p: SPHParams,
-    out: wp.array(dtype=float),
+    sums: wp.array2d(dtype=float),
 ):
-    """Shepard-normalised SPH interpolation p(x) = sum V_j p_j W / sum V_j W over fluid particles."""
+    """The Shepard sums of the pressure gauges, launched over fluid particles x gauges (no grid to build):
+    sums[g, 0] += V_j p_j W(x_g - x_j), sums[g, 1] += V_j W(x_g - x_j), V_j = m_j / rho_j, for r < H."""
+    j, g = wp.tid()
+    r2 = wp.length_sq(gauge_pos[g] - x[j])
+    if r2 < p.H * p.H:
+        w = particle_mass[j] / rho[j] * kernel_w(r2, p)
+        wp.atomic_add(sums, g, 0, w * pressure[j])
+        wp.atomic_add(sums, g, 1, w)
+
+
+@wp.kernel
+def gauge_pressure(sums: wp.array2d(dtype=float), out: wp.array(dtype=float)):
+    """Shepard-normalised SPH interpolation p(x_g) = sum V_j p_j W / sum V_j W (0 where no particle is near)."""
     g = wp.tid()
-    xg = gauge_pos[g]
-    num = float(0.0)
-    den = float(0.0)
-    q = wp.hash_grid_query(grid, xg, p.H)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        if j < p.n_fluid:
-            w = particle_mass[j] / rho[j] * kernel_w(wp.length_sq(xg - x[j]), p)
-            num += w * pressure[j]
-            den += w
-    if den > 0.0:
-        out[g] = num / den
+    if sums[g, 1] > 0.0:
+        out[g] = sums[g, 0] / sums[g, 1]
     else:
         out[g] = 0.0
 

@@ -31,8 +31,6 @@ class Gauges:
     """
 
     def __init__(self, scene, fluid, device):
-        from rockwave.fluid import _grid_dims
-
         g = scene.output.gauges
         self.names = [gg.name for gg in g]
         self.fluid = fluid
@@ -45,8 +43,9 @@ class Gauges:
                                   device=device)
         self.top = wp.zeros((max(n, 1), 4 * self.cols * self.cols), dtype=float, device=device)
         self.out = wp.zeros(max(n, 1), dtype=float, device=device)
-        self.cell = fluid.support_radius
-        self.grid = wp.HashGrid(*_grid_dims(fluid.domain_lo, fluid.domain_hi, self.cell, fluid.dim), device=device)
+        self.sums = wp.zeros((max(n, 1), 2), dtype=float, device=device)
+        self.host = wp.zeros(max(n, 1), dtype=float, device="cpu", pinned=wp.get_device(device).is_cuda)
+        self.heights = np.array([gg.kind == "height" for gg in g], dtype=bool)
         self.device = device
 
     def read(self, state) -> dict[str, float]:
@@ -55,16 +54,17 @@ class Gauges:
             return {}
         d = self.device
         self.top.fill_(-1.0e30)
+        self.sums.zero_()
         wp.launch(gk.gauge_height, dim=(m.n_fluid, n), inputs=[state.x, self.pos, self.up, m.support_radius, m.spacing,
                                                               self.cols], outputs=[self.top], device=d)
-        self.grid.build(state.x, self.cell)
-        wp.launch(gk.gauge_pressure, dim=n, inputs=[self.grid.id, state.x, state.rho, state.pressure, m.particle_mass,
-                                                    self.pos, m.params], outputs=[self.out], device=d)
+        wp.launch(gk.gauge_pressure_sums, dim=(m.n_fluid, n), inputs=[state.x, state.rho, state.pressure, m.particle_mass,
+                                                                     self.pos, m.params], outputs=[self.sums], device=d)
+        wp.launch(gk.gauge_pressure, dim=n, inputs=[self.sums], outputs=[self.out], device=d)
         wp.launch(gk.gauge_median, dim=n, inputs=[self.top, self.is_height], outputs=[self.out], device=d)
-        vals = self.out.numpy()
-        heights = self.is_height.numpy()
+        wp.copy(self.host, self.out)  # the one host read: every gauge at once
+        vals = self.host.numpy()
         half = 0.5 * m.spacing
-        return {name: float(vals[i]) + (half if heights[i] else 0.0) for i, name in enumerate(self.names)}
+        return {name: float(vals[i]) + (half if self.heights[i] else 0.0) for i, name in enumerate(self.names)}
 
 
 class Readers:
@@ -74,40 +74,49 @@ class Readers:
         self.sim = sim
         self.fluid = sim.fluid
         self.dim = sim.scene.dim
-        self._buf = {}
+        self._buf = {}  # device buffers in the seeded order (when the solver sorts by cell)
+        self._host = {}  # pinned host mirrors (CUDA)
         self._gauges = Gauges(sim.scene, sim.fluid, sim.device) if sim.fluid is not None else None
 
-    def _ordered(self, name: str) -> np.ndarray:
-        """state.<name>[:n_fluid] in the seeded order (scattered by state.ids into a buffer of ours when
-        the solver keeps the particles sorted by cell)."""
+    def view(self, name: str) -> np.ndarray:
+        """state.<name>[:n_fluid] (x, v, rho or pressure) in the seeded order, in the state's precision
+        (float32), as a view of a host buffer of this reader (pinned memory on a GPU: one device-to-host copy,
+        no allocation). The view is overwritten by the next read of the same quantity: copy it to keep it.
+        The fast path for monitoring a large run; positions() etc. return new float64 arrays."""
         st, m = self.sim.state, self.fluid
         a = getattr(st, name)
         nf = m.n_fluid
         if nf == 0:
             return a.numpy()[:0]
-        if getattr(self.sim.fluid_solver, "_in_original_order", True):
-            return a.numpy()[:nf]
-        buf = self._buf.get(name)
-        if buf is None:
-            buf = self._buf[name] = wp.empty(nf, dtype=a.dtype, device=a.device)
-        wp.launch(sph.scatter_by, dim=nf, inputs=[st.ids, a, buf], device=a.device)
-        return buf.numpy()
+        src = a
+        if getattr(self.sim.fluid_solver, "sorted_by_cell", False):
+            src = self._buf.get(name)
+            if src is None:
+                src = self._buf[name] = wp.empty(nf, dtype=a.dtype, device=a.device)
+            wp.launch(sph.scatter_by, dim=nf, inputs=[st.ids, a, src], device=a.device)
+        if not a.device.is_cuda:
+            return src.numpy()[:nf]
+        host = self._host.get(name)
+        if host is None:
+            host = self._host[name] = wp.empty(nf, dtype=a.dtype, device="cpu", pinned=True)
+        wp.copy(host, src, 0, 0, nf)
+        return host.numpy()
 
     def positions(self) -> np.ndarray:
         if self.fluid is None:
             return np.zeros((0, self.dim))
-        return self._ordered("x")[:, : self.dim].astype(np.float64)
+        return self.view("x")[:, : self.dim].astype(np.float64)
 
     def velocities(self) -> np.ndarray:
         if self.fluid is None:
             return np.zeros((0, self.dim))
-        return self._ordered("v")[:, : self.dim].astype(np.float64)
+        return self.view("v")[:, : self.dim].astype(np.float64)
 
     def densities(self) -> np.ndarray:
-        return self._ordered("rho").astype(np.float64)
+        return self.view("rho").astype(np.float64)
 
     def pressures(self) -> np.ndarray:
-        return self._ordered("pressure").astype(np.float64)
+        return self.view("pressure").astype(np.float64)
 
     def boundary_positions(self) -> np.ndarray:
         m = self.fluid

@@ -55,6 +55,9 @@ def test_readers_leave_the_state_lists_and_order_untouched():
     assert np.array_equal(rho[ids], before["rho"].astype(np.float64))
     assert np.array_equal(p[ids], before["pressure"].astype(np.float64))
     assert set(g) == set(a.gauge_names)
+    view = a.readers.view("x")  # the fast path: the reader's own host buffer, float32, the seeded order
+    assert view.dtype == np.float32 and np.array_equal(view[:, :3].astype(np.float64), x)
+    assert np.array_equal(_solver_snapshot(a)["x"], before["x"])
     for _ in range(6):
         a.step()
         a.positions(), a.gauges()

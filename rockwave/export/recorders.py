@@ -45,19 +45,19 @@ class Frame:
 
     @cached_property
     def x(self) -> np.ndarray:
-        return self.sim.readers._ordered("x") if self.n_fluid else np.zeros((0, 3), np.float32)
+        return self.sim.readers.view("x").copy() if self.n_fluid else np.zeros((0, 3), np.float32)
 
     @cached_property
     def v(self) -> np.ndarray:
-        return self.sim.readers._ordered("v") if self.n_fluid else np.zeros((0, 3), np.float32)
+        return self.sim.readers.view("v").copy() if self.n_fluid else np.zeros((0, 3), np.float32)
 
     @cached_property
     def rho(self) -> np.ndarray:
-        return self.sim.readers._ordered("rho")
+        return self.sim.readers.view("rho").copy()
 
     @cached_property
     def pressure(self) -> np.ndarray:
-        return self.sim.readers._ordered("pressure")
+        return self.sim.readers.view("pressure").copy()
 
     @cached_property
     def blocks(self) -> dict:
