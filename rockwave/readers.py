@@ -62,6 +62,8 @@ class Gauges:
         wp.launch(gk.gauge_pressure, dim=n, inputs=[self.sums], outputs=[self.out], device=d)
         wp.launch(gk.gauge_median, dim=n, inputs=[self.top, self.is_height], outputs=[self.out], device=d)
         wp.copy(self.host, self.out)  # the one host read: every gauge at once
+        if wp.get_device(d).is_cuda:
+            wp.synchronize_stream(wp.get_stream(d))  # (asynchronous into pinned memory)
         vals = self.host.numpy()
         half = 0.5 * m.spacing
         return {name: float(vals[i]) + (half if self.heights[i] else 0.0) for i, name in enumerate(self.names)}
@@ -100,6 +102,7 @@ class Readers:
         if host is None:
             host = self._host[name] = wp.empty(nf, dtype=a.dtype, device="cpu", pinned=True)
         wp.copy(host, src, 0, 0, nf)
+        wp.synchronize_stream(wp.get_stream(a.device))  # a copy into pinned memory is asynchronous
         return host.numpy()
 
     def positions(self) -> np.ndarray:

@@ -249,9 +249,9 @@ def test_progress_and_health_checks_run_inside_a_frame(tmp_path, monkeypatch, ca
     monkeypatch.setattr(sim, "check_health", lambda x, v: calls.append(sim.steps) or check(x, v))
     sim.run(tmp_path, progress=True)
     assert sim.steps > 5
-    assert len(calls) >= sim.steps  # frame 0, every step, frame 1
+    assert len(calls) > 5  # frame 0, after every step (every chunk of steps on a GPU), frame 1
     lines = [ln for ln in capsys.readouterr().err.splitlines() if "steps/s" in ln]
-    assert len(lines) >= sim.steps and "(fluid)" in lines[0]  # the limit that sets the step
+    assert len(lines) >= len(calls) - 2 and "(fluid)" in lines[0]  # the limit that sets the step
 
 
 def test_measured_cost_of_the_first_steps_stops_a_run_that_would_not_end(tmp_path, monkeypatch):

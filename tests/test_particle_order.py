@@ -356,7 +356,7 @@ def test_relative_skin_check_keeps_every_neighbour_and_rebuilds_less():
     assert FluidOptions().skin_check == "relative"
     builds = {}
     for mode in ("relative", "absolute"):
-        sim = _dam_break("continuity", skin_check=mode)
+        sim = _dam_break("continuity", skin_check=mode, relative_min_particles_cuda=0)  # (GPU: on at any size)
         fs = sim.fluid_solver
         assert (fs._check is not None) == (mode == "relative")
         H = sim.fluid.support_radius
