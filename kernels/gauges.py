@@ -5,6 +5,7 @@ import warp as wp
 
 from rockwave.kernels.sph import SPHParams, kernel_w
 
+
 @wp.kernel
 def gauge_height(
     x: wp.array(dtype=wp.vec3),

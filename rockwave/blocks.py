@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from rockwave.geometry import ConvexPolyhedron, GeometryError, quat_to_matrix
+from rockwave.geometry import ConvexPolyhedron, quat_to_matrix
 from rockwave.kernels import dda as K
 from rockwave.solver import TimeStep
 

@@ -144,7 +144,7 @@ class FluidModel:
     def state(self) -> "FluidState":
         """Allocate a state holding the initial positions and velocities."""
         d = self.device
-        n, nf = self.n_total, self.n_fluid
+        nf = self.n_fluid
         x = wp.array(self.initial_positions.astype(np.float32), dtype=wp.vec3, device=d)
         v = wp.array(self.initial_velocities.astype(np.float32), dtype=wp.vec3, device=d)
         rest = np.full(nf, self.params.rest_density, dtype=np.float32)

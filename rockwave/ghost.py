@@ -759,8 +759,8 @@ def drop_simulation(scene, radius: float, velocity=None, device: str | None = No
     [Pa], at the density that the EOS maps to that pressure; summation recomputes it. ``options``:
     rockwave.simulation.SimulationOptions."""
     import rockwave
-    from rockwave.fluid import build_fluid_model
     from rockwave.build import boundary_lattice, seed_particles
+    from rockwave.fluid import build_fluid_model
 
     sim = rockwave.Simulation(scene, device=device, options=options)
     with wp.ScopedDevice(sim.device):

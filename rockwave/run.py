@@ -22,7 +22,6 @@ from pathlib import Path
 from rockwave import checkpoint as ckpt
 from rockwave.export import recorders as rec
 
-
 WATCH_INTERVAL_S = 2.0  # wall seconds between progress lines and health checks inside a frame
 COST_STEPS = 5  # steps after the first whose measured cost feeds the run-length check
 

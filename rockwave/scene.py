@@ -14,7 +14,7 @@ import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 
 class SceneError(ValueError):
@@ -291,7 +291,7 @@ class _Validator:
                 isinstance(r, list) and len(r) == n and all(not isinstance(c, bool) and isinstance(c, (int, float)) and math.isfinite(c) for c in r)
                 for r in rows)
             if not ok:
-                what = f"a list of [x, y, z] points" if t == "points" else "a non-empty list of numbers"
+                what = "a list of [x, y, z] points" if t == "points" else "a non-empty list of numbers"
                 return self._bad(path, f"expected {what}, got {v!r}")
             return [[float(c) for c in r] for r in v] if t == "points" else [float(c) for c in v]
         if t == "bool":

@@ -6,7 +6,6 @@ import copy
 
 import numpy as np
 import pytest
-import warp as wp
 
 import rockwave
 from rockwave import checkpoint

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import warp as wp
 
 import rockwave
 from rockwave.coupling import block_signed_distance

@@ -9,12 +9,10 @@ import os
 import numpy as np
 import pytest
 import warp as wp
-
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from rockwave import geometry as G
-from rockwave.blocks import _sat_overlap
 from rockwave.blocks import (
     BlockModel,
     BlockOptions,
@@ -23,6 +21,7 @@ from rockwave.blocks import (
     BlockSpec,
     ContactMaterial,
     KinematicMotion,
+    _sat_overlap,
 )
 from rockwave.solver import TimeStep
 

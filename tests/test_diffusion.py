@@ -4,6 +4,7 @@ particle-scale density noise and leaves the hydrostatic density of water at rest
 from __future__ import annotations
 
 import numpy as np
+
 import rockwave
 
 from conftest import DEVICE

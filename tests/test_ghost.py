@@ -6,11 +6,11 @@ import pytest
 from scipy.spatial import cKDTree
 
 import rockwave
+from benchmarks.ghost_accuracy import elastic_energy
 from rockwave.fluid import FluidOptions
-from rockwave.ghost import GhostFluidSolver, GhostOptions, drop_simulation, elliptical_drop_simulation, ellipse_semi_axes
+from rockwave.ghost import GhostFluidSolver, GhostOptions, drop_simulation, ellipse_semi_axes, elliptical_drop_simulation
 from rockwave.simulation import SimulationOptions
 
-from benchmarks.ghost_accuracy import elastic_energy
 from conftest import DEVICE
 from helpers import DATA, ROOT, with_changes
 

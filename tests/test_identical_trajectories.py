@@ -4,7 +4,6 @@ dozen adaptive steps and a dozen reordered chunk steps). A deliberate physics ch
 with ``python tests/golden/trajectories.py --write`` in the same commit."""
 
 import json
-from pathlib import Path
 
 import pytest
 

@@ -77,8 +77,9 @@ def test_boundary_particles_are_in_cell_order():
 
 
 def _random_model(dim, wrapped, n_side=7):
-    from rockwave.fluid import FluidSolver, build_fluid_model
     from test_sph import _fluid_section
+
+    from rockwave.fluid import FluidSolver, build_fluid_model
     from rockwave.sampling import box_lattice
 
     rng = np.random.default_rng(3)

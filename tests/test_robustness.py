@@ -6,7 +6,6 @@ import copy
 import io
 import json
 import math
-import os
 import re
 import resource
 import signal
@@ -27,7 +26,7 @@ from rockwave import checkpoint, cli, preflight
 from rockwave.scene import SCHEMA, SceneError, load_scene, parse_scene
 
 from conftest import DEVICE
-from helpers import ROOT, tank_2d
+from helpers import tank_2d
 
 # --------------------------------------------------------------------------------------------
 # helpers

@@ -1,6 +1,5 @@
 """Scene validation (all errors at once, with key paths), CLI exit codes, USD output."""
 
-import math
 import subprocess
 import sys
 

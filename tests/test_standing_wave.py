@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 import rockwave
 
 from conftest import DEVICE
