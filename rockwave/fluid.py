@@ -209,7 +209,7 @@ def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
 
 
 def set_kernel_constants(p: sph.SPHParams) -> None:
-    """Mueller kernel constants for p.H and p.dim (kernels/sph.py poly6, spiky_grad, viscosity_laplacian)."""
+    """Mueller kernel constants for p.H and p.dim (kernels/sph.py kernel_w, spiky_grad, kernel_laplacian)."""
     H = float(p.H)
     if p.dim == 3:
         p.w_coef = 315.0 / (64.0 * math.pi * H ** 9)

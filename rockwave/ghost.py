@@ -70,12 +70,12 @@ DEFAULT_RADIUS_RATIO = {2: 0.80, 3: 0.85}
 # The tile sampler uses the same radius. Its layer has gaps next to the liquid (tile points within r_liquid of it
 # are dropped, not replaced), so its flat-surface summation density is ~8% low (0.92 rho0, tests); a smaller
 # radius would fill it (0.65 dx: 0.945 rho0 in 2D) but its denser ghosts' pressure term pushed particles
-# through the walls in the case-3 splash at 0.01 m (3 of 6 H100 runs; none at 0.72 and 0.80: RESULTS).
+# through the walls in the case-3 splash at 0.01 m (3 of 6 H100 runs; none at 0.72 and 0.80: docs/notes.md).
 # Summation density with ghosts wants persistent ghosts anyway, which only the darts keep.
 # Courant number above which the ghosts' one-sided pressure term was measured to pump energy into a
 # splash: case 3 on an H100 (runs differ in the atomics' order), at 0.25 two of three 0.03 m runs
 # gained energy (one x5.3, a particle 0.46 m out) and the 0.01 m scene blew up (x584); at 0.125 none
-# of seven runs did (benchmarks/RESULTS.md). The ghost scenes use 0.125.
+# of seven runs did (docs/notes.md). The ghost scenes use 0.125.
 GHOST_CFL_MAX = 0.125
 
 
@@ -242,7 +242,7 @@ class GhostFluidSolver(FluidSolver):
         self.r_liquid = 0.5 * (model.spacing + self.r)
         self.number_density_mass = bool(cfg.get("number_density_mass", True))
         # one pass over the phases with 16 darts per cell: as many ghosts as two passes of 8 (+0.6..3.5%
-        # on the same liquid) with half the dependent dart launches on a GPU (benchmarks/RESULTS.md)
+        # on the same liquid) with half the dependent dart launches on a GPU (docs/notes.md)
         self.attempts = int(cfg.get("attempts") or 16)
         self.rounds = int(cfg.get("rounds") or 1)
         self.profile = False

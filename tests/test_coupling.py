@@ -133,7 +133,7 @@ def test_piston_wave_maker_linear_theory():
     spacing (alpha 0 / 0.02, two chaotic realisations each; the steady state of a twice longer flume
     reads 22% low, the same from 1 to 5 s).
     The shortfall is numerical damping of the wave in the SPH, not the coupling or the start-up: the
-    wave is 8% low 0.1 m from the piston and its amplitude decays 0.6 /m beyond (benchmarks/RESULTS.md,
+    wave is 8% low 0.1 m from the piston and its amplitude decays 0.6 /m beyond (docs/notes.md,
     'Piston wave maker'). Asserted: within 30% of theory (the measured -18..-23% plus twice the +-3%
     spread between realisations)."""
     sim = _sim("wave_maker_small.toml")

@@ -217,7 +217,7 @@ def test_ghost_dam_break_case3_runs_to_end_in_tank():
     on an H100 (runs differ in the atomics' order) two of three runs failed, one at E x5.3 with a
     particle 0.46 m out; the 0.01 m scene blew up (E x584). At 0.125 (the scene now; the solver warns
     above it) seeds 1, 5, 8 give -0.001, +0.016, -0.014 here, and seven H100 runs (0.03 and 0.01 m)
-    at most +0.005 J/kg (benchmarks/RESULTS.md). The tile sampler (the default): largest change -0.015 J/kg,
+    at most +0.005 J/kg (docs/notes.md). The tile sampler (the default): largest change -0.015 J/kg,
     deepest 0.1 mm past a face here; on an H100 at 0.01 m six runs 0.22-0.50 dx past a face, none gained
     energy (with a 0.65 dx tile radius three of six leaked a particle through a wall: the radius is 0.80 dx)."""
     dx = 0.03

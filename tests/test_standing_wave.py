@@ -1,5 +1,5 @@
 """Linear standing gravity wave in a tank of boundary particles (no blocks): the wave's numerical damping
-depends on the kernel (benchmarks/RESULTS.md, 'Piston wave maker: damping candidates'). CPU, 2D, small."""
+depends on the kernel (docs/notes.md, 'Piston wave maker'). CPU, 2D, small."""
 
 from __future__ import annotations
 
