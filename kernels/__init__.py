@@ -1,10 +1,10 @@
 """Warp kernels of rockwave (installed as ``rockwave.kernels``). Kernels only: no host logic.
 
-Each module's docstring names the host module that launches it: sph with rockwave/fluid.py (the SPH
-fluid; also reused by rockwave/ghost.py and the gauges of rockwave/simulation.py), ghost with
-rockwave/ghost.py, diffusion with the density diffusion of rockwave/fluid.py, sampling with
-rockwave/sampling.py, surface with rockwave/export/surface.py, dda with rockwave/blocks.py and coupling
-with rockwave/coupling.py.
+A kernel module pairs with the host module of the same name: fluid with rockwave/fluid.py (the SPH fluid
+step; its helpers are shared by ghost, diffusion, readers and surface), ghost with rockwave/ghost.py,
+blocks with rockwave/blocks.py (DDA), coupling with rockwave/coupling.py, readers with rockwave/readers.py
+(gauges), sampling with rockwave/sampling.py, surface with rockwave/export/surface.py; diffusion is the
+density diffusion term of rockwave/fluid.py. Host modules import the fluid kernels as ``sph``.
 
 Each Warp module is built once per device (tests/test_kernel_loads.py): declare a generic kernel's
 overloads with the module, define every kernel at import (no kernels made in functions or on first

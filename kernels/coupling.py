@@ -24,7 +24,7 @@ reads only the bucket of its own cell. Blocks covering more than ``max_cells`` c
 
 import warp as wp
 
-from rockwave.kernels.dda import BlockBodies, BlockLoads
+from rockwave.kernels.blocks import BlockBodies, BlockLoads
 
 KIND_FIXED = wp.constant(2)
 KIND_KINEMATIC = wp.constant(3)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from rockwave.kernels.sph import SPHParams, kernel_grad, store_density
+from rockwave.kernels.fluid import SPHParams, kernel_grad, store_density
 
 
 @wp.kernel

@@ -43,7 +43,7 @@ thread (tests/test_ghost.py::test_parallel_darts_place_the_same_ghosts).
 
 import warp as wp
 
-from rockwave.kernels.sph import SPHParams, kernel_grad, kernel_w, store_density
+from rockwave.kernels.fluid import SPHParams, kernel_grad, kernel_w, store_density
 
 
 @wp.struct
@@ -1246,7 +1246,7 @@ def compact_ghosts(
 
 
 # ------------------------------------------------------------------ step over the neighbour lists ------
-# The ghost step reuses the fluid solver's cell grid and Verlet neighbour lists (kernels/sph.py) for
+# The ghost step reuses the fluid solver's cell grid and Verlet neighbour lists (kernels/fluid.py) for
 # every liquid-liquid and liquid-boundary pair (position divergence, density, forces) and reaches the
 # ghosts through a small hash grid over the ghosts alone: the same sums as one hash-grid query over
 # fluid + boundary + ghosts, in another order (float rounding only).

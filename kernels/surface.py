@@ -5,7 +5,7 @@ squares for 2D contours (3D isosurfaces use Warp's own marching cubes).
 Fields (``kind``), both normalised so that the field is ~1 inside bulk water and ~0.5 at the
 free surface of a particle lattice:
 - 0, SPH colour field: c(x) = sum_j (m_j / rho_j) W(|x - x_j|, R), Monaghan's cubic spline with
-  compact support R (smoothing length R/2; kernels/sph.py cubic_w, the fluid's own);
+  compact support R (smoothing length R/2; kernels/fluid.py cubic_w, the fluid's own);
 - 1, metaball field (Ghost SPH report): f(x) = sum_j s^d / V_R (1 - (d/R)^2)^2 for d < R, where
   s^d / V_R makes the sum over a filled lattice of spacing s equal 1 (V_R = 32 pi R^3 / 105 in
   3D, pi R^2 / 3 in 2D).
@@ -22,7 +22,7 @@ visited several times the particles in reach: ~42 s for a frame of scenes/wave_m
 
 import warp as wp
 
-from rockwave.kernels.sph import cubic_w
+from rockwave.kernels.fluid import cubic_w
 
 
 @wp.struct

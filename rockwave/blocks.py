@@ -7,7 +7,7 @@ What lives where:
 * ``BlockModel``: the static description, device arrays that never change during a run: concatenated
   vertices / faces / half-edges with per-block offsets, masses, inertia, kinds, materials, kinematic
   motions, and their kernel argument groups (``topology``, ``props``, ``material``, ``motion``:
-  kernels/dda.py structs). ``planar=True`` (2D scenes): blocks are prisms extruded along z that move
+  kernels/blocks.py structs). ``planar=True`` (2D scenes): blocks are prisms extruded along z that move
   in their x-y plane only (z fixed, rotation about z only).
 * ``BlockState``: everything that changes in time: poses, velocities, strains, load accumulators
   (``ext_force`` / ``ext_torque``, where the coupling adds its reactions), world vertices, the two
@@ -20,7 +20,7 @@ What lives where:
   ``step(state, ts)`` (ts: rockwave.solver.TimeStep; refuses ts.dt above ``critical_dt()``) = world
   vertices + AABBs, uniform-grid broad phase, Fast Common Plane narrow phase with multi-point
   contacts, penalty contact forces with per-pair history, explicit integration and, for a planar
-  model, the 2D constraint. All as Warp kernels on the model's device (kernels/dda.py). The solver
+  model, the 2D constraint. All as Warp kernels on the model's device (kernels/blocks.py). The solver
   keeps buffers only (capacities, the pair list between broad phases, diagnostics).
 
 Units SI, z up, quaternions (x, y, z, w).  Contact stiffness is *per contact point* (a face resting
@@ -37,7 +37,7 @@ import numpy as np
 import warp as wp
 
 from rockwave.geometry import ConvexPolyhedron, quat_to_matrix
-from rockwave.kernels import dda as K
+from rockwave.kernels import blocks as K
 from rockwave.solver import TimeStep
 
 __all__ = [
@@ -234,7 +234,7 @@ class BlockModel:
     fixed/kinematic), inertia_body / inv_inertia_body (mat33, kg m^2, body frame), block_size (bounding
     diameter m), materials k_n, k_s (N/m per point), tan_phi, cohesion (Pa), tensile (Pa), zeta;
     deformable: strain_minv, strain_k (spatial_matrix), strain_damp (1/s).
-    Kernel argument groups (kernels/dda.py structs over the arrays above): topology, props, material,
+    Kernel argument groups (kernels/blocks.py structs over the arrays above): topology, props, material,
     motion. planar (2D scenes): blocks keep z = planar_z (the specs' z) and turn about z only.
     """
 
@@ -412,7 +412,7 @@ class BlockModel:
         # spec's, rotation about z only); BlockSolver.step applies it after each integration
         self.planar = bool(planar)
         self.planar_z = arr(self.base_position[:, 2].astype(np.float32), f32) if self.planar else None
-        # kernel argument groups (kernels/dda.py), built once
+        # kernel argument groups (kernels/blocks.py), built once
         self.topology = K.BlockTopology()
         for name in ("vert_start", "vert_count", "face_start", "face_count", "face_he", "vertex_out_he", "he_vertex",
                      "he_next", "he_prev", "he_twin", "block_size"):
@@ -460,7 +460,7 @@ class BlockState:
     centroid, world; other modules atomically add here before step, the solver zeroes them after use),
     force / torque / strain_force (contact accumulators), contact_count (N, int: contact points of the
     last step), world_verts (V, vec3), time (s), contact history tables (two dicts of arrays, swapped
-    each step by swap_tables). Kernel views (kernels/dda.py structs): bodies (x, q, v, w, strain,
+    each step by swap_tables). Kernel views (kernels/blocks.py structs): bodies (x, q, v, w, strain,
     strain_rate), loads (force ... contact_count), table_views (one per table, swapped with them).
     """
 
@@ -501,7 +501,7 @@ class BlockState:
         self.motion_dx = wp.zeros(n, dtype=wp.vec3, device=d)
         self.motion_rho = wp.zeros(n, dtype=wp.float32, device=d)
         self.time = 0.0
-        # kernel argument groups (kernels/dda.py) over the arrays above, built once (the arrays are
+        # kernel argument groups (kernels/blocks.py) over the arrays above, built once (the arrays are
         # only ever assigned in place, e.g. by a checkpoint restore)
         self.bodies = K.BlockBodies()
         for name in ("x", "q", "v", "w", "strain", "strain_rate"):
@@ -716,7 +716,7 @@ class BlockOptions:
 
     keep_pairs: bool | None = None
     """Keep the pair list while every block's AABB grown by margin/2 stays inside the box of the last
-    broad phase (kernels/dda.py aabbs_left_pair_boxes); None: on for the counter-read path (more than
+    broad phase (kernels/blocks.py aabbs_left_pair_boxes); None: on for the counter-read path (more than
     sync_free_max_blocks blocks), off for the sync-free one. False: a broad phase every step."""
 
     @classmethod
@@ -779,7 +779,7 @@ class BlockSolver:
         self._unchecked_steps = 0
         self._dt_crit = None
         # Many blocks (the counter-read path): the pair list is kept while every block's AABB grown by
-        # margin/2 stays inside the box (grown by margin) of the last broad phase (kernels/dda.py
+        # margin/2 stays inside the box (grown by margin) of the last broad phase (kernels/blocks.py
         # aabbs_left_pair_boxes; one flag read joins the step's counter read). Few blocks: every step.
         self._keep_pairs = (not self.sync_free) if opt.keep_pairs is None else bool(opt.keep_pairs)
         self.lo_bp = wp.zeros(n, dtype=wp.vec3, device=d)

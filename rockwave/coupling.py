@@ -91,8 +91,8 @@ import numpy as np
 import warp as wp
 
 from rockwave.geometry import quat_to_matrix
+from rockwave.kernels import blocks as DK
 from rockwave.kernels import coupling as CK
-from rockwave.kernels import dda as DK
 from rockwave.solver import TimeStep
 
 DEFAULT_D0_RATIO = 0.5

@@ -15,7 +15,7 @@ from types import SimpleNamespace
 import numpy as np
 import warp as wp
 
-from rockwave.kernels import sph
+from rockwave.kernels import fluid as sph
 from rockwave.solver import TimeStep
 
 
@@ -209,7 +209,7 @@ def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
 
 
 def set_kernel_constants(p: sph.SPHParams) -> None:
-    """Mueller kernel constants for p.H and p.dim (kernels/sph.py kernel_w, spiky_grad, kernel_laplacian)."""
+    """Mueller kernel constants for p.H and p.dim (kernels/fluid.py kernel_w, spiky_grad, kernel_laplacian)."""
     H = float(p.H)
     if p.dim == 3:
         p.w_coef = 315.0 / (64.0 * math.pi * H ** 9)
@@ -285,7 +285,7 @@ class FluidSolver:
         self.host_decides = not is_cuda  # CPU: read the flag, skip the launches
         self.list_builds = 0  # host-decided builds (CPU), for tests and measurements
         nf = max(model.n_fluid, 1)
-        self._pr2 = wp.zeros(nf, dtype=float, device=d)  # p / rho^2 of this step (kernels/sph.py pair_acceleration_fluid)
+        self._pr2 = wp.zeros(nf, dtype=float, device=d)  # p / rho^2 of this step (kernels/fluid.py pair_acceleration_fluid)
         self._zero_dt = wp.zeros(1, dtype=float, device=d)
         self._block_dim = 128 if is_cuda else 256  # force pass: 0.84 vs 0.91 ms at 256 (H100, 2.16 M)
         self._init_lists()
@@ -305,7 +305,7 @@ class FluidSolver:
         self._init_lists()
 
     def _init_lists(self) -> None:
-        """Neighbour lists (kernels/sph.py build_neighbour_list_cells): count[i] and nbr[k * n_fluid + i]
+        """Neighbour lists (kernels/fluid.py build_neighbour_list_cells): count[i] and nbr[k * n_fluid + i]
         for k < cap; cap ~1.6x the neighbours within the list radius in the initial lattice."""
         m, d = self.model, self.model.device
         if self.neighbour_skin < 0:
@@ -321,7 +321,7 @@ class FluidSolver:
         self._init_check_grid()
 
     # The skin check (class doc): "relative" rebuilds a list when two particles that may have become
-    # neighbours moved s H relative to each other (cells of 2 H by build position, kernels/sph.py
+    # neighbours moved s H relative to each other (cells of 2 H by build position, kernels/fluid.py
     # displacement_check_cells); "absolute" when any particle moved s H / 2. In a flowing 3D dam break
     # the water moves together: a list then lasts ~9x longer (10,850 particles, 0.3 s: 37 builds with an
     # exact test, 331 with "absolute"). "relative" falls back to "absolute" past check_cells_per_particle.
@@ -466,7 +466,7 @@ class FluidSolver:
             wp.copy(a, tmp, 0, 0, m.n_fluid)
 
     def reorder(self, state: FluidState) -> None:
-        """Sort the fluid particles by cell (kernels/sph.py CellGrid order; any permutation is correct).
+        """Sort the fluid particles by cell (kernels/fluid.py CellGrid order; any permutation is correct).
         Launches only: capturable in a CUDA graph."""
         m = self.model
         b = self._order_buffers()

@@ -55,8 +55,8 @@ import numpy as np
 import warp as wp
 
 from rockwave.fluid import Density, FluidModel, FluidOptions, FluidSolver, FluidState, _grid_dims
+from rockwave.kernels import fluid as sph
 from rockwave.kernels import ghost as gk
-from rockwave.kernels import sph
 
 # Free-surface threshold on div x (the full value is the dimension). 2D: 1.5 as in the report and
 # Lee et al. (2008). 3D: measured on lattice blocks and spheres (tests/test_ghost.py): interior 3.0,

@@ -15,8 +15,8 @@ import numpy as np
 import warp as wp
 
 from rockwave.build import pad3
-from rockwave.kernels import gauges as gk
-from rockwave.kernels import sph
+from rockwave.kernels import fluid as sph
+from rockwave.kernels import readers as gk
 
 
 class Gauges:

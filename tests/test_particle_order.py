@@ -130,7 +130,7 @@ def test_neighbour_lists_match_brute_force(dim, wrapped, skin):
 def test_neighbour_list_overflow_falls_back_to_cell_query():
     """Particles with more neighbours than the list holds get the same density and acceleration
     from the cell-grid query."""
-    from rockwave.kernels import sph
+    from rockwave.kernels import fluid as sph
 
     model, solver = _random_model(3, wrapped=False)
     s = model.state()

@@ -10,7 +10,7 @@ import warp as wp
 
 import rockwave
 from rockwave.fluid import FluidSolver, build_fluid_model, calibrate_lattice, make_params
-from rockwave.kernels import sph
+from rockwave.kernels import fluid as sph
 from rockwave.sampling import box_lattice
 
 from conftest import DEVICE

@@ -1,4 +1,4 @@
-"""Warp kernels of the explicit 3D DDA block solver (rockwave.kernels.dda).
+"""Warp kernels of the explicit 3D DDA block solver (rockwave.kernels.blocks).
 
 Sources: Nezami et al. (2004) "A fast contact detection algorithm for 3-D discrete element method"
 (broad-phase cell size S ~ 1.5 D50, Fast Common Plane); the SPH-DDA rock/fluid seed paper §2-5

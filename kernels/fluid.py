@@ -869,9 +869,9 @@ def pair_acceleration_fluid(
 
 # The force pass is launched with its own block size on CUDA (rockwave.fluid.FluidSolver._block_dim: 128,
 # every other launch 256). Warp builds a module once per block size, so in this module it would build
-# all of rockwave.kernels.sph twice (and again after every change of the module); it lives in a module
+# all of rockwave.kernels.fluid twice (and again after every change of the module); it lives in a module
 # of its own, built only at the force pass's block size.
-FORCE_PASS_MODULE = "rockwave.kernels.sph_force_pass"
+FORCE_PASS_MODULE = "rockwave.kernels.fluid_force_pass"
 
 
 @wp.kernel(module=FORCE_PASS_MODULE)

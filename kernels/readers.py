@@ -3,7 +3,7 @@ evaluated on the device from the current state; one host read returns every gaug
 
 import warp as wp
 
-from rockwave.kernels.sph import SPHParams, kernel_w
+from rockwave.kernels.fluid import SPHParams, kernel_w
 
 
 @wp.kernel
