@@ -263,7 +263,25 @@ def scene_identity(sim) -> dict:
             "n_boundary": sim.fluid.n_boundary if sim.fluid is not None else 0,
             "n_blocks": sim.blocks.num_blocks if sim.blocks is not None else 0,
             "time_step": {k: s.simulation.get(k) for k in ("time_step", "cfl_number", "dt_s", "block_dt_safety", "dt_update_interval")},
-            "frame_rate_hz": s.output.frame_rate_hz, "usd": s.output.usd}
+            "frame_rate_hz": s.output.frame_rate_hz, "usd": s.output.usd,
+            "raw": json.loads(json.dumps(s.raw, default=str)) if isinstance(s.raw, dict) else None}
+
+
+# scene keys a resumed run may change (the step settings, e.g. a smaller cfl_number after a blow-up; the run's length,
+# device and checkpoint interval); any other change would continue another scene's state
+RESUMABLE_CHANGES = ("simulation.duration_s", "simulation.cfl_number", "simulation.dt_s", "simulation.block_dt_safety",
+                     "simulation.dt_update_interval", "simulation.time_step", "simulation.device",
+                     "output.checkpoint_interval_s")
+
+
+def scene_changes(old, new, prefix: str = "") -> list[tuple[str, object, object]]:
+    """(key path, before, now) of every value that differs between two raw scene dicts."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new), key=str):
+            out += scene_changes(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else str(k))
+        return out
+    return [] if old == new else [(prefix, old, new)]
 
 
 # --------------------------------------------------------------------------------------------
@@ -314,6 +332,19 @@ def restore(sim, arrays: dict, meta: dict) -> None:
     for k in ("dimension", "n_fluid", "n_boundary", "n_blocks"):
         if ident[k] != now[k]:
             raise CheckpointError(f"the checkpoint was taken for another scene ({k} = {ident[k]}, this scene gives {now[k]})")
+    if ident.get("raw") is not None and now.get("raw") is not None:
+        changes = scene_changes(ident["raw"], now["raw"])
+        bad = [c for c in changes if c[0] not in RESUMABLE_CHANGES]
+        if bad:
+            what = "; ".join(f"{k}: {a!r} -> {b!r}" for k, a, b in bad[:8]) + (" ..." if len(bad) > 8 else "")
+            raise CheckpointError(f"the scene changed since the checkpoint ({what}); a resumed run continues the "
+                                  f"checkpointed state, so only {', '.join(RESUMABLE_CHANGES)} may change: restore the "
+                                  f"scene or start a fresh run (without --resume)")
+        if changes:
+            import sys
+
+            print("resuming with changed settings: " + "; ".join(f"{k}: {a!r} -> {b!r}" for k, a, b in changes),
+                  file=sys.stderr)
     provs = providers(sim)
     for name in meta["groups"]:
         if name not in provs:

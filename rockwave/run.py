@@ -26,8 +26,35 @@ WATCH_INTERVAL_S = 2.0  # wall seconds between progress lines and health checks 
 COST_STEPS = 5  # steps after the first whose measured cost feeds the run-length check
 
 
+MANIFEST = ".rockwave-outputs.json"  # the outputs a run writes into its folder (removed by the next fresh run there)
+
+
 def _summary_path(out: Path) -> Path:
     return out / "run.json"
+
+
+def _replace_previous_outputs(out: Path, names: list[str]) -> None:
+    """A fresh run in a folder used before: remove what the previous run listed as its outputs (a reused folder
+    must not mix two runs: stale frames, a VTK series or a CSV the new scene does not write), then list ours."""
+    import shutil
+
+    m = out / MANIFEST
+    old = []
+    if m.is_file():
+        try:
+            old = json.loads(m.read_text()).get("outputs", [])
+        except (OSError, ValueError):
+            old = []
+    root = out.resolve()
+    for n in old:
+        p = (out / n).resolve()
+        if p == root or root not in p.parents:  # only what lies inside the folder
+            continue
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        elif p.exists():
+            p.unlink()
+    atomic_write_text(m, json.dumps({"outputs": names}))
 
 
 class _Watch:
@@ -105,6 +132,17 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     from rockwave.export import surface as surf
 
     o = scene.output
+    if resumed is None:  # before the recorders make their files and folders
+        names = ["run.json", ckpt.FILE_NAME]
+        if o.usd:
+            names += [o.usd, Path(o.usd).stem + ".clips"]
+        if sim.gauge_names and o.gauges_csv:
+            names.append(o.gauges_csv)
+        if sim.blocks is not None and o.blocks_csv:
+            names.append(o.blocks_csv)
+        if o.get("vtk"):
+            names.append(o.vtk)
+        _replace_previous_outputs(out, names)
     surface = None
     if nf and (o.usd or o.get("vtk")):  # the surface goes nowhere else
         surface = surf.extractor_for(scene, sim.fluid, sim.device)
@@ -139,6 +177,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         from rockwave import preflight
 
         preflight.check_disk(sim, out, n_frames)
+
     interval = o.get("checkpoint_interval_s", 600.0) if checkpoint_interval_s is None else checkpoint_interval_s
     checkpointer = ckpt.RunCheckpointer(sim, out, interval, t0, lambda: {
         "usd": usd, "escaped": escaped, "vtk": vtk, "csv": {"gauges": gauges, "blocks": blocks}})

@@ -306,3 +306,38 @@ def test_a_run_killed_early_leaves_a_stage_and_a_checkpoint(tmp_path):
     r = subprocess.run([sys.executable, "-m", "rockwave", "run", str(scene), "--out", str(out), "--quiet", "--yes",
                         "--resume", "--duration", "0.03"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
+
+
+def test_a_fresh_run_replaces_the_previous_runs_outputs(tmp_path):
+    """A fresh run in a folder used before removes what the previous run wrote there (its manifest lists it), so
+    the folder never mixes two runs; a file of the user's stays."""
+    d = tank_2d(width=0.1, depth=0.05, height=0.1, spacing=0.01)
+    d["simulation"]["duration_s"] = 0.02
+    d["output"] = {"frame_rate_hz": 100.0, "vtk": "paraview",
+                   "gauges": [{"name": "h", "kind": "height", "position_m": [0.05, 0.0]}]}
+    rockwave.Simulation(parse_scene(d, "a.toml"), device=DEVICE).run(tmp_path, progress=False)
+    assert (tmp_path / "paraview").is_dir() and (tmp_path / "gauges.csv").is_file()
+    (tmp_path / "notes.txt").write_text("mine")
+    d["output"] = {"frame_rate_hz": 100.0}
+    rockwave.Simulation(parse_scene(d, "a.toml"), device=DEVICE).run(tmp_path, progress=False)
+    assert not (tmp_path / "paraview").exists() and not (tmp_path / "gauges.csv").exists()
+    assert (tmp_path / "frames.usdc").is_file() and (tmp_path / "notes.txt").read_text() == "mine"
+
+
+def test_resume_with_an_edited_scene_is_refused_or_says_what_changed(tmp_path, capsys):
+    """--resume continues a checkpointed state: a changed physics key is refused naming it; a changed step
+    setting or duration is allowed and printed."""
+    d = tank_2d(width=0.1, depth=0.05, height=0.1, spacing=0.01)
+    d["simulation"]["duration_s"] = 0.02
+    d["output"] = {"frame_rate_hz": 100.0}
+    rockwave.Simulation(parse_scene(d, "a.toml"), device=DEVICE).run(tmp_path, progress=False, checkpoint_interval_s=1e-9)
+    edited = copy.deepcopy(d)
+    edited["fluid"]["rest_density_kg_m3"] = 1025.0
+    with pytest.raises(checkpoint.CheckpointError) as e:
+        rockwave.Simulation(parse_scene(edited, "a.toml"), device=DEVICE).run(tmp_path, progress=False, resume=True)
+    assert "fluid.rest_density_kg_m3" in str(e.value)
+    longer = copy.deepcopy(d)
+    longer["simulation"]["duration_s"] = 0.03
+    longer["simulation"]["cfl_number"] = 0.2
+    s = rockwave.Simulation(parse_scene(longer, "a.toml"), device=DEVICE).run(tmp_path, progress=False, resume=True)
+    assert s["resumed_from_frame"] == 2 and "simulation.cfl_number" in capsys.readouterr().err
