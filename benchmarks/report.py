@@ -198,10 +198,11 @@ def _ghost_accuracy(ga: dict) -> list[str]:
 def _readers(rd: dict) -> list[str]:
     L = [f"Reading every gauge and all positions after every {rd['block_steps']} steps (benchmarks/readers.py):", ""]
     return L + _table(["spacing m", "fluid particles", "gauges", "ms/step", "reading copies: ms/step", "overhead",
-                       "reading views: ms/step", "overhead"],
+                       "reading views: ms/step", "overhead", "queued reads: ms/step", "overhead"],
                       [[f"{r['spacing_m']:g}", r["particles"], r["gauges"], _f(r["step_ms"], ".3f"),
                         _f(r["copy_ms"], ".3f"), _f(r["copy_overhead"], "+.1%"), _f(r.get("view_ms"), ".3f"),
-                        _f(r.get("view_overhead"), "+.1%")] for r in rd["cases"]]) + [""]
+                        _f(r.get("view_overhead"), "+.1%"), _f(r.get("async_ms"), ".3f"),
+                        _f(r.get("async_overhead"), "+.1%")] for r in rd["cases"]]) + [""]
 
 
 TABLES = {"accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,

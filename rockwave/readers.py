@@ -5,6 +5,17 @@ captured CUDA graph: when the fluid solver keeps its particles sorted by cell (F
 a reader scatters them into a buffer of its own in the seeded order (state.ids) and copies that.
 Gauges (:class:`Gauges`) are evaluated on the device from the current state and come back in one
 host read for all gauges.
+
+For monitoring a large run on a GPU, ``view_async`` and ``gauges_async`` queue a read behind the steps
+launched so far and return at once; ``result()`` waits for it. Launching the next steps before waiting keeps
+the GPU busy while the copy is on its way (benchmarks/readers.py, mode "async")::
+
+    pending = None
+    while running:
+        sim.step_many(10)
+        if pending:
+            x, g = pending[0].result(), pending[1].result()   # the state after the previous block
+        pending = sim.readers.view_async("x"), sim.readers.gauges_async()
 """
 
 from __future__ import annotations
@@ -44,14 +55,21 @@ class Gauges:
         self.top = wp.zeros((max(n, 1), 4 * self.cols * self.cols), dtype=float, device=device)
         self.out = wp.zeros(max(n, 1), dtype=float, device=device)
         self.sums = wp.zeros((max(n, 1), 2), dtype=float, device=device)
-        self.host = wp.zeros(max(n, 1), dtype=float, device="cpu", pinned=wp.get_device(device).is_cuda)
+        pinned = wp.get_device(device).is_cuda
+        self.hosts = [wp.zeros(max(n, 1), dtype=float, device="cpu", pinned=pinned) for _ in range(2)]  # used in turn
         self.heights = np.array([gg.kind == "height" for gg in g], dtype=bool)
         self.device = device
 
     def read(self, state) -> dict[str, float]:
+        """The readings now (one host read for all gauges)."""
+        return self.read_async(state).result()
+
+    def read_async(self, state) -> "PendingRead":
+        """Queue the readings on the device (the copy to the host included); ``result()`` waits for them. The
+        host may launch more steps in between, which keeps the GPU busy while the copy is on its way."""
         n, m = len(self.names), self.fluid
         if n == 0 or m.n_fluid == 0:
-            return {}
+            return PendingRead(None, None, lambda a: {})
         d = self.device
         self.top.fill_(-1.0e30)
         self.sums.zero_()
@@ -61,12 +79,37 @@ class Gauges:
                                                                      self.pos, m.params], outputs=[self.sums], device=d)
         wp.launch(gk.gauge_pressure, dim=n, inputs=[self.sums], outputs=[self.out], device=d)
         wp.launch(gk.gauge_median, dim=n, inputs=[self.top, self.is_height], outputs=[self.out], device=d)
-        wp.copy(self.host, self.out)  # the one host read: every gauge at once
-        if wp.get_device(d).is_cuda:
-            wp.synchronize_stream(wp.get_stream(d))  # (asynchronous into pinned memory)
-        vals = self.host.numpy()
         half = 0.5 * m.spacing
-        return {name: float(vals[i]) + (half if self.heights[i] else 0.0) for i, name in enumerate(self.names)}
+        names, heights = self.names, self.heights
+
+        def finish(vals):
+            return {name: float(vals[i]) + (half if heights[i] else 0.0) for i, name in enumerate(names)}
+
+        self.hosts.reverse()
+        return _queue_copy(self.hosts[0], self.out, n, d, finish)
+
+
+class PendingRead:
+    """A read queued on the device: ``result()`` waits for its copy to reach the host and returns it."""
+
+    def __init__(self, host, event, finish):
+        self.host, self.event, self.finish = host, event, finish
+
+    def result(self):
+        if self.event is not None:
+            wp.synchronize_event(self.event)
+        return self.finish(self.host.numpy() if self.host is not None else None)
+
+
+def _queue_copy(host: wp.array, src: wp.array, n: int, device, finish) -> PendingRead:
+    """Copy src[:n] into the host buffer on the device's stream and record an event after it (CUDA; on the
+    CPU the copy is done at once)."""
+    wp.copy(host, src, 0, 0, n)
+    event = None
+    if wp.get_device(device).is_cuda:
+        with wp.ScopedDevice(device):
+            event = wp.record_event()  # a copy into pinned memory is asynchronous
+    return PendingRead(host, event, finish)
 
 
 class Readers:
@@ -77,33 +120,37 @@ class Readers:
         self.fluid = sim.fluid
         self.dim = sim.scene.dim
         self._buf = {}  # device buffers in the seeded order (when the solver sorts by cell)
-        self._host = {}  # pinned host mirrors (CUDA)
+        self._host = {}  # pinned host buffers, two per quantity (CUDA)
         self._gauges = Gauges(sim.scene, sim.fluid, sim.device) if sim.fluid is not None else None
 
     def view(self, name: str) -> np.ndarray:
         """state.<name>[:n_fluid] (x, v, rho or pressure) in the seeded order, in the state's precision
         (float32), as a view of a host buffer of this reader (pinned memory on a GPU: one device-to-host copy,
-        no allocation). The view is overwritten by the next read of the same quantity: copy it to keep it.
+        no allocation). The view is overwritten by the read after next of the same quantity: copy it to keep it.
         The fast path for monitoring a large run; positions() etc. return new float64 arrays."""
+        return self.view_async(name).result()
+
+    def view_async(self, name: str) -> PendingRead:
+        """``view(name)`` queued on the device: ``result()`` waits for it. Each quantity has two host buffers
+        used in turn, so a pending read stays valid while the next one of the same quantity is queued (a
+        monitoring loop can launch the next steps before it waits: the GPU never idles on the copy)."""
         st, m = self.sim.state, self.fluid
         a = getattr(st, name)
         nf = m.n_fluid
         if nf == 0:
-            return a.numpy()[:0]
+            return PendingRead(None, None, lambda h: a.numpy()[:0])
         src = a
         if getattr(self.sim.fluid_solver, "sorted_by_cell", False):
             src = self._buf.get(name)
             if src is None:
                 src = self._buf[name] = wp.empty(nf, dtype=a.dtype, device=a.device)
             wp.launch(sph.scatter_by, dim=nf, inputs=[st.ids, a, src], device=a.device)
-        if not a.device.is_cuda:
-            return src.numpy()[:nf]
-        host = self._host.get(name)
-        if host is None:
-            host = self._host[name] = wp.empty(nf, dtype=a.dtype, device="cpu", pinned=True)
-        wp.copy(host, src, 0, 0, nf)
-        wp.synchronize_stream(wp.get_stream(a.device))  # a copy into pinned memory is asynchronous
-        return host.numpy()
+        pair = self._host.get(name)
+        if pair is None:
+            pinned = a.device.is_cuda
+            pair = self._host[name] = [wp.empty(nf, dtype=a.dtype, device="cpu", pinned=pinned) for _ in range(2)]
+        pair.reverse()  # the other buffer of the two (never the state's own memory, also on the CPU)
+        return _queue_copy(pair[0], src, nf, a.device, lambda h: h)
 
     def positions(self) -> np.ndarray:
         if self.fluid is None:
@@ -129,3 +176,9 @@ class Readers:
         if self._gauges is None:
             return {}
         return self._gauges.read(self.sim.state)
+
+    def gauges_async(self) -> PendingRead:
+        """gauges() queued on the device; ``result()`` waits for the readings."""
+        if self._gauges is None:
+            return PendingRead(None, None, lambda a: {})
+        return self._gauges.read_async(self.sim.state)
