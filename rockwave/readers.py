@@ -120,7 +120,9 @@ class Readers:
         self.fluid = sim.fluid
         self.dim = sim.scene.dim
         self._buf = {}  # device buffers in the seeded order (when the solver sorts by cell)
-        self._host = {}  # pinned host buffers, two per quantity (CUDA)
+        self._host = {}  # host buffers, two per quantity (pinned on CUDA)
+        self._copied = {}  # CUDA: the event after the last copy of each quantity to the host
+        self._stream = None  # CUDA: the stream of the copies to the host
         self._gauges = Gauges(sim.scene, sim.fluid, sim.device) if sim.fluid is not None else None
 
     def view(self, name: str) -> np.ndarray:
@@ -139,18 +141,47 @@ class Readers:
         nf = m.n_fluid
         if nf == 0:
             return PendingRead(None, None, lambda h: a.numpy()[:0])
-        src = a
-        if getattr(self.sim.fluid_solver, "sorted_by_cell", False):
-            src = self._buf.get(name)
-            if src is None:
-                src = self._buf[name] = wp.empty(nf, dtype=a.dtype, device=a.device)
-            wp.launch(sph.scatter_by, dim=nf, inputs=[st.ids, a, src], device=a.device)
         pair = self._host.get(name)
         if pair is None:
             pinned = a.device.is_cuda
             pair = self._host[name] = [wp.empty(nf, dtype=a.dtype, device="cpu", pinned=pinned) for _ in range(2)]
         pair.reverse()  # the other buffer of the two (never the state's own memory, also on the CPU)
-        return _queue_copy(pair[0], src, nf, a.device, lambda h: h)
+        sorted_ = getattr(self.sim.fluid_solver, "sorted_by_cell", False)
+        if not a.device.is_cuda:
+            if sorted_:
+                a = self._snapshot(name, a, st.ids, nf)
+            return _queue_copy(pair[0], a, nf, a.device, lambda h: h)
+        # CUDA: a snapshot in the seeded order on the compute stream (cheap), then the copy to the host on a
+        # side stream, so the next steps run while the copy engine works; the next snapshot of this quantity
+        # waits for that copy
+        compute = wp.get_stream(a.device)
+        busy = self._copied.get(name)
+        if busy is not None:
+            compute.wait_event(busy)
+        snap = self._snapshot(name, a, st.ids if sorted_ else None, nf)
+        side = self._side_stream(a.device)
+        side.wait_stream(compute)
+        with wp.ScopedStream(side):
+            wp.copy(pair[0], snap, 0, 0, nf)
+            event = wp.record_event()
+        self._copied[name] = event
+        return PendingRead(pair[0], event, lambda h: h)
+
+    def _snapshot(self, name: str, a: wp.array, ids, nf: int) -> wp.array:
+        """state.<name>[:n_fluid] in the seeded order in a device buffer of ours (scattered by ids when sorted)."""
+        buf = self._buf.get(name)
+        if buf is None:
+            buf = self._buf[name] = wp.empty(nf, dtype=a.dtype, device=a.device)
+        if ids is not None:
+            wp.launch(sph.scatter_by, dim=nf, inputs=[ids, a, buf], device=a.device)
+        else:
+            wp.copy(buf, a, 0, 0, nf)
+        return buf
+
+    def _side_stream(self, device):
+        if self._stream is None:
+            self._stream = wp.Stream(device)
+        return self._stream
 
     def positions(self) -> np.ndarray:
         if self.fluid is None:
