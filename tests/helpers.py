@@ -1,6 +1,8 @@
 """Small scene builders shared by the tests."""
 
 import copy
+import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -37,3 +39,28 @@ def with_changes(d: dict, **paths) -> dict:
             node = node.setdefault(k, {})
         node[keys[-1]] = value
     return d
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(type(v))
+
+
+def to_toml(d: dict) -> str:
+    """A scene dict as TOML text (inline tables; NaN and inf as TOML writes them)."""
+    return "".join(f"{json.dumps(k)} = {_toml_value(v)}\n" for k, v in d.items())

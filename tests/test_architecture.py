@@ -12,7 +12,7 @@ from rockwave import checkpoint
 from rockwave.scene import SceneError, load_scene, parse_scene
 
 from conftest import DEVICE
-from helpers import ROOT, tank_2d, with_changes
+from helpers import ROOT, tank_2d, to_toml, with_changes
 
 
 def _dam_break_3d(spacing=0.08):
@@ -285,8 +285,6 @@ def test_a_run_killed_early_leaves_a_stage_and_a_checkpoint(tmp_path):
     d["simulation"]["duration_s"] = 100.0
     d["simulation"]["device"] = DEVICE
     d["output"] = {"frame_rate_hz": 200.0}
-    from test_robustness import to_toml
-
     scene = tmp_path / "long.toml"
     scene.write_text(to_toml(d))
     out = tmp_path / "out"

@@ -26,36 +26,11 @@ from rockwave import checkpoint, cli, preflight
 from rockwave.scene import SCHEMA, SceneError, load_scene, parse_scene
 
 from conftest import DEVICE
-from helpers import tank_2d
+from helpers import tank_2d, to_toml
 
 # --------------------------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------------------------
-
-
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isnan(v):
-            return "nan"
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, list):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items()) + "}"
-    raise TypeError(type(v))
-
-
-def to_toml(d: dict) -> str:
-    """Top-level keys as lines (sections as inline tables): enough for any scene dict."""
-    return "".join(f"{json.dumps(k)} = {_toml_value(v)}\n" for k, v in d.items())
 
 
 def base_scene() -> dict:
