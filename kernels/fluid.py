@@ -22,6 +22,8 @@ EOS_TAIT = wp.constant(0)
 EOS_LINEAR = wp.constant(1)
 FORCE_MOMENTUM = wp.constant(0)
 FORCE_MULLER = wp.constant(1)
+BOUNDARY_AKINCI = wp.constant(0)  # boundary particles push with -Psi_b p_i/rho_i^2 grad W (Akinci et al. 2012)
+BOUNDARY_ADAMI = wp.constant(1)  # boundary particles carry the fluid's extrapolated pressure (Adami et al. 2012)
 
 PI = wp.constant(3.14159265358979)
 
@@ -45,6 +47,8 @@ class SPHParams:
     n_fluid: int
     grad_scale: float  # lattice gradient correction (see rockwave.fluid.calibrate_lattice)
     fluid_mass: float  # mass of every fluid particle (boundary masses vary: particle_mass array)
+    boundary: int  # BOUNDARY_AKINCI or BOUNDARY_ADAMI
+    no_slip: int  # Adami walls: 1 = no-slip (viscous terms with the extrapolated wall velocity), 0 = free slip
     # Mueller kernel constants for H and dim (rockwave.fluid.set_kernel_constants; pow() per
     # neighbour was a large share of the neighbour loops on a GPU)
     w_coef: float  # poly6: 315/(64 pi H^9) (3D), 4/(pi H^8) (2D)
@@ -236,6 +240,27 @@ def equation_of_state_pass(rho: wp.array(dtype=float), p: SPHParams, pressure: w
 
 
 @wp.func
+def wall_pair_acceleration(b: int, rij: wp.vec3, r2: float, gw: wp.vec3, vi: wp.vec3, rhoi: float, pi_r2: float,
+                           mb: float, wall_pr2: wp.array(dtype=float), wall_v: wp.array(dtype=wp.vec3), p: SPHParams):
+    """Acceleration of fluid particle i from wall particle b (Adami et al. 2012): the momentum-conserving
+    pressure term with the wall's extrapolated pressure, a_i -= m_b (p_i/rho_i^2 + p_b/rho_b^2) grad W_ib;
+    with no-slip walls also the viscous terms against the extrapolated wall velocity v~_b (wall_pressure_adami)."""
+    a = -(mb * (pi_r2 + wall_pr2[b])) * gw
+    if p.no_slip != 0:
+        vij = vi - wall_v[b]
+        r = wp.sqrt(r2)
+        if p.mu > 0.0:
+            a -= (p.mu * mb / (rhoi * p.rest_density) * kernel_laplacian(r, p)) * vij
+        if p.alpha > 0.0:
+            vr = wp.dot(vij, rij)
+            if vr < 0.0:
+                h_s = 0.5 * p.H
+                mu_ij = h_s * vr / (r2 + 0.01 * h_s * h_s)
+                a -= mb * (-p.alpha * p.sound_speed * mu_ij / (0.5 * (rhoi + p.rest_density))) * gw
+    return a
+
+
+@wp.func
 def pair_acceleration(
     i: int,
     j: int,
@@ -248,6 +273,8 @@ def pair_acceleration(
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=float),
+    wall_v: wp.array(dtype=wp.vec3),
     p: SPHParams,
 ):
     """Contributions of neighbour j (0 < r_ij < H) to particle i: (acceleration without gravity, XSPH sum)."""
@@ -259,9 +286,10 @@ def pair_acceleration(
     a = wp.vec3(0.0)
     dv = wp.vec3(0.0)
     if j >= p.n_fluid:
-        # Akinci et al. 2012 boundary pressure: a_i -= Psi_b p_i/rho_i^2 grad W_ib (walls at rest)
-        a = -(mj * pi / (rhoi * rhoi)) * gw
-        return a, dv
+        if p.boundary == BOUNDARY_AKINCI:
+            # Akinci et al. 2012 boundary pressure: a_i -= Psi_b p_i/rho_i^2 grad W_ib (walls at rest)
+            return -(mj * pi / (rhoi * rhoi)) * gw, dv
+        return wall_pair_acceleration(j - p.n_fluid, rij, r2, gw, vi, rhoi, pi / (rhoi * rhoi), mj, wall_pr2, wall_v, p), dv
     rhoj = rho[j]
     pj = pressure[j]
     if p.pressure_form == FORCE_MOMENTUM:
@@ -295,6 +323,8 @@ def particle_acceleration(
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=float),
+    wall_v: wp.array(dtype=wp.vec3),
     p: SPHParams,
     accel: wp.array(dtype=wp.vec3),
     xsph_dv: wp.array(dtype=wp.vec3),
@@ -312,7 +342,7 @@ def particle_acceleration(
     j = int(0)
     while wp.hash_grid_query_next(q, j):
         if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
-            da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, p)
+            da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, wall_pr2, wall_v, p)
             a += da
             dv += ddv
     accel[i] = a + p.gravity
@@ -424,6 +454,71 @@ def slot_range(g: CellGrid, xi: wp.vec3, H: float, iy: int, iz: int, r: int):
     if whole or a <= b:
         return 0, 0
     return g.first[base], g.first[base + b + 1]
+
+
+@wp.kernel
+def wall_pressure_adami(
+    g: CellGrid,
+    r_lo: int,
+    r_hi: int,
+    R: float,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    p: SPHParams,
+    wall_pressure: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=float),
+    wall_v: wp.array(dtype=wp.vec3),
+):
+    """Generalized wall boundary condition (Adami, Hu & Adams 2012, eqs. 22 and 27), launched over the
+    boundary particles b (static walls, a_b = 0), from the fluid particles f within H on the cell grid:
+
+        p_b = (sum_f p_f W_bf + g . sum_f rho_f (x_b - x_f) W_bf) / sum_f W_bf,
+        rho_b = EOS^-1(p_b),   v~_b = -sum_f v_f W_bf / sum_f W_bf  (2 v_b - the fluid's, v_b = 0)
+
+    so that the pressure gradient across the wall balances gravity: a hydrostatic tank has the hydrostatic
+    pressure on its walls and corners. A wall particle with no fluid within H gets p_b = 0, v~_b = 0.
+    wall_pr2[b] = p_b / rho_b^2 is what the force pass reads. R: the radius of the cell-grid query (the
+    list radius: the grid may be the one of the last list build, see particle_density_overflow)."""
+    t = wp.tid()
+    b = t + p.n_fluid
+    xb = x[b]
+    sw = float(0.0)
+    sp = float(0.0)
+    srx = wp.vec3(0.0)
+    sv = wp.vec3(0.0)
+    H2 = p.H * p.H
+    ix, iy, iz = cell_of(g, xb)
+    for r in range(r_lo, r_hi):
+        s0, e0 = slot_range(g, xb, R, iy, iz, r)
+        for k in range(s0, e0):
+            f = g.order[k]
+            if f < p.n_fluid:
+                d = xb - x[f]
+                r2 = wp.length_sq(d)
+                if r2 < H2:
+                    w = kernel_w(r2, p)
+                    sw += w
+                    sp += pressure[f] * w
+                    srx += (rho[f] * w) * d
+                    sv += w * v[f]
+    pb = float(0.0)
+    vb = wp.vec3(0.0)
+    if sw > 0.0:
+        pb = (sp + wp.dot(p.gravity, srx)) / sw
+        vb = -sv / sw
+    if p.clamp_negative != 0:
+        pb = wp.max(pb, 0.0)
+    # rho_b from the inverse EOS: Tait rho0 (p/B + 1)^(1/gamma); linear rho0 + p/k
+    rb = float(0.0)
+    if p.eos == EOS_TAIT:
+        rb = p.rest_density * wp.pow(wp.max(pb / p.eos_b + 1.0, 1.0e-3), 1.0 / p.eos_gamma)
+    else:
+        rb = wp.max(p.rest_density + pb / p.eos_b, 1.0e-3 * p.rest_density)
+    wall_pressure[t] = pb
+    wall_pr2[t] = pb / (rb * rb)
+    wall_v[t] = vb
 
 
 @wp.kernel
@@ -827,6 +922,8 @@ def pair_acceleration_fluid(
     pressure: wp.array(dtype=float),
     pr2: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=float),
+    wall_v: wp.array(dtype=wp.vec3),
     p: SPHParams,
 ):
     """pair_acceleration with the fluid mass from p.fluid_mass (no mass read for fluid neighbours) and
@@ -840,8 +937,10 @@ def pair_acceleration_fluid(
     r = wp.sqrt(r2)
     gw = kernel_grad(rij, r, p)
     if j >= p.n_fluid:
-        # Akinci et al. 2012 boundary pressure: a_i -= Psi_b p_i/rho_i^2 grad W_ib (walls at rest)
-        return -(particle_mass[j] * pi_r2) * gw, dv
+        if p.boundary == BOUNDARY_AKINCI:
+            # Akinci et al. 2012 boundary pressure: a_i -= Psi_b p_i/rho_i^2 grad W_ib (walls at rest)
+            return -(particle_mass[j] * pi_r2) * gw, dv
+        return wall_pair_acceleration(j - p.n_fluid, rij, r2, gw, vi, rhoi, pi_r2, particle_mass[j], wall_pr2, wall_v, p), dv
     mj = p.fluid_mass
     rhoj = rho[j]
     a = wp.vec3(0.0)
@@ -884,6 +983,8 @@ def particle_acceleration_list(
     pressure: wp.array(dtype=float),
     pr2: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=float),
+    wall_v: wp.array(dtype=wp.vec3),
     p: SPHParams,
     accel: wp.array(dtype=wp.vec3),
     xsph_dv: wp.array(dtype=wp.vec3),
@@ -903,7 +1004,7 @@ def particle_acceleration_list(
     dv = wp.vec3(0.0)
     for k in range(c):
         da, ddv = pair_acceleration_fluid(nbr[k * n + i], xi, vi, rhoi, pi, pi_r2, x, v, rho, pressure, pr2,
-                                          particle_mass, p)
+                                          particle_mass, wall_pr2, wall_v, p)
         a += da
         dv += ddv
     accel[i] = a + p.gravity
@@ -923,6 +1024,8 @@ def particle_acceleration_overflow(
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=float),
+    wall_v: wp.array(dtype=wp.vec3),
     p: SPHParams,
     accel: wp.array(dtype=wp.vec3),
     xsph_dv: wp.array(dtype=wp.vec3),
@@ -944,7 +1047,7 @@ def particle_acceleration_overflow(
         for k in range(s0, e0):
             j = g.order[k]
             if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
-                da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, p)
+                da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, wall_pr2, wall_v, p)
                 a += da
                 dv += ddv
     accel[i] = a + p.gravity

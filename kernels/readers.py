@@ -112,3 +112,25 @@ def gauge_median(top: wp.array2d(dtype=float), is_height: wp.array(dtype=int), o
             if hi_rank >= below and hi_rank < below + equal:
                 b = v
     out[g] = (a + b) * 0.5
+
+
+@wp.kernel
+def gauge_pressure_wall_sums(
+    x: wp.array(dtype=wp.vec3),
+    wall_pressure: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    gauge_pos: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    sums: wp.array2d(dtype=float),
+):
+    """Adami walls (kernels/fluid.py wall_pressure_adami): the wall particles' share of the pressure gauges'
+    Shepard sums, launched over boundary particles x gauges, V_b = m_b / rho0. A sensor on a wall then averages
+    over both sides of the wall surface, as the wall's own pressure field continues the fluid's (a sum over
+    the fluid alone is centred inside the water and reads the pressure of a shallower point)."""
+    t, g = wp.tid()
+    b = t + p.n_fluid
+    r2 = wp.length_sq(gauge_pos[g] - x[b])
+    if r2 < p.H * p.H:
+        w = particle_mass[b] / p.rest_density * kernel_w(r2, p)
+        wp.atomic_add(sums, g, 0, w * wall_pressure[t])
+        wp.atomic_add(sums, g, 1, w)

@@ -154,6 +154,9 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
         else:
             g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
             solver.set_density(state, hydrostatic_density(fluid, g * depth))
+        if scene.fluid.boundary == "adami" and fluid.n_boundary:  # the wall pressures of the initial state (gauges)
+            solver.build_cells(state)
+            solver.wall_pressure(state)
     parts.fluid, parts.state, parts.fluid_solver = fluid, state, solver
 
 

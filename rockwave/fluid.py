@@ -157,6 +157,8 @@ class FluidModel:
             xsph_dv=wp.zeros(nf, dtype=wp.vec3, device=d),
             drho_dt=wp.zeros(nf, dtype=float, device=d),
             ids=wp.array(np.arange(nf, dtype=np.int32), dtype=int, device=d),
+            wall_pressure=wp.zeros(max(self.n_boundary, 1), dtype=float, device=d),
+            wall_velocity=wp.zeros(max(self.n_boundary, 1), dtype=wp.vec3, device=d),
         )
 
 
@@ -169,6 +171,10 @@ class FluidState:
     accel, xsph_dv: wp.array(vec3, n_fluid) [m/s^2], [m/s]; drho_dt: [kg/m^3/s].
     ids: wp.array(int, n_fluid): original index of the fluid particle stored at each slot
     (FluidSolver.reorder sorts the fluid by cell; FluidSolver.unsort restores ids = 0..n-1).
+    wall_pressure: wp.array(float, max(n_boundary, 1)) [Pa]: with Adami walls (``fluid.boundary``) the pressure
+    of each boundary particle, extrapolated from the fluid in each step (0 with Akinci walls).
+    wall_velocity: wp.array(vec3, max(n_boundary, 1)) [m/s]: Adami no-slip walls: the extrapolated wall velocity
+    of the viscous terms.
     """
 
     x: wp.array
@@ -179,6 +185,8 @@ class FluidState:
     xsph_dv: wp.array
     drho_dt: wp.array
     ids: wp.array
+    wall_pressure: wp.array
+    wall_velocity: wp.array
 
 
 def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
@@ -202,6 +210,8 @@ def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
     g = list(gravity) + [0.0] * (3 - len(gravity))
     p.gravity = wp.vec3(*g)
     p.n_fluid = n_fluid
+    p.boundary = sph.BOUNDARY_ADAMI if scene_fluid.get("boundary") == "adami" else sph.BOUNDARY_AKINCI
+    p.no_slip = 1 if scene_fluid.get("wall_slip") == "no_slip" else 0
     p.grad_scale = 1.0
     p.fluid_mass = 0.0  # set by build_fluid_model (calibrated)
     set_kernel_constants(p)
@@ -286,6 +296,7 @@ class FluidSolver:
         self.list_builds = 0  # host-decided builds (CPU), for tests and measurements
         nf = max(model.n_fluid, 1)
         self._pr2 = wp.zeros(nf, dtype=float, device=d)  # p / rho^2 of this step (kernels/fluid.py pair_acceleration_fluid)
+        self._wall_pr2 = wp.zeros(max(model.n_boundary, 1), dtype=float, device=d)  # p_b / rho_b^2 (Adami walls)
         self._zero_dt = wp.zeros(1, dtype=float, device=d)
         self._block_dim = 128 if is_cuda else 256  # force pass: 0.84 vs 0.91 ms at 256 (H100, 2.16 M)
         self._init_lists()
@@ -597,16 +608,29 @@ class FluidSolver:
         self._density(state, dt, density_done)
         if m.density_diffusion > 0.0 and m.density is Density.CONTINUITY:
             self._density_diffusion(state, dt)
+        self.wall_pressure(state)
         self._launch(sph.particle_acceleration_list, m.n_fluid,
                      [self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
-                      m.particle_mass, m.params],
+                      m.particle_mass, self._wall_pr2, state.wall_velocity, m.params],
                      [state.accel, state.xsph_dv], block_dim=self._block_dim)
         self._launch(sph.particle_acceleration_overflow, m.n_fluid,
                      [self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
-                      state.v, state.rho, state.pressure, m.particle_mass, m.params],
+                      state.v, state.rho, state.pressure, m.particle_mass, self._wall_pr2, state.wall_velocity, m.params],
                      [state.accel, state.xsph_dv])
         self._extra_forces(state)
         self._launch(sph.integrate_particles, m.n_fluid, [state.accel, state.xsph_dv, dt], [state.x, state.v])
+
+    def wall_pressure(self, state: FluidState) -> None:
+        """Adami et al. (2012) walls: each boundary particle's pressure (and no-slip velocity) extrapolated from the
+        fluid around it (kernels/fluid.py wall_pressure_adami), after the density of this step and before the
+        forces. Nothing with Akinci walls. Needs the cell grid of the last list build (or a newer one)."""
+        m = self.model
+        if m.params.boundary != sph.BOUNDARY_ADAMI or m.n_boundary == 0 or m.n_fluid == 0:
+            return
+        self._launch(sph.wall_pressure_adami, m.n_boundary,
+                     [self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, state.rho, state.pressure,
+                      m.params],
+                     [state.wall_pressure, self._wall_pr2, state.wall_velocity])
 
     def _neighbour_lists(self, state: FluidState, dt: wp.array) -> bool:
         """Hook: the cell grid and Verlet lists, rebuilt when the skin check says so. Returns True when the

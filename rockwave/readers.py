@@ -38,7 +38,9 @@ class Gauges:
     particle spacing s wide, those whose centre lies within H are used (2D: 2H/s columns; 3D: 12 at
     H = 2s), each wet column's top is its highest particle + s/2, and the reading is the median over
     the wet columns (NaN when none is wet), so a splashed particle does not set the reading.
-    A 'pressure' gauge is the Shepard-normalised SPH interpolation of the pressure at its position [Pa].
+    A 'pressure' gauge is the Shepard-normalised SPH interpolation of the pressure at its position [Pa], over
+    the fluid particles and, with Adami walls, the wall particles (whose pressure continues the fluid's), so a
+    sensor placed on a wall surface reads the wall pressure there.
     """
 
     def __init__(self, scene, fluid, device):
@@ -77,6 +79,9 @@ class Gauges:
                                                               self.cols], outputs=[self.top], device=d)
         wp.launch(gk.gauge_pressure_sums, dim=(m.n_fluid, n), inputs=[state.x, state.rho, state.pressure, m.particle_mass,
                                                                      self.pos, m.params], outputs=[self.sums], device=d)
+        if m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary:  # Adami walls carry the fluid's pressure
+            wp.launch(gk.gauge_pressure_wall_sums, dim=(m.n_boundary, n),
+                      inputs=[state.x, state.wall_pressure, m.particle_mass, self.pos, m.params], outputs=[self.sums], device=d)
         wp.launch(gk.gauge_pressure, dim=n, inputs=[self.sums], outputs=[self.out], device=d)
         wp.launch(gk.gauge_median, dim=n, inputs=[self.top, self.is_height], outputs=[self.out], device=d)
         half = 0.5 * m.spacing

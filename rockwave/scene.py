@@ -83,6 +83,15 @@ _REGION_KEYS = dict(
     mesh_offset_m=Key("vec", "translation applied to the mesh after scaling", length=3, default=[0.0, 0.0, 0.0]),
 )
 
+
+# fluid.fidelity -> the defaults it gives (a key the scene sets wins). Chosen from the accuracy-against-cost
+# measurements in docs/notes.md ('Accuracy against cost'); 'draft' is the formulation that was the default before.
+FIDELITY = {
+    "draft": dict(kernel="muller", support_radius_ratio=2.0, density_diffusion=0.0, boundary="akinci", artificial_alpha=0.0),
+    "standard": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.1, boundary="adami", artificial_alpha=0.01),
+    "high": dict(kernel="wendland", support_radius_ratio=4.0, density_diffusion=0.1, boundary="adami", artificial_alpha=0.01),
+}
+
 SCHEMA: dict[str, Key] = {
     "simulation": _sec(
         "run control",
@@ -103,12 +112,15 @@ SCHEMA: dict[str, Key] = {
         "weakly compressible SPH water (leave the section out for a scene of blocks alone)", optional=True,
         spacing_m=Key("float", "initial particle spacing", required=True, min=0, min_open=True),
         rest_density_kg_m3=Key("float", "rest density rho0", default=1000.0, min=0, min_open=True),
-        kernel=Key("str", "'muller': poly6 density, spiky pressure gradient, viscosity Laplacian (Mueller 2003); 'cubic_spline': Monaghan cubic spline for all; 'wendland': Wendland C2 (no pairing instability at large support_radius_ratio) for all; h = H/2 for the last two", default="muller", choices=("muller", "cubic_spline", "wendland")),
-        support_radius_ratio=Key("float", "kernel support radius / spacing (2.0 gives ~30 neighbours in 3D, ~12 in 2D; above 1: at 1 the nearest neighbours sit on the support's edge)", default=2.0, min=1.0, max=5.0, min_open=True),
+        fidelity=Key("str", "speed against accuracy without SPH internals: sets the defaults of kernel, support_radius_ratio, density_diffusion, boundary and viscosity.artificial_alpha (any of them given in the scene wins); 'draft': the old fast formulation (Mueller kernels at 2 spacings, frozen Akinci walls, no diffusion); 'standard': Wendland C2 at 3 spacings, delta-SPH diffusion 0.1, Adami walls, alpha 0.01; 'high': as standard at 4 spacings (docs/notes.md 'Accuracy against cost' has the measurements)", default="standard", choices=tuple(FIDELITY)),
+        kernel=Key("str", "'muller': poly6 density, spiky pressure gradient, viscosity Laplacian (Mueller 2003); 'cubic_spline': Monaghan cubic spline for all; 'wendland': Wendland C2 (no pairing instability at large support_radius_ratio) for all; h = H/2 for the last two (default: from fidelity)", choices=("muller", "cubic_spline", "wendland")),
+        support_radius_ratio=Key("float", "kernel support radius / spacing (2.0 gives ~30 neighbours in 3D, ~12 in 2D; 3.0 ~113 and ~28; above 1: at 1 the nearest neighbours sit on the support's edge; default: from fidelity)", min=1.0, max=5.0, min_open=True),
+        boundary=Key("str", "wall treatment of the tank and obstacle particles: 'adami': generalized wall boundary (Adami, Hu & Adams 2012), each wall particle carries the pressure extrapolated from the fluid plus the hydrostatic part, so walls and corners get the fluid's pressure (needs walls as thick as the kernel support); 'akinci': frozen particles pushing with -Psi_b p_i/rho_i^2 grad W (Akinci et al. 2012; cheaper, wall pressure ~30-70% off); default: from fidelity", choices=("adami", "akinci")),
+        wall_slip=Key("str", "Adami walls: 'free' (no viscous force from walls) or 'no_slip' (viscous terms against the extrapolated wall velocity, Adami et al. 2012 eq. 23)", default="free", choices=("free", "no_slip")),
         pressure_force=Key("str", "'momentum': -m_i sum m_j (p_i/rho_i^2 + p_j/rho_j^2) gradW; 'muller': -m_i/rho_i sum m_j (p_i+p_j)/(2 rho_j) gradW", default="momentum", choices=("momentum", "muller")),
         density=Key("str", "'continuity': d rho_i/dt = sum m_j (v_i - v_j).gradW_ij (keeps rho0 at a free surface); 'summation': rho_i = sum m_j W_ij", default="continuity", choices=("continuity", "summation")),
         clamp_negative_pressure=Key("bool", "clip p < 0 to 0 (prevents tensile clumping at a free surface with summation density)", default=True),
-        density_diffusion=Key("float", "delta of the delta-SPH density diffusion with continuity density (Molteni & Colagrossi 2009, hydrostatic part removed as Fourtakas et al. 2019): d rho_i/dt += delta (H/2) c0 sum_j 2 (rho_j - rho_i - rho0 g.x_ji/c0^2) x_ji.grad_i W_ij/r^2 V_j; 0.1 typical, 0 = off; continuity density only (kernels/diffusion.py)", default=0.0, min=0.0, max=1.0),
+        density_diffusion=Key("float", "delta of the delta-SPH density diffusion with continuity density (Molteni & Colagrossi 2009, hydrostatic part removed as Fourtakas et al. 2019): d rho_i/dt += delta (H/2) c0 sum_j 2 (rho_j - rho_i - rho0 g.x_ji/c0^2) x_ji.grad_i W_ij/r^2 V_j; 0.1 typical, 0 = off; continuity density only (kernels/diffusion.py; default: from fidelity, 0 with summation density)", min=0.0, max=1.0),
         method=Key("str", "'basic': WCSPH as above; 'ghost': Ghost SPH free surface (Schechter & Bridson 2012), ghost air particles seeded each step around the free surface ([fluid.ghost])", default="basic", choices=("basic", "ghost")),
         ghost=_sec(
             "Ghost SPH settings (used when method = 'ghost')",
@@ -133,7 +145,7 @@ SCHEMA: dict[str, Key] = {
         viscosity=_sec(
             "viscosity models; any combination (all zero = inviscid)",
             laplacian_pa_s=Key("float", "dynamic viscosity mu of Mueller's Laplacian viscosity (water: 1e-3)", default=0.0, min=0.0),
-            artificial_alpha=Key("float", "Monaghan artificial viscosity alpha", default=0.0, min=0.0, max=10.0),
+            artificial_alpha=Key("float", "Monaghan artificial viscosity alpha (default: from fidelity)", min=0.0, max=10.0),
             xsph_epsilon=Key("float", "XSPH velocity smoothing epsilon (0.05 typical)", default=0.0, min=0.0, max=1.0),
         ),
         regions=_list("fluid blocks: a box (box_min_m, box_max_m) or a closed mesh filled on the particle lattice",
@@ -377,6 +389,7 @@ def _cross_checks(v: _Validator, s: Node) -> None:
         if s["tank"] is not None or s["obstacles"]:
             v.err("tank", "a tank or obstacles need water: add a [fluid] section or remove them")
         return
+    apply_fidelity(v, fl, s["tank"])
     gh = fl.get("ghost") or {}
     if gh.get("sampler") == "tile" and gh.get("persistent"):
         v.err("fluid.ghost.sampler", "the tile sampler does not keep ghosts: persistent = true needs sampler = 'darts'")
@@ -491,6 +504,31 @@ def _check_blocks(v: _Validator, s: Node) -> None:
                                            f"(the blocks of one entry's array or mesh get _0, _1, ... suffixes)")
             else:
                 given[name] = i
+
+
+def apply_fidelity(v: _Validator, fl: Node, tank: Node | None) -> None:
+    """Fill the formulation keys the scene leaves out from fluid.fidelity (FIDELITY), then check what the chosen
+    formulation cannot do: Adami walls need boundary layers as thick as the kernel support."""
+    level = FIDELITY.get(fl.get("fidelity")) or FIDELITY["standard"]
+    for k in ("kernel", "support_radius_ratio", "boundary"):
+        if fl.get(k) is None:
+            fl[k] = level[k]
+    if fl.get("density_diffusion") is None:
+        fl["density_diffusion"] = level["density_diffusion"] if fl.get("density") == "continuity" else 0.0
+    visc = fl.get("viscosity")
+    if isinstance(visc, dict) and visc.get("artificial_alpha") is None:
+        visc["artificial_alpha"] = level["artificial_alpha"]
+    raw = getattr(v, "raw_fluid", {}) or {}
+    origin = "fluid.boundary" if "boundary" in raw else f"fluid.fidelity = {fl.get('fidelity')!r}"
+    if fl["boundary"] == "adami" and tank is not None and tank.get("layers") is not None:
+        ratio = fl.get("support_radius_ratio")
+        bratio = tank.get("boundary_spacing_ratio") or 1.0
+        if isinstance(ratio, (int, float)) and tank["layers"] * bratio < 0.999 * ratio:
+            v.err("tank.layers", f"= {tank['layers']} layers of {bratio:g} spacing are thinner than the kernel support "
+                                 f"({ratio:g} spacings); Adami walls ({origin}) need the support covered: remove tank.layers "
+                                 "(the default covers it) or set fluid.boundary = 'akinci'")
+    if fl["boundary"] == "akinci" and fl.get("wall_slip") == "no_slip":
+        v.err("fluid.wall_slip", "'no_slip' needs fluid.boundary = 'adami' (Akinci walls exert no viscous force)")
 
 
 # [fluid.ghost] keys that only the dart sampler reads

@@ -103,7 +103,8 @@ def test_pair_forces_conserve_momentum_and_match_reference(form, kernel):
     solver.build_grid(s)
     solver.compute_density(s)
     wp.launch(sph.particle_acceleration, dim=model.n_fluid,
-              inputs=[solver.grid.id, s.x, s.v, s.rho, s.pressure, model.particle_mass, model.params],
+              inputs=[solver.grid.id, s.x, s.v, s.rho, s.pressure, model.particle_mass, solver._wall_pr2, s.wall_velocity,
+                      model.params],
               outputs=[s.accel, s.xsph_dv], device=DEVICE)
     a = s.accel.numpy().astype(np.float64)
     m = model.fluid_mass
@@ -200,7 +201,8 @@ def test_xsph_matches_reference():
     solver.build_grid(s)
     solver.compute_density(s)
     wp.launch(sph.particle_acceleration, dim=model.n_fluid,
-              inputs=[solver.grid.id, s.x, s.v, s.rho, s.pressure, model.particle_mass, model.params],
+              inputs=[solver.grid.id, s.x, s.v, s.rho, s.pressure, model.particle_mass, solver._wall_pr2, s.wall_velocity,
+                      model.params],
               outputs=[s.accel, s.xsph_dv], device=DEVICE)
     X = s.x.numpy().astype(np.float64)
     rho = s.rho.numpy().astype(np.float64)
