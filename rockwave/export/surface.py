@@ -73,8 +73,14 @@ def default_cell(dim: int, spacing: float) -> float:
 
 
 def _marching_cubes_class():
-    geom = getattr(wp, "geometry", None)
-    cls = getattr(geom, "IsoSurfaceMarchingCubes", None) if geom is not None else None
+    """Warp's marching cubes: wp.geometry.IsoSurfaceMarchingCubes (Warp >= 1.19; a submodule that
+    ``import warp`` does not load), else the older wp.MarchingCubes (deprecated, with a printed note, in 1.19)."""
+    try:
+        import importlib
+
+        cls = getattr(importlib.import_module("warp.geometry"), "IsoSurfaceMarchingCubes", None)
+    except ImportError:
+        cls = None
     return cls if cls is not None else wp.MarchingCubes
 
 
