@@ -207,9 +207,9 @@ def _readers(rd: dict) -> list[str]:
 
 def _surface(su: dict) -> list[str]:
     L = ["The fluid surface of one output frame against a fluid step of the same scene, same process (benchmarks/surface.py):", ""]
-    return L + _table(["scene", "spacing m", "fluid particles", "grid nodes", "triangles", "ms/step", "surface ms", "in steps",
+    return L + _table(["scene", "spacing m", "cell m", "fluid particles", "grid nodes", "triangles", "ms/step", "surface ms", "in steps",
                        "field in steps", "mesh in steps"],
-                      [[r["scene"], f"{r['spacing_m']:g}", r["particles"], r.get("grid_nodes") or "-", r["triangles"],
+                      [[r["scene"], f"{r['spacing_m']:g}", _f(r.get("cell_m"), ".4g"), r["particles"], r.get("grid_nodes") or "-", r["triangles"],
                         _f(r["step_s"] * 1e3, ".2f"), _f(r["surface_s"] * 1e3, ".2f"), _f(r["surface_in_steps"], ".2f"),
                         _f(r.get("field_in_steps"), ".2f"), _f(r.get("mesh_in_steps"), ".2f")] for r in su["cases"]]) + [""]
 

@@ -15,9 +15,11 @@ from __future__ import annotations
 import json
 import time
 
+# surface_cells: grid cell / particle spacing (None: the default, rockwave/export/surface.py default_cell;
+# 0.5: the default before 1aae2a3)
 CONFIG = {
-    "quick": dict(surface_spacings=[None], surface_steps=10, surface_frames=3),
-    "full": dict(surface_spacings=[None, 0.05], surface_steps=20, surface_frames=5),
+    "quick": dict(surface_spacings=[None], surface_cells=[None, 0.5], surface_steps=10, surface_frames=3),
+    "full": dict(surface_spacings=[None, 0.05], surface_cells=[None, 0.5], surface_steps=20, surface_frames=5),
 }
 
 
@@ -34,7 +36,8 @@ def _sync(device):
 
 
 def measure(device: str, spacing: float | None = None, steps: int = 10, frames: int = 3, scene_path=None,
-            resolution: float | None = None) -> dict:
+            resolution: float | None = None, resolution_cells: float | None = None) -> dict:
+    """One case; ``resolution`` [m] or ``resolution_cells`` (x the spacing) sets output.surface.resolution_m."""
     import numpy as np
 
     import rockwave
@@ -44,6 +47,8 @@ def measure(device: str, spacing: float | None = None, steps: int = 10, frames: 
     if spacing:
         scene.fluid["spacing_m"] = spacing
     scene.output.setdefault("surface", {})["enabled"] = True
+    if resolution_cells:
+        resolution = resolution_cells * float(scene.fluid["spacing_m"])
     if resolution:
         scene.output["surface"]["resolution_m"] = resolution
     sim = rockwave.Simulation(scene, device=device)
@@ -88,7 +93,7 @@ def measure(device: str, spacing: float | None = None, steps: int = 10, frames: 
                  "mesh_in_steps": tm / frames / step_s}
     f = out[0] if split else None
     return dict(scene=str(getattr(scene, "name", "")) or str(scene_path or _scene_path().name), dim=scene.dim,
-                spacing_m=float(sim.fluid.spacing), particles=nf, step_s=step_s, surface_s=surface_s,
+                spacing_m=float(sim.fluid.spacing), cell_m=float(getattr(ex, "last_cell", resolution or 0.0)), particles=nf, step_s=step_s, surface_s=surface_s,
                 surface_in_steps=surface_s / step_s, triangles=int(len(mesh.triangles) if mesh.triangles is not None else 0),
                 vertices=int(len(mesh.points)), grid_nodes=int(np.prod(getattr(f, "shape", (0,)))) if f is not None else None,
                 **split)
@@ -98,9 +103,9 @@ def run(dev: str, cfg: dict) -> dict:
     from benchmarks.common import log
 
     cases = []
-    for s in cfg["surface_spacings"]:
-        r = measure(dev, s, cfg["surface_steps"], cfg["surface_frames"])
-        log(f"  spacing {r['spacing_m']:g} m, {r['particles']} particles: step {r['step_s'] * 1e3:.1f} ms, surface "
+    for s, c in [(s, c) for s in cfg["surface_spacings"] for c in cfg["surface_cells"]]:
+        r = measure(dev, s, cfg["surface_steps"], cfg["surface_frames"], resolution_cells=c)
+        log(f"  spacing {r['spacing_m']:g} m, cell {r['cell_m']:g} m, {r['particles']} particles: step {r['step_s'] * 1e3:.1f} ms, surface "
             f"{r['surface_s'] * 1e3:.1f} ms = {r['surface_in_steps']:.2f} steps ({r['triangles']} triangles)")
         cases.append(r)
     return {"cases": cases}
