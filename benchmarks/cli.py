@@ -39,6 +39,7 @@ PARTS = {
     "ghost_cost": "benchmarks.ghost_cost",
     "ghost_accuracy": "benchmarks.ghost_accuracy",
     "readers": "benchmarks.readers",
+    "surface": "benchmarks.surface",
 }
 SUITES = ("quick", "full")
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")

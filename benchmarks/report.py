@@ -15,7 +15,7 @@ from pathlib import Path
 
 from benchmarks.common import RESULTS, ROOT, rel
 
-PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers")
+PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -205,8 +205,17 @@ def _readers(rd: dict) -> list[str]:
                         _f(r.get("async_overhead"), "+.1%")] for r in rd["cases"]]) + [""]
 
 
+def _surface(su: dict) -> list[str]:
+    L = ["The fluid surface of one output frame against a fluid step of the same scene, same process (benchmarks/surface.py):", ""]
+    return L + _table(["scene", "spacing m", "cell m", "fluid particles", "grid nodes", "triangles", "ms/step", "surface ms", "in steps",
+                       "field in steps", "mesh in steps"],
+                      [[r["scene"], f"{r['spacing_m']:g}", _f(r.get("cell_m"), ".4g"), r["particles"], r.get("grid_nodes") or "-", r["triangles"],
+                        _f(r["step_s"] * 1e3, ".2f"), _f(r["surface_s"] * 1e3, ".2f"), _f(r["surface_in_steps"], ".2f"),
+                        _f(r.get("field_in_steps"), ".2f"), _f(r.get("mesh_in_steps"), ".2f")] for r in su["cases"]]) + [""]
+
+
 TABLES = {"accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
-          "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers}
+          "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface}
 
 
 def title(res: dict) -> str:

@@ -25,12 +25,17 @@ def default_scene() -> Path:
 
 def quiet_warp() -> None:
     """No Warp banner, module-load lines or driver notes (set before wp.init(); Warp >= 1.19 reads
-    config.log_level, older versions config.quiet)."""
+    config.log_level, older versions config.quiet), then Warp's init with its native library's stderr held
+    back (rockwave.device.init_warp: the "no CUDA driver" note that C code prints on a machine without a GPU;
+    anything else it prints, and everything when the init fails, is shown)."""
     import warp as wp
+
+    from rockwave.device import init_warp
 
     wp.config.quiet = True
     if hasattr(wp, "LOG_ERROR"):
         wp.config.log_level = wp.LOG_ERROR
+    init_warp(quiet=True)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -102,7 +107,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "info":
         import warp as wp
 
-        wp.init()
+        from rockwave.device import init_warp
+
+        init_warp()
         print(f"rockwave {__import__('rockwave').__version__}, warp {wp.__version__}")
         for d in wp.get_devices():
             extra = ""

@@ -223,7 +223,8 @@ def estimate(scene: Scene, meshes: dict | None = None) -> Estimate:
     dev = n_all * (DEV_PER_PARTICLE + SNAPSHOT_PER_PARTICLE) + nf * (DEV_PER_FLUID + SNAPSHOT_PER_FLUID) + 8 * cells
     surf = scene.output.get("surface") if scene.fluid is not None else None
     if surf and surf.get("enabled") and lo is not None:
-        res = surf.get("resolution_m") or 0.5 * scene.fluid.spacing_m
+        # rockwave/export/surface.py default_cell (not imported: it loads Warp)
+        res = surf.get("resolution_m") or (1.0 if dim == 3 else 0.5) * scene.fluid.spacing_m
         nodes = float(np.prod((np.asarray(hi, float) - np.asarray(lo, float)) / res + 1))
         dev += 8 * min(float(surf.get("max_grid_nodes") or 20_000_000), nodes)
     if nblocks:

@@ -221,7 +221,7 @@ SCHEMA: dict[str, Key] = {
         surface=_sec("fluid surface for rendering: a scalar field of the particles on a grid, isosurface by marching cubes (3D mesh /World/fluid_surface) or marching squares (2D contour curves)",
                      enabled=Key("bool", "write the surface into the USD stage (and the ParaView series)", default=True),
                      field=Key("str", "'colour': SPH colour field sum (m/rho) W (cubic spline); 'metaball': sum s^d/V_R (1 - (d/R)^2)^2 (Ghost SPH report)", default="colour", choices=("colour", "metaball")),
-                     resolution_m=Key("float", "grid cell size (default: half the particle spacing)", min=0, min_open=True),
+                     resolution_m=Key("float", "grid cell size (default: the particle spacing in 3D, half of it in 2D)", min=0, min_open=True),
                      radius_ratio=Key("float", "field support radius R / particle spacing", default=2.0, min=1.0, max=5.0),
                      iso_level=Key("float", "field value at the surface (the field is ~1 in bulk water; 0.5 puts the surface half a spacing past the last particle layer)", default=0.5, min=0, max=1.0, min_open=True),
                      max_grid_nodes=Key("int", "cap on grid nodes per frame; the cell grows to stay under it", default=20_000_000, min=1000)),

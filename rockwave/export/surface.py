@@ -9,6 +9,14 @@ a particle spacing outside the outermost particle layer, where the continuum the
 for ends. The grid covers the particles' bounding box plus R and one cell, so the surface is
 closed (water against a tank wall is closed just inside the wall).
 
+Grid cell (``output.surface.resolution_m``): by default one particle spacing in 3D and half a spacing
+in 2D (:func:`default_cell`). The field is smooth over R = 2 spacings, so a cell of one spacing puts a
+flat surface within ~0.06 spacing of where the half-spacing grid puts it (tests/test_outputs.py), while
+the 3D grid has ~8x fewer nodes: on the CPU a frame's surface of scenes/wave_maker.toml costs ~1.4 fluid
+steps instead of ~7.5 (python -m benchmarks.surface). 2D grids are small either way. The grid and the
+particle-cell buffers are kept from frame to frame and only grow (no allocation per frame once the
+water's box stops growing).
+
 In the USD stage the surface is ``/World/fluid_surface``: a ``UsdGeom.Mesh`` (3D; points,
 faceVertexCounts, faceVertexIndices, normals and extent time-sampled each frame, no subdivision)
 or linear ``UsdGeom.BasisCurves`` (2D; one two-point curve per segment).
@@ -58,9 +66,21 @@ class SurfaceMesh:
         return n / np.where(ln > 0, ln, 1.0)
 
 
+def default_cell(dim: int, spacing: float) -> float:
+    """Grid cell of the surface field when ``output.surface.resolution_m`` is not set: one particle spacing
+    in 3D, half a spacing in 2D (module docstring)."""
+    return float(spacing) * (1.0 if int(dim) == 3 else 0.5)
+
+
 def _marching_cubes_class():
-    geom = getattr(wp, "geometry", None)
-    cls = getattr(geom, "IsoSurfaceMarchingCubes", None) if geom is not None else None
+    """Warp's marching cubes: wp.geometry.IsoSurfaceMarchingCubes (Warp >= 1.19; a submodule that
+    ``import warp`` does not load), else the older wp.MarchingCubes (deprecated, with a printed note, in 1.19)."""
+    try:
+        import importlib
+
+        cls = getattr(importlib.import_module("warp.geometry"), "IsoSurfaceMarchingCubes", None)
+    except ImportError:
+        cls = None
     return cls if cls is not None else wp.MarchingCubes
 
 
@@ -68,7 +88,8 @@ class SurfaceExtractor:
     """Builds the field and extracts the surface for one frame at a time.
 
     ``dim``: 2 or 3; ``spacing``: particle spacing [m]; ``mass``: fluid particle mass [kg];
-    ``resolution_m``: grid cell (default spacing / 2); ``radius_ratio``: R / spacing;
+    ``resolution_m``: grid cell (default :func:`default_cell`: the spacing in 3D, half of it in 2D);
+    ``radius_ratio``: R / spacing;
     ``iso_level``: field value of the surface; ``field``: 'colour' or 'metaball';
     ``max_grid_nodes``: the cell grows when the particles' box would need more nodes.
     """
@@ -81,7 +102,7 @@ class SurfaceExtractor:
         self.spacing = float(spacing)
         self.mass = float(mass)
         self.device = wp.get_device(device)
-        self.cell = float(resolution_m) if resolution_m else 0.5 * self.spacing
+        self.cell = float(resolution_m) if resolution_m else default_cell(self.dim, self.spacing)
         self.radius = float(radius_ratio) * self.spacing
         self.iso = float(iso_level)
         self.kind = 0 if field == "colour" else 1
@@ -93,10 +114,21 @@ class SurfaceExtractor:
         # nodes per thread along x in the field gather (kernels/surface.py fluid_field): they share the
         # bookkeeping of the rows of cells they visit; fewer on a GPU, which wants threads
         self.node_run = 4 if self.device.is_cuda else 32
+        self._buffers: dict[str, wp.array] = {}  # kept from frame to frame (_buffer)
+
+    def _buffer(self, name: str, n: int, dtype) -> wp.array:
+        """A 1D array of at least ``n`` elements kept under ``name`` from call to call (grown by 1.5x when too
+        small, so a slowly growing box reallocates rarely); callers use its first n elements."""
+        b = self._buffers.get(name)
+        if b is None or b.shape[0] < n:
+            b = wp.empty(max(int(n), int(1.5 * b.shape[0]) if b is not None else 0), dtype=dtype, device=self.device)
+            self._buffers[name] = b
+        return b
 
     def field(self, x: wp.array, rho: wp.array, lo: np.ndarray, hi: np.ndarray):
         """The scalar field on the grid covering [lo, hi] padded by R + one cell.
-        Returns (field wp.array3d, lower corner (3,), cell size)."""
+        Returns (field wp.array3d, lower corner (3,), cell size); the field is a view of a buffer the
+        extractor reuses, valid until its next call."""
         pad = self.radius + self.cell
         lower = np.asarray(lo, np.float64)[:3] - pad
         upper = np.asarray(hi, np.float64)[:3] + pad
@@ -112,7 +144,11 @@ class SurfaceExtractor:
             cell *= 1.25
         self.last_cell = cell
         lower32 = wp.vec3(*lower.astype(np.float32))
-        f = wp.zeros(tuple(int(c) for c in n), dtype=float, device=self.device)
+        shape = tuple(int(c) for c in n)
+        size = int(np.prod(n))
+        buf = self._buffer("field", size, float)
+        f = buf[:size].reshape(shape)  # a view of the kept buffer
+        f.zero_()
         with wp.ScopedDevice(self.device):
             g = self._particle_cells(x, rho, lower, (n - 1) * cell)
             run = self.node_run
@@ -138,14 +174,16 @@ class SurfaceExtractor:
         g.c = float(c)
         g.inv_c = float(1.0 / c)
         g.nx, g.ny, g.nz = (int(v) for v in nc)
-        keys = wp.empty(2 * n, dtype=int)  # radix_sort_pairs sorts in place and needs 2 n of room
-        order = wp.empty(2 * n, dtype=int)
+        # radix_sort_pairs sorts in place and needs 2 n of room
+        keys = self._buffer("keys", 2 * n, int)[: 2 * n]
+        order = self._buffer("order", 2 * n, int)[: 2 * n]
         wp.launch(K.particle_cell_keys, dim=n, inputs=[g, x], outputs=[keys, order])
         wp.utils.radix_sort_pairs(keys, order, n)
-        g.first = wp.empty(int(np.prod(nc)) + 1, dtype=int)
-        wp.launch(K.cell_starts, dim=g.first.shape[0], inputs=[keys, n], outputs=[g.first])
-        g.x_sorted = wp.empty(n, dtype=wp.vec3)
-        g.w_sorted = wp.empty(n, dtype=float)
+        ncell = int(np.prod(nc)) + 1
+        g.first = self._buffer("first", ncell, int)[:ncell]
+        wp.launch(K.cell_starts, dim=ncell, inputs=[keys, n], outputs=[g.first])
+        g.x_sorted = self._buffer("x_sorted", n, wp.vec3)[:n]
+        g.w_sorted = self._buffer("w_sorted", n, float)[:n]
         wp.launch(K.gather_sorted_particles, dim=n, inputs=[order, x, rho, self.mass], outputs=[g.x_sorted, g.w_sorted])
         return g
 
