@@ -217,11 +217,26 @@ def run(dev: str, cfg: dict, save=None) -> dict:
                 r.setdefault("simulated_s", sim)
                 r.setdefault("wall_per_sim_s", wall / sim if sim else math.nan)
                 r["particle_steps_per_s"] = r.get("particles", 0) * r.get("steps", 0) / wall if wall and wall > 0 else math.nan
+                r["class"], r["why"] = health_class(r)
                 out["rows"].append(r)
                 log("  " + line(r))
                 if save:
                     save(out)
     return out
+
+
+def health_class(r: dict) -> tuple[str, list[str]]:
+    """harness.classify on the run's health record (NaN, energy growth, escape, density error; not the case's
+    error, whose scale differs per case); the standing wave adds a particle faster than c0 / 2 (the linear
+    wave's orbital speeds are ~0.2 m/s). The chart leaves blown-up runs out; the table names them."""
+    rec = {k: r[k] for k in ("finite", "energy_growth", "escaped_fraction", "density_error", "exception") if k in r}
+    if r.get("case") == "standing_wave" and r.get("max_speed_m_s", 0.0) > 0.5 * STANDING["c0"]:
+        rec["finite"] = rec.get("finite", True)
+        cls, why = H.classify(rec)
+        if cls != "blown_up":
+            cls, why = "blown_up", []
+        return cls, why + [f"a particle at {r['max_speed_m_s']:.3g} m/s > c0 / 2"]
+    return H.classify(rec) if rec else ("-", [])
 
 
 def line(r: dict) -> str:
@@ -235,6 +250,7 @@ def line(r: dict) -> str:
              "spheric": f"H mean {f('h_rms', '.3f')} max {f('h_max', '.3f')} P1 t {f('p1_impact_error', '+.3f')} "
                         f"peak {f('p1_peak_error', '+.3f')}"}[r["case"]]
     ex = f" {r['exception']}" if r.get("exception") else ""
+    ex += f"  {r.get('class', '')}" + (f" ({'; '.join(r['why'])})" if r.get("why") else "")
     return (f"{r['case']:13s} {r['formulation']:22s} {r['label']:>12s} n={r.get('particles', 0):7d} "
             f"steps={r.get('steps', 0):7d} {f('wall_per_sim_s', '8.2f')} s/sim-s {f('particle_steps_per_s', '.3g')} "
             f"p-steps/s  {extra}{ex}")
@@ -255,11 +271,13 @@ def merge(a: dict, b: dict) -> dict:
 
 # --------------------------------------------------------------------------------- estimates ----
 def estimate(cfg: dict, device: str = "cpu") -> list[dict]:
-    """Particles and steps of every run of ``cfg`` (built here, not run; the step is the initial CFL step,
-    which the flows here keep within a few % as c0 >> u), with an H100 time model: 2D fluid-only steps
-    max(0.15 ms, n / 3e8 per s) (CUDA graphs; launch-bound below ~50k particles), the wave maker 1.1 ms/step
-    (coupled: plain launches with host reads; the wave_maker record: 1.08-1.22 ms/step at 8k-131k particles),
-    3D max(0.2 ms, n x (support ratio / 2)^3 / 1e9 per s)."""
+    """Particles and steps of every run of ``cfg`` (scenes built here, not run; steps = simulated time / the
+    initial CFL step x 1.1: the step shrinks a little as the water moves), and an H100 time model, n = fluid
+    particles, r = support / spacing, cost per particle ~ neighbours^0.5 (the issue's SPHERIC figures: Wendland
+    at 3 spacings cost 1.86x the old default per step for 3.4x the neighbours):
+    2D fluid only (CUDA graphs) 0.15 ms + n (r/2)^1.5 / 1e9 s per step; the wave maker 1.1 ms per step (coupled:
+    plain launches and host reads each step; the wave_maker record: 1.08-1.22 ms/step at 8k-131k particles);
+    3D 0.2 ms + n (r/2)^1.5 / 1.2e9 s (the readers record: 0.818 ms/step at 1.02 M particles, the old default)."""
     import rockwave
     from benchmarks.wave_maker import piston_dict
 
@@ -282,14 +300,9 @@ def estimate(cfg: dict, device: str = "cpu") -> list[dict]:
                     d = H.scene_dict("spheric", res, ch, strip=H.FORMULATION_KEYS)
                 sc = rockwave.parse_scene(d, f"{case}.toml", H.ROOT / "scenes")
                 n, dt = _count(sc, device)
-                steps = sim_t / dt
-                ratio = float(sc.fluid.get("support_radius_ratio", 2.0))
-                if case == "wave_maker":
-                    per = 1.1e-3
-                elif case == "spheric":
-                    per = max(2e-4, n * (ratio / 2) ** 3 / 1e9)
-                else:
-                    per = max(1.5e-4, n * (ratio / 2) ** 2 / 3e8)
+                steps = 1.1 * sim_t / dt
+                work = n * (float(sc.fluid.get("support_radius_ratio", 2.0)) / 2) ** 1.5
+                per = {"wave_maker": 1.1e-3, "spheric": 2e-4 + work / 1.2e9}.get(case, 1.5e-4 + work / 1e9)
                 rows.append(dict(case=case, formulation=name, resolution=res, particles=n, steps=int(steps),
                                  est_h100_s=steps * per))
     return rows
@@ -345,8 +358,9 @@ def table_rows(part: dict) -> list[list]:
                    f"{_f(r.get('p1_impact_error'), '+.1%')}, peak {_f(r.get('p1_peak_error'), '+.0%')}")
         if r.get("exception"):
             err += f"; {r['exception'][:80]}"
+        cls = r.get("class", "-") + (f": {'; '.join(r['why'])[:120]}" if r.get("why") else "")
         out.append([c, r["formulation"], r["label"], r.get("particles", "-"), _f(r.get("error"), ".3g"), err,
-                    _f(r.get("wall_per_sim_s"), ".3g"), r.get("steps", "-"), _f(r.get("particle_steps_per_s"), ".3g")])
+                    _f(r.get("wall_per_sim_s"), ".3g"), r.get("steps", "-"), _f(r.get("particle_steps_per_s"), ".3g"), cls])
     return out
 
 
@@ -359,6 +373,7 @@ def chart(ax_of, part: dict, device: str) -> None:
         ax = ax_of(i)
         for j, name in enumerate(names):
             rr = sorted([r for r in rows if r["case"] == case and r["formulation"] == name
+                         and r.get("class") != "blown_up"
                          and math.isfinite(r.get(key, math.nan)) and math.isfinite(r.get("wall_per_sim_s", math.nan))
                          and r.get("wall_per_sim_s", 0) > 0], key=lambda r: r["resolution"])
             if not rr:

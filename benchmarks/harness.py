@@ -510,13 +510,15 @@ def standing_wave(device: str, layers: int, variant: dict | None = None, periods
     clock = Clock(sim.device)
     steps0 = sim.steps
     ts, eta = [], []
-    finite = True
+    finite, rho0, dens_err, speed = True, float(sim.fluid.params.rest_density), 0.0, 0.0
     while sim.time < periods * T - 1e-9:
         clock.run(lambda: sim.advance(min(T / samples_per_period, periods * T - sim.time)))
         xx, rho = sim.positions(), sim.densities()
         if not (np.isfinite(xx).all() and np.isfinite(rho).all()):
             finite = False
             break
+        dens_err = max(dens_err, float(np.mean(np.abs(rho / rho0 - 1.0))))
+        speed = max(speed, float(np.sqrt((sim.velocities() ** 2).sum(axis=1)).max()))
         if signal == "projection":
             eta.append(4.0 / L * np.sum(m / rho * np.cos(k * xx[:, 0])))  # twice the amplitude, as the columns'
         else:
@@ -535,6 +537,7 @@ def standing_wave(device: str, layers: int, variant: dict | None = None, periods
         amps.append(math.hypot(c[1], c[2]) / 2)
     rec = {"particles": nf, "spacing_m": depth / layers, "layers": layers, "depth_m": depth, "kh": kh, "mode": mode,
            "c0_m_s": c0, "amplitude_m": a, "signal": signal, "period_theory_s": T, "finite": finite,
+           "density_error": dens_err, "max_speed_m_s": speed,
            "fluid": fluid_settings(sim),
            "simulated_s": sim.time, "steps": sim.steps - steps0, "wall_s": clock.seconds,
            "wall_per_sim_s": clock.seconds / sim.time if sim.time > 0 else math.nan, "amplitudes_m": amps,

@@ -213,11 +213,12 @@ def _chart(ch: dict) -> list[str]:
          "error: standing wave |amplitude decay per period| (first sloshing mode, k d = "
          f"{sw.get('kh', '?')}, a = {sw.get('a', '?')} m in {sw.get('depth', '?')} m); wave maker |H/H_linear - 1| "
          "at gauge_1; dam break |mean front bias| over T >= 1.5; SPHERIC Test 2 water-level RMS / 0.55 m, H1-H4 "
-         "mean (benchmarks/chart.py, benchmarks/harness.py). Formulations:", ""]
+         "mean (benchmarks/chart.py, benchmarks/harness.py); class: the run's health (harness classifier; blown-up "
+         "runs are left out of the chart). Formulations:", ""]
     L += [f"- `{n}`: {', '.join(f'{k} = {v!r}' for k, v in c.items()) or 'the scenes as they are'}"
           for n, c in ch.get("formulations", {}).items()]
     L += [""] + _table(["case", "formulation", "resolution", "particles", "error", "errors", "wall s / sim s", "steps",
-                        "particle-steps/s"], table_rows(ch)) + [""]
+                        "particle-steps/s", "class"], table_rows(ch)) + [""]
     L += [f"- skipped: {s['case']}, {s['formulation']}: {s['why']}" for s in ch.get("skipped", [])]
     return L + ([""] if ch.get("skipped") else [])
 

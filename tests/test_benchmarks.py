@@ -256,10 +256,12 @@ def test_chart_part_smoke(tmp_path):
         assert not r.get("exception"), r
         assert r["particles"] > 0 and r["steps"] > 0 and r["wall_s"] > 0, r
         assert r["wall_per_sim_s"] > 0 and r["particle_steps_per_s"] > 0 and math.isfinite(r["error"]), r
+        assert r["class"] in ("stable", "inaccurate", "-"), r
     for f in ("old-default", "wendland-3"):
         sw = rows[("standing_wave", f)]
         assert sw["fluid"]["kernel"] == chart.FORMULATIONS[f]["fluid.kernel"]
         assert -0.05 < sw["decay_per_period"] < 0.95 and abs(sw["period_error"]) < 0.2, sw
+        assert sw["density_error"] < 0.03 and sw["max_speed_m_s"] < 1.0 and sw["class"] == "stable", sw
         assert len(sw["amplitudes_m"]) == 2 and 0.005 < sw["amplitudes_m"][0] < 0.03, sw
         wm = rows[("wave_maker", f)]
         assert 0 <= wm["error"] < 1 and wm["H_gauge1_m"] > 0, wm
@@ -270,6 +272,8 @@ def test_chart_part_smoke(tmp_path):
     assert rows[("standing_wave", "old-default")]["decay_per_period"] > rows[("standing_wave", "wendland-3")]["decay_per_period"]
     res = {"suite": "quick", "device": "cpu", "device_name": "a CPU", "date": "2026-11-24", "commit": "x", "chart": part}
     md = report.markdown(res)
+    blown = dict(rows[("standing_wave", "old-default")], max_speed_m_s=20.0)
+    assert chart.health_class(blown)[0] == "blown_up"
     assert "| standing_wave | wendland-3 | 6 /depth |" in md and "skipped: dam_break, not-yet: fluid.no_such_key" in md
     paths = report.charts(res, "smoke", tmp_path)
     assert (tmp_path / "smoke-chart.png").stat().st_size > 0 and any(p.endswith("smoke-chart.png") for p in paths)
