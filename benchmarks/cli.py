@@ -173,6 +173,11 @@ def run_settings(a, parts: list[str]) -> dict:
             out[key] = json.loads(val)
         except json.JSONDecodeError:
             out[key] = val
+    known = config(a.suite, parts)
+    unknown = sorted(set(out) - set(known))
+    if unknown:
+        raise ValueError(f"--set: {', '.join(unknown)} not in the configuration of {', '.join(parts)} "
+                         f"(keys: {', '.join(sorted(known))})")
     if a.formulation or a.formulations:
         from benchmarks import chart
 
