@@ -3,6 +3,7 @@
     python -m benchmarks list                                  # the parts and what each measures
     python -m benchmarks run --device cpu --suite quick        # every part, small sizes (2-core CPU)
     python -m benchmarks run --device cuda:0 --suite full --only scaling peers
+    python -m benchmarks run --device cuda:0 --suite full --only chart --formulation 'adami={"fluid.boundary": "adami"}'
     python -m benchmarks merge FILE.json ... --out MERGED.json # parts of one suite and device into one record
     python -m benchmarks charts FILE.json                      # redraw a record's PNG charts
     python -m benchmarks report                                # regenerate benchmarks/RESULTS.md from the records
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import importlib
+import inspect
 import json
 import os
 import sys
@@ -40,6 +42,7 @@ PARTS = {
     "ghost_accuracy": "benchmarks.ghost_accuracy",
     "readers": "benchmarks.readers",
     "surface": "benchmarks.surface",
+    "chart": "benchmarks.chart",
 }
 SUITES = ("quick", "full")
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")
@@ -56,8 +59,11 @@ def config(suite: str, parts: list[str]) -> dict:
     return cfg
 
 
-def run(device: str, suite: str, parts: list[str], out: Path | None = None, out_dir: Path = RESULTS) -> dict:
-    """Run ``parts`` of ``suite`` on ``device``; the record is written after every part."""
+def run(device: str, suite: str, parts: list[str], out: Path | None = None, out_dir: Path = RESULTS,
+        settings: dict | None = None) -> dict:
+    """Run ``parts`` of ``suite`` on ``device``; the record is written after every part (and after every row of
+    a part whose run takes a third argument ``save``). ``settings``: configuration entries that replace the
+    suite's (``--set``, ``--formulation``)."""
     import warp as wp
 
     from benchmarks import harness as H
@@ -71,6 +77,11 @@ def run(device: str, suite: str, parts: list[str], out: Path | None = None, out_
     stem = f"{stamp}-{dev.replace(':', '')}" + ("" if parts == list(PARTS) else f"-{suite}-{'-'.join(parts)}")
     path = Path(out) if out else Path(out_dir) / f"{stem}.json"
     cfg = config(suite, parts)
+    unknown = sorted(set(settings or {}) - set(cfg))
+    if unknown:
+        raise ValueError(f"--set: {', '.join(unknown)} not in the configuration of {', '.join(parts)} "
+                         f"(keys: {', '.join(sorted(cfg))})")
+    cfg.update(settings or {})
     res = {"suite": suite, "device": dev, "device_name": device_name(dev), "date": stamp,
            "time_utc": datetime.datetime.now(datetime.UTC).strftime("%H:%M"), "commit": commit(),
            "warp": wp.__version__, "load_average": os.getloadavg(), "bounds": H.BOUNDS, "config": cfg,
@@ -80,8 +91,13 @@ def run(device: str, suite: str, parts: list[str], out: Path | None = None, out_
     for p in parts:
         log(f"[{p}]")
         t = time.perf_counter()
+        def save(partial, p=p):  # a part's rows so far: kept if the run is cut off
+            res[p] = partial
+            write_json(res, path)
+
         try:
-            res[p] = part(p).run(dev, cfg)
+            mod = part(p)
+            res[p] = mod.run(dev, cfg, save) if "save" in inspect.signature(mod.run).parameters else mod.run(dev, cfg)
             if p == "accuracy":
                 part(p).strip_series(res[p])
         except Exception as e:  # a failing part is recorded; the others still run
@@ -105,9 +121,10 @@ def run(device: str, suite: str, parts: list[str], out: Path | None = None, out_
 
 def merge(files: list, out, force: bool = False) -> dict:
     """Merge records of parts of one suite on one device. A part present in several files is taken from
-    the last one that finished it; a part's error is kept only when no file finished that part. Header
-    fields come from the first file; ``merged_from`` records each file's parts, commit, date and wall time;
-    ``suite_wall_s`` is the sum of the files' wall times."""
+    the last one that finished it (a part with a ``merge`` function, as ``chart``, combines its rows); a
+    part's error is kept only when no file finished that part. Header fields come from the first file;
+    ``merged_from`` records each file's parts, commit, date and wall time; ``suite_wall_s`` is the sum of the
+    files' wall times."""
     recs = [(str(f), json.loads(Path(f).read_text())) for f in files]
     if not recs:
         raise ValueError("merge: no files")
@@ -124,7 +141,7 @@ def merge(files: list, out, force: bool = False) -> dict:
         for p in parts:
             if p in res:
                 log(f"  merge: {p} from {f} replaces the earlier file's")
-            res[p] = r[p]
+            res[p] = part(p).merge(res[p], r[p]) if p in res and hasattr(part(p), "merge") else r[p]
             res.pop(p + "_error", None)
             if p in r.get("part_wall_s", {}):
                 res["part_wall_s"][p] = r["part_wall_s"][p]
@@ -146,6 +163,38 @@ def merge(files: list, out, force: bool = False) -> dict:
     return res
 
 
+def run_settings(a, parts: list[str]) -> dict:
+    """Configuration entries from ``--set``, ``--formulation`` and ``--formulations``."""
+    out = {}
+    for item in a.set:
+        key, sep, val = item.partition("=")
+        if not sep:
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE")
+        try:
+            out[key] = json.loads(val)
+        except json.JSONDecodeError:
+            out[key] = val
+    known = config(a.suite, parts)
+    unknown = sorted(set(out) - set(known))
+    if unknown:
+        raise ValueError(f"--set: {', '.join(unknown)} not in the configuration of {', '.join(parts)} "
+                         f"(keys: {', '.join(sorted(known))})")
+    if a.formulation or a.formulations:
+        from benchmarks import chart
+
+        forms = dict(out.get("chart_formulations", config(a.suite, parts).get("chart_formulations", chart.FORMULATIONS)))
+        for item in a.formulation:
+            name, changes = chart.parse_formulation(item)
+            forms[name] = changes
+        if a.formulations:
+            missing = [n for n in a.formulations if n not in forms]
+            if missing:
+                raise ValueError(f"--formulations: unknown {', '.join(missing)} (known: {', '.join(forms)})")
+            forms = {n: forms[n] for n in a.formulations}
+        out["chart_formulations"] = forms
+    return out
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -157,6 +206,14 @@ def main(argv=None) -> None:
     r.add_argument("--only", nargs="+", choices=list(PARTS), default=None, help="parts to run (default: all)")
     r.add_argument("--out-dir", default=str(RESULTS), help="folder of the record and its charts (default benchmarks/results)")
     r.add_argument("--out", default=None, help="record path (overrides --out-dir; charts go next to it)")
+    r.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
+                   help="replace a configuration entry of the suite, e.g. --set 'chart_cases=[\"dam_break\"]' "
+                        "(a value that is not JSON is taken as a string)")
+    r.add_argument("--formulation", action="append", default=[], metavar="NAME=JSON",
+                   help="chart: add or replace a formulation, e.g. --formulation "
+                        "'fidelity=high={\"fluid.fidelity\": \"high\"}'")
+    r.add_argument("--formulations", nargs="+", default=None, metavar="NAME",
+                   help="chart: run only these formulations, in this order")
     mg = sub.add_parser("merge", help="merge records of parts of one suite and device; redraw charts, print the tables")
     mg.add_argument("json", nargs="+")
     mg.add_argument("--out", required=True, help="merged record path; charts go next to it as <stem>-*.png")
@@ -205,7 +262,11 @@ def main(argv=None) -> None:
         scaling.mem_main(a.kind, a.size, a.device)
     else:  # run
         parts = [p for p in PARTS if p in a.only] if a.only else list(PARTS)
-        res = run(a.device, a.suite, parts, a.out, a.out_dir)
+        try:
+            settings = run_settings(a, parts)
+        except ValueError as e:
+            sys.exit(str(e))
+        res = run(a.device, a.suite, parts, a.out, a.out_dir, settings)
         print()
         print(report.summary(res))
         print(f"\nsaved {res['record']}")

@@ -8,10 +8,19 @@ Error metrics (also defined in the README, "Benchmarks"):
   T = t sqrt(2 g / a) (x_front = the largest particle x); ``height_rms`` = RMS of (H_sim - H_exp) / H_exp,
   H = h / (2 a) at tau = t sqrt(g / a) (h: the water height at the back wall, gauge ``column_height``),
   points with tau <= the simulated time; ``error`` = (front_rms + height_rms) / 2. ``front_bias`` = mean
-  signed relative front error (SPH runs ahead: no gate, no floor friction).
+  signed relative front error (SPH runs ahead: no gate, no floor friction); ``front_bias_late`` and
+  ``front_rms_late``: the same over the points at T >= 1.5 only.
 - SPHERIC Test 2 (Kleefsman et al. 2005): ``h_rms`` = mean over H1..H4 of RMS(h_sim - h_exp) / 0.55 m
   (a dry gauge reads 0), ``p_rms`` = RMS(p_sim - p_exp) / (rho0 g 0.55 m) at P1, both over the
   simulated window sampled every 10 ms, the measurement averaged over +-5 ms; ``error`` = (h_rms + p_rms) / 2.
+  ``h_max`` = the largest of H1..H4's. P1 impact: ``p1_impact_t_s`` = the first time P1 reaches half the
+  measured peak (linear interpolation between samples; the measurement's own, from its raw 1 kHz rows, in
+  ``p1_impact_t_exp_s``), ``p1_impact_error`` = relative error of that time; ``p1_peak_error`` = relative error
+  of the largest P1 sample within 0.1 s after the impact against the measurement's largest +-5 ms mean there,
+  both taken at the simulation's sampling interval (10 ms: a peak narrower than that is under-read).
+- Standing wave (2D, linear sloshing mode started from its velocity field; ``standing_wave``):
+  ``decay_per_period`` = 1 - exp(-beta T) of a damped-sine fit c + A exp(-beta t) sin(w t + phi) to the
+  amplitude signal, ``period_error`` = 2 pi / w over the linear-theory period (w^2 = g k tanh(k d)) - 1.
 """
 
 from __future__ import annotations
@@ -29,6 +38,7 @@ DATA = ROOT / "benchmarks" / "data"
 G = 9.81
 A_MM = 0.05715  # Martin & Moyce column width a [m] (n^2 = 2)
 SPHERIC_H0 = 0.55  # SPHERIC Test 2 water depth [m]
+FRONT_LATE_T = 1.5  # front_bias_late: Martin & Moyce points at T >= this (past the start-up of the collapse)
 
 # classifier bounds (README, "Benchmarks")
 BOUNDS = dict(
@@ -75,7 +85,10 @@ def dam_break_errors(front: dict[float, float], height: dict[float, float], a: f
             h = 0.0 if not math.isfinite(h) else h
             rh.append((h / (2 * a) - H) / H)
     rf, rh = np.asarray(rf), np.asarray(rh)
+    late = np.asarray([T >= FRONT_LATE_T for T, _ in ef if _lookup(front, T / math.sqrt(2 * G / a)) is not None], bool)
     out = {"front_rms": _rms(rf), "front_bias": float(rf.mean()) if len(rf) else math.nan,
+           "front_bias_late": float(rf[late].mean()) if late.any() else math.nan, "front_rms_late": _rms(rf[late]),
+           "front_points_late": int(late.sum()),
            "height_rms": _rms(rh), "height_bias": float(rh.mean()) if len(rh) else math.nan,
            "front_points": int(len(rf)), "height_points": int(len(rh))}
     parts = [v for v in (out["front_rms"], out["height_rms"]) if math.isfinite(v)]
@@ -123,13 +136,42 @@ def spheric_errors(times: np.ndarray, gauges: dict[str, np.ndarray], rho0: float
             out[f"{name}_rms"] = e
             hs.append(e)
     out["h_rms"] = float(np.mean(hs)) if hs else math.nan
+    out["h_max"] = float(np.max(hs)) if hs else math.nan
     if "P1" in gauges:
         sim = np.nan_to_num(np.asarray(gauges["P1"], float), nan=0.0)
-        out["p_rms"] = _rms((sim - _window_mean(pr, 1, times)) / (rho0 * G * SPHERIC_H0))
+        exp = _window_mean(pr, 1, times)
+        out["p_rms"] = _rms((sim - exp) / (rho0 * G * SPHERIC_H0))
+        out.update(p1_impact(times, sim, pr))
     else:
         out["p_rms"] = math.nan
     parts = [v for v in (out["h_rms"], out["p_rms"]) if math.isfinite(v)]
     out["error"] = float(np.mean(parts)) if parts else math.nan
+    return out
+
+
+def _first_crossing(t: np.ndarray, v: np.ndarray, level: float) -> float:
+    """First time v reaches level (linear interpolation between samples); NaN if it never does."""
+    i = int(np.argmax(v >= level))
+    if v[i] < level:
+        return math.nan
+    if i == 0:
+        return float(t[0])
+    return float(t[i - 1] + (level - v[i - 1]) * (t[i] - t[i - 1]) / (v[i] - v[i - 1]))
+
+
+def p1_impact(times: np.ndarray, p1: np.ndarray, pr: np.ndarray) -> dict:
+    """SPHERIC Test 2 P1 impact time and peak against the measurement (module docstring)."""
+    times, p1 = np.asarray(times, float), np.asarray(p1, float)
+    peak_exp = float(pr[:, 1].max())
+    t_exp = _first_crossing(pr[:, 0], pr[:, 1], 0.5 * peak_exp)
+    t_sim = _first_crossing(times, p1, 0.5 * peak_exp) if len(times) else math.nan
+    out = {"p1_impact_t_exp_s": t_exp, "p1_impact_t_s": t_sim, "p1_impact_error": t_sim / t_exp - 1.0}
+    w = (times >= t_exp - 0.02) & (times <= t_exp + 0.1)
+    if w.any():
+        pk_exp = float(_window_mean(pr, 1, times[w]).max())
+        ws = (times >= (t_sim if math.isfinite(t_sim) else t_exp) - 0.02) & (times <= (t_sim if math.isfinite(t_sim) else t_exp) + 0.1)
+        pk = float(p1[ws].max()) if ws.any() else math.nan
+        out.update(p1_peak_pa=pk, p1_peak_exp_pa=pk_exp, p1_peak_error=pk / pk_exp - 1.0)
     return out
 
 
@@ -201,12 +243,16 @@ VARIANTS = {
 FIXED_COURANT = 0.375  # fixed step = 0.375 h / (c0 (1 + 0.6 alpha)): 1.5 x the CFL step at rest, under the 0.4 limit
 
 
-def scene_dict(case: str, spacing: float, variant: dict, c0: float | None = None) -> dict:
-    """Scene dict of a benchmark case ('dam_break_2d' or 'spheric') with a variant's changes."""
+def scene_dict(case: str, spacing: float, variant: dict, c0: float | None = None, strip: tuple = ()) -> dict:
+    """Scene dict of a benchmark case ('dam_break_2d' or 'spheric') with a variant's changes. ``strip``:
+    [fluid] keys of the scene file removed before the changes (the chart part removes the scene's own
+    kernel choice, so that a formulation given as one key, e.g. fluid.fidelity, is not overridden by it)."""
     import rockwave
 
     name = {"dam_break_2d": "dam_break_2d.toml", "spheric": "dam_break_3d.toml"}[case]
     d = copy.deepcopy(rockwave.load_scene(ROOT / "scenes" / name).raw)
+    for k in strip:
+        d["fluid"].pop(k, None)
     d["fluid"]["spacing_m"] = spacing
     d["output"]["usd"] = ""
     d["output"].pop("reference", None)
@@ -309,18 +355,20 @@ def _advance_to(sim, t: float, dt: float | None) -> None:
 
 
 def run_dam_break(device: str, spacing: float, variant: dict, t_end: float, dt: float | None = None,
-                  dt_multiple: float | None = None, c0: float | None = None, sample_dt: float = 0.005) -> dict:
+                  dt_multiple: float | None = None, c0: float | None = None, sample_dt: float = 0.005,
+                  strip: tuple = ()) -> dict:
     """One 2D dam break: errors against Martin & Moyce, wall time per simulated second, health record.
     ``dt_multiple``: step = this x the scene's initial CFL step (forced; the stability sweep)."""
     from rockwave import SimulationError
 
     rec: dict = {"case": "dam_break_2d", "spacing_m": spacing}
     try:
-        sim = build("dam_break_2d", scene_dict("dam_break_2d", spacing, variant, c0), device)
+        sim = build("dam_break_2d", scene_dict("dam_break_2d", spacing, variant, c0, strip), device)
     except Exception as e:  # SceneError: a refused set-up
         rec["refused"] = str(e).splitlines()[-1][:200]
         return rec
     rec["particles"] = sim.n_fluid
+    rec["fluid"] = fluid_settings(sim)
     rec["cfl_dt_s"] = sim.dt
     if dt_multiple is not None:
         dt = dt_multiple * sim.dt
@@ -355,17 +403,19 @@ def run_dam_break(device: str, spacing: float, variant: dict, t_end: float, dt: 
     return rec
 
 
-def run_spheric(device: str, spacing: float, variant: dict, t_end: float, sample_dt: float = 0.01) -> dict:
+def run_spheric(device: str, spacing: float, variant: dict, t_end: float, sample_dt: float = 0.01,
+                strip: tuple = ()) -> dict:
     """One SPHERIC Test 2 run: gauge errors, wall time per simulated second, health record."""
     from rockwave import SimulationError
 
     rec: dict = {"case": "spheric", "spacing_m": spacing}
     try:
-        sim = build("spheric", scene_dict("spheric", spacing, variant), device)
+        sim = build("spheric", scene_dict("spheric", spacing, variant, strip=strip), device)
     except Exception as e:
         rec["refused"] = str(e).splitlines()[-1][:200]
         return rec
     rec["particles"] = sim.n_fluid
+    rec["fluid"] = fluid_settings(sim)
     rec["dt_s"] = sim.dt
     health = Health.of(sim)
     ts = np.arange(sample_dt, t_end + 1e-9, sample_dt)
@@ -393,6 +443,138 @@ def run_spheric(device: str, spacing: float, variant: dict, t_end: float, sample
     else:
         rec["error"] = math.nan
     return rec
+
+
+# ---------------------------------------------------------------------------- standing wave ----
+FORMULATION_KEYS = ("kernel", "support_radius_ratio", "density", "density_diffusion", "pressure_force", "fidelity",
+                    "boundary")
+
+
+def fluid_settings(sim) -> dict:
+    """The [fluid] formulation keys the simulation was built with (defaults filled in by the loader): a
+    record of what a variant's changes gave."""
+    f = sim.scene.fluid if isinstance(sim.scene.fluid, dict) else {}
+    return {k: f[k] for k in FORMULATION_KEYS if k in f}
+
+
+def linear_wave(depth: float, kh: float, g: float = G) -> tuple[float, float]:
+    """(k, omega) of a linear gravity wave with k d = kh: omega^2 = g k tanh(k d)."""
+    k = kh / depth
+    return k, math.sqrt(g * k * math.tanh(kh))
+
+
+def standing_wave_dict(layers: int, variant: dict | None = None, depth: float = 0.2, kh: float = 1.5, mode: int = 2,
+                       c0: float = 12.0) -> dict:
+    """Scene dict of the standing-wave tank: water ``depth`` deep, ``layers`` particles per depth, in a tank of
+    boundary particles mode x half a wavelength long (mode 1: the first sloshing mode, eta = a cos(kx), crests
+    at the two end walls; mode 2: one wavelength, tests/test_standing_wave.py); c0 m/s, no viscosity; a
+    variant's dotted changes applied last (the [fluid] section sets no kernel of its own)."""
+    k, _ = linear_wave(depth, kh)
+    L = mode * math.pi / k
+    d = {"simulation": {"dimension": 2, "duration_s": 10.0},
+         "fluid": {"spacing_m": depth / layers, "eos": {"speed_of_sound_m_s": c0},
+                   "regions": [{"box_min_m": [0.0, 0.0], "box_max_m": [L, depth]}]},
+         "tank": {"box_min_m": [0.0, 0.0], "box_max_m": [L, depth + 0.3]}}
+    for key, v in (variant or {}).items():
+        set_path(d, key, v)
+    return d
+
+
+def standing_wave(device: str, layers: int, variant: dict | None = None, periods: float = 3, a: float = 0.02,
+                  depth: float = 0.2, kh: float = 1.5, mode: int = 2, c0: float = 12.0, samples_per_period: int = 40,
+                  column_m: float = 0.1, signal: str = "columns") -> dict:
+    """Run the standing wave of ``standing_wave_dict``, started at eta = 0 with the linear standing-wave
+    velocity of eta = a cos(kx) sin(wt): u = -a w cosh(k(z+d))/sinh(kd) sin(kx), w_z = a w sinh(k(z+d))/sinh(kd)
+    cos(kx). The amplitude signal, sampled ``samples_per_period`` times a period: ``signal = "columns"`` (the
+    test's): (eta at the wall x = 0 - eta at the first opposite crest x = pi/k) / 2, eta the water depth from the
+    particle volumes m/rho_i in a ``column_m`` wide column (at the end wall for mode 1), minus d; steps of
+    spacing^2 / column_m as particles cross a column's edge, a large share of a at a few particles per depth.
+    ``"projection"``: the mode's amplitude (2/L) sum_i (m/rho_i) cos(k x_i) = (2/L) int eta cos(kx) dx (the
+    still water's part integrates to zero), a sum over every particle without edges. Returns the samples (t, signal), the amplitude of
+    each whole period (first-harmonic least-squares fit at the linear-theory frequency, as the test asserts),
+    the damped-sine fit's decay_per_period and period_error, and the cost (wall seconds spent advancing,
+    synchronised; steps; particles). A scene the loader refuses raises its SceneError."""
+    import rockwave
+
+    sim = rockwave.Simulation(rockwave.parse_scene(standing_wave_dict(layers, variant, depth, kh, mode, c0)), device=device)
+    k, om = linear_wave(depth, kh)
+    T, L = 2 * math.pi / om, mode * math.pi / k
+    nf = sim.n_fluid
+    x = sim.positions()
+    v = sim.state.v.numpy().copy()
+    z = x[:, 1]
+    v[:nf, 0] = -a * om * np.cosh(k * z) / np.sinh(k * depth) * np.sin(k * x[:, 0])
+    v[:nf, 1] = a * om * np.sinh(k * z) / np.sinh(k * depth) * np.cos(k * x[:, 0])
+    sim.state.v.assign(v)
+    m, w = sim.fluid.fluid_mass, column_m
+    clock = Clock(sim.device)
+    steps0 = sim.steps
+    ts, eta = [], []
+    finite, rho0, dens_err, speed = True, float(sim.fluid.params.rest_density), 0.0, 0.0
+    while sim.time < periods * T - 1e-9:
+        clock.run(lambda: sim.advance(min(T / samples_per_period, periods * T - sim.time)))
+        xx, rho = sim.positions(), sim.densities()
+        if not (np.isfinite(xx).all() and np.isfinite(rho).all()):
+            finite = False
+            break
+        dens_err = max(dens_err, float(np.mean(np.abs(rho / rho0 - 1.0))))
+        speed = max(speed, float(np.sqrt((sim.velocities() ** 2).sum(axis=1)).max()))
+        if signal == "projection":
+            eta.append(4.0 / L * np.sum(m / rho * np.cos(k * xx[:, 0])))  # twice the amplitude, as the columns'
+        else:
+            wall = xx[:, 0] < w
+            opp = xx[:, 0] > L - w if mode == 1 else np.abs(xx[:, 0] - math.pi / k) < 0.5 * w
+            eta.append((np.sum(m / rho[wall]) - np.sum(m / rho[opp])) / w)
+        ts.append(sim.time)
+    ts, eta = np.asarray(ts), np.asarray(eta)
+    amps = []
+    for p in range(int(math.floor(periods + 1e-9))):
+        sl = (ts > p * T + 1e-9) & (ts <= (p + 1) * T + 1e-9)
+        if sl.sum() < 4:
+            break
+        A = np.c_[np.ones(sl.sum()), np.cos(om * ts[sl]), np.sin(om * ts[sl])]
+        c = np.linalg.lstsq(A, eta[sl], rcond=None)[0]
+        amps.append(math.hypot(c[1], c[2]) / 2)
+    rec = {"particles": nf, "spacing_m": depth / layers, "layers": layers, "depth_m": depth, "kh": kh, "mode": mode,
+           "c0_m_s": c0, "amplitude_m": a, "signal": signal, "period_theory_s": T, "finite": finite,
+           "density_error": dens_err, "max_speed_m_s": speed,
+           "fluid": fluid_settings(sim),
+           "simulated_s": sim.time, "steps": sim.steps - steps0, "wall_s": clock.seconds,
+           "wall_per_sim_s": clock.seconds / sim.time if sim.time > 0 else math.nan, "amplitudes_m": amps,
+           "t": ts, "signal_m": eta / 2}
+    rec.update(damped_sine_fit(ts, eta / 2, om) if finite and len(ts) >= 8 and sim.time >= 0.99 * T else
+               {"decay_per_period": math.nan, "period_error": math.nan})
+    return rec
+
+
+def damped_sine_fit(t: np.ndarray, y: np.ndarray, om0: float) -> dict:
+    """Fit y = c + A exp(-beta t) sin(w t + phi) (start at w = om0); decay_per_period = 1 - exp(-beta 2pi/w),
+    period_error = om0 / w - 1, amplitude0_m = |A|, fit_residual = RMS residual / |A|."""
+    from scipy.optimize import curve_fit
+
+    t, y = np.asarray(t, float), np.asarray(y, float)
+
+    def f(t, c, A, beta, w, phi):
+        return c + A * np.exp(-beta * t) * np.sin(w * t + phi)
+
+    a0 = max(float(np.abs(y).max()), 1e-12)
+    best, p = math.inf, None
+    for s in (1.0, 0.8, 1.25):  # starting frequencies: the best fit of three
+        try:
+            q, _ = curve_fit(f, t, y, p0=(0.0, a0, 0.0, s * om0, 0.0), maxfev=20000)
+        except (RuntimeError, ValueError, OverflowError):
+            continue
+        res = float(np.mean((f(t, *q) - y) ** 2))
+        if math.isfinite(res) and res < best and q[3] > 0.2 * om0:
+            best, p = res, q
+    if p is None:
+        return {"decay_per_period": math.nan, "period_error": math.nan}
+    c, A, beta, w, phi = p
+    if A < 0:  # the same curve with phi + pi
+        A = -A
+    T = 2 * math.pi / abs(w)
+    return {"decay_per_period": float(1.0 - math.exp(min(-beta * T, 50.0))), "period_error": float(om0 / abs(w) - 1.0),
+            "amplitude0_m": float(A), "fit_residual": float(np.sqrt(np.mean((f(t, *p) - y) ** 2)) / max(A, 1e-12))}
 
 
 # ------------------------------------------------------------------------------ block sweep ----

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from benchmarks.common import RESULTS, ROOT, rel
 
-PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface")
+PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface", "chart")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -214,8 +214,27 @@ def _surface(su: dict) -> list[str]:
                         _f(r.get("field_in_steps"), ".2f"), _f(r.get("mesh_in_steps"), ".2f")] for r in su["cases"]]) + [""]
 
 
+def _chart(ch: dict) -> list[str]:
+    from benchmarks.chart import table_rows
+
+    sw = ch.get("standing_wave", {})
+    L = ["### Accuracy against cost of the formulations (part `chart`)", "",
+         "error: standing wave |amplitude decay per period| (first sloshing mode, k d = "
+         f"{sw.get('kh', '?')}, a = {sw.get('a', '?')} m in {sw.get('depth', '?')} m); wave maker |H/H_linear - 1| "
+         "at gauge_1; dam break |mean front bias| over T >= 1.5; SPHERIC Test 2 water-level RMS / 0.55 m, H1-H4 "
+         "mean (benchmarks/chart.py, benchmarks/harness.py); class: the run's health (harness classifier; blown-up "
+         "runs are left out of the chart). Formulations:", ""]
+    L += [f"- `{n}`: {', '.join(f'{k} = {v!r}' for k, v in c.items()) or 'the scenes as they are'}"
+          for n, c in ch.get("formulations", {}).items()]
+    L += [""] + _table(["case", "formulation", "resolution", "particles", "error", "errors", "wall s / sim s", "steps",
+                        "particle-steps/s", "class"], table_rows(ch)) + [""]
+    L += [f"- skipped: {s['case']}, {s['formulation']}: {s['why']}" for s in ch.get("skipped", [])]
+    return L + ([""] if ch.get("skipped") else [])
+
+
 TABLES = {"accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
-          "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface}
+          "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface,
+          "chart": _chart}
 
 
 def title(res: dict) -> str:
@@ -391,6 +410,19 @@ def charts(res: dict, stem: str, out_dir=None) -> list[str]:
         fig.suptitle(f"scaling - {res['device']}")
         fig.tight_layout()
         save(fig, "scaling")
+    ch = res.get("chart")
+    if ch and ch.get("rows"):
+        from benchmarks.chart import METRICS, chart
+
+        fig, axs = plt.subplots(2, 3, figsize=(13, 7.5))
+        flat = axs.ravel()
+        chart(lambda i: flat[i], ch, res.get("device", "?"))
+        for ax in flat[len(METRICS):]:
+            ax.axis("off")
+        fig.suptitle(f"error against cost, one point per formulation and resolution - {res.get('device_name', '?')}, "
+                     f"commit {res.get('commit', '?')}", fontsize=9)
+        fig.tight_layout()
+        save(fig, "chart")
     return paths
 
 

@@ -8,7 +8,6 @@ ending at 2.6 s, against H/S = 2 (cosh 2kh - 1)/(sinh 2kh + 2kh); class "within 
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
@@ -33,28 +32,49 @@ def theory(h=0.2, S=0.03, f=1.2970):
     return 2 * (math.cosh(2 * k * h) - 1) / (math.sinh(2 * k * h) + 2 * k * h) * S, om
 
 
-def piston(device, layers, t_end=2.6):
-    import rockwave
+def piston_dict(layers: int, variant: dict | None = None, strip: tuple = ()) -> dict:
+    """Scene dict of scenes/wave_maker_small.toml at ``layers`` particles per depth: ``strip`` [fluid] keys
+    removed, then a variant's dotted changes (benchmarks/harness.py set_path)."""
+    import copy
 
-    scene = rockwave.load_scene(ROOT / "scenes" / "wave_maker_small.toml")
-    scene.fluid["spacing_m"] = 0.2 / layers
+    import rockwave
+    from benchmarks.harness import set_path
+
+    d = copy.deepcopy(rockwave.load_scene(ROOT / "scenes" / "wave_maker_small.toml").raw)
+    for k in strip:
+        d["fluid"].pop(k, None)
+    d["fluid"]["spacing_m"] = 0.2 / layers
+    for k, v in (variant or {}).items():
+        set_path(d, k, v)
+    return d
+
+
+def piston(device, layers, t_end=2.6, variant: dict | None = None, strip: tuple = ()):
+    """One wave-maker run: first-harmonic heights at the gauges over the two periods ending at t_end; wall_s =
+    seconds spent advancing (synchronised, gauge reads excluded), steps, particles."""
+    import rockwave
+    from benchmarks.harness import Clock, fluid_settings
+
+    scene = rockwave.parse_scene(piston_dict(layers, variant, strip), "wave_maker_small.toml", ROOT / "scenes")
     H_th, om = theory()
     sim = rockwave.Simulation(scene, device=device)
-    t0 = time.perf_counter()
+    clock = Clock(sim.device)
+    steps0 = sim.steps
     ts, g1, g2 = [], [], []
     while sim.time < t_end - 1e-9:
-        sim.advance(0.02)
+        clock.run(lambda: sim.advance(min(0.02, t_end - sim.time)))
         g = sim.gauges()
         ts.append(sim.time)
         g1.append(g["gauge_1"])
         g2.append(g["gauge_2"])
-    wall = time.perf_counter() - t0
+    wall = clock.seconds
     ts = np.asarray(ts)
     w = ts > t_end - 2.0 * 2 * math.pi / om - 1e-6
     h1 = first_harmonic_height(ts[w], np.asarray(g1)[w], om)
     h2 = first_harmonic_height(ts[w], np.asarray(g2)[w], om)
-    return dict(layers=layers, spacing_m=0.2 / layers, particles=sim.n_fluid, steps=sim.steps, wall_s=wall,
-                H_theory_m=H_th, H_gauge1_m=h1, H_gauge2_m=h2, error_gauge1=h1 / H_th - 1, error_gauge2=h2 / H_th - 1)
+    return dict(layers=layers, spacing_m=0.2 / layers, particles=sim.n_fluid, steps=sim.steps - steps0, wall_s=wall,
+                simulated_s=sim.time, wall_per_sim_s=wall / sim.time, fluid=fluid_settings(sim), H_theory_m=H_th,
+                H_gauge1_m=h1, H_gauge2_m=h2, error_gauge1=h1 / H_th - 1, error_gauge2=h2 / H_th - 1)
 
 
 def run(dev: str, cfg: dict) -> dict:

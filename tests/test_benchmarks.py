@@ -219,3 +219,64 @@ def test_results_md_is_generated_from_the_records():
         assert r["device_name"] and r["date"] and r["commit"] not in ("", "unknown"), path.name
         for c in r.get("charts", []):
             assert (ROOT / c).is_file(), (path.name, c)
+
+
+# ------------------------------------------------------------------------------------ chart part ----
+def test_formulation_parsing_and_optional_keys():
+    from benchmarks import chart
+
+    assert chart.parse_formulation('fidelity=high={"fluid.fidelity": "high"}') == ("fidelity=high", {"fluid.fidelity": "high"})
+    ch, dropped = chart.resolve({"fluid.kernel": "wendland", "fluid.no_such_key?": 1, "fluid.density_diffusion?": 0.1})
+    assert ch == {"fluid.kernel": "wendland", "fluid.density_diffusion": 0.1} and dropped == ["fluid.no_such_key"]
+    # the case builders take the formulation's kernel, not the scene file's "muller"
+    assert chart.refused("dam_break", {"fluid.kernel": "wendland"}) is None
+    assert "no_such_key" in chart.refused("dam_break", {"fluid.no_such_key": 1})
+    d = H.scene_dict("dam_break_2d", H.A_MM / 10, {}, strip=H.FORMULATION_KEYS)
+    assert "kernel" not in d["fluid"] and H.scene_dict("dam_break_2d", H.A_MM / 10, {})["fluid"]["kernel"] == "muller"
+
+
+def test_chart_part_smoke(tmp_path):
+    """A tiny chart run on the CPU: every case but SPHERIC (skipped on the CPU) at one coarse resolution, two
+    formulations and one the scene loader refuses; the record's fields, finite and sane errors, the table and
+    the PNG."""
+    from benchmarks import chart, report
+
+    cfg = dict(chart.CONFIG["quick"], chart_standing_ppd=[6], chart_wave_layers=[6], chart_dam_res=[8],
+               chart_dam_t_end=0.1, chart_formulations={"old-default": chart.FORMULATIONS["old-default"],
+                                                        "wendland-3": chart.FORMULATIONS["wendland-3"],
+                                                        "not-yet": {"fluid.no_such_key": "x"}})
+    saved = []
+    part = chart.run("cpu", cfg, saved.append)
+    assert saved and saved[-1] is part
+    rows = {(r["case"], r["formulation"]): r for r in part["rows"]}
+    assert set(rows) == {(c, f) for c in ("standing_wave", "wave_maker", "dam_break") for f in ("old-default", "wendland-3")}
+    assert {(s["case"], s["formulation"]) for s in part["skipped"]} == (
+        {(c, "not-yet") for c in ("standing_wave", "wave_maker", "dam_break")} | {("spheric", "*")})
+    for r in rows.values():
+        assert not r.get("exception"), r
+        assert r["particles"] > 0 and r["steps"] > 0 and r["wall_s"] > 0, r
+        assert r["wall_per_sim_s"] > 0 and r["particle_steps_per_s"] > 0 and math.isfinite(r["error"]), r
+        assert r["class"] in ("stable", "inaccurate", "-"), r
+    for f in ("old-default", "wendland-3"):
+        sw = rows[("standing_wave", f)]
+        assert sw["fluid"]["kernel"] == chart.FORMULATIONS[f]["fluid.kernel"]
+        assert -0.05 < sw["decay_per_period"] < 0.95 and abs(sw["period_error"]) < 0.2, sw
+        assert sw["density_error"] < 0.03 and sw["max_speed_m_s"] < 1.0 and sw["class"] == "stable", sw
+        assert len(sw["amplitudes_m"]) == 2 and 0.005 < sw["amplitudes_m"][0] < 0.03, sw
+        wm = rows[("wave_maker", f)]
+        assert 0 <= wm["error"] < 1 and wm["H_gauge1_m"] > 0, wm
+        db = rows[("dam_break", f)]
+        assert db["fluid"]["kernel"] == chart.FORMULATIONS[f]["fluid.kernel"] and db["front_points_late"] > 0
+        assert abs(db["front_bias_late"]) < 1 and db["error"] == abs(db["front_bias_late"]), db
+    # the kernel choice shows: the old default damps the wave more than Wendland at 3 spacings
+    assert rows[("standing_wave", "old-default")]["decay_per_period"] > rows[("standing_wave", "wendland-3")]["decay_per_period"]
+    res = {"suite": "quick", "device": "cpu", "device_name": "a CPU", "date": "2026-11-24", "commit": "x", "chart": part}
+    md = report.markdown(res)
+    blown = dict(rows[("standing_wave", "old-default")], max_speed_m_s=20.0)
+    assert chart.health_class(blown)[0] == "blown_up"
+    assert "| standing_wave | wendland-3 | 6 /depth |" in md and "skipped: dam_break, not-yet: fluid.no_such_key" in md
+    paths = report.charts(res, "smoke", tmp_path)
+    assert (tmp_path / "smoke-chart.png").stat().st_size > 0 and any(p.endswith("smoke-chart.png") for p in paths)
+    merged = chart.merge(part, {"rows": [dict(rows[("dam_break", "old-default")], error=0.5)], "skipped": []})
+    assert len(merged["rows"]) == len(part["rows"]) and [r["error"] for r in merged["rows"] if r["case"] == "dam_break"
+                                                          and r["formulation"] == "old-default"] == [0.5]
