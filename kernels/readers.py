@@ -1,47 +1,122 @@
-"""Gauge kernels, launched by rockwave/readers.py (Gauges): free-surface height and pressure probes
-evaluated on the device from the current state; one host read returns every gauge's value."""
+"""Gauge kernels, launched by rockwave/readers.py (Gauges): water-level and pressure probes evaluated on
+the device from the current state; one host read returns every gauge's value."""
 
 import warp as wp
 
 from rockwave.kernels.fluid import SPHParams, kernel_w
 
+# A sample whose open (non-solid) fraction 1 - phi_s is below this is inside a wall: not water.
+SOLID_CUTOFF = wp.constant(0.2)
+
+
+@wp.func
+def line_add(xj: wp.vec3, vol: float, origin: wp.vec3, up: int, z0: float, dz: float, p: SPHParams,
+             prof: wp.array2d(dtype=float), g: int):
+    """Add V_j W(|x(z_k) - x_j|) to prof[g, k] at the samples z_k = z0 + k dz of the vertical line through
+    origin that lie within the support H of x_j (nothing when x_j is H or more from the line)."""
+    d = xj - origin
+    zj = xj[up]
+    d[up] = 0.0
+    h2 = wp.length_sq(d)
+    hh = p.H * p.H
+    if h2 >= hh:
+        return
+    reach = wp.sqrt(hh - h2)
+    n = prof.shape[1]
+    k0 = wp.max(int(wp.ceil((zj - reach - z0) / dz)), 0)
+    k1 = wp.min(int(wp.floor((zj + reach - z0) / dz)), n - 1)
+    for k in range(k0, k1 + 1):
+        e = z0 + float(k) * dz - zj
+        wp.atomic_add(prof, g, k, vol * kernel_w(h2 + e * e, p))
+
 
 @wp.kernel
-def gauge_height(
+def gauge_fluid_profile(
     x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
     gauge_pos: wp.array(dtype=wp.vec3),
+    is_height: wp.array(dtype=int),
     up: int,
-    radius: float,
-    cell: float,
-    m: int,
-    top: wp.array2d(dtype=float),
+    z0: float,
+    dz: float,
+    p: SPHParams,
+    prof: wp.array2d(dtype=float),
 ):
-    """Column tops for the free-surface gauges (launched over fluid particles x gauges).
+    """The fluid fraction phi_f(z_k) = sum_j V_j W(|x(z_k) - x_j|), V_j = m_j / rho_j, sampled along each
+    height gauge's vertical line (launched over fluid particles x gauges; particles H or more from the
+    line add nothing)."""
+    j, g = wp.tid()
+    if is_height[g] == 0:
+        return
+    line_add(x[j], particle_mass[j] / rho[j], gauge_pos[g], up, z0, dz, p, prof, g)
 
-    Around each gauge's vertical line the horizontal plane is cut into square columns of width `cell`
-    on a (2m)^2 grid centred on the line (2D, up == 1: one row of 2m columns); the columns whose centre
-    lies within `radius` of the line are used whole (no slivers: a clipped column would see only part of
-    its particles and read low). top[g, c] is the highest up-coordinate of the fluid particles in column c
-    (-1e30 where it holds none); gauge_median reduces them to one reading."""
-    i, g = wp.tid()
-    d = x[i] - gauge_pos[g]
-    a0 = int(0)
-    a1 = int(2)
-    if up == 0:
-        a0 = 1
-    elif up == 2:
-        a1 = 1
-    n2 = 2 * m
-    ca = int(wp.floor(d[a0] / cell)) + m
-    cb = m
-    oa = (float(ca - m) + 0.5) * cell
-    ob = float(0.0)
-    if up != 1:
-        cb = int(wp.floor(d[a1] / cell)) + m
-        ob = (float(cb - m) + 0.5) * cell
-    if ca >= 0 and ca < n2 and cb >= 0 and cb < n2:
-        if oa * oa + ob * ob < radius * radius:
-            wp.atomic_max(top, g, ca * n2 + cb, x[i][up])
+
+@wp.kernel
+def gauge_solid_profile(
+    x: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    offset: int,
+    gauge_pos: wp.array(dtype=wp.vec3),
+    is_height: wp.array(dtype=int),
+    up: int,
+    z0: float,
+    dz: float,
+    p: SPHParams,
+    prof: wp.array2d(dtype=float),
+):
+    """The solid fraction phi_s(z_k) = sum_b V_b W of the (static) boundary particles, V_b = Psi_b / rho0,
+    along each height gauge's line (launched once over boundary particles x gauges; x holds the boundary
+    particles, particle_mass the fluid's first: offset = n_fluid)."""
+    b, g = wp.tid()
+    if is_height[g] == 0:
+        return
+    line_add(x[b], particle_mass[offset + b] / p.rest_density, gauge_pos[g], up, z0, dz, p, prof, g)
+
+
+@wp.func
+def water_fraction(fluid: wp.array2d(dtype=float), solid: wp.array2d(dtype=float), g: int, k: int) -> float:
+    """phi_f / (1 - phi_s): the water's share of the space that is not wall (phi_f where there is no wall;
+    next to a wall, whose particles take part of the kernel support, bulk water still reads 1); 0 inside a wall."""
+    open_ = 1.0 - solid[g, k]
+    if open_ < SOLID_CUTOFF:
+        return 0.0
+    return fluid[g, k] / open_
+
+
+@wp.kernel
+def gauge_level(
+    fluid: wp.array2d(dtype=float),
+    solid: wp.array2d(dtype=float),
+    is_height: wp.array(dtype=int),
+    z0: float,
+    dz: float,
+    out: wp.array(dtype=float),
+):
+    """The top of the continuous water column of each height gauge (one thread per gauge): going up the
+    samples from the line's lower end, the bed is the first sample whose water fraction reaches 0.5 and
+    the reading is the first crossing back below 0.5 above it, linearly interpolated between the two
+    samples; water overhead beyond it (spray, a jet) does not count. NaN when the fraction never
+    reaches 0.5 (dry); the line's upper end when it never drops below it again."""
+    g = wp.tid()
+    if is_height[g] == 0:
+        return
+    n = fluid.shape[1]
+    wet = int(0)
+    prev = float(0.0)
+    for k in range(n):
+        f = water_fraction(fluid, solid, g, k)
+        if wet == 0:
+            if f >= 0.5:
+                wet = 1
+        elif f < 0.5:
+            out[g] = z0 + (float(k - 1) + (prev - 0.5) / (prev - f)) * dz
+            return
+        prev = f
+    if wet == 0:
+        out[g] = wp.nan
+    else:
+        out[g] = z0 + float(n - 1) * dz
 
 
 @wp.kernel
@@ -72,43 +147,3 @@ def gauge_pressure(sums: wp.array2d(dtype=float), out: wp.array(dtype=float)):
         out[g] = sums[g, 0] / sums[g, 1]
     else:
         out[g] = 0.0
-
-
-@wp.kernel
-def gauge_median(top: wp.array2d(dtype=float), is_height: wp.array(dtype=int), out: wp.array(dtype=float)):
-    """Median of the wet column tops of each height gauge (top > -1e29; NaN when none is wet), as
-    numpy.median: the mean of the two middle values for an even count. One thread per gauge
-    (a few dozen columns: rank counting, no sort)."""
-    g = wp.tid()
-    if is_height[g] == 0:
-        return
-    n = top.shape[1]
-    k = int(0)
-    for c in range(n):
-        if top[g, c] > -1.0e29:
-            k += 1
-    if k == 0:
-        out[g] = wp.nan
-        return
-    lo_rank = (k - 1) / 2
-    hi_rank = k / 2
-    a = float(0.0)
-    b = float(0.0)
-    for c in range(n):
-        v = top[g, c]
-        if v > -1.0e29:
-            below = int(0)
-            equal = int(0)
-            for e in range(n):
-                u = top[g, e]
-                if u > -1.0e29:
-                    if u < v:
-                        below += 1
-                    elif u == v:
-                        equal += 1
-            # v holds ranks below .. below + equal - 1
-            if lo_rank >= below and lo_rank < below + equal:
-                a = v
-            if hi_rank >= below and hi_rank < below + equal:
-                b = v
-    out[g] = (a + b) * 0.5
