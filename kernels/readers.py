@@ -91,32 +91,55 @@ def gauge_level(
     is_height: wp.array(dtype=int),
     z0: float,
     dz: float,
+    reach: int,
     out: wp.array(dtype=float),
 ):
-    """The top of the continuous water column of each height gauge (one thread per gauge): going up the
-    samples from the line's lower end, the bed is the first sample whose water fraction reaches 0.5 and
-    the reading is the first crossing back below 0.5 above it, linearly interpolated between the two
-    samples; water overhead beyond it (spray, a jet) does not count. NaN when the fraction never
-    reaches 0.5 (dry); the line's upper end when it never drops below it again."""
+    """The top of the continuous water column of each height gauge (one thread per gauge). Going up the
+    samples from the line's lower end: the bed is the lowest sample not inside a wall; the column starts
+    where the water fraction first reaches 0.5, which must be within `reach` samples of the bed (else the
+    water on the line rests on nothing: a jet or spray over a dry bed); the reading is the first crossing
+    back below 0.5 above it, linearly interpolated between the two samples; water overhead beyond it does
+    not count. A wall within `reach` above that crossing (water under a beach, a shelf) starts a new bed:
+    the column may go on above it. NaN when dry; the line's upper end when the fraction never drops
+    below 0.5 again."""
     g = wp.tid()
     if is_height[g] == 0:
         return
     n = fluid.shape[1]
+    level = float(wp.nan)
+    bed = int(-1)
     wet = int(0)
+    top = int(-1)  # the sample of the last crossing (-1: none yet)
     prev = float(0.0)
     for k in range(n):
         f = water_fraction(fluid, solid, g, k)
-        if wet == 0:
-            if f >= 0.5:
-                wet = 1
-        elif f < 0.5:
-            out[g] = z0 + (float(k - 1) + (prev - 0.5) / (prev - f)) * dz
+        inside = 1.0 - solid[g, k] < SOLID_CUTOFF
+        if inside:
+            bed = -1  # inside a wall: the bed is above
+            wet = 0
+            top = -1  # a wall on top of the column: it may go on above the wall
+        elif bed < 0:
+            bed = k
+        if top >= 0 and k - top > reach:
+            out[g] = level  # air above the column and no wall: done
             return
+        if not inside:
+            if wet == 0:
+                if f >= 0.5:
+                    if bed >= n or k - bed > reach:
+                        out[g] = level  # water resting on nothing (or overhead, with air between)
+                        return
+                    wet = 1
+                    top = -1
+            elif f < 0.5:
+                level = z0 + (float(k - 1) + (prev - 0.5) / (prev - f)) * dz
+                wet = 0
+                top = k
+                bed = 2 * n  # no new bed in the air: only above a wall
         prev = f
-    if wet == 0:
-        out[g] = wp.nan
-    else:
-        out[g] = z0 + float(n - 1) * dz
+    if wet == 1:
+        level = z0 + float(n - 1) * dz
+    out[g] = level
 
 
 @wp.kernel

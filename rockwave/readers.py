@@ -45,13 +45,15 @@ class Gauges:
     where it next drops below 0.5, linearly interpolated between the two samples. Water overhead with air
     between (spray, a jet, a splash) does not count; a film too thin to reach phi = 0.5 (about one particle
     layer) reads dry. NaN when dry. Still water whose top particle layer is at z_top reads z_top + s/2.
-    A DDA block is no boundary particle: a block across the line ends the column at its underside.
+    The column must start within 2H of the bed, the lowest point of the line not inside a wall (boundary
+    particles, or a fixed DDA block: a floor, beach or wall of blocks); water on the line that rests on
+    nothing (a jet over a dry bed) reads NaN. A moving block across the line ends the column at its underside.
     A 'pressure' gauge is the Shepard-normalised SPH interpolation of the pressure at its position [Pa].
     """
 
     MAX_SAMPLES = 1 << 16  # per gauge line; the step grows past s/8 only for a domain 8192 spacings tall
 
-    def __init__(self, scene, fluid, device):
+    def __init__(self, scene, fluid, device, blocks=None, block_state=None):
         g = scene.output.gauges
         self.names = [gg.name for gg in g]
         self.fluid = fluid
@@ -65,6 +67,9 @@ class Gauges:
         top = hi + (hi - lo)  # one domain height above: a column running up a wall or overtopping it
         self.dz = max(fluid.spacing / 8.0, (top - lo) / (self.MAX_SAMPLES - 1))
         self.z0 = lo
+        # the water must reach phi = 0.5 within 2H of the bed (the lowest point of the line not inside a wall):
+        # water on a dry bed sits there within ~H/2, while the bottom of the line is H below the lowest particle
+        self.reach = int(math.ceil(2.0 * fluid.support_radius / self.dz))
         self.n_samples = int(math.ceil((top - lo) / self.dz)) + 1 if any(heights) else 1
         rows = max(n, 1)
         self.phi_f = wp.zeros((rows, self.n_samples), dtype=float, device=device)
@@ -75,12 +80,33 @@ class Gauges:
             wp.launch(gk.gauge_solid_profile, dim=(nb, n), inputs=[xb, fluid.particle_mass, nf, self.pos, self.is_height,
                                                                    up, self.z0, self.dz, fluid.params],
                       outputs=[self.phi_s], device=device)
+        if any(heights) and blocks is not None and any(spec.kind == "fixed" for spec in blocks.specs):
+            self._add_fixed_blocks(blocks, block_state, heights)
         self.out = wp.zeros(rows, dtype=float, device=device)
         self.sums = wp.zeros((rows, 2), dtype=float, device=device)
         pinned = wp.get_device(device).is_cuda
         self.hosts = [wp.zeros(rows, dtype=float, device="cpu", pinned=pinned) for _ in range(2)]  # used in turn
         self.any_height = any(heights)
         self.device = device
+
+    def _add_fixed_blocks(self, blocks, block_state, heights) -> None:
+        """Samples inside a fixed DDA block (a floor, a beach, a wall built of blocks: no boundary particles)
+        count as wall (phi_s = 1), so the bed on such a line is the block's top (once, at start-up: fixed blocks
+        do not move)."""
+        from rockwave.coupling import block_signed_distance
+
+        z = self.z0 + self.dz * np.arange(self.n_samples)
+        pos = self.pos.numpy().astype(np.float64)
+        phi_s = self.phi_s.numpy()
+        fixed = np.array([spec.kind == "fixed" for spec in blocks.specs])
+        for gi, is_h in enumerate(heights):
+            if not is_h:
+                continue
+            pts = np.repeat(pos[gi][None, :], len(z), axis=0)
+            pts[:, self.up] = z
+            dist, which = block_signed_distance(blocks, block_state, pts)
+            phi_s[gi, (dist < 0.0) & fixed[which]] = 1.0
+        self.phi_s.assign(phi_s)
 
     def read(self, state) -> dict[str, float]:
         """The readings now (one host read for all gauges)."""
@@ -102,8 +128,8 @@ class Gauges:
             wp.launch(gk.gauge_fluid_profile, dim=(m.n_fluid, n),
                       inputs=[state.x, state.rho, m.particle_mass, self.pos, self.is_height, self.up, self.z0, self.dz,
                               m.params], outputs=[self.phi_f], device=d)
-            wp.launch(gk.gauge_level, dim=n, inputs=[self.phi_f, self.phi_s, self.is_height, self.z0, self.dz],
-                      outputs=[self.out], device=d)
+            wp.launch(gk.gauge_level, dim=n, inputs=[self.phi_f, self.phi_s, self.is_height, self.z0, self.dz,
+                                                     self.reach], outputs=[self.out], device=d)
         names = self.names
 
         def finish(vals):
@@ -154,7 +180,8 @@ class Readers:
         self._host = {}  # host buffers, two per quantity (pinned on CUDA)
         self._copied = {}  # CUDA: the event after the last copy of each quantity to the host
         self._stream = None  # CUDA: the stream of the copies to the host
-        self._gauges = Gauges(sim.scene, sim.fluid, sim.device) if sim.fluid is not None else None
+        self._gauges = (Gauges(sim.scene, sim.fluid, sim.device, getattr(sim, "blocks", None),
+                               getattr(sim, "block_state", None)) if sim.fluid is not None else None)
 
     def view(self, name: str) -> np.ndarray:
         """state.<name>[:n_fluid] (x, v, rho or pressure) in the seeded order, in the state's precision

@@ -2,7 +2,8 @@
 where the kernel-interpolated water fraction along the gauge's vertical line first drops below 0.5. Still water
 reads its level (a lattice whose top particle centres are at z_top: z_top + s/2) within 0.1 spacing, next to walls
 and in corners too; water passing overhead with air between does not move the reading (the old definition, the
-median of the column tops around the line, did); a dry line reads NaN; a tilted surface reads its local height."""
+median of the column tops around the line, did); a dry line reads NaN, also under water in the air; a tilted
+surface reads its local height."""
 
 import math
 
@@ -88,6 +89,13 @@ def test_water_passing_overhead_does_not_count():
     d["fluid"]["regions"].append({"box_min_m": [0.3, 0.08], "box_max_m": [0.34, 0.16]})  # a column on the pool
     sim = _sim(d, [_height("h", 0.15, 0.0), _height("column", 0.32, 0.0)])
     assert sim.gauges()["column"] == pytest.approx(0.16, abs=0.1 * S)
+    x = sim.state.x.numpy()  # a thin gap: the pool's top layer (0.075) lifted by 1.5 s to 0.09 over the gauge
+    lift = (np.abs(x[:, 0] - 0.15) < 0.06) & (np.abs(x[:, 1] - 0.075) < 1e-4)
+    x[lift, 1] += 1.5 * S
+    sim.state.x.assign(x)
+    assert sim.gauges()["h"] == pytest.approx(0.07, abs=0.15 * S)  # the layer below the gap is the top
+    x[lift, 1] -= 1.5 * S
+    sim.state.x.assign(x)
     new, old, blob = [], [], []
     while sim.time < 0.045:
         sim.advance(0.0025)
@@ -105,12 +113,16 @@ def test_water_passing_overhead_does_not_count():
 
 
 def test_dry_line_reads_nan_and_a_wet_one_next_to_it_reads_its_level():
-    """Water fills the left half of the tank: a gauge over the dry right half reads NaN (2D and 3D)."""
+    """Water fills the left half of the tank: a gauge over the dry right half reads NaN (2D and 3D), also with a
+    blob of water in the air above it (the water on the line rests on nothing), where the old column-top median
+    read the blob's top."""
     d = tank_2d(width=0.4, depth=0.1, height=0.3, spacing=S)
     d["fluid"]["regions"][0]["box_max_m"] = [0.2, 0.1]
-    sim = _sim(d, [_height("wet", 0.1, 0.0), _height("dry", 0.3, 0.0)])
+    d["fluid"]["regions"].append({"box_min_m": [0.32, 0.15], "box_max_m": [0.38, 0.2]})
+    sim = _sim(d, [_height("wet", 0.1, 0.0), _height("dry", 0.27, 0.0), _height("under_blob", 0.35, 0.0)])
     g = sim.gauges()
-    assert math.isnan(g["dry"])
+    assert math.isnan(g["dry"]) and math.isnan(g["under_blob"])
+    assert _column_top_median(sim, "under_blob") == pytest.approx(0.2, abs=1e-6)
     assert g["wet"] == pytest.approx(0.1, abs=0.1 * S)
     d3 = {
         "simulation": {"dimension": 3, "duration_s": 1.0},
