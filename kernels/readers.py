@@ -1,47 +1,145 @@
-"""Gauge kernels, launched by rockwave/readers.py (Gauges): free-surface height and pressure probes
-evaluated on the device from the current state; one host read returns every gauge's value."""
+"""Gauge kernels, launched by rockwave/readers.py (Gauges): water-level and pressure probes evaluated on
+the device from the current state; one host read returns every gauge's value."""
 
 import warp as wp
 
 from rockwave.kernels.fluid import SPHParams, kernel_w
 
+# A sample whose open (non-solid) fraction 1 - phi_s is below this is inside a wall: not water.
+SOLID_CUTOFF = wp.constant(0.2)
+
+
+@wp.func
+def line_add(xj: wp.vec3, vol: float, origin: wp.vec3, up: int, z0: float, dz: float, p: SPHParams,
+             prof: wp.array2d(dtype=float), g: int):
+    """Add V_j W(|x(z_k) - x_j|) to prof[g, k] at the samples z_k = z0 + k dz of the vertical line through
+    origin that lie within the support H of x_j (nothing when x_j is H or more from the line)."""
+    d = xj - origin
+    zj = xj[up]
+    d[up] = 0.0
+    h2 = wp.length_sq(d)
+    hh = p.H * p.H
+    if h2 >= hh:
+        return
+    reach = wp.sqrt(hh - h2)
+    n = prof.shape[1]
+    k0 = wp.max(int(wp.ceil((zj - reach - z0) / dz)), 0)
+    k1 = wp.min(int(wp.floor((zj + reach - z0) / dz)), n - 1)
+    for k in range(k0, k1 + 1):
+        e = z0 + float(k) * dz - zj
+        wp.atomic_add(prof, g, k, vol * kernel_w(h2 + e * e, p))
+
 
 @wp.kernel
-def gauge_height(
+def gauge_fluid_profile(
     x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
     gauge_pos: wp.array(dtype=wp.vec3),
+    is_height: wp.array(dtype=int),
     up: int,
-    radius: float,
-    cell: float,
-    m: int,
-    top: wp.array2d(dtype=float),
+    z0: float,
+    dz: float,
+    p: SPHParams,
+    prof: wp.array2d(dtype=float),
 ):
-    """Column tops for the free-surface gauges (launched over fluid particles x gauges).
+    """The fluid fraction phi_f(z_k) = sum_j V_j W(|x(z_k) - x_j|), V_j = m_j / rho_j, sampled along each
+    height gauge's vertical line (launched over fluid particles x gauges; particles H or more from the
+    line add nothing)."""
+    j, g = wp.tid()
+    if is_height[g] == 0:
+        return
+    line_add(x[j], particle_mass[j] / rho[j], gauge_pos[g], up, z0, dz, p, prof, g)
 
-    Around each gauge's vertical line the horizontal plane is cut into square columns of width `cell`
-    on a (2m)^2 grid centred on the line (2D, up == 1: one row of 2m columns); the columns whose centre
-    lies within `radius` of the line are used whole (no slivers: a clipped column would see only part of
-    its particles and read low). top[g, c] is the highest up-coordinate of the fluid particles in column c
-    (-1e30 where it holds none); gauge_median reduces them to one reading."""
-    i, g = wp.tid()
-    d = x[i] - gauge_pos[g]
-    a0 = int(0)
-    a1 = int(2)
-    if up == 0:
-        a0 = 1
-    elif up == 2:
-        a1 = 1
-    n2 = 2 * m
-    ca = int(wp.floor(d[a0] / cell)) + m
-    cb = m
-    oa = (float(ca - m) + 0.5) * cell
-    ob = float(0.0)
-    if up != 1:
-        cb = int(wp.floor(d[a1] / cell)) + m
-        ob = (float(cb - m) + 0.5) * cell
-    if ca >= 0 and ca < n2 and cb >= 0 and cb < n2:
-        if oa * oa + ob * ob < radius * radius:
-            wp.atomic_max(top, g, ca * n2 + cb, x[i][up])
+
+@wp.kernel
+def gauge_solid_profile(
+    x: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    offset: int,
+    gauge_pos: wp.array(dtype=wp.vec3),
+    is_height: wp.array(dtype=int),
+    up: int,
+    z0: float,
+    dz: float,
+    p: SPHParams,
+    prof: wp.array2d(dtype=float),
+):
+    """The solid fraction phi_s(z_k) = sum_b V_b W of the (static) boundary particles, V_b = Psi_b / rho0,
+    along each height gauge's line (launched once over boundary particles x gauges; x holds the boundary
+    particles, particle_mass the fluid's first: offset = n_fluid)."""
+    b, g = wp.tid()
+    if is_height[g] == 0:
+        return
+    line_add(x[b], particle_mass[offset + b] / p.rest_density, gauge_pos[g], up, z0, dz, p, prof, g)
+
+
+@wp.func
+def water_fraction(fluid: wp.array2d(dtype=float), solid: wp.array2d(dtype=float), g: int, k: int) -> float:
+    """phi_f / (1 - phi_s): the water's share of the space that is not wall (phi_f where there is no wall;
+    next to a wall, whose particles take part of the kernel support, bulk water still reads 1); 0 inside a wall."""
+    open_ = 1.0 - solid[g, k]
+    if open_ < SOLID_CUTOFF:
+        return 0.0
+    return fluid[g, k] / open_
+
+
+@wp.kernel
+def gauge_level(
+    fluid: wp.array2d(dtype=float),
+    solid: wp.array2d(dtype=float),
+    is_height: wp.array(dtype=int),
+    z0: float,
+    dz: float,
+    reach: int,
+    out: wp.array(dtype=float),
+):
+    """The top of the continuous water column of each height gauge (one thread per gauge). Going up the
+    samples from the line's lower end: the bed is the lowest sample not inside a wall; the column starts
+    where the water fraction first reaches 0.5, which must be within `reach` samples of the bed (else the
+    water on the line rests on nothing: a jet or spray over a dry bed); the reading is the first crossing
+    back below 0.5 above it, linearly interpolated between the two samples; water overhead beyond it does
+    not count. A wall within `reach` above that crossing (water under a beach, a shelf) starts a new bed:
+    the column may go on above it. NaN when dry; the line's upper end when the fraction never drops
+    below 0.5 again."""
+    g = wp.tid()
+    if is_height[g] == 0:
+        return
+    n = fluid.shape[1]
+    level = float(wp.nan)
+    bed = int(-1)
+    wet = int(0)
+    top = int(-1)  # the sample of the last crossing (-1: none yet)
+    prev = float(0.0)
+    for k in range(n):
+        f = water_fraction(fluid, solid, g, k)
+        inside = 1.0 - solid[g, k] < SOLID_CUTOFF
+        if inside:
+            bed = -1  # inside a wall: the bed is above
+            wet = 0
+            top = -1  # a wall on top of the column: it may go on above the wall
+        elif bed < 0:
+            bed = k
+        if top >= 0 and k - top > reach:
+            out[g] = level  # air above the column and no wall: done
+            return
+        if not inside:
+            if wet == 0:
+                if f >= 0.5:
+                    if bed >= n or k - bed > reach:
+                        out[g] = level  # water resting on nothing (or overhead, with air between)
+                        return
+                    wet = 1
+                    top = -1
+            elif f < 0.5:
+                level = z0 + (float(k - 1) + (prev - 0.5) / (prev - f)) * dz
+                wet = 0
+                top = k
+                bed = 2 * n  # no new bed in the air: only above a wall
+        prev = f
+    if wet == 1:
+        level = z0 + float(n - 1) * dz
+    out[g] = level
 
 
 @wp.kernel
@@ -134,3 +232,5 @@ def gauge_pressure_wall_sums(
         w = particle_mass[b] / p.rest_density * kernel_w(r2, p)
         wp.atomic_add(sums, g, 0, w * wall_pressure[t])
         wp.atomic_add(sums, g, 1, w)
+
+

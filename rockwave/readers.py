@@ -33,34 +33,82 @@ from rockwave.kernels import readers as gk
 class Gauges:
     """The scene's gauges (``[[output.gauges]]``) evaluated on the device.
 
-    A 'height' gauge reads the free surface over a horizontal window of the kernel support radius H
-    around its vertical line (the finest scale the SPH resolves): the plane is cut into columns one
-    particle spacing s wide, those whose centre lies within H are used (2D: 2H/s columns; 3D: 12 at
-    H = 2s), each wet column's top is its highest particle + s/2, and the reading is the median over
-    the wet columns (NaN when none is wet), so a splashed particle does not set the reading.
+    A 'height' gauge reads the top of the continuous water column from the bed along its vertical line
+    (the gauge's horizontal position; its vertical coordinate is not used). The line runs from the
+    bottom of the particle domain (below the tank floor: the lowest boundary or fluid particle less the
+    kernel support H) to one domain height above its top, sampled every s/8 (s: particle spacing). At
+    each sample z the water fraction is phi(z) = phi_f / (1 - phi_s), with phi_f = sum_j (m_j/rho_j)
+    W(|x(z) - x_j|) over the fluid particles (the scene's kernel) and phi_s the same sum over the static
+    boundary particles (volume Psi_b/rho0; computed once): away from walls phi = phi_f; next to a wall,
+    whose particles fill part of the kernel support, bulk water still reads 1; where 1 - phi_s < 0.2 (inside
+    a wall) phi = 0. Going up from the lower end, the bed is where phi first reaches 0.5 and the reading is
+    where it next drops below 0.5, linearly interpolated between the two samples. Water overhead with air
+    between (spray, a jet, a splash) does not count; a film too thin to reach phi = 0.5 (about one particle
+    layer) reads dry. NaN when dry. Still water whose top particle layer is at z_top reads z_top + s/2.
+    The column must start within 2H of the bed, the lowest point of the line not inside a wall (boundary
+    particles, or a fixed DDA block: a floor, beach or wall of blocks); water on the line that rests on
+    nothing (a jet over a dry bed) reads NaN. A moving block across the line ends the column at its underside.
     A 'pressure' gauge is the Shepard-normalised SPH interpolation of the pressure at its position [Pa], over
     the fluid particles and, with Adami walls, the wall particles (whose pressure continues the fluid's), so a
     sensor placed on a wall surface reads the wall pressure there.
     """
 
-    def __init__(self, scene, fluid, device):
+    MAX_SAMPLES = 1 << 16  # per gauge line; the step grows past s/8 only for a domain 8192 spacings tall
+
+    def __init__(self, scene, fluid, device, blocks=None, block_state=None):
         g = scene.output.gauges
         self.names = [gg.name for gg in g]
         self.fluid = fluid
-        self.up = scene.dim - 1
+        self.up = up = scene.dim - 1
         n = len(g)
-        self.cols = max(1, int(math.ceil(fluid.support_radius / fluid.spacing - 1e-6)))
         self.pos = wp.array(np.asarray([pad3(gg.position_m) for gg in g] or np.zeros((0, 3)), dtype=np.float32),
                             dtype=wp.vec3, device=device)
-        self.is_height = wp.array(np.array([gg.kind == "height" for gg in g] or [0], dtype=np.int32), dtype=int,
-                                  device=device)
-        self.top = wp.zeros((max(n, 1), 4 * self.cols * self.cols), dtype=float, device=device)
-        self.out = wp.zeros(max(n, 1), dtype=float, device=device)
-        self.sums = wp.zeros((max(n, 1), 2), dtype=float, device=device)
+        heights = [gg.kind == "height" for gg in g]
+        self.is_height = wp.array(np.array(heights or [0], dtype=np.int32), dtype=int, device=device)
+        lo, hi = float(fluid.domain_lo[up]), float(fluid.domain_hi[up])
+        top = hi + (hi - lo)  # one domain height above: a column running up a wall or overtopping it
+        self.dz = max(fluid.spacing / 8.0, (top - lo) / (self.MAX_SAMPLES - 1))
+        self.z0 = lo
+        # the water must reach phi = 0.5 within 2H of the bed (the lowest point of the line not inside a wall):
+        # water on a dry bed sits there within ~H/2, while the bottom of the line is H below the lowest particle
+        self.reach = int(math.ceil(2.0 * fluid.support_radius / self.dz))
+        self.n_samples = int(math.ceil((top - lo) / self.dz)) + 1 if any(heights) else 1
+        rows = max(n, 1)
+        self.phi_f = wp.zeros((rows, self.n_samples), dtype=float, device=device)
+        self.phi_s = wp.zeros((rows, self.n_samples), dtype=float, device=device)
+        nf, nb = fluid.n_fluid, fluid.n_boundary
+        if any(heights) and nb:  # the walls are static: their fraction along the lines once
+            xb = wp.array(np.asarray(fluid.initial_positions[nf:nf + nb], dtype=np.float32), dtype=wp.vec3, device=device)
+            wp.launch(gk.gauge_solid_profile, dim=(nb, n), inputs=[xb, fluid.particle_mass, nf, self.pos, self.is_height,
+                                                                   up, self.z0, self.dz, fluid.params],
+                      outputs=[self.phi_s], device=device)
+        if any(heights) and blocks is not None and any(spec.kind == "fixed" for spec in blocks.specs):
+            self._add_fixed_blocks(blocks, block_state, heights)
+        self.out = wp.zeros(rows, dtype=float, device=device)
+        self.sums = wp.zeros((rows, 2), dtype=float, device=device)
         pinned = wp.get_device(device).is_cuda
-        self.hosts = [wp.zeros(max(n, 1), dtype=float, device="cpu", pinned=pinned) for _ in range(2)]  # used in turn
-        self.heights = np.array([gg.kind == "height" for gg in g], dtype=bool)
+        self.hosts = [wp.zeros(rows, dtype=float, device="cpu", pinned=pinned) for _ in range(2)]  # used in turn
+        self.any_height = any(heights)
         self.device = device
+
+    def _add_fixed_blocks(self, blocks, block_state, heights) -> None:
+        """Samples inside a fixed DDA block (a floor, a beach, a wall built of blocks: no boundary particles)
+        count as wall (phi_s = 1), so the bed on such a line is the block's top (once, at start-up: fixed blocks
+        do not move)."""
+        from rockwave.coupling import block_signed_distance
+
+        z = self.z0 + self.dz * np.arange(self.n_samples)
+        pos = self.pos.numpy().astype(np.float64)
+        phi_s = self.phi_s.numpy()
+        fixed = np.array([spec.kind == "fixed" for spec in blocks.specs])
+        for gi, is_h in enumerate(heights):
+            if not is_h:
+                continue
+            pts = np.repeat(pos[gi][None, :], len(z), axis=0)
+            pts[:, self.up] = z
+            dist, which = block_signed_distance(blocks, block_state, pts)
+            phi_s[gi, (dist < 0.0) & fixed[which]] = 1.0
+        self.phi_s.assign(phi_s)
 
     def read(self, state) -> dict[str, float]:
         """The readings now (one host read for all gauges)."""
@@ -73,25 +121,34 @@ class Gauges:
         if n == 0 or m.n_fluid == 0:
             return PendingRead(None, None, lambda a: {})
         d = self.device
-        self.top.fill_(-1.0e30)
         self.sums.zero_()
-        wp.launch(gk.gauge_height, dim=(m.n_fluid, n), inputs=[state.x, self.pos, self.up, m.support_radius, m.spacing,
-                                                              self.cols], outputs=[self.top], device=d)
         wp.launch(gk.gauge_pressure_sums, dim=(m.n_fluid, n), inputs=[state.x, state.rho, state.pressure, m.particle_mass,
                                                                      self.pos, m.params], outputs=[self.sums], device=d)
         if m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary:  # Adami walls carry the fluid's pressure
             wp.launch(gk.gauge_pressure_wall_sums, dim=(m.n_boundary, n),
                       inputs=[state.x, state.wall_pressure, m.particle_mass, self.pos, m.params], outputs=[self.sums], device=d)
         wp.launch(gk.gauge_pressure, dim=n, inputs=[self.sums], outputs=[self.out], device=d)
-        wp.launch(gk.gauge_median, dim=n, inputs=[self.top, self.is_height], outputs=[self.out], device=d)
-        half = 0.5 * m.spacing
-        names, heights = self.names, self.heights
+        if self.any_height:
+            self.phi_f.zero_()
+            wp.launch(gk.gauge_fluid_profile, dim=(m.n_fluid, n),
+                      inputs=[state.x, state.rho, m.particle_mass, self.pos, self.is_height, self.up, self.z0, self.dz,
+                              m.params], outputs=[self.phi_f], device=d)
+            wp.launch(gk.gauge_level, dim=n, inputs=[self.phi_f, self.phi_s, self.is_height, self.z0, self.dz,
+                                                     self.reach], outputs=[self.out], device=d)
+        names = self.names
 
         def finish(vals):
-            return {name: float(vals[i]) + (half if heights[i] else 0.0) for i, name in enumerate(names)}
+            return {name: float(vals[i]) for i, name in enumerate(names)}
 
         self.hosts.reverse()
         return _queue_copy(self.hosts[0], self.out, n, d, finish)
+
+    def profiles(self, state) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(z, phi_f, phi_s) along the height gauges' lines now (host copies; rows in gauge order): for
+        inspecting a reading."""
+        self.read(state)
+        z = self.z0 + self.dz * np.arange(self.n_samples)
+        return z, self.phi_f.numpy().copy(), self.phi_s.numpy().copy()
 
 
 class PendingRead:
@@ -128,7 +185,8 @@ class Readers:
         self._host = {}  # host buffers, two per quantity (pinned on CUDA)
         self._copied = {}  # CUDA: the event after the last copy of each quantity to the host
         self._stream = None  # CUDA: the stream of the copies to the host
-        self._gauges = Gauges(sim.scene, sim.fluid, sim.device) if sim.fluid is not None else None
+        self._gauges = (Gauges(sim.scene, sim.fluid, sim.device, getattr(sim, "blocks", None),
+                               getattr(sim, "block_state", None)) if sim.fluid is not None else None)
 
     def view(self, name: str) -> np.ndarray:
         """state.<name>[:n_fluid] (x, v, rho or pressure) in the seeded order, in the state's precision

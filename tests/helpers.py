@@ -64,3 +64,57 @@ def _toml_value(v) -> str:
 def to_toml(d: dict) -> str:
     """A scene dict as TOML text (inline tables; NaN and inf as TOML writes them)."""
     return "".join(f"{json.dumps(k)} = {_toml_value(v)}\n" for k, v in d.items())
+
+
+def kernel_values(sim, r2: np.ndarray) -> np.ndarray:
+    """W(r) of the scene's kernel (kernels/fluid.py kernel_w, through sph.lattice_moments) at squared distances r2."""
+    import warp as wp
+
+    from rockwave.kernels import fluid as sph
+
+    pts = np.zeros((len(r2) + 1, 3), np.float32)
+    pts[1:, 0] = np.sqrt(np.asarray(r2, np.float64))
+    dev = sim.fluid.device
+    w = wp.zeros(len(pts), dtype=float, device=dev)
+    gx = wp.zeros(len(pts), dtype=float, device=dev)
+    wp.launch(sph.lattice_moments, dim=len(pts), inputs=[wp.array(pts, dtype=wp.vec3, device=dev), sim.fluid.params],
+              outputs=[w, gx], device=dev)
+    return w.numpy()[1:].astype(np.float64)
+
+
+def gauge_level_reference(sim, name: str) -> float:
+    """A height gauge from its definition (rockwave/readers.py Gauges), in numpy: the water fraction
+    phi_f / (1 - phi_s) (0 where 1 - phi_s < 0.2) on the gauge's samples, the bed where it first reaches 0.5
+    going up, the reading where it next drops below 0.5 (linear between samples); NaN when dry."""
+    g, m = sim.readers._gauges, sim.fluid
+    up, H, nf = sim.scene.dim - 1, m.support_radius, m.n_fluid
+    gg = sim.scene.output.gauges[g.names.index(name)]
+    pos = np.array(list(gg.position_m) + [0.0] * (3 - len(gg.position_m)))
+    z = g.z0 + g.dz * np.arange(g.n_samples)
+    x = sim.state.x.numpy().astype(np.float64)
+    mass = m.particle_mass.numpy().astype(np.float64)
+    vol = np.concatenate([mass[:nf] / sim.state.rho.numpy().astype(np.float64), mass[nf:] / m.params.rest_density])
+
+    def fraction(sel):
+        d = x[sel] - pos
+        h2 = (np.delete(d, up, axis=1) ** 2).sum(1)
+        near = h2 < H * H
+        zj, h2, v = x[sel][near, up], h2[near], vol[sel][near]
+        r2 = h2[None, :] + (z[:, None] - zj[None, :]) ** 2
+        w = np.zeros_like(r2)
+        inside = r2 < H * H
+        w[inside] = kernel_values(sim, r2[inside])
+        return (w * v[None, :]).sum(1)
+
+    phi_f = fraction(np.arange(nf))
+    phi_s = fraction(np.arange(nf, len(x))) if len(x) > nf else np.zeros_like(z)
+    open_ = 1.0 - phi_s
+    phi = np.where(open_ < 0.2, 0.0, phi_f / np.where(open_ < 0.2, 1.0, open_))
+    wet = np.flatnonzero(phi >= 0.5)
+    if not len(wet):
+        return float("nan")
+    above = np.flatnonzero(phi[wet[0]:] < 0.5)
+    if not len(above):
+        return float(z[-1])
+    k = wet[0] + above[0]
+    return float(z[k - 1] + (phi[k - 1] - 0.5) / (phi[k - 1] - phi[k]) * g.dz)

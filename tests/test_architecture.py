@@ -12,7 +12,7 @@ from rockwave import checkpoint
 from rockwave.scene import SceneError, load_scene, parse_scene
 
 from conftest import DEVICE
-from helpers import ROOT, tank_2d, to_toml, with_changes
+from helpers import ROOT, gauge_level_reference, tank_2d, to_toml, with_changes
 
 
 def _dam_break_3d(spacing=0.08):
@@ -67,27 +67,12 @@ def test_readers_leave_the_state_lists_and_order_untouched():
 def _gauge_reference(sim) -> dict:
     """The gauges from their definition (rockwave/readers.py Gauges), in numpy."""
     m = sim.fluid
-    x = sim.positions()
-    if x.shape[1] == 2:
-        x = np.concatenate([x, np.zeros((len(x), 1))], axis=1)
-    up = sim.scene.dim - 1
-    H, s = m.support_radius, m.spacing
-    cols = max(1, int(np.ceil(H / s - 1e-6)))
+    H = m.support_radius
     out = {}
     for gg in sim.scene.output.gauges:
         pos = np.array(list(gg.position_m) + [0.0] * (3 - len(gg.position_m)))
         if gg.kind == "height":
-            horiz = [a for a in range(3) if a != up and (sim.scene.dim == 3 or a != 2)]
-            d = x - pos
-            tops = {}
-            ci = [np.floor(d[:, a] / s).astype(int) for a in horiz]
-            centres = [(c + 0.5) * s for c in ci]
-            inside = np.all([(c >= -cols) & (c < cols) for c in ci], axis=0)
-            inside &= sum(c * c for c in centres) < H * H
-            for i in np.flatnonzero(inside):
-                key = tuple(c[i] for c in ci)
-                tops[key] = max(tops.get(key, -np.inf), np.float32(x[i, up]))
-            out[gg.name] = float(np.median(np.array(list(tops.values()), np.float32))) + 0.5 * s if tops else float("nan")
+            out[gg.name] = gauge_level_reference(sim, gg.name)
         else:
             r2 = ((sim.state.x.numpy()[: m.n_fluid].astype(np.float64) - pos) ** 2).sum(1)
             w = np.where(r2 < H * H, 1.0, 0.0)
@@ -96,8 +81,8 @@ def _gauge_reference(sim) -> dict:
 
 
 def test_gauges_on_the_device_match_their_definition():
-    """Height gauges: the median of the wet columns' tops + s/2 (numpy on the host); pressure gauges: a
-    Shepard interpolation, so within the range of the pressures of the particles in their support (how close
+    """Height gauges: the top of the continuous water column (tests/helpers.py gauge_level_reference, numpy on
+    the host); pressure gauges: a Shepard interpolation, so within the range of the pressures of the particles in their support (how close
     that is to hydrostatics is the accuracy issue's business, not the reader's)."""
     d = tank_2d(width=0.4, depth=0.2, height=0.4, spacing=0.01)
     d["output"] = {"gauges": [{"name": "h1", "kind": "height", "position_m": [0.1, 0.0]},

@@ -1,0 +1,174 @@
+"""Height gauges read water (rockwave/readers.py Gauges): the top of the continuous water column from the bed,
+where the kernel-interpolated water fraction along the gauge's vertical line first drops below 0.5. Still water
+reads its level (a lattice whose top particle centres are at z_top: z_top + s/2) within 0.1 spacing, next to walls
+and in corners too; water passing overhead with air between does not move the reading (the old definition, the
+median of the column tops around the line, did); a dry line reads NaN, also under water in the air; a tilted
+surface reads its local height."""
+
+import math
+
+import numpy as np
+import pytest
+
+import rockwave
+from rockwave.scene import parse_scene
+
+from conftest import DEVICE
+from helpers import gauge_level_reference, tank_2d
+
+S = 0.01  # particle spacing of every scene here
+
+
+def _height(name, *pos):
+    return {"name": name, "kind": "height", "position_m": list(pos)}
+
+
+def _sim(d, gauges):
+    d["output"] = {"gauges": gauges}
+    return rockwave.Simulation(parse_scene(d, "gauges.toml"), device=DEVICE)
+
+
+def _column_top_median(sim, name) -> float:
+    """The old height gauge: the plane around the line cut into columns one spacing wide, those whose centre
+    lies within H used; the median over the wet columns of their highest particle, + s/2."""
+    m, up, dim = sim.fluid, sim.scene.dim - 1, sim.scene.dim
+    gg = next(g for g in sim.scene.output.gauges if g.name == name)
+    x = sim.state.x.numpy()[: m.n_fluid].astype(np.float64)
+    pos = np.array(list(gg.position_m) + [0.0] * (3 - dim))
+    horiz = [a for a in range(dim) if a != up]
+    ci = [np.floor((x[:, a] - pos[a]) / m.spacing).astype(int) for a in horiz]
+    inside = sum(((c + 0.5) * m.spacing) ** 2 for c in ci) < m.support_radius**2
+    tops: dict = {}
+    for i in np.flatnonzero(inside):
+        key = tuple(c[i] for c in ci)
+        tops[key] = max(tops.get(key, -np.inf), x[i, up])
+    return float(np.median(list(tops.values()))) + 0.5 * m.spacing if tops else math.nan
+
+
+@pytest.mark.parametrize("kernel", ["muller", "wendland"])
+def test_still_water_2d_reads_its_level_within_a_tenth_of_a_spacing(kernel):
+    """A 2D tank 0.3 m wide, water 0.15 m deep (top particle centres at 0.145): z_top + s/2 = 0.15 within 0.1 s
+    in the middle, half a spacing from the side wall (its particles fill part of the kernel support), at the
+    wall's face, and after 0.02 s of stepping; the device matches the definition evaluated in numpy."""
+    d = tank_2d(width=0.3, depth=0.15, height=0.3, spacing=S, kernel=kernel)
+    sim = _sim(d, [_height("mid", 0.15, 0.0), _height("near_wall", 0.005, 0.0), _height("wall_face", 0.0, 0.0),
+                   _height("quarter", 0.2237, 0.0)])
+    got = sim.gauges()
+    for name, v in got.items():
+        assert abs(v - 0.15) < 0.1 * S, (name, (v - 0.15) / S)
+        assert v == pytest.approx(gauge_level_reference(sim, name), abs=1e-3 * S), name
+    sim.advance(0.02)
+    x = sim.positions()
+    for name, v in sim.gauges().items():
+        top = x[np.abs(x[:, 0] - 0.15) < 0.1, 1].max() + 0.5 * S  # the settled top layer (it sinks a little)
+        assert abs(v - top) < 0.2 * S, (name, (v - top) / S)
+
+
+def test_still_water_3d_reads_its_level_within_a_tenth_of_a_spacing():
+    """A 3D tank 0.1 x 0.1 m, water 0.06 m deep: 0.06 within 0.1 s in the middle, next to one wall, in a
+    corner (two walls) and off the lattice's lines."""
+    d = {
+        "simulation": {"dimension": 3, "duration_s": 1.0},
+        "fluid": {"spacing_m": S, "eos": {"speed_of_sound_m_s": 20.0}, "viscosity": {"artificial_alpha": 0.3},
+                  "regions": [{"box_min_m": [0.0, 0.0, 0.0], "box_max_m": [0.1, 0.1, 0.06]}]},
+        "tank": {"box_min_m": [0.0, 0.0, 0.0], "box_max_m": [0.1, 0.1, 0.12]},
+    }
+    sim = _sim(d, [_height("mid", 0.05, 0.05, 0.0), _height("wall", 0.003, 0.05, 0.0),
+                   _height("corner", 0.004, 0.004, 0.0), _height("off", 0.0713, 0.0391, 0.0)])
+    for name, v in sim.gauges().items():
+        assert abs(v - 0.06) < 0.1 * S, (name, (v - 0.06) / S)
+    assert sim.gauges()["mid"] == pytest.approx(gauge_level_reference(sim, "mid"), abs=1e-3 * S)
+
+
+def test_water_passing_overhead_does_not_count():
+    """A blob of water flying at 3 m/s through the air 0.12 m above a 0.08 m deep pool passes over the gauge:
+    the old column-top median jumps to the blob's top while the blob covers most of its columns; the water gauge stays at the pool's level.
+    A column standing on the pool (no air between) does count."""
+    d = tank_2d(width=0.4, depth=0.08, height=0.4, spacing=S)
+    d["fluid"]["regions"].append({"box_min_m": [0.02, 0.2], "box_max_m": [0.07, 0.24], "velocity_m_s": [3.0, 0.0]})
+    d["fluid"]["regions"].append({"box_min_m": [0.3, 0.08], "box_max_m": [0.34, 0.16]})  # a column on the pool
+    sim = _sim(d, [_height("h", 0.15, 0.0), _height("column", 0.32, 0.0)])
+    assert sim.gauges()["column"] == pytest.approx(0.16, abs=0.1 * S)
+    x = sim.state.x.numpy()  # a thin gap: the pool's top layer (0.075) lifted by 1.5 s to 0.09 over the gauge
+    lift = (np.abs(x[:, 0] - 0.15) < 0.06) & (np.abs(x[:, 1] - 0.075) < 1e-4)
+    x[lift, 1] += 1.5 * S
+    sim.state.x.assign(x)
+    assert sim.gauges()["h"] == pytest.approx(0.07, abs=0.15 * S)  # the layer below the gap is the top
+    x[lift, 1] -= 1.5 * S
+    sim.state.x.assign(x)
+    new, old, blob = [], [], []
+    while sim.time < 0.045:
+        sim.advance(0.0025)
+        x = sim.positions()
+        b = x[:, 1] > 0.15
+        g = sim.gauges()
+        new.append(g["h"])
+        old.append(_column_top_median(sim, "h"))
+        blob.append(abs(x[b, 0].mean() - 0.15) < 0.02)
+    new, old, blob = map(np.asarray, (new, old, blob))
+    assert blob.sum() >= 3, "the blob passed over the gauge"
+    assert old[blob].max() > 0.2, old  # the old definition reads the blob's top (0.24 m) while it covers the line
+    assert np.all(np.abs(new - 0.08) < 0.25 * S), (new - 0.08) / S  # the pool's level (it settles a little)
+    assert np.all(np.abs(new[blob] - new[~blob].mean()) < 0.1 * S)
+
+
+def test_dry_line_reads_nan_and_a_wet_one_next_to_it_reads_its_level():
+    """Water fills the left half of the tank: a gauge over the dry right half reads NaN (2D and 3D), also with a
+    blob of water in the air above it (the water on the line rests on nothing), where the old column-top median
+    read the blob's top."""
+    d = tank_2d(width=0.4, depth=0.1, height=0.3, spacing=S)
+    d["fluid"]["regions"][0]["box_max_m"] = [0.2, 0.1]
+    d["fluid"]["regions"].append({"box_min_m": [0.32, 0.15], "box_max_m": [0.38, 0.2]})
+    sim = _sim(d, [_height("wet", 0.1, 0.0), _height("dry", 0.27, 0.0), _height("under_blob", 0.35, 0.0)])
+    g = sim.gauges()
+    assert math.isnan(g["dry"]) and math.isnan(g["under_blob"])
+    assert _column_top_median(sim, "under_blob") == pytest.approx(0.2, abs=1e-6)
+    assert g["wet"] == pytest.approx(0.1, abs=0.1 * S)
+    d3 = {
+        "simulation": {"dimension": 3, "duration_s": 1.0},
+        "fluid": {"spacing_m": S, "eos": {"speed_of_sound_m_s": 20.0},
+                  "regions": [{"box_min_m": [0.0, 0.0, 0.0], "box_max_m": [0.04, 0.04, 0.04]}]},
+        "tank": {"box_min_m": [0.0, 0.0, 0.0], "box_max_m": [0.12, 0.04, 0.08]},
+    }
+    sim3 = _sim(d3, [_height("dry", 0.1, 0.02, 0.0), _height("wet", 0.02, 0.02, 0.0)])
+    g3 = sim3.gauges()
+    assert math.isnan(g3["dry"]) and g3["wet"] == pytest.approx(0.04, abs=0.1 * S)
+
+
+def test_tilted_surface_reads_the_local_level():
+    """The fluid particles placed on a lattice tilted by 8 degrees (top layer half a spacing below the plane
+    z = 0.12 + tan 8deg (x - 0.2)); the others parked far away. Each gauge reads the plane's height at its x
+    within 0.1 s, so the readings differ by the slope times their distance."""
+    d = tank_2d(width=0.4, depth=0.2, height=0.4, spacing=S)
+    gx = [0.1, 0.2, 0.3, 0.02]
+    sim = _sim(d, [_height(f"g{i}", x, 0.0) for i, x in enumerate(gx)])
+    th = math.radians(8.0)
+    t, n = np.array([math.cos(th), math.sin(th)]), np.array([-math.sin(th), math.cos(th)])
+    i, j = np.meshgrid(np.arange(-40, 41), np.arange(0, 30), indexing="ij")
+    p = np.array([0.2, 0.12]) + np.outer(i.ravel() * S, t) - np.outer((j.ravel() + 0.5) * S, n)
+    p = p[(p[:, 0] > 0.5 * S - 1e-9) & (p[:, 0] < 0.4 - 0.5 * S) & (p[:, 1] > 0.5 * S - 1e-9)]
+    nf = sim.n_fluid
+    assert len(p) <= nf
+    x = sim.state.x.numpy()
+    x[:len(p), :2], x[:len(p), 2] = p, 0.0
+    x[len(p):nf] = [5.0, 5.0, 0.0]  # parked: more than H from every line
+    sim.state.x.assign(x)
+    sim.state.rho.fill_(sim.fluid.params.rest_density)
+    g = sim.gauges()
+    for k, xg in enumerate(gx):
+        want = 0.12 + math.tan(th) * (xg - 0.2)
+        assert abs(g[f"g{k}"] - want) < 0.1 * S, (xg, (g[f"g{k}"] - want) / S)
+    assert g["g2"] - g["g0"] == pytest.approx(0.2 * math.tan(th), abs=0.1 * S)
+
+
+def test_gauges_async_and_profiles():
+    """gauges_async() gives what gauges() gives; Gauges.profiles() shows the water fraction ~1 in the bulk
+    (poly6 at H = 2 s, midway between lattice columns: 0.972-0.985)."""
+    d = tank_2d(width=0.2, depth=0.1, height=0.2, spacing=S)
+    sim = _sim(d, [_height("h", 0.1, 0.0), {"name": "p", "kind": "pressure", "position_m": [0.1, 0.05]}])
+    pending = sim.readers.gauges_async()
+    assert pending.result() == sim.gauges()
+    z, phi_f, phi_s = sim.readers._gauges.profiles(sim.state)
+    bulk = (z > 0.03) & (z < 0.07)
+    assert np.all(np.abs(phi_f[0, bulk] / (1 - phi_s[0, bulk]) - 1.0) < 0.05)  # the lattice ripple off its points: -2 to -3%
+    assert np.all(phi_f[0, z > 0.1 + 2 * S] == 0.0)
