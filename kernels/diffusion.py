@@ -6,7 +6,9 @@ Molteni & Colagrossi (2009) added to the continuity equation
 
     d rho_i/dt += delta h c0 sum_j psi_ij . grad_i W_ij V_j,   psi_ij = 2 (rho_j - rho_i) (x_j - x_i)/|x_ij|^2,
 
-V_j = m_j/rho_j, h = H/2: a Laplacian of the density that damps the particle-scale density (pressure) noise
+V_j = m_j/rho0 (not m_j/rho_j: a splash particle's continuity density falls far below rho0, 300 kg/m^3 in
+SPHERIC Test 2, and with m_j/rho_j its neighbours' diffusion then grew without bound and drove densities
+negative: the coupled run blew up), h = H/2: a Laplacian of the density that damps the particle-scale density (pressure) noise
 of continuity-density WCSPH and leaves the smooth field alone (its size is delta h c0, delta ~ 0.1;
 Antuono et al. 2010). In a column of water at rest this diffuses the hydrostatic density gradient (truncated
 kernels at the free surface and walls turn it into a net flux); so, as Fourtakas et al. (2019, the
@@ -32,7 +34,7 @@ def density_diffusion_rate(
     delta: float,
     out: wp.array(dtype=float),
 ):
-    """out_i = delta h c0 sum_j 2 (rho_j - rho_i - rho0 g.(x_j - x_i)/c0^2) ((x_j - x_i) . grad_i W_ij)/|x_ij|^2 m/rho_j
+    """out_i = delta h c0 sum_j 2 (rho_j - rho_i - rho0 g.(x_j - x_i)/c0^2) ((x_j - x_i) . grad_i W_ij)/|x_ij|^2 m/rho0
     over the neighbour list (pairs at r >= H skipped; a particle whose list overflowed gets 0)."""
     i = wp.tid()
     n = count.shape[0]
@@ -53,7 +55,7 @@ def density_diffusion_rate(
             if r2 < H2 and r2 > 0.0:
                 g = kernel_grad(-xji, wp.sqrt(r2), p)
                 drho = rho[j] - ri - p.rest_density * wp.dot(p.gravity, xji) / c2
-                s += 2.0 * drho * wp.dot(xji, g) / r2 * (p.fluid_mass / rho[j])
+                s += 2.0 * drho * wp.dot(xji, g) / r2 * (p.fluid_mass / p.rest_density)
     out[i] = delta * 0.5 * p.H * p.sound_speed * s
 
 

@@ -86,10 +86,12 @@ _REGION_KEYS = dict(
 
 # fluid.fidelity -> the defaults it gives (a key the scene sets wins). Chosen from the accuracy-against-cost
 # measurements in docs/notes.md ('Accuracy against cost'); 'draft' is the formulation that was the default before.
+# No level turns on density diffusion: with it SPHERIC Test 2 at 0.012 m blew up after the impact on the H100
+# (its step fell from 1e-4 to 1e-6 s by t = 0.85 s) and it changed the standing wave's decay by 0.2 points only.
 FIDELITY = {
     "draft": dict(kernel="muller", support_radius_ratio=2.0, density_diffusion=0.0, boundary="akinci", artificial_alpha=0.0),
-    "standard": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.1, boundary="adami", artificial_alpha=0.01),
-    "high": dict(kernel="wendland", support_radius_ratio=4.0, density_diffusion=0.1, boundary="adami", artificial_alpha=0.01),
+    "standard": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01),
+    "high": dict(kernel="wendland", support_radius_ratio=4.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01),
 }
 
 SCHEMA: dict[str, Key] = {
@@ -112,7 +114,7 @@ SCHEMA: dict[str, Key] = {
         "weakly compressible SPH water (leave the section out for a scene of blocks alone)", optional=True,
         spacing_m=Key("float", "initial particle spacing", required=True, min=0, min_open=True),
         rest_density_kg_m3=Key("float", "rest density rho0", default=1000.0, min=0, min_open=True),
-        fidelity=Key("str", "speed against accuracy without SPH internals: sets the defaults of kernel, support_radius_ratio, density_diffusion, boundary and viscosity.artificial_alpha (any of them given in the scene wins); 'draft': the old fast formulation (Mueller kernels at 2 spacings, frozen Akinci walls, no diffusion); 'standard': Wendland C2 at 3 spacings, delta-SPH diffusion 0.1, Adami walls, alpha 0.01; 'high': as standard at 4 spacings (docs/notes.md 'Accuracy against cost' has the measurements)", default="standard", choices=tuple(FIDELITY)),
+        fidelity=Key("str", "speed against accuracy without SPH internals: sets the defaults of kernel, support_radius_ratio, density_diffusion, boundary and viscosity.artificial_alpha (any of them given in the scene wins); 'draft': the old fast formulation (Mueller kernels at 2 spacings, frozen Akinci walls, no diffusion); 'standard': Wendland C2 at 3 spacings, Adami walls, alpha 0.01; 'high': as standard at 4 spacings (docs/notes.md 'Accuracy against cost' has the measurements)", default="standard", choices=tuple(FIDELITY)),
         kernel=Key("str", "'muller': poly6 density, spiky pressure gradient, viscosity Laplacian (Mueller 2003); 'cubic_spline': Monaghan cubic spline for all; 'wendland': Wendland C2 (no pairing instability at large support_radius_ratio) for all; h = H/2 for the last two (default: from fidelity)", choices=("muller", "cubic_spline", "wendland")),
         support_radius_ratio=Key("float", "kernel support radius / spacing (2.0 gives ~30 neighbours in 3D, ~12 in 2D; 3.0 ~113 and ~28; above 1: at 1 the nearest neighbours sit on the support's edge; default: from fidelity)", min=1.0, max=5.0, min_open=True),
         boundary=Key("str", "wall treatment of the tank and obstacle particles: 'adami': generalized wall boundary (Adami, Hu & Adams 2012), each wall particle carries the pressure extrapolated from the fluid plus the hydrostatic part, so walls and corners get the fluid's pressure (needs walls as thick as the kernel support); 'akinci': frozen particles pushing with -Psi_b p_i/rho_i^2 grad W (Akinci et al. 2012; cheaper, wall pressure ~30-70% off); default: from fidelity", choices=("adami", "akinci")),
