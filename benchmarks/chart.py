@@ -37,18 +37,15 @@ import math
 from benchmarks import harness as H
 from benchmarks.common import log
 
-# name -> dotted scene changes. "old-default" pins the formulation of the scenes before issue 19 (so it stays
-# the old one when the defaults change). To come with issue 19's formulation work:
-#   "fidelity=draft": {"fluid.fidelity": "draft"}, "fidelity=standard": {...}, "fidelity=high": {...},
-#   "wendland-3-adami": {..., "fluid.boundary": "adami"}
+# name -> dotted scene changes: the three fidelity levels (fluid.fidelity; "draft" is the formulation that was the
+# default before issue 19) and expert variants around the default.
 FORMULATIONS: dict[str, dict] = {
-    "old-default": {"fluid.kernel": "muller", "fluid.support_radius_ratio": 2.0, "fluid.density": "continuity",
-                    "fluid.density_diffusion": 0.0, "fluid.pressure_force": "momentum"},
-    "wendland-3": {"fluid.kernel": "wendland", "fluid.support_radius_ratio": 3.0},
-    "wendland-4": {"fluid.kernel": "wendland", "fluid.support_radius_ratio": 4.0},
-    "wendland-3-diffusion": {"fluid.kernel": "wendland", "fluid.support_radius_ratio": 3.0, "fluid.density": "continuity",
-                             "fluid.density_diffusion": 0.1},
-    "cubic-3": {"fluid.kernel": "cubic_spline", "fluid.support_radius_ratio": 3.0},
+    "draft": {"fluid.fidelity": "draft"},  # the old default: Mueller kernels at 2 spacings, Akinci walls
+    "standard": {"fluid.fidelity": "standard"},  # the default: Wendland C2 at 3 spacings, Adami walls
+    "high": {"fluid.fidelity": "high"},  # Wendland C2 at 4 spacings, Adami walls
+    "wendland-3-akinci": {"fluid.kernel": "wendland", "fluid.support_radius_ratio": 3.0, "fluid.boundary": "akinci"},
+    "cubic-3": {"fluid.fidelity": "standard", "fluid.kernel": "cubic_spline"},
+    "standard+diffusion": {"fluid.fidelity": "standard", "fluid.density_diffusion": 0.1},
 }
 CASES = ("standing_wave", "wave_maker", "dam_break", "spheric")
 STANDING = dict(depth=0.2, kh=0.9, mode=1, a=0.02, c0=12.0, signal="projection")  # first sloshing mode

@@ -164,7 +164,7 @@ def test_tilted_surface_reads_the_local_level():
 def test_gauges_async_and_profiles():
     """gauges_async() gives what gauges() gives; Gauges.profiles() shows the water fraction ~1 in the bulk
     (poly6 at H = 2 s, midway between lattice columns: 0.972-0.985)."""
-    d = tank_2d(width=0.2, depth=0.1, height=0.2, spacing=S)
+    d = tank_2d(width=0.2, depth=0.1, height=0.2, spacing=S, fidelity="draft")  # poly6 at H = 2 s
     sim = _sim(d, [_height("h", 0.1, 0.0), {"name": "p", "kind": "pressure", "position_m": [0.1, 0.05]}])
     pending = sim.readers.gauges_async()
     assert pending.result() == sim.gauges()

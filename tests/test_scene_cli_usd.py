@@ -103,6 +103,7 @@ duration_s = 0.05
 device = "cpu"
 [fluid]
 spacing_m = 0.01
+fidelity = "draft"
 [fluid.eos]
 speed_of_sound_m_s = 20.0
 [[fluid.regions]]

@@ -25,3 +25,17 @@ def test_standing_wave_keeps_its_amplitude_with_wendland_kernel():
     amp = standing_wave_amplitudes({"fluid.kernel": "wendland", "fluid.support_radius_ratio": 4.0}, periods=2)
     assert 0.015 < amp[0] < 0.025, amp
     assert amp[1] >= 0.75 * amp[0], amp
+
+
+def test_default_formulation_damps_the_standing_wave_far_less_than_draft():
+    """The same wave (kh = 1.5, 16 layers per depth: a CPU size), three periods. The decay per period at this
+    resolution is dominated by the kernel's smoothing of a wave 67 spacings long; measured on the CPU: default
+    (fidelity 'standard', Wendland C2 at 3 spacings, Adami walls) 14% then 9% per period, 'draft' (the old
+    default) 31% and 31%. The bound, at most 20% per period from the second period on and at most two thirds of
+    draft's, holds with margin at this resolution and fails for the old formulation; the issue's 1% per period
+    is a 50-per-depth figure, measured on the H100 (README, 'Accuracy against cost': 2.35%)."""
+    std = standing_wave_amplitudes({"fluid.fidelity": "standard"}, periods=3)
+    old = standing_wave_amplitudes({"fluid.fidelity": "draft"}, periods=3)
+    decay = lambda a: 1.0 - a[2] / a[1]  # noqa: E731 (the first period holds the start-up transient)
+    assert decay(std) < 0.20, std
+    assert decay(std) < (2.0 / 3.0) * decay(old), (std, old)
