@@ -27,6 +27,10 @@ MOTION_TABLE = wp.constant(2)
 
 MAX_CONTACTS = 16  # contact points kept per pair (host side constant)
 K_MAX = wp.constant(MAX_CONTACTS)
+# damping ratio of the shear dashpot of a stuck contact point: overdamped, so a suddenly loaded stuck
+# spring settles without overshoot (critical damping overshoots the load by 13%, more than a small
+# friction margin); the dashpot only ever takes the Coulomb capacity the spring leaves (narrow_phase)
+ZETA_STUCK = wp.constant(4.0)
 MAX_VALENCE = wp.constant(64)  # cap on half-edge walks around one vertex
 FCP_MAX_ITER = wp.constant(10)  # Nezami et al.: "usually very small" number of iterations
 SAT_EDGE_PAIRS = wp.constant(2048)  # overlap check over all edge pairs only below this E_A * E_B
@@ -121,7 +125,9 @@ class BlockBodies:
 @wp.struct
 class BlockLoads:
     """Force accumulators of every block (BlockState): contact force, torque and generalised strain
-    force, external force and torque (added by other modules), contact points of the step."""
+    force, external force and torque (added by other modules), contact points of the step, and the
+    contact dashpots implicit in the block update: damp_c (6x6 over [v, w]) and damp_b (generalised force
+    from the other block's velocity; add_damper)."""
 
     force: wp.array(dtype=wp.vec3)
     torque: wp.array(dtype=wp.vec3)
@@ -129,13 +135,16 @@ class BlockLoads:
     ext_force: wp.array(dtype=wp.vec3)
     ext_torque: wp.array(dtype=wp.vec3)
     contact_count: wp.array(dtype=int)
+    damp_c: wp.array(dtype=wp.spatial_matrix)
+    damp_b: wp.array(dtype=wp.spatial_vector)
 
 
 @wp.struct
 class ContactTable:
     """Contact history hash table (BlockState, two of them swapped each step): per slot the pair key
     (-1 empty), common-plane normal, gap or its lower bound, contact point count; per point
-    (slot * K_MAX + k) the feature key, shear spring force, position, depth and normal force."""
+    (slot * K_MAX + k) the feature key, shear spring force, position, depth, normal force, the
+    closing speed when the point first touched [m/s] and the step's Coulomb cap mu F_n + c A [N]."""
 
     keys: wp.array(dtype=wp.int64)
     normal: wp.array(dtype=wp.vec3)
@@ -146,6 +155,8 @@ class ContactTable:
     pos: wp.array(dtype=wp.vec3)
     depth: wp.array(dtype=float)
     fn: wp.array(dtype=float)
+    vimp: wp.array(dtype=float)
+    fcap: wp.array(dtype=float)
 
 
 @wp.struct
@@ -228,6 +239,54 @@ def point_velocity(
         X = wp.quat_rotate_inv(q[b], r)
         vel = vel + wp.quat_rotate(q[b], strain_matrix(strain_rate[b]) * X)
     return vel
+
+
+@wp.func
+def add_damper(
+    A: int,
+    B: int,
+    p: wp.vec3,
+    e: wp.vec3,
+    c: float,
+    vA: wp.vec3,
+    vB: wp.vec3,
+    x: wp.array(dtype=wp.vec3),
+    kinds: wp.array(dtype=int),
+    loads: BlockLoads,
+):
+    # dashpot c along unit e at point p between blocks A and B, implicit in each block's own velocity:
+    # on B, f = -c e e.(v_B(p) - v_A(p)) with v_B(p) = J_B V_B at the end of the step and v_A(p) from the
+    # start: the generalised force -C_B V_B + b_B, C_B += c J^T J, b_B += c (e.v_A(p)) J^T, J = [e, r x e]
+    if movable(kinds[B]):
+        jb = wp.spatial_vector(e, wp.cross(p - x[B], e))
+        wp.atomic_add(loads.damp_c, B, c * wp.outer(jb, jb))
+        wp.atomic_add(loads.damp_b, B, (c * wp.dot(e, vA)) * jb)
+    if movable(kinds[A]):
+        ja = wp.spatial_vector(e, wp.cross(p - x[A], e))
+        wp.atomic_add(loads.damp_c, A, c * wp.outer(ja, ja))
+        wp.atomic_add(loads.damp_b, A, (c * wp.dot(e, vB)) * ja)
+
+
+@wp.func
+def solve6(Ain: wp.spatial_matrix, bin: wp.spatial_vector):
+    # x = A^-1 b for a symmetric positive definite 6x6 (Gaussian elimination, no pivoting needed)
+    A = Ain
+    b = bin
+    for k in range(6):
+        piv = A[k, k]
+        for i in range(k + 1, 6):
+            f = A[i, k] / piv
+            for j in range(k, 6):
+                A[i, j] = A[i, j] - f * A[k, j]
+            b[i] = b[i] - f * b[k]
+    out = wp.spatial_vector()
+    for kk in range(6):
+        i = 5 - kk
+        s = b[i]
+        for j in range(i + 1, 6):
+            s = s - A[i, j] * out[j]
+        out[i] = s / A[i, i]
+    return out
 
 
 @wp.func
@@ -897,6 +956,7 @@ def narrow_screen(
 def narrow_phase(
     pl: PairList,
     dt: float,
+    g_mag: float,
     wv: wp.array(dtype=wp.vec3),
     topo: BlockTopology,
     props: BlockProps,
@@ -1134,49 +1194,140 @@ def narrow_phase(
     m_eff = float(0.0)
     if im > 0.0:
         m_eff = 1.0 / im
-    # dashpot per point: c = 2 zeta sqrt(k m_eff / n_points)  (n points act in parallel)
-    cn = 2.0 * zt * wp.sqrt(kn * m_eff / float(nc))
-    cs = 2.0 * zt * wp.sqrt(ks * m_eff / float(nc))
+    # dashpots per point: c = 2 zeta sqrt(k m_eff / n_points) (n points act in parallel). Normal: zeta
+    # from the restitution for a point that closed as an impact, critical (1) for a resting one;
+    # shear: overdamped (ZETA_STUCK) while stuck, none while sliding. Between rigid blocks the dashpots are implicit in the block update
+    # (damp_c, damp_b; integrate_blocks), so strong damping costs no stability; with a deformable block
+    # they stay explicit, bounded by c dt <= m_eff / n_points.
+    sq_n = wp.sqrt(kn * m_eff / float(nc))
+    implicit = kinds[A] != KIND_DEFORMABLE and kinds[B] != KIND_DEFORMABLE
+    # a point is an impact when it closed faster than v_rest = |g| / omega, omega = sqrt(n k_n / m_eff):
+    # the speed the penalty spring itself gives a block settling onto it under gravity
+    v_rest = float(1.0e30)
+    if m_eff > 0.0:
+        v_rest = g_mag / wp.sqrt(float(nc) * kn / m_eff)
     onc = int(0)
     if oslot >= 0:
         onc = prev.nc[oslot]
+    # pass 1: springs, the Coulomb cap and which points stick (the stuck points share the shear dashpot)
+    cs0 = 2.0 * ZETA_STUCK * wp.sqrt(ks * m_eff / float(nc))
+    if not implicit and dt > 0.0:
+        cs0 = wp.min(cs0, m_eff / (float(nc) * dt))
+    stuck_mask = int(0)
+    n_stuck = int(0)
     for k in range(nc):
         c = base + k
         p = new_pos[c]
-        d = new_depth[c]
         vrel = point_velocity(B, p, x, q, v, w, strain_rate, kinds) - point_velocity(A, p, x, q, v, w, strain_rate, kinds)
         vn = wp.dot(vrel, n)
-        # normal: penalty k_n delta + dashpot; tension cut-off (pull only up to the tensile strength)
-        fn = kn * d - cn * vn
-        fn = wp.max(fn, -ten * a_share)
-        # shear: spring accumulated in the contact plane, carried from last step (matched by
-        # feature key), rotated onto the new plane keeping its magnitude
+        vt = vrel - vn * n
+        # history of this point (matched by feature key): shear spring, closing speed at first touch
         fs = wp.vec3(0.0, 0.0, 0.0)
+        vimp = wp.max(-vn, 0.0)
+        was_sliding = int(0)
+        hist = int(-1)
         ck = new_ckey[c]
         for m in range(onc):
             ok = prev.ckey[oslot * K_MAX + m]
             if ok[0] == ck[0] and ok[1] == ck[1]:
+                hist = oslot * K_MAX + m
+                vimp = prev.vimp[oslot * K_MAX + m]
+                # sliding last step: the spring sat at that step's cap mu F_n + c A
+                if wp.length(prev.shear[oslot * K_MAX + m]) >= (1.0 - 1.0e-5) * prev.fcap[oslot * K_MAX + m]:
+                    was_sliding = 1
+                # shear spring carried from last step, rotated onto the new plane keeping its magnitude
                 fo = prev.shear[oslot * K_MAX + m]
                 mag = wp.length(fo)
                 fp = fo - wp.dot(fo, n) * n
                 lp = wp.length(fp)
                 if lp > 1.0e-20:
                     fs = fp * (mag / lp)
-        vt = vrel - vn * n
+        cur.vimp[c] = vimp
+        zn = float(1.0)
+        if vimp > v_rest:
+            zn = zt  # an impact: the restitution's ratio
+        # normal: penalty k_n delta + dashpot; tension cut-off (pull only up to the tensile strength)
+        cn1 = 2.0 * zn * sq_n
+        if not implicit and dt > 0.0:
+            cn1 = wp.min(cn1, m_eff / (float(nc) * dt))
+        fn = wp.max(kn * new_depth[c] - cn1 * vn, -ten * a_share)
+        # the normal force that bounds friction: this estimate plus what the implicit step last applied
+        # beyond last step's estimate (k_n delta - c_n v_n with v_n now, the velocity it solved for), so
+        # that over the steps friction never exceeds mu times the normal impulse actually delivered
+        fnc = fn
+        if implicit and hist >= 0:
+            fnc = fn + wp.max(kn * prev.depth[hist] - cn1 * vn, -ten * a_share) - prev.fn[hist]
+        # shear: incremental spring in the contact plane, df = -k_s v_t dt
         fs = fs - (ks * dt) * vt
-        # Coulomb cap mu F_n + c A_share (sliding: no shear dashpot)
-        fmax = mu * wp.max(fn, 0.0) + coh * a_share
-        lfs = wp.length(fs)
-        fs_tot = fs
-        if lfs > fmax:
-            if lfs > 0.0:
-                fs = fs * (fmax / lfs)
-            fs_tot = fs
-        else:
-            fs_tot = fs - cs * vt
+        # Coulomb cap mu F_n + c A_share
+        fmax = mu * wp.max(fnc, 0.0) + coh * a_share
+        cur.fcap[c] = fmax
+        # Coulomb: a sliding point slides on (at mu F_n) while it still moves against its spring; it sticks
+        # again once its tangential velocity has stopped or turned (kinetic friction brought it to rest)
+        # a point sticks while its spring and its dashpot together stay within the cap; beyond it the point
+        # slides at the cap, in the direction of that trial force, with no dashpot
+        ftr = fs - cs0 * vt
+        lftr = wp.length(ftr)
+        if lftr <= fmax and not (was_sliding == 1 and wp.dot(vt, fs) < 0.0):
+            stuck_mask = stuck_mask | (1 << k)
+            n_stuck += 1
+        elif lftr > 0.0:
+            fs = ftr * (fmax / lftr)
         cur.shear[c] = fs
         cur.fn[c] = fn
-        f = fn * n + fs_tot  # force on B
+    # shear dashpot of a stuck point: c_s = 2 zeta_s sqrt(k_s m_eff / n_stuck), zeta_s = ZETA_STUCK (over the
+    # points that stick; sliding points carry mu F_n and no dashpot); deformable blocks: at most m_eff / (n dt)
+    cs = float(0.0)
+    if n_stuck > 0:
+        cs = 2.0 * ZETA_STUCK * wp.sqrt(ks * m_eff / float(n_stuck))
+        if not implicit and dt > 0.0:
+            cs = wp.min(cs, m_eff / (float(n_stuck) * dt))  # explicit dashpot: c dt <= m (stable, no overshoot)
+    # pass 2: forces
+    for k in range(nc):
+        c = base + k
+        p = new_pos[c]
+        d = new_depth[c]
+        vA = point_velocity(A, p, x, q, v, w, strain_rate, kinds)
+        vB = point_velocity(B, p, x, q, v, w, strain_rate, kinds)
+        vrel = vB - vA
+        vn = wp.dot(vrel, n)
+        vt = vrel - vn * n
+        zn = float(1.0)
+        if cur.vimp[c] > v_rest:
+            zn = zt
+        cn = 2.0 * zn * sq_n
+        if not implicit and dt > 0.0:
+            cn = wp.min(cn, m_eff / (float(nc) * dt))
+        fn = cur.fn[c]
+        fs = cur.shear[c]
+        stuck = (stuck_mask & (1 << k)) != 0
+        # Coulomb bounds the whole shear force of a stuck point, spring and dashpot together:
+        # |f_s - c v_t| <= mu F_n + c A. The dashpot takes only the capacity the spring leaves (largest c
+        # with |f_s - c v_t| = f_max), so it damps the elastic shear motion of a stuck point and never adds
+        # friction beyond Coulomb's (a point touching down with a tangential velocity slides at mu F_n)
+        csk = float(0.0)
+        lvt2 = wp.dot(vt, vt)
+        if stuck:
+            csk = cs
+            if lvt2 > 0.0:
+                fcap = cur.fcap[c]
+                fv = wp.dot(fs, vt)
+                disc = fv * fv - lvt2 * (wp.dot(fs, fs) - fcap * fcap)
+                csk = wp.min(cs, wp.max((fv + wp.sqrt(wp.max(disc, 0.0))) / lvt2, 0.0))
+        f = fn * n + fs  # force on B
+        if implicit:
+            # explicit part: springs (or the cut-off force); the dashpots go to damp_c / damp_b
+            f = fs
+            if kn * d - cn * vn < -ten * a_share:
+                f = f + fn * n
+            else:
+                f = f + (kn * d) * n
+                add_damper(A, B, p, n, cn, vA, vB, x, kinds, loads)
+            if stuck:
+                add_damper(A, B, p, t1, csk, vA, vB, x, kinds, loads)
+                add_damper(A, B, p, t2, csk, vA, vB, x, kinds, loads)
+        elif stuck:
+            f = f - csk * vt
         if movable(kinds[B]):
             wp.atomic_add(force, B, f)
             wp.atomic_add(torque, B, wp.cross(p - x[B], f))
@@ -1210,6 +1361,10 @@ def rehash_table(prev: ContactTable, cur: ContactTable):
     for k in range(nc):
         cur.ckey[t * K_MAX + k] = prev.ckey[s * K_MAX + k]
         cur.shear[t * K_MAX + k] = prev.shear[s * K_MAX + k]
+        cur.vimp[t * K_MAX + k] = prev.vimp[s * K_MAX + k]
+        cur.fcap[t * K_MAX + k] = prev.fcap[s * K_MAX + k]
+        cur.fn[t * K_MAX + k] = prev.fn[s * K_MAX + k]
+        cur.depth[t * K_MAX + k] = prev.depth[s * K_MAX + k]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1273,17 +1428,36 @@ def integrate_blocks(
         w[b] = wp.vec3(0.0, 0.0, 0.0)
     elif kind != KIND_FIXED:
         im = props.inv_mass[b]
-        # translation: m dv/dt = F_contact + F_ext + m g
-        vn = v[b] + dt * ((force[b] + ext_force[b]) * im + gravity)
-        x[b] = x[b] + dt * vn
-        v[b] = vn
-        # rotation (world frame): I_w dw/dt = tau - w x (I_w w),  I_w = R I_b R^T
         R = wp.quat_to_matrix(q[b])
         Iw = R * props.inertia_body[b] * wp.transpose(R)
         Iwinv = R * props.inv_inertia_body[b] * wp.transpose(R)
         om = w[b]
+        ftot = force[b] + ext_force[b]
         tau = torque[b] + ext_torque[b] - wp.cross(om, Iw * om)
-        om = om + dt * (Iwinv * tau)
+        C = loads.damp_c[b]
+        vn = v[b]
+        if C[0, 0] + C[1, 1] + C[2, 2] + C[3, 3] + C[4, 4] + C[5, 5] > 0.0:
+            # contact dashpots implicit: (M + dt C) V' = M V + dt (F + M g + b), M = diag(m, I_w)
+            # (backward Euler in the damping: stable for any damping ratio)
+            m = 1.0 / im
+            Mv = wp.spatial_vector(m * vn, Iw * om)
+            rhs = Mv + dt * (wp.spatial_vector(ftot + m * gravity, tau) + loads.damp_b[b])
+            Amat = dt * C
+            for i in range(3):
+                Amat[i, i] = Amat[i, i] + m
+            for i in range(3):
+                for j in range(3):
+                    Amat[3 + i, 3 + j] = Amat[3 + i, 3 + j] + Iw[i, j]
+            sol = solve6(Amat, rhs)
+            vn = wp.spatial_top(sol)
+            om = wp.spatial_bottom(sol)
+        else:
+            # translation: m dv/dt = F_contact + F_ext + m g
+            vn = vn + dt * (ftot * im + gravity)
+            # rotation (world frame): I_w dw/dt = tau - w x (I_w w),  I_w = R I_b R^T
+            om = om + dt * (Iwinv * tau)
+        x[b] = x[b] + dt * vn
+        v[b] = vn
         w[b] = om
         # exact rotation by |w| dt about w: q <- dq(w dt) q
         ang = wp.length(om) * dt
@@ -1304,6 +1478,8 @@ def integrate_blocks(
     strain_force[b] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     ext_force[b] = wp.vec3(0.0, 0.0, 0.0)
     ext_torque[b] = wp.vec3(0.0, 0.0, 0.0)
+    loads.damp_c[b] = wp.spatial_matrix()
+    loads.damp_b[b] = wp.spatial_vector()
 
 
 @wp.kernel
@@ -1333,3 +1509,5 @@ def clear_forces(loads: BlockLoads):
     loads.force[b] = wp.vec3(0.0, 0.0, 0.0)
     loads.torque[b] = wp.vec3(0.0, 0.0, 0.0)
     loads.strain_force[b] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    loads.damp_c[b] = wp.spatial_matrix()
+    loads.damp_b[b] = wp.spatial_vector()

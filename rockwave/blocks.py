@@ -494,6 +494,8 @@ class BlockState:
         self.ext_force = wp.zeros(n, dtype=wp.vec3, device=d)
         self.ext_torque = wp.zeros(n, dtype=wp.vec3, device=d)
         self.contact_count = wp.zeros(n, dtype=int, device=d)
+        self.damp_c = wp.zeros(n, dtype=wp.spatial_matrix, device=d)  # implicit contact dashpots (kernels/blocks.py)
+        self.damp_b = wp.zeros(n, dtype=wp.spatial_vector, device=d)
         self.world_verts = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
         # poses of the history table's planes (last narrow phase) and the motion since (pose_motion)
         self.wv_ref = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
@@ -507,7 +509,7 @@ class BlockState:
         for name in ("x", "q", "v", "w", "strain", "strain_rate"):
             setattr(self.bodies, name, getattr(self, name))
         self.loads = K.BlockLoads()
-        for name in ("force", "torque", "strain_force", "ext_force", "ext_torque", "contact_count"):
+        for name in ("force", "torque", "strain_force", "ext_force", "ext_torque", "contact_count", "damp_c", "damp_b"):
             setattr(self.loads, name, getattr(self, name))
         self.tables = [None, None]
         self.table_views = [None, None]  # K.ContactTable over tables[0], tables[1] (swapped with them)
@@ -528,6 +530,8 @@ class BlockState:
                 pos=wp.zeros(cap * km, dtype=wp.vec3, device=d),
                 depth=wp.zeros(cap * km, dtype=wp.float32, device=d),
                 fn=wp.zeros(cap * km, dtype=wp.float32, device=d),
+                vimp=wp.zeros(cap * km, dtype=wp.float32, device=d),  # closing speed at first touch
+                fcap=wp.zeros(cap * km, dtype=wp.float32, device=d),  # Coulomb cap of the step
             )
 
         old = self.tables[0]
@@ -744,6 +748,7 @@ class BlockSolver:
         self.cell_size = float(opt.cell_size_m) if opt.cell_size_m else opt.cell_factor * model.d50
         self.margin = 0.05 * model.d50 if opt.aabb_margin_m is None else float(opt.aabb_margin_m)
         self.contact_points_for_dt = int(opt.contact_points_for_dt)
+        self.g_mag = float(np.linalg.norm(model.gravity))  # |g| for the resting-contact speed (narrow_phase)
         self.large_cells = int(opt.large_block_cells)
         n = model.num_blocks
         d = self.device
@@ -960,7 +965,7 @@ class BlockSolver:
                       inputs=[self.pair_list, m.num_blocks, int(screen), state.world_verts, m.topology, state.bodies,
                               state.motion_dx, state.motion_rho, old, new], device=d)
             wp.launch(K.narrow_phase, dim=n,
-                      inputs=[self.pair_list, dt, state.world_verts, m.topology, m.props, m.material, state.bodies,
+                      inputs=[self.pair_list, dt, self.g_mag, state.world_verts, m.topology, m.props, m.material, state.bodies,
                               old, new, state.loads], device=d)
         state.swap_tables()  # tables[0] now holds this step's history
 
