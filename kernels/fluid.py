@@ -397,13 +397,9 @@ def cell_keys(g: CellGrid, x: wp.array(dtype=wp.vec3), keys: wp.array(dtype=int)
     values[i] = i
 
 
-@wp.kernel
-def cell_first(keys: wp.array(dtype=int), n: int, first: wp.array(dtype=int), rebuild: wp.array(dtype=int)):
-    """first[c] = lower bound of cell c in the n sorted keys (launched over every cell and one past the
-    last: a binary search each; a loop over the empty cells after each key serialised the tail)."""
-    c = wp.tid()
-    if rebuild[0] == 0:
-        return
+@wp.func
+def lower_bound(keys: wp.array(dtype=int), n: int, c: int) -> int:
+    """First index of the n sorted keys whose key is >= c (binary search)."""
     lo = int(0)
     hi = n
     while lo < hi:
@@ -412,7 +408,17 @@ def cell_first(keys: wp.array(dtype=int), n: int, first: wp.array(dtype=int), re
             lo = mid + 1
         else:
             hi = mid
-    first[c] = lo
+    return lo
+
+
+@wp.kernel
+def cell_first(keys: wp.array(dtype=int), n: int, first: wp.array(dtype=int), rebuild: wp.array(dtype=int)):
+    """first[c] = lower bound of cell c in the n sorted keys (launched over every cell and one past the
+    last: a binary search each; a loop over the empty cells after each key serialised the tail)."""
+    c = wp.tid()
+    if rebuild[0] == 0:
+        return
+    first[c] = lower_bound(keys, n, c)
 
 
 @wp.kernel

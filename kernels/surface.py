@@ -22,7 +22,7 @@ visited several times the particles in reach: ~42 s for a frame of scenes/wave_m
 
 import warp as wp
 
-from rockwave.kernels.fluid import cubic_w
+from rockwave.kernels.fluid import cubic_w, lower_bound
 
 
 @wp.struct
@@ -63,15 +63,7 @@ def particle_cell_keys(g: ParticleCells, x: wp.array(dtype=wp.vec3), keys: wp.ar
 def cell_starts(keys: wp.array(dtype=int), n: int, first: wp.array(dtype=int)):
     """first[c] = lower bound of cell c in the n sorted keys (a binary search per cell and one past the last)."""
     c = wp.tid()
-    lo = int(0)
-    hi = n
-    while lo < hi:
-        mid = (lo + hi) / 2
-        if keys[mid] < c:
-            lo = mid + 1
-        else:
-            hi = mid
-    first[c] = lo
+    first[c] = lower_bound(keys, n, c)
 
 
 @wp.kernel
