@@ -1,0 +1,427 @@
+"""Jointed rock masses: a region cut into convex blocks by planar joint sets (host side, numpy + scipy).
+
+A joint set is a family of parallel planes given the way rock engineers log them (ISRM 1978): dip
+delta (degrees below horizontal) and dip direction alpha (azimuth of the dip, clockwise from north).
+With x = east, y = north, z = up the plane's upward unit normal is
+
+    n = (sin delta sin alpha, sin delta cos alpha, cos delta)                    (Priest 1993, eq. 2.2)
+
+and plane k of the set is n . (x - origin) = offset + sum of the first k spacings. In 2D (x east,
+y up, blocks extruded along z) a joint is a line: alpha must be 90 (dips toward +x) or 270 (toward -x)
+and n = (sin delta sin alpha, cos delta).
+
+Cutting a convex region (a box, a turned box, the hull of points) is exact: a block is the
+intersection of the region's half-spaces with one slab of every set (the cell of the plane indices
+k_1..k_m). Cells whose parallelepiped (three independent sets) lies inside the region are taken as
+they are, in one vectorised pass; cells on the region's boundary get their vertices by enumerating
+the intersections of three of their planes that satisfy all of their half-spaces (vectorised over
+cells), and scipy's Qhull gives their volume. A non-convex region (a closed mesh: the slope) is
+clipped cell by cell with trimesh (slice by the cell's planes, capped); a clipped cell that is not
+convex is refused (a DDA block is convex; cutting it further would add cuts that are not joints).
+
+Blocks smaller than ``min_block_size`` (equivalent size V^(1/3)) merge into a face neighbour when
+the union stays convex (the joint between them is taken not to run through there); a sliver with no
+such neighbour is an error. Non-persistent joints (persistence p < 1: the fraction of the joint
+plane that is open) are cut through, and their contacts carry Jennings' (1970) equivalent strength
+of a joint plane made of open joint and intact rock bridges:
+
+    c = p c_j + (1 - p) c_r,  tan phi = p tan phi_j + (1 - p) tan phi_r,  sigma_t = p sigma_tj + (1 - p) sigma_tr
+
+(Jennings 1970, "A mathematical theory for the calculation of the stability of slopes in open cast
+mines"; the same step-path strength Hoek & Bray 1981, sec. 7, use). The DDA contact law takes one
+material per block and the weaker value of a pair (rockwave/blocks.py ContactMaterial), so a block
+carries, per property, the weakest of the joint sets it has faces on.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from itertools import combinations
+
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+__all__ = ["RockMassError", "JointSet", "Cut", "joint_normal", "plane_positions", "box_halfspaces",
+           "hull_halfspaces", "cut_convex", "cut_mesh", "merge_slivers", "jennings_strength"]
+
+
+class RockMassError(ValueError):
+    """A rock mass that cannot be cut. ``key`` names the scene key below the rock_mass entry."""
+
+    def __init__(self, key: str, msg: str):
+        super().__init__(msg)
+        self.key = key
+
+
+@dataclass
+class JointSet:
+    """One joint set. Angles in degrees, lengths in metres; strength of the open joint."""
+
+    dip_deg: float
+    dip_direction_deg: float
+    spacing_m: float
+    offset_m: float = 0.0
+    random_offset: bool = False
+    spacing_jitter: float = 0.0
+    persistence: float = 1.0
+    friction_angle_deg: float = 30.0
+    cohesion_pa: float = 0.0
+    tensile_strength_pa: float = 0.0
+    name: str = ""
+
+
+@dataclass
+class Cut:
+    """Blocks of a cut rock mass: vertices in CSR form (block i: ``vertices[start[i]:start[i+1]]``),
+    volume and centroid, the plane index of each set per block (``cells``; merged blocks keep their
+    largest cell's), which sets it has faces on (``on_set``), and the planes (n, t) of every set."""
+
+    vertices: np.ndarray
+    start: np.ndarray
+    volumes: np.ndarray
+    centroids: np.ndarray
+    cells: np.ndarray
+    on_set: np.ndarray
+    normals: np.ndarray
+    positions: list = field(default_factory=list)
+    merged: int = 0
+
+    def __len__(self) -> int:
+        return len(self.volumes)
+
+    def block_vertices(self, i: int) -> np.ndarray:
+        return self.vertices[self.start[i]:self.start[i + 1]]
+
+
+def joint_normal(dip_deg: float, dip_direction_deg: float, dim: int = 3) -> np.ndarray:
+    """Upward unit normal of a joint plane (3D: x east, y north, z up; 2D: x east, y up, z = 0)."""
+    d, a = math.radians(dip_deg), math.radians(dip_direction_deg)
+    if dim == 2:
+        s = math.sin(a)
+        if abs(abs(s) - 1.0) > 1e-9 and math.sin(d) > 1e-12:
+            raise RockMassError("dip_direction_deg", f"= {dip_direction_deg:g}: in a 2D scene a joint dips toward +x (90) "
+                                                     f"or -x (270)")
+        return np.array([math.sin(d) * round(s), math.cos(d), 0.0])
+    return np.array([math.sin(d) * math.sin(a), math.sin(d) * math.cos(a), math.cos(d)])
+
+
+def plane_positions(lo: float, hi: float, js: JointSet, rng: np.random.Generator) -> np.ndarray:
+    """Sorted plane offsets t (n . (x - origin) = t) of one set covering [lo, hi]: the first at or below lo,
+    the last at or above hi. Phase: offset_m, or uniform in [0, spacing) with random_offset; each gap
+    uniform in spacing (1 +- spacing_jitter)."""
+    s = js.spacing_m
+    phase = rng.uniform(0.0, s) if js.random_offset else js.offset_m
+    t0 = phase + math.floor((lo - phase) / s) * s
+    if js.spacing_jitter == 0.0:
+        n = int(math.ceil((hi - t0) / s - 1e-9)) + 1
+        return t0 + s * np.arange(max(n, 2))
+    ts = [t0]
+    while ts[-1] < hi:
+        ts.append(ts[-1] + s * (1.0 + js.spacing_jitter * rng.uniform(-1.0, 1.0)))
+    return np.asarray(ts if len(ts) > 1 else ts + [t0 + s])
+
+
+def box_halfspaces(lo, hi, rotation=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(A, b, corners) of a box lo..hi turned by ``rotation`` (3x3) about its centre: A x <= b."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    R = np.eye(3) if rotation is None else np.asarray(rotation, float)
+    c = 0.5 * (lo + hi)
+    h = 0.5 * (hi - lo)
+    A = np.concatenate([R.T, -R.T])  # rows: outward normals R e_k, -R e_k
+    b = np.concatenate([A[:3] @ c + h, A[3:] @ c + h])
+    signs = np.array([[sx, sy, sz] for sz in (-1, 1) for sy in (-1, 1) for sx in (-1, 1)], float)
+    corners = c + (signs * h) @ R.T
+    return A, b, corners
+
+
+def hull_halfspaces(points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(A, b, vertices) of the convex hull of points: Qhull's facets with coplanar triangles merged."""
+    pts = np.asarray(points, float)
+    try:
+        hull = ConvexHull(pts)
+    except (QhullError, ValueError) as e:
+        raise RockMassError("region.vertices_m", f"the points span no volume ({str(e).splitlines()[0]})") from None
+    eq = hull.equations
+    scale = float(np.ptp(pts, axis=0).max())
+    keep: list[int] = []
+    for i, row in enumerate(eq):
+        if not any(np.allclose(row[:3], eq[j, :3], atol=1e-9) and abs(row[3] - eq[j, 3]) < 1e-9 * scale for j in keep):
+            keep.append(i)
+    eq = eq[keep]
+    return eq[:, :3].copy(), -eq[:, 3].copy(), pts[hull.vertices]
+
+
+def _solve_vertices(A: np.ndarray, b: np.ndarray, tol: float) -> list[np.ndarray]:
+    """Vertices of the polytopes {x: A_c x <= b_c} for a chunk of cells (A: (C, P, 3), b: (C, P)): every
+    intersection of three of the P planes that satisfies all half-spaces within tol (vectorised)."""
+    P = A.shape[1]
+    tri = np.array(list(combinations(range(P), 3)))
+    M = A[:, tri]  # (C, T, 3, 3)
+    rhs = b[:, tri]  # (C, T, 3)
+    det = np.linalg.det(M)
+    ok = np.abs(det) > 1e-10
+    M = np.where(ok[..., None, None], M, np.eye(3))
+    x = np.linalg.solve(M, rhs[..., None])[..., 0]  # (C, T, 3)
+    feas = ok & np.all(np.einsum("cpk,ctk->ctp", A, x) <= b[:, None, :] + tol, axis=2)
+    return [x[c][feas[c]] for c in range(len(A))]
+
+
+def _hull_props(pts: np.ndarray, tol: float):
+    """(volume, centroid, hull) of the convex hull of pts; None when they span no volume."""
+    if len(pts) < 4:
+        return None
+    q = pts
+    try:
+        hull = ConvexHull(q)
+    except QhullError:
+        return None
+    p0 = q[hull.vertices].mean(axis=0)
+    tet = q[hull.simplices]  # (F, 3, 3)
+    v6 = np.einsum("fi,fi->f", tet[:, 0] - p0, np.cross(tet[:, 1] - p0, tet[:, 2] - p0))
+    vol = float(np.sum(np.abs(v6))) / 6.0
+    if vol <= 0:
+        return None
+    cen = np.sum(np.abs(v6)[:, None] * (p0 + tet.sum(axis=1)) / 4.0, axis=0) / (6.0 * vol)
+    return vol, cen, q[hull.vertices]
+
+
+def _faces_on(pts: np.ndarray, normals: np.ndarray, lo_t: np.ndarray, hi_t: np.ndarray, tol: float) -> np.ndarray:
+    """Per set: does the block with vertices pts have a face (3 non-collinear vertices) on its slab's planes?"""
+    out = np.zeros(len(normals), bool)
+    for s, n in enumerate(normals):
+        d = pts @ n
+        for t in (lo_t[s], hi_t[s]):
+            on = pts[np.abs(d - t) <= tol]
+            if len(on) >= 3:
+                e = on[1:] - on[0]
+                out[s] |= bool(np.max(np.linalg.norm(np.cross(e[:, None], e[None, :]), axis=-1)) > tol * tol * 1e3)
+    return out
+
+
+def _set_planes(normals, origin, lo_pts, sets: list[JointSet], rng) -> list[np.ndarray]:
+    d = (np.asarray(lo_pts) - origin) @ np.asarray(normals).T  # (V, m)
+    return [plane_positions(float(d[:, s].min()), float(d[:, s].max()), js, rng) + float(normals[s] @ origin)
+            for s, js in enumerate(sets)]
+
+
+def cut_convex(A, b, corners, sets: list[JointSet], normals, origin, seed: int = 0, chunk: int = 4096,
+               max_cells: int = 50_000_000) -> Cut:
+    """Cut the convex region {A x <= b} (its vertices ``corners``) by the joint sets (unit ``normals``,
+    planes through ``origin`` + offsets); vectorised over cells. Cells of zero volume (a joint plane on
+    the region's boundary) are dropped."""
+    A, b = np.asarray(A, float), np.asarray(b, float)
+    normals = np.asarray(normals, float)
+    rng = np.random.default_rng(seed)
+    pos = _set_planes(normals, np.asarray(origin, float), corners, sets, rng)
+    L = float(np.ptp(corners, axis=0).max())
+    tol = 1e-9 * L
+    counts = [len(p) - 1 for p in pos]
+    ncand = int(np.prod(counts, dtype=float))
+    if ncand > max_cells:
+        raise RockMassError("joint_sets", f"{ncand:.3g} candidate cells (slabs per set {counts}) exceed {max_cells:.3g}; "
+                                          f"the spacings are too small for the region")
+    idx = np.stack(np.meshgrid(*[np.arange(c) for c in counts], indexing="ij"), axis=-1).reshape(-1, len(sets))
+    # lower and upper plane offsets of every candidate's slabs: (N, m)
+    t_lo = np.stack([pos[s][idx[:, s]] for s in range(len(sets))], axis=1)
+    t_hi = np.stack([pos[s][idx[:, s] + 1] for s in range(len(sets))], axis=1)
+    verts: list = [None] * len(idx)
+    vols = np.zeros(len(idx))
+    cens = np.zeros((len(idx), 3))
+    done = np.zeros(len(idx), bool)
+    if len(sets) == 3 and abs(np.linalg.det(normals)) > 1e-6:
+        # parallelepipeds: corner = N^-1 t for t from (t_lo | t_hi) per set
+        Ninv = np.linalg.inv(normals)
+        pick = np.array([[sx, sy, sz] for sz in (0, 1) for sy in (0, 1) for sx in (0, 1)], bool)
+        T = np.where(pick[None], t_hi[:, None, :], t_lo[:, None, :])  # (N, 8, 3)
+        P = T @ Ninv.T  # (N, 8, 3)
+        inside = np.all(np.einsum("pk,nvk->nvp", A, P) <= b + tol, axis=(1, 2))
+        outside = np.any(np.all(np.einsum("pk,nvk->nvp", A, P) >= b - tol, axis=1), axis=1)
+        vol_pp = np.prod(t_hi - t_lo, axis=1) / abs(np.linalg.det(normals))
+        vols[inside] = vol_pp[inside]
+        cens[inside] = P[inside].mean(axis=1)
+        done |= inside | outside
+        interior_pts = P
+    else:
+        inside = np.zeros(len(idx), bool)
+        interior_pts = None
+    rest = np.flatnonzero(~done)
+    for c0 in range(0, len(rest), chunk):
+        cs = rest[c0:c0 + chunk]
+        Ac = np.concatenate([np.broadcast_to(A, (len(cs),) + A.shape), np.broadcast_to(normals, (len(cs),) + normals.shape),
+                             np.broadcast_to(-normals, (len(cs),) + normals.shape)], axis=1)
+        bc = np.concatenate([np.broadcast_to(b, (len(cs), len(b))), t_hi[cs], -t_lo[cs]], axis=1)
+        for c, pts in zip(cs, _solve_vertices(Ac, bc, tol)):
+            hp = _hull_props(pts, tol)
+            if hp is not None:
+                vols[c], cens[c], verts[c] = hp
+    keep = vols > 1e-12 * max(float(vols.sum()), 1e-300)  # a plane on the boundary leaves a cell of rounding-error volume
+    keep_i = np.flatnonzero(keep)
+    nv = np.array([8 if inside[i] else len(verts[i]) for i in keep_i], dtype=np.int64)
+    start = np.concatenate([[0], np.cumsum(nv)])
+    V = np.empty((int(start[-1]), 3))
+    ins = inside[keep_i]
+    if ins.any():
+        rows = (start[:-1][ins][:, None] + np.arange(8)).ravel()
+        V[rows] = interior_pts[keep_i[ins]].reshape(-1, 3)
+    for j in np.flatnonzero(~ins):
+        V[start[j]:start[j + 1]] = verts[keep_i[j]]
+    on_set = np.ones((len(keep_i), len(sets)), bool)
+    for j in np.flatnonzero(~ins):
+        i = keep_i[j]
+        on_set[j] = _faces_on(verts[i], normals, t_lo[i], t_hi[i], 1e-7 * L)
+    return Cut(vertices=V, start=start, volumes=vols[keep_i], centroids=cens[keep_i], cells=idx[keep_i],
+               on_set=on_set, normals=normals, positions=pos)
+
+
+def cut_mesh(mesh, sets: list[JointSet], normals, origin, seed: int = 0, convex_tol: float = 1e-6,
+             max_cells: int = 200_000) -> Cut:
+    """Cut a closed trimesh (the region, possibly non-convex) by the joint sets: each cell of the sets within
+    the mesh's bounds is the mesh sliced by the cell's planes (trimesh, capped); every connected piece must
+    be convex (hull volume within convex_tol of its volume), else RockMassError."""
+    normals = np.asarray(normals, float)
+    rng = np.random.default_rng(seed)
+    corners = np.asarray(mesh.bounds)
+    bb = np.array([[corners[i][0], corners[j][1], corners[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    pos = _set_planes(normals, np.asarray(origin, float), bb, sets, rng)
+    L = float(np.ptp(bb, axis=0).max())
+    tol = 1e-9 * L
+    counts = [len(p) - 1 for p in pos]
+    if np.prod(counts, dtype=float) > max_cells:
+        raise RockMassError("joint_sets", f"{np.prod(counts, dtype=float):.3g} candidate cells (slabs per set {counts}) "
+                                          f"exceed {max_cells:g} for a mesh region (cut cell by cell)")
+    out_v, vols, cens, cells, on = [], [], [], [], []
+    for idx in np.ndindex(*counts):
+        piece = mesh
+        for s, k in enumerate(idx):
+            for t, sgn in ((pos[s][k], 1.0), (pos[s][k + 1], -1.0)):
+                if piece is None or len(piece.faces) == 0:
+                    break
+                piece = piece.slice_plane(normals[s] * t, sgn * normals[s], cap=True)
+        if piece is None or len(piece.faces) == 0:
+            continue
+        for part in piece.split(only_watertight=False):
+            v = abs(float(part.volume))
+            hp = _hull_props(np.asarray(part.vertices), tol)
+            if hp is None or v <= 1e-12 * float(mesh.volume):
+                continue
+            hv, hc, hverts = hp
+            if hv - v > convex_tol * hv:
+                raise RockMassError("region.mesh", (
+                    f"the cell of joint-plane indices {list(idx)} (near {np.round(hc, 4).tolist()} m) is not convex after "
+                    f"clipping by the mesh: volume {v:.6g} m^3, its hull {hv:.6g} m^3 ({100 * (1 - v / hv):.3g}% short). "
+                    f"DDA blocks are convex and the region is refused rather than decomposed (a decomposition adds cuts "
+                    f"that are not joints): add a joint set through the concave edge, or split the mesh into convex parts, "
+                    f"one [[rock_mass]] each"))
+            out_v.append(hverts)
+            vols.append(hv)
+            cens.append(hc)
+            cells.append(idx)
+            lo_t = np.array([pos[s][k] for s, k in enumerate(idx)])
+            hi_t = np.array([pos[s][k + 1] for s, k in enumerate(idx)])
+            on.append(_faces_on(hverts, normals, lo_t, hi_t, 1e-7 * L))
+    return _csr(out_v, vols, cens, cells, on, normals, pos, len(sets))
+
+
+def _csr(out_v, vols, cens, cells, on, normals, pos, m) -> Cut:
+    nv = np.array([len(v) for v in out_v], dtype=np.int64)
+    start = np.concatenate([[0], np.cumsum(nv)]).astype(np.int64)
+    V = np.concatenate(out_v) if out_v else np.zeros((0, 3))
+    return Cut(vertices=V, start=start, volumes=np.asarray(vols, float), centroids=np.asarray(cens, float).reshape(-1, 3),
+               cells=np.asarray(cells, dtype=np.int64).reshape(-1, m), on_set=np.asarray(on, bool).reshape(-1, m),
+               normals=normals, positions=pos)
+
+
+def merge_slivers(cut: Cut, min_size: float) -> Cut:
+    """Merge every block with V^(1/3) < min_size into a face neighbour (one cell index apart in one set)
+    such that the union is convex (its hull's volume equals the sum within 1e-9), the neighbour with the
+    largest volume first; the smallest block goes first and a merged block that is still small goes again.
+    A block that cannot merge is a RockMassError naming min_block_size_m."""
+    n = len(cut)
+    small = np.flatnonzero(cut.volumes < min_size ** 3)
+    if min_size <= 0 or len(small) == 0:
+        return cut
+    L = float(np.ptp(cut.vertices, axis=0).max()) if len(cut.vertices) else 1.0
+    tol = 1e-9 * L
+    group = np.arange(n)
+    members: dict[int, list[int]] = {i: [i] for i in range(n)}
+    gverts = {i: cut.block_vertices(i) for i in small}
+    gvol = cut.volumes.copy()
+    gcen = cut.centroids.copy()
+    by_cell: dict[tuple, list[int]] = {}
+    for i, c in enumerate(map(tuple, cut.cells)):
+        by_cell.setdefault(c, []).append(i)
+    m = cut.cells.shape[1]
+    queue = sorted(small.tolist(), key=lambda i: gvol[i])
+    merged = 0
+    while queue:
+        g = queue.pop(0)
+        if group[g] != g or gvol[g] >= min_size ** 3:
+            continue
+        nbrs = set()
+        for i in members[g]:
+            for s in range(m):
+                for d in (-1, 1):
+                    c = list(cut.cells[i])
+                    c[s] += d
+                    for j in by_cell.get(tuple(c), []):
+                        if group[j] != g:
+                            nbrs.add(int(group[j]))
+        best = None
+        for h in nbrs:
+            if h not in gverts:
+                gverts[h] = cut.block_vertices(h)
+        # one neighbour (the largest first), else two at once (a sliver in the corner between two blocks)
+        order = sorted(nbrs, key=lambda h: -gvol[h])
+        for hs in [(h,) for h in order] + list(combinations(order, 2)):
+            hp = _hull_props(np.concatenate([gverts[g]] + [gverts[h] for h in hs]), tol)
+            if hp is not None and hp[0] <= (gvol[g] + sum(gvol[h] for h in hs)) * (1 + 1e-9):
+                best = (hs, hp)
+                break
+        if best is None:
+            raise RockMassError("min_block_size_m", (
+                f"= {min_size:g} m: block #{g} near {np.round(gcen[g], 4).tolist()} m has size V^(1/3) = "
+                f"{gvol[g] ** (1 / 3):.4g} m (volume {gvol[g]:.4g} m^3) and no face neighbour it can merge with into a convex "
+                f"block; lower min_block_size_m, or move the joint planes (offset_m) so that no sliver forms there"))
+        hs, (_, _, hv) = best
+        parts = (g,) + hs
+        vol = sum(gvol[k] for k in parts)  # the exact sum (the hull agrees within 1e-9)
+        cen = sum(gvol[k] * gcen[k] for k in parts) / vol
+        keep_g = max(parts, key=lambda k: len(members[k]))  # keep the largest group's id
+        for other in parts:
+            if other != keep_g:
+                for i in members[other]:
+                    group[i] = keep_g
+                members[keep_g] += members.pop(other)
+        gvol[keep_g], gcen[keep_g], gverts[keep_g] = vol, cen, hv
+        merged += len(hs)
+        if vol < min_size ** 3:
+            queue.append(keep_g)
+            queue.sort(key=lambda i: gvol[i])
+    roots = np.flatnonzero(group == np.arange(n))
+    out_v, on = [], []
+    for r in roots:
+        out_v.append(gverts[r] if len(members[r]) > 1 else cut.block_vertices(r))
+        on.append(np.any(cut.on_set[members[r]], axis=0) if len(members[r]) == 1 else _merged_on_set(cut, gverts[r], members[r]))
+    res = _csr(out_v, gvol[roots], gcen[roots], cut.cells[roots], on, cut.normals, cut.positions, m)
+    res.merged = merged
+    return res
+
+
+def _merged_on_set(cut: Cut, verts: np.ndarray, members: list[int]) -> np.ndarray:
+    """Sets with a face of the merged block: any plane of a member's slabs carrying >= 3 non-collinear vertices."""
+    L = float(np.ptp(verts, axis=0).max())
+    out = np.zeros(cut.cells.shape[1], bool)
+    for i in members:
+        lo_t = np.array([cut.positions[s][k] for s, k in enumerate(cut.cells[i])])
+        hi_t = np.array([cut.positions[s][k + 1] for s, k in enumerate(cut.cells[i])])
+        out |= _faces_on(verts, cut.normals, lo_t, hi_t, 1e-7 * L)
+    return out
+
+
+def jennings_strength(js: JointSet, rock_friction_deg: float, rock_cohesion_pa: float, rock_tension_pa: float):
+    """(friction angle deg, cohesion Pa, tensile strength Pa) of a joint plane with persistence p (Jennings 1970)."""
+    p = js.persistence
+    tphi = p * math.tan(math.radians(js.friction_angle_deg)) + (1 - p) * math.tan(math.radians(rock_friction_deg))
+    return (math.degrees(math.atan(tphi)), p * js.cohesion_pa + (1 - p) * rock_cohesion_pa,
+            p * js.tensile_strength_pa + (1 - p) * rock_tension_pa)
