@@ -119,7 +119,7 @@ def build(scene: Scene, device: str, options=None) -> Parts:
     """All parts of ``scene`` on ``device`` (``options``: rockwave.simulation.SimulationOptions)."""
     parts = Parts()
     with wp.ScopedDevice(device):
-        if scene.blocks:
+        if scene.blocks or scene.rock_mass:
             build_blocks(scene, device, parts, options)
         if scene.fluid is not None:
             build_fluid(scene, device, parts, options)

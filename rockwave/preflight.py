@@ -219,6 +219,9 @@ def estimate(scene: Scene, meshes: dict | None = None) -> Estimate:
     for b in scene.blocks:
         c = b.get("array", {}).get("count", [1, 1, 1]) if isinstance(b.get("array"), dict) else [1, 1, 1]
         nblocks += int(np.prod([max(int(x), 1) for x in c]))
+    from rockwave.rockmass import estimate_block_count
+
+    nblocks += sum(estimate_block_count(r, dim) for r in scene.rock_mass)
     n_all = nf + nb
     dev = n_all * (DEV_PER_PARTICLE + SNAPSHOT_PER_PARTICLE) + nf * (DEV_PER_FLUID + SNAPSHOT_PER_FLUID) + 8 * cells
     surf = scene.output.get("surface") if scene.fluid is not None else None
@@ -379,7 +382,7 @@ def check_water_outside_blocks(scene: Scene, meshes: dict | None = None, model=N
     """A fluid region all of whose particles lie inside blocks, or closer to their faces than half
     the contact distance (removed at seeding, rockwave/simulation.py _remove_inside_blocks), is an
     error naming the region. Builds the block model on the CPU when none is given."""
-    if scene.fluid is None or not scene.blocks:
+    if scene.fluid is None or not (scene.blocks or scene.rock_mass):
         return
     from rockwave.coupling import DEFAULT_D0_RATIO, block_signed_distance
 
@@ -432,7 +435,7 @@ def check_blocks(scene: Scene) -> int:
     """Block geometry (convex, closed, non-degenerate meshes and prisms), materials and the initial
     overlap (blocks apart from each other and from fixed blocks such as a slope), on the host; and
     water not all inside blocks. Returns the number of blocks. Raises SceneError like the run."""
-    if not scene.blocks:
+    if not (scene.blocks or scene.rock_mass):
         return 0
     model = _block_model(scene)
     check_water_outside_blocks(scene, model=model)

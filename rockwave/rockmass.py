@@ -15,9 +15,10 @@ intersection of the region's half-spaces with one slab of every set (the cell of
 k_1..k_m). Cells whose parallelepiped (three independent sets) lies inside the region are taken as
 they are, in one vectorised pass; cells on the region's boundary get their vertices by enumerating
 the intersections of three of their planes that satisfy all of their half-spaces (vectorised over
-cells), and scipy's Qhull gives their volume. A non-convex region (a closed mesh: the slope) is
-clipped cell by cell with trimesh (slice by the cell's planes, capped); a clipped cell that is not
-convex is refused (a DDA block is convex; cutting it further would add cuts that are not joints).
+cells), and scipy's Qhull gives their volume. A closed mesh region (the slope) must be convex and is
+cut as the hull of its vertices; a non-convex mesh is refused, not decomposed: its cells clipped by
+the concave surface would not be convex (DDA blocks are), and a decomposition adds cuts that are
+not joints. A concave slope is given as several convex [[rock_mass]] entries.
 
 Blocks smaller than ``min_block_size`` (equivalent size V^(1/3)) merge into a face neighbour when
 the union stays convex (the joint between them is taken not to run through there); a sliver with no
@@ -274,53 +275,21 @@ def cut_convex(A, b, corners, sets: list[JointSet], normals, origin, seed: int =
                on_set=on_set, normals=normals, positions=pos)
 
 
-def cut_mesh(mesh, sets: list[JointSet], normals, origin, seed: int = 0, convex_tol: float = 1e-6,
-             max_cells: int = 200_000) -> Cut:
-    """Cut a closed trimesh (the region, possibly non-convex) by the joint sets: each cell of the sets within
-    the mesh's bounds is the mesh sliced by the cell's planes (trimesh, capped); every connected piece must
-    be convex (hull volume within convex_tol of its volume), else RockMassError."""
-    normals = np.asarray(normals, float)
-    rng = np.random.default_rng(seed)
-    corners = np.asarray(mesh.bounds)
-    bb = np.array([[corners[i][0], corners[j][1], corners[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-    pos = _set_planes(normals, np.asarray(origin, float), bb, sets, rng)
-    L = float(np.ptp(bb, axis=0).max())
-    tol = 1e-9 * L
-    counts = [len(p) - 1 for p in pos]
-    if np.prod(counts, dtype=float) > max_cells:
-        raise RockMassError("joint_sets", f"{np.prod(counts, dtype=float):.3g} candidate cells (slabs per set {counts}) "
-                                          f"exceed {max_cells:g} for a mesh region (cut cell by cell)")
-    out_v, vols, cens, cells, on = [], [], [], [], []
-    for idx in np.ndindex(*counts):
-        piece = mesh
-        for s, k in enumerate(idx):
-            for t, sgn in ((pos[s][k], 1.0), (pos[s][k + 1], -1.0)):
-                if piece is None or len(piece.faces) == 0:
-                    break
-                piece = piece.slice_plane(normals[s] * t, sgn * normals[s], cap=True)
-        if piece is None or len(piece.faces) == 0:
-            continue
-        for part in piece.split(only_watertight=False):
-            v = abs(float(part.volume))
-            hp = _hull_props(np.asarray(part.vertices), tol)
-            if hp is None or v <= 1e-12 * float(mesh.volume):
-                continue
-            hv, hc, hverts = hp
-            if hv - v > convex_tol * hv:
-                raise RockMassError("region.mesh", (
-                    f"the cell of joint-plane indices {list(idx)} (near {np.round(hc, 4).tolist()} m) is not convex after "
-                    f"clipping by the mesh: volume {v:.6g} m^3, its hull {hv:.6g} m^3 ({100 * (1 - v / hv):.3g}% short). "
-                    f"DDA blocks are convex and the region is refused rather than decomposed (a decomposition adds cuts "
-                    f"that are not joints): add a joint set through the concave edge, or split the mesh into convex parts, "
-                    f"one [[rock_mass]] each"))
-            out_v.append(hverts)
-            vols.append(hv)
-            cens.append(hc)
-            cells.append(idx)
-            lo_t = np.array([pos[s][k] for s, k in enumerate(idx)])
-            hi_t = np.array([pos[s][k + 1] for s, k in enumerate(idx)])
-            on.append(_faces_on(hverts, normals, lo_t, hi_t, 1e-7 * L))
-    return _csr(out_v, vols, cens, cells, on, normals, pos, len(sets))
+def cut_mesh(mesh, sets: list[JointSet], normals, origin, seed: int = 0, convex_tol: float = 1e-6) -> Cut:
+    """Cut a closed trimesh region by the joint sets. The mesh must be convex (its volume within convex_tol of
+    its hull's): it is then cut exactly as the hull of its vertices. A non-convex mesh is refused
+    (RockMassError naming region.mesh): cells clipped by a concave surface are not convex, and decomposing
+    them would add cuts that are not joints."""
+    vol = abs(float(mesh.volume))
+    hv = float(mesh.convex_hull.volume)
+    if hv - vol > convex_tol * hv:
+        raise RockMassError("region.mesh", (
+            f"the mesh is not convex: volume {vol:.6g} m^3, its hull {hv:.6g} m^3 ({100 * (1 - vol / hv):.3g}% short). "
+            f"Blocks cut from it would not all be convex (DDA blocks are), and the region is refused rather than "
+            f"decomposed (a decomposition adds cuts that are not joints): split the mesh into convex parts along planes "
+            f"that are joints of the rock mass, one [[rock_mass]] each"))
+    A, b, corners = hull_halfspaces(np.asarray(mesh.vertices))
+    return cut_convex(A, b, corners, sets, normals, origin, seed=seed)
 
 
 def _csr(out_v, vols, cens, cells, on, normals, pos, m) -> Cut:
@@ -425,3 +394,130 @@ def jennings_strength(js: JointSet, rock_friction_deg: float, rock_cohesion_pa: 
     tphi = p * math.tan(math.radians(js.friction_angle_deg)) + (1 - p) * math.tan(math.radians(rock_friction_deg))
     return (math.degrees(math.atan(tphi)), p * js.cohesion_pa + (1 - p) * rock_cohesion_pa,
             p * js.tensile_strength_pa + (1 - p) * rock_tension_pa)
+
+
+# --------------------------------------------------------------------------------------------
+# scene [[rock_mass]] -> BlockSpecs
+# --------------------------------------------------------------------------------------------
+
+
+def _joint_sets(entry) -> list[JointSet]:
+    return [JointSet(dip_deg=js.dip_deg, dip_direction_deg=js.dip_direction_deg, spacing_m=js.spacing_m, offset_m=js.offset_m,
+                     random_offset=js.random_offset, spacing_jitter=js.spacing_jitter, persistence=js.persistence,
+                     friction_angle_deg=js.friction_angle_deg, cohesion_pa=js.cohesion_pa,
+                     tensile_strength_pa=js.tensile_strength_pa, name=js.name) for js in entry.joint_sets]
+
+
+def cut_entry(entry, dim: int = 3) -> Cut:
+    """Cut one validated [[rock_mass]] entry (rockwave/scene.py); RockMassError names the key below the entry."""
+    from rockwave import geometry
+    from rockwave.rocks import euler_xyz_deg_to_quat
+
+    sets = _joint_sets(entry)
+    normals = []
+    for j, js in enumerate(sets):
+        try:
+            normals.append(joint_normal(js.dip_deg, js.dip_direction_deg, dim))
+        except RockMassError as e:
+            raise RockMassError(f"joint_sets[{j}].{e.key}", str(e)) from None
+    reg = entry.region
+    origin = None if entry.origin_m is None else np.asarray(list(entry.origin_m) + [0.0] * (3 - dim), float)
+    if reg.mesh is not None:
+        from rockwave import sampling
+
+        try:
+            tm = sampling.load_trimesh(reg.mesh, reg.mesh_scale, reg.mesh_offset_m)
+        except sampling.MeshInputError as e:
+            raise RockMassError("region.mesh", str(e)) from None
+        if not tm.is_watertight:
+            raise RockMassError("region.mesh", f"{reg.mesh}: the mesh is not closed (watertight); a region needs an inside")
+        if tm.volume < 0:
+            tm.invert()
+        cut = cut_mesh(tm, sets, normals, tm.bounds[0] if origin is None else origin, seed=entry.seed)
+    else:
+        if reg.vertices_m is not None:
+            A, b, corners = hull_halfspaces(reg.vertices_m)
+            first = corners.min(axis=0)
+        else:
+            lo, hi = list(reg.box_min_m), list(reg.box_max_m)
+            if dim == 2:
+                lo, hi = lo + [-0.5 * reg.depth_m], hi + [0.5 * reg.depth_m]
+            R = geometry.quat_to_matrix(euler_xyz_deg_to_quat(reg.orientation_deg))
+            A, b, corners = box_halfspaces(lo, hi, R)
+            first = corners[0]
+        cut = cut_convex(A, b, corners, sets, normals, first if origin is None else origin, seed=entry.seed)
+    if len(cut) == 0:
+        raise RockMassError("joint_sets", "the joint sets cut no block from the region")
+    return merge_slivers(cut, entry.min_block_size_m)
+
+
+def block_materials(entry, cut: Cut):
+    """One ContactMaterial per block: per property the weakest of the (Jennings) strengths of the joint sets
+    the block has faces on; the intact rock's for a block with none. Stiffness and damping: the entry's."""
+    from rockwave.blocks import ContactMaterial
+
+    mat = entry.material
+    rock = (mat.friction_angle_deg, mat.cohesion_pa, mat.tensile_strength_pa)
+    strengths = np.array([jennings_strength(js, *rock) for js in _joint_sets(entry)])  # (m, 3)
+    cache: dict[bytes, ContactMaterial] = {}
+    out = []
+    for on in cut.on_set:
+        key = on.tobytes()
+        if key not in cache:
+            phi, c, t = strengths[on].min(axis=0) if on.any() else rock
+            cache[key] = ContactMaterial(friction_angle_deg=float(phi), cohesion_pa=float(c), tensile_strength_pa=float(t),
+                                         normal_stiffness=mat.normal_stiffness_n_m, shear_stiffness=mat.shear_stiffness_n_m,
+                                         restitution=mat.restitution, damping_ratio=mat.damping_ratio)
+        out.append(cache[key])
+    return out
+
+
+def rock_mass_specs(scene) -> list:
+    """BlockSpecs of every [[rock_mass]] entry of a validated scene (SceneError naming rock_mass[i].<key>).
+    Blocks of one shape (a regular cut's interior) share one ConvexPolyhedron."""
+    from rockwave import geometry
+    from rockwave.blocks import BlockSpec
+    from rockwave.scene import SceneError
+
+    specs = []
+    for i, entry in enumerate(scene.rock_mass):
+        try:
+            cut = cut_entry(entry, scene.dim)
+        except RockMassError as e:
+            raise SceneError(scene.path, [(f"rock_mass[{i}].{e.key}", str(e))]) from None
+        mats = block_materials(entry, cut)
+        shapes: dict[bytes, tuple] = {}
+        for k in range(len(cut)):
+            v = cut.block_vertices(k)
+            mean = v.mean(axis=0)
+            scale = float(np.ptp(v, axis=0).max())
+            key = np.round((v - mean) / (1e-9 * scale)).astype(np.int64).tobytes()
+            if key not in shapes:
+                try:
+                    g = geometry.prism(v, name=f"{entry.name}_{k}")
+                except (geometry.GeometryError, ValueError) as e:
+                    raise SceneError(scene.path, [(f"rock_mass[{i}]", f"block {k}: {e}")]) from None
+                shapes[key] = (g, np.asarray(g.origin_offset) - mean)
+            g, delta = shapes[key]
+            specs.append(BlockSpec(geometry=g, position=tuple(mean + delta), density=entry.density_kg_m3, kind=entry.kind,
+                                   youngs_modulus=entry.youngs_modulus_pa, poisson_ratio=entry.poisson_ratio,
+                                   material=mats[k], name=f"{entry.name}_{k}"))
+    return specs
+
+
+def estimate_block_count(entry, dim: int = 3) -> int:
+    """Blocks a [[rock_mass]] entry will give, without cutting: the region's bounding volume over the volume
+    of a cell of its first three sets (for memory and run-length estimates)."""
+    reg = entry.region
+    if reg.box_min_m is not None and reg.box_max_m is not None:
+        ext = np.asarray(reg.box_max_m, float) - np.asarray(reg.box_min_m, float)
+        vol = float(np.prod(ext)) * (reg.depth_m if dim == 2 else 1.0)
+    elif reg.vertices_m is not None:
+        vol = float(np.prod(np.ptp(np.asarray(reg.vertices_m, float), axis=0)))
+    else:
+        return 1
+    sp = [js.spacing_m for js in entry.joint_sets][:3]
+    cell = float(np.prod(sp)) * (reg.depth_m if dim == 2 and len(sp) < 3 else 1.0)
+    if len(sp) < 3 and dim == 3:
+        cell *= float(np.cbrt(vol)) ** (3 - len(sp))
+    return max(1, int(round(vol / cell)))

@@ -85,6 +85,9 @@ def block_specs(scene: Scene) -> list[BlockSpec]:
                 k += 1
     from collections import Counter
 
+    from rockwave.rockmass import rock_mass_specs
+
+    specs += rock_mass_specs(scene)  # [[rock_mass]]: blocks cut by joint sets
     dup = {n for n, c in Counter(s.name for s in specs).items() if c > 1}
     if dup:
         # unique names for USD prims and the CSV

@@ -236,6 +236,51 @@ SCHEMA: dict[str, Key] = {
     ),
 }
 
+# [[rock_mass]]: a region cut into convex blocks by joint sets (rockwave/rockmass.py), placed after [[blocks]]
+_ROCK_MASS = _list(
+    "jointed rock mass (3D DDA blocks; rockwave/rockmass.py): a region (box, turned box, hull of points or closed mesh) cut "
+    "into convex blocks by planar joint sets. 2D: a box in x-y (y up) extruded depth_m along z, joints dip toward +x or -x",
+    name=Key("str", "label; the blocks are name_0, name_1, ...", default="rock"),
+    region=_sec(
+        "the rock volume: a box (box_min_m, box_max_m, optional orientation_deg), the convex hull of vertices_m, or a closed mesh",
+        box_min_m=Key("vec", "lower corner of the box (before turning)", length="dim"),
+        box_max_m=Key("vec", "upper corner of the box (before turning)", length="dim"),
+        orientation_deg=Key("vec", "the box turned about its centre by successive turns about the fixed x, y, z axes (3D)", length=3, default=[0.0, 0.0, 0.0]),
+        vertices_m=Key("points", "points whose convex hull is the region (3D)", length=3),
+        mesh=Key("path", "closed mesh file (STL, OBJ, PLY, GLB), may be non-convex (a slope); every cell clipped by it must stay convex (3D)"),
+        mesh_scale=Key("float", "uniform scale applied to the mesh", default=1.0, min=0, min_open=True),
+        mesh_offset_m=Key("vec", "translation applied to the mesh after scaling", length=3, default=[0.0, 0.0, 0.0]),
+        depth_m=Key("float", "2D: extrusion depth along z of the blocks (centred on z = 0)", default=1.0, min=0, min_open=True),
+    ),
+    origin_m=Key("vec", "a point every set's plane 0 passes through before offset_m (default: the region's first corner: box_min_m turned, else the lower corner of its bounds)", length="dim"),
+    seed=Key("int", "seed of the random plane offsets and spacing jitter (the same seed gives the same blocks)", default=0, min=0),
+    min_block_size_m=Key("float", "blocks with V^(1/3) below this merge into a face neighbour (one or two) whose union with them is convex; 0: no merging", default=0.0, min=0.0),
+    density_kg_m3=Key("float", "rock density", default=2600.0, min=0, min_open=True),
+    kind=Key("str", "'rigid' or 'deformable' (Shi's constant strain)", default="rigid", choices=("rigid", "deformable")),
+    youngs_modulus_pa=Key("float", "Young's modulus E (sets the default contact stiffness); default 10 GPa", min=0, min_open=True),
+    poisson_ratio=Key("float", "Poisson ratio", default=0.25, min=0.0, max=0.49),
+    material=_sec(
+        "intact rock: the strength of the rock bridges of non-persistent joints and the contact law of a block with no joint face; stiffness and damping of every block",
+        **{k: v for k, v in SCHEMA["blocks"].children["material"].children.items()}),
+    joint_sets=_list(
+        "planar joint sets: plane k of a set is n.(x - origin_m) = offset_m + k spacing_m, n the plane's upward normal "
+        "(sin dip sin dipdir, sin dip cos dipdir, cos dip) with x east, y north, z up (2D: (sin dip sin dipdir, cos dip), y up)",
+        name=Key("str", "label for messages", default=""),
+        dip_deg=Key("float", "dip: angle of the plane below the horizontal", required=True, min=0.0, max=90.0),
+        dip_direction_deg=Key("float", "dip direction: azimuth of the dip, clockwise from north (+y); 2D: 90 (dips toward +x) or 270", required=True, min=0.0, max=360.0),
+        spacing_m=Key("float", "normal distance between planes", required=True, min=0, min_open=True),
+        offset_m=Key("float", "shift of the planes along n from origin_m", default=0.0),
+        random_offset=Key("bool", "shift the planes by a uniform random fraction of the spacing instead (from seed)", default=False),
+        spacing_jitter=Key("float", "each spacing is uniform in spacing_m (1 +- jitter) (from seed)", default=0.0, min=0.0, max=0.9),
+        persistence=Key("float", "fraction of the plane's area that is open joint; the rest is intact rock bridges, smeared as Jennings' (1970) equivalent strength c = p c_j + (1 - p) c_r (also tan phi and tension); < 1 needs material.cohesion_pa", default=1.0, min=0.0, max=1.0, min_open=True),
+        friction_angle_deg=Key("float", "friction angle of the open joint", default=30.0, min=0.0, max=89.0),
+        cohesion_pa=Key("float", "cohesion of the open joint", default=0.0, min=0.0),
+        tensile_strength_pa=Key("float", "tensile strength of the open joint", default=0.0, min=0.0),
+    ),
+)
+SCHEMA = {k: v for k, v in list(SCHEMA.items())[:list(SCHEMA).index("blocks") + 1]} | {"rock_mass": _ROCK_MASS} | {
+    k: v for k, v in list(SCHEMA.items())[list(SCHEMA).index("blocks") + 1:]}
+
 
 # --------------------------------------------------------------------------------------------
 # Validation
@@ -364,6 +409,7 @@ class Scene:
     obstacles: list
     output: Node
     blocks: list = field(default_factory=list)
+    rock_mass: list = field(default_factory=list)  # [[rock_mass]] (rockwave/rockmass.py)
     raw: dict = field(repr=False, default_factory=dict)
     coupling: Node | None = None  # [coupling] (rockwave/coupling.py); None: defaults
 
@@ -385,8 +431,9 @@ def _cross_checks(v: _Validator, s: Node) -> None:
     _check_run_settings(v, s)
     _check_outputs(v, s)
     _check_blocks(v, s)
+    _check_rock_mass(v, s)
     if fl is None:
-        if not s["blocks"]:
+        if not s["blocks"] and not s["rock_mass"]:
             v.err("fluid", "the scene has neither water ([fluid] with [[fluid.regions]]) nor [[blocks]]")
         if s["tank"] is not None or s["obstacles"]:
             v.err("tank", "a tank or obstacles need water: add a [fluid] section or remove them")
@@ -506,6 +553,42 @@ def _check_blocks(v: _Validator, s: Node) -> None:
                                            f"(the blocks of one entry's array or mesh get _0, _1, ... suffixes)")
             else:
                 given[name] = i
+
+
+def _check_rock_mass(v: _Validator, s: Node) -> None:
+    """A [[rock_mass]] entry: one region form, joint sets, what 2D allows (the cut itself: rockwave/rockmass.py)."""
+    for i, r in enumerate(s["rock_mass"]):
+        path = f"rock_mass[{i}]"
+        reg = r["region"]
+        forms = [f for f, k in (("box", "box_min_m"), ("vertices_m", "vertices_m"), ("mesh", "mesh")) if reg.get(k) is not None
+                 or (f == "box" and reg.get("box_max_m") is not None)]
+        bad_key = any(e[0].startswith(f"{path}.region.") for e in v.errors)
+        if len(forms) != 1 and not bad_key:
+            v.err(f"{path}.region", f"give exactly one of a box (box_min_m, box_max_m), vertices_m or mesh; got {forms or 'none'}")
+        elif forms == ["box"]:
+            lo, hi = reg.get("box_min_m"), reg.get("box_max_m")
+            if lo is None or hi is None:
+                v.err(f"{path}.region", "a box needs both box_min_m and box_max_m")
+            elif any(b <= a for a, b in zip(lo, hi)):
+                v.err(f"{path}.region.box_max_m", f"{hi} must exceed box_min_m {lo} in every coordinate")
+        if v.dim == 2:
+            for k in ("vertices_m", "mesh"):
+                if reg.get(k) is not None:
+                    v.err(f"{path}.region.{k}", "3D only; a 2D rock mass is a box")
+            if any(reg.get("orientation_deg") or []):
+                v.err(f"{path}.region.orientation_deg", "3D only")
+        if not r["joint_sets"] and not any(e[0].startswith(f"{path}.joint_sets") for e in v.errors):
+            v.err(f"{path}.joint_sets", "at least one [[rock_mass.joint_sets]] entry is needed")
+        raw = v.raw_rock_mass[i] if i < len(v.raw_rock_mass) and isinstance(v.raw_rock_mass[i], dict) else {}
+        raw_mat = raw.get("material") if isinstance(raw.get("material"), dict) else {}
+        for j, js in enumerate(r["joint_sets"]):
+            p = js.get("persistence")
+            if p is not None and p < 1 and "cohesion_pa" not in raw_mat:
+                v.err(f"{path}.joint_sets[{j}].persistence", f"= {p:g} leaves rock bridges whose strength is the intact rock's: "
+                                                             f"give {path}.material.cohesion_pa (and tensile_strength_pa)")
+            if js.get("random_offset") and isinstance(raw.get("joint_sets"), list) and j < len(raw["joint_sets"]) \
+                    and isinstance(raw["joint_sets"][j], dict) and "offset_m" in raw["joint_sets"][j]:
+                v.err(f"{path}.joint_sets[{j}].offset_m", "random_offset = true draws the offset: give one of them")
 
 
 def apply_fidelity(v: _Validator, fl: Node, tank: Node | None) -> None:
@@ -696,6 +779,8 @@ def parse_scene(data: dict, path: str | os.PathLike = "<scene>", base_dir: str |
     v = _Validator(base, dim)
     raw_blocks = data.get("blocks", []) if isinstance(data, dict) else []
     v.raw_blocks = raw_blocks if isinstance(raw_blocks, list) else []
+    raw_rm = data.get("rock_mass", []) if isinstance(data, dict) else []
+    v.raw_rock_mass = raw_rm if isinstance(raw_rm, list) else []
     raw_fluid = data.get("fluid") if isinstance(data, dict) else None
     v.raw_fluid = raw_fluid if isinstance(raw_fluid, dict) else {}
     s = v.section(data, SCHEMA, "")
@@ -708,7 +793,8 @@ def parse_scene(data: dict, path: str | os.PathLike = "<scene>", base_dir: str |
     if v.errors:
         raise SceneError(path, v.errors)
     return Scene(path=str(path), simulation=s["simulation"], gravity=s["gravity"], fluid=s["fluid"], tank=s["tank"],
-                 obstacles=s["obstacles"], output=s["output"], blocks=s["blocks"], raw=data, coupling=s["coupling"])
+                 obstacles=s["obstacles"], output=s["output"], blocks=s["blocks"], raw=data, coupling=s["coupling"],
+                 rock_mass=s["rock_mass"])
 
 
 def load_scene(path: str | os.PathLike) -> Scene:

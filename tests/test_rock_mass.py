@@ -1,0 +1,243 @@
+"""[[rock_mass]]: regions cut into convex blocks by joint sets (rockwave/rockmass.py)."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import ConvexHull
+
+from rockwave.rockmass import (
+    JointSet,
+    box_halfspaces,
+    cut_convex,
+    cut_mesh,
+    hull_halfspaces,
+    jennings_strength,
+    joint_normal,
+    merge_slivers,
+)
+from rockwave.scene import SceneError, parse_scene
+
+OBLIQUE = [JointSet(60, 30, 0.3, random_offset=True), JointSet(70, 200, 0.4, random_offset=True),
+           JointSet(15, 100, 0.25, random_offset=True)]
+
+
+def normals(sets, dim=3):
+    return np.array([joint_normal(s.dip_deg, s.dip_direction_deg, dim) for s in sets])
+
+
+def cut_box(lo, hi, sets, seed=0, R=None, origin=None):
+    A, b, c = box_halfspaces(lo, hi, R)
+    return cut_convex(A, b, c, sets, normals(sets), c[0] if origin is None else origin, seed=seed), A, b
+
+
+def test_joint_normal_geological_convention():
+    # dip 30 toward east (90): the plane falls toward +x, its upward normal leans to +x
+    assert np.allclose(joint_normal(30, 90), [0.5, 0, math.cos(math.radians(30))])
+    assert np.allclose(joint_normal(90, 0), [0, 1, 0])  # vertical, striking east-west
+    assert np.allclose(joint_normal(0, 123), [0, 0, 1])  # horizontal
+    assert np.allclose(joint_normal(30, 270, dim=2), [-0.5, math.cos(math.radians(30)), 0])
+
+
+def test_volumes_sum_and_faces_lie_on_planes():
+    rot = trimesh.transformations.rotation_matrix(0.4, [0.3, 1, 0.2])[:3, :3]
+    for R in (None, rot):
+        cut, A, b = cut_box([0, 0, 0], [2.0, 1.5, 1.0], OBLIQUE, seed=5, R=R)
+        cut = merge_slivers(cut, 0.06)
+        assert cut.merged > 0 and len(cut) > 50
+        assert abs(cut.volumes.sum() / 3.0 - 1) < 1e-9
+        assert (cut.volumes >= 0.06 ** 3).all()
+        planes = [(n, t) for n, ts in zip(cut.normals, cut.positions) for t in ts] + list(zip(A, b))
+        for i in range(len(cut)):
+            v = cut.block_vertices(i)
+            h = ConvexHull(v)
+            assert abs(h.volume - cut.volumes[i]) < 1e-9 * cut.volumes[i]
+            for eq in h.equations:
+                n, d = eq[:3], -eq[3]
+                assert any(abs(abs(n @ pn) - 1) < 1e-9 and abs(d - np.sign(n @ pn) * t) < 1e-9 for pn, t in planes), (i, eq)
+
+
+def test_hull_region_volume():
+    pts = np.array([[0, 0, 0], [3, 0, 0], [0, 2, 0], [3, 2, 0], [0, 0, 1], [3, 0, 1], [0, 2, 2.5], [3, 2, 2.5]], float)
+    A, b, c = hull_halfspaces(pts)
+    cut = cut_convex(A, b, c, OBLIQUE, normals(OBLIQUE), c.min(axis=0), seed=1)
+    assert abs(cut.volumes.sum() / ConvexHull(pts).volume - 1) < 1e-9
+
+
+@pytest.mark.parametrize("offsets", [(0.0, 0.0, 0.0), (0.1, 0.25, 0.05), (0.49, 0.01, 0.2)])
+def test_orthogonal_sets_analytic_count(offsets):
+    size = np.array([3.0, 2.0, 1.2])
+    spacing = [0.5, 0.4, 0.3]
+    sets = [JointSet(90, 90, spacing[0], offset_m=offsets[0]), JointSet(90, 0, spacing[1], offset_m=offsets[1]),
+            JointSet(0, 0, spacing[2], offset_m=offsets[2])]
+    cut, _, _ = cut_box([0, 0, 0], size, sets)
+    # slabs along an axis: 1 + the planes o + k s strictly inside (0, L)
+    expect = 1
+    for L, s, o in zip(size, spacing, offsets):
+        ks = np.arange(-1, int(L / s) + 2)
+        t = o + ks * s
+        expect *= 1 + int(np.sum((t > 1e-9) & (t < L - 1e-9)))
+    assert len(cut) == expect
+    assert abs(cut.volumes.sum() / size.prod() - 1) < 1e-12
+
+
+def test_slivers_merge_into_neighbours():
+    # 1.0 m cut every 0.3 m leaves 0.1 m slabs at the far end of each axis
+    sets = [JointSet(90, 90, 0.3), JointSet(90, 0, 0.3), JointSet(0, 0, 0.3)]
+    cut, _, _ = cut_box([0, 0, 0], [1.0, 1.0, 1.0], sets)
+    assert len(cut) == 64
+    merged = merge_slivers(cut, 0.2)  # 0.3 x 0.3 x 0.1 (size 0.208) stays, 0.3 x 0.1 x 0.1 and 0.1^3 merge
+    assert len(merged) < 64 and (merged.volumes >= 0.2 ** 3).all()
+    assert abs(merged.volumes.sum() - 1.0) < 1e-12
+    for i in range(len(merged)):  # every block still convex: its hull holds exactly its volume
+        assert abs(ConvexHull(merged.block_vertices(i)).volume - merged.volumes[i]) < 1e-9
+
+
+def test_seed_reproduces():
+    a = merge_slivers(cut_box([0, 0, 0], [2, 1.5, 1], OBLIQUE, seed=7)[0], 0.05)
+    b = merge_slivers(cut_box([0, 0, 0], [2, 1.5, 1], OBLIQUE, seed=7)[0], 0.05)
+    c = merge_slivers(cut_box([0, 0, 0], [2, 1.5, 1], OBLIQUE, seed=8)[0], 0.05)
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.start, b.start)
+    assert len(a) != len(c) or not np.allclose(a.volumes, c.volumes)
+
+
+def test_mesh_regions():
+    from rockwave.rockmass import RockMassError
+
+    # a convex slope section: a box with its crest cut at 40 degrees
+    slope = trimesh.convex.convex_hull(np.array([[0, 0, 0], [3, 0, 0], [0, 1, 0], [3, 1, 0], [0, 0, 2], [0, 1, 2],
+                                                 [3 - 2 / math.tan(math.radians(40)), 0, 2],
+                                                 [3 - 2 / math.tan(math.radians(40)), 1, 2]], float))
+    cut = cut_mesh(slope, OBLIQUE, normals(OBLIQUE), [0, 0, 0], seed=2)
+    assert len(cut) > 50 and abs(cut.volumes.sum() / slope.volume - 1) < 1e-9
+    L = _l_mesh()  # an L-shaped section: refused with its volume shortfall
+    assert L.is_watertight and abs(L.volume - 3.0) < 1e-12
+    with pytest.raises(RockMassError, match=r"not convex: volume 3 m\^3, its hull 3.5 m\^3"):
+        cut_mesh(L, OBLIQUE, normals(OBLIQUE), [0, 0, 0])
+
+
+def _l_mesh() -> trimesh.Trimesh:
+    """Closed L-shaped prism (x-z profile extruded 1 m along y)."""
+    prof = [[0, 0], [2, 0], [2, 1], [1, 1], [1, 2], [0, 2]]  # (x, z)
+    v = np.array([[x, y, z] for y in (0.0, 1.0) for x, z in prof], float)
+    n = len(prof)
+    faces = [[0, 1, 2], [0, 2, 3], [0, 3, 5], [3, 4, 5]]  # the y = 0 profile, split into triangles
+    faces = [[a, c, b] for a, b, c in faces] + [[a + n, b + n, c + n] for a, b, c in faces]
+    for k in range(n):  # the sides
+        a, b = k, (k + 1) % n
+        faces += [[a, b, b + n], [a, b + n, a + n]]
+    m = trimesh.Trimesh(v, faces, process=True)
+    trimesh.repair.fix_normals(m)
+    return m
+
+
+def test_jennings_materials():
+    js = JointSet(0, 0, 1.0, persistence=0.6, friction_angle_deg=25, cohesion_pa=1e4, tensile_strength_pa=0.0)
+    phi, c, t = jennings_strength(js, 40.0, 1e6, 5e5)
+    assert math.isclose(math.tan(math.radians(phi)), 0.6 * math.tan(math.radians(25)) + 0.4 * math.tan(math.radians(40)))
+    assert math.isclose(c, 0.6e4 + 0.4e6) and math.isclose(t, 0.4 * 5e5)
+
+
+# --------------------------------------------------------------------------------------------
+# scene files
+# --------------------------------------------------------------------------------------------
+
+SCENE = {
+    "simulation": {"duration_s": 0.05},
+    "blocks": [{"name": "floor", "shape": "box", "size_m": [4.0, 4.0, 0.5], "position_m": [0.5, 0.5, -0.25], "kind": "fixed"}],
+    "rock_mass": [{
+        "name": "rock", "region": {"box_min_m": [0.0, 0.0, 0.0], "box_max_m": [1.0, 0.8, 0.6]}, "min_block_size_m": 0.1,
+        "material": {"cohesion_pa": 1e5, "tensile_strength_pa": 1e4},
+        "joint_sets": [{"dip_deg": 90, "dip_direction_deg": 90, "spacing_m": 0.5, "friction_angle_deg": 35,
+                        "cohesion_pa": 2e5, "tensile_strength_pa": 1e4},
+                       {"dip_deg": 90, "dip_direction_deg": 0, "spacing_m": 0.4, "friction_angle_deg": 30,
+                        "cohesion_pa": 1e5, "tensile_strength_pa": 1e4},
+                       {"dip_deg": 0, "dip_direction_deg": 0, "spacing_m": 0.3, "friction_angle_deg": 20, "persistence": 0.5}]}],
+    "output": {"usd": ""},
+}
+
+
+def scene(**changes):
+    d = copy.deepcopy(SCENE)
+    for path, val in changes.items():
+        node = d
+        keys = path.split("__")
+        for k in keys[:-1]:
+            node = node[int(k)] if k.isdigit() else node[k]
+        node[keys[-1]] = val
+    return d
+
+
+def scene_error(d, what="<test>"):
+    from rockwave.rocks import block_specs
+
+    with pytest.raises(SceneError) as e:
+        block_specs(parse_scene(d, what))
+    return str(e.value)
+
+
+def test_scene_blocks_and_materials():
+    from rockwave.rocks import block_specs
+
+    specs = block_specs(parse_scene(scene()))
+    rock = [s for s in specs if s.name.startswith("rock_")]
+    assert len(rock) == 2 * 2 * 2
+    assert abs(sum(s.geometry.volume for s in rock) - 0.48) < 1e-12
+    # every block has faces on all three sets: the weakest (Jennings) of 35, 30 and the bridged 20 / intact 30 degrees
+    phi = math.degrees(math.atan(0.5 * math.tan(math.radians(20)) + 0.5 * math.tan(math.radians(30))))
+    for s in rock:
+        assert math.isclose(s.material.friction_angle_deg, min(30.0, phi))
+        # cohesion: min(2e5, 1e5, 0.5 x 0 + 0.5 x 1e5); tension: min(1e4, 1e4, 0.5 x 0 + 0.5 x 1e4)
+        assert math.isclose(s.material.cohesion_pa, 0.5e5) and math.isclose(s.material.tensile_strength_pa, 0.5e4)
+
+
+def test_bad_input_names_key_and_number():
+    msg = scene_error(scene(rock_mass__0__joint_sets__1__spacing_m=0.0))
+    assert "rock_mass[0].joint_sets[1].spacing_m" in msg and "0.0" in msg
+    msg = scene_error(scene(rock_mass__0__min_block_size_m=2.0))  # the whole region is smaller than that
+    assert "rock_mass[0].min_block_size_m" in msg and "= 2 m" in msg
+    flat = scene(rock_mass__0__region={"vertices_m": [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]})
+    assert "rock_mass[0].region.vertices_m" in scene_error(flat)
+    d = scene()
+    del d["rock_mass"][0]["material"]
+    msg = scene_error(d)
+    assert "rock_mass[0].joint_sets[2].persistence" in msg and "0.5" in msg
+    msg = scene_error(scene(rock_mass__0__joint_sets=[]))
+    assert "rock_mass[0].joint_sets" in msg
+    d = scene(rock_mass__0__joint_sets__0__dip_direction_deg=45.0)
+    d["simulation"]["dimension"] = 2
+    d["blocks"] = [{"name": "floor", "shape": "box", "size_m": [4.0, 0.5, 1.0], "position_m": [0.5, -0.25, 0.0], "kind": "fixed"}]
+    d["rock_mass"][0]["region"] = {"box_min_m": [0.0, 0.0], "box_max_m": [1.0, 0.6]}
+    msg = scene_error(d)
+    assert "rock_mass[0].joint_sets[0].dip_direction_deg" in msg and "45" in msg
+
+
+def test_2d_rock_mass():
+    from rockwave.rocks import block_specs
+
+    d = scene()
+    d["simulation"]["dimension"] = 2
+    d["blocks"] = [{"name": "floor", "shape": "box", "size_m": [4.0, 0.5, 1.0], "position_m": [0.5, -0.25, 0.0], "kind": "fixed"}]
+    d["rock_mass"][0]["region"] = {"box_min_m": [0.0, 0.0], "box_max_m": [1.0, 0.6], "depth_m": 0.5}
+    d["rock_mass"][0]["joint_sets"] = [{"dip_deg": 90, "dip_direction_deg": 90, "spacing_m": 0.5},
+                                       {"dip_deg": 0, "dip_direction_deg": 270, "spacing_m": 0.3}]
+    rock = [s for s in block_specs(parse_scene(d)) if s.name.startswith("rock_")]
+    assert len(rock) == 4 and abs(sum(s.geometry.volume for s in rock) - 0.3) < 1e-12
+    assert all(abs(s.position[2]) < 1e-12 for s in rock)
+
+
+def test_cut_rock_mass_settles_under_gravity():
+    import rockwave
+
+    sim = rockwave.Simulation(parse_scene(scene()), device="cpu")
+    assert sim.blocks.num_blocks == 9
+    x0 = sim.block_positions().copy()
+    sim.advance(0.05)
+    x, v = sim.block_positions(), sim.block_velocities()
+    assert np.isfinite(x).all() and np.abs(x - x0).max() < 1e-4  # resting: settles by the contact compliance only
+    assert np.abs(v).max() < 1e-2
+    assert (x[1:, 2] > 0.1).all()  # still on the floor, none fell through
