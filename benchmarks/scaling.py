@@ -62,9 +62,12 @@ def rock_slope_sim(device: str, count: int):
     nz = 10
     ny = max(1, int(round(math.sqrt(count / nz / 1.6))))
     nx = max(1, int(round(count / nz / ny)))
-    scene.blocks[1]["array"]["count"] = [float(nx), float(ny), float(nz)]
-    scene.blocks[0]["size_m"] = [max(40.0, 0.5002 * nx + 25.0), max(16.0, 0.5002 * ny + 4.0), 1.0]
-    scene.blocks[1]["position_m"][1] = -0.5002 * ny / 2
+    from rockwave.rockmass import resize_box_region
+
+    rm = scene.rock_mass[0]  # [[rock_mass]] cut into 0.5 m cubes
+    resize_box_region(rm, [0.5 * nx, 0.5 * ny, 0.5 * nz])
+    rm["region"]["box_min_m"][1], rm["region"]["box_max_m"][1] = -0.25 * ny, 0.25 * ny  # centred across the base
+    scene.blocks[0]["size_m"] = [max(40.0, 0.5 * nx + 25.0), max(16.0, 0.5 * ny + 4.0), 1.0]
     return rockwave.Simulation(scene, device=device)
 
 

@@ -521,3 +521,17 @@ def estimate_block_count(entry, dim: int = 3) -> int:
     if len(sp) < 3 and dim == 3:
         cell *= float(np.cbrt(vol)) ** (3 - len(sp))
     return max(1, int(round(vol / cell)))
+
+
+def resize_box_region(entry, extents) -> None:
+    """Give a [[rock_mass]] box region new edge lengths (before turning), its first corner (box_min_m turned)
+    kept where it is, so a slab resting on a slope stays on it (benchmarks grow a scene's rock mass this way)."""
+    from rockwave import geometry
+    from rockwave.rocks import euler_xyz_deg_to_quat
+
+    reg = entry["region"]
+    R = geometry.quat_to_matrix(euler_xyz_deg_to_quat(reg["orientation_deg"]))
+    _, _, corners = box_halfspaces(reg["box_min_m"], reg["box_max_m"], R)
+    h = 0.5 * np.asarray(extents, float)
+    c = corners[0] + R @ h
+    reg["box_min_m"], reg["box_max_m"] = (c - h).tolist(), (c + h).tolist()

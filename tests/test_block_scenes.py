@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import rockwave
+from rockwave.rockmass import resize_box_region
 from rockwave.scene import SceneError, parse_scene
 
 from conftest import DEVICE
@@ -136,7 +137,7 @@ def test_kept_pair_list_matches_a_broad_phase_every_step():
     out = {}
     for keep in (False, None):  # None: the default of the counter-read path, which keeps the list
         scene = rockwave.load_scene(ROOT / "scenes" / "rock_slope_10k.toml")
-        scene.blocks[1]["array"]["count"] = [6.0, 4.0, 3.0]
+        resize_box_region(scene.rock_mass[0], [3.0, 2.0, 1.5])  # 6 x 4 x 3 blocks of 0.5 m
         sim = rockwave.Simulation(scene, device=DEVICE)
         # sync_free_max_blocks = 0: the path of > 64 blocks
         options = BlockOptions(dt_safety=BlockOptions.from_scene(scene).dt_safety, sync_free_max_blocks=0, keep_pairs=keep)
