@@ -574,6 +574,20 @@ def _fluid_step(scene: Scene) -> tuple[float, str, str, float, float, str] | Non
     return dt, key, why, c0, u, flow_key
 
 
+def _block_entries(scene: Scene):
+    """(key prefix, entry) of every [[blocks]] entry, and of every [[rock_mass]] as a box of its first three
+    spacings (its typical block, rockwave/rockmass.py)."""
+    from rockwave.scene import Node
+
+    for i, b in enumerate(scene.blocks):
+        yield f"blocks[{i}]", b
+    for i, r in enumerate(scene.rock_mass):
+        sp = [js.spacing_m for js in r.joint_sets][:3]
+        sp += [min(sp)] * (3 - len(sp)) if sp else [1.0] * 3
+        yield f"rock_mass[{i}]", Node(shape="box", size_m=sp, mesh_scale=1.0, kind=r.kind, youngs_modulus_pa=r.youngs_modulus_pa,
+                                      density_kg_m3=r.density_kg_m3, material=r.material, name=r.name)
+
+
 def _block_step(scene: Scene) -> tuple[float, str, str] | None:
     """(dt, key, why): block_dt_safety x the critical DDA step 2/omega (sqrt(1 + zeta^2) - zeta) of the
     stiffest movable block entry, omega from k_n n_c / m and k_n n_c r^2 / I_min (rockwave/blocks.py)."""
@@ -581,7 +595,7 @@ def _block_step(scene: Scene) -> tuple[float, str, str] | None:
     from rockwave import geometry
 
     best = None
-    for i, b in enumerate(scene.blocks):
+    for prefix, b in _block_entries(scene):
         if b.kind not in ("rigid", "deformable"):
             continue
         try:
@@ -616,14 +630,14 @@ def _block_step(scene: Scene) -> tuple[float, str, str] | None:
                 dt = min(dt, 2.0 / (3.5 * math.sqrt(E / b.density_kg_m3) / (g.size * len_scale)))
             dt *= scene.simulation.block_dt_safety
             if mat.normal_stiffness_n_m is not None and mat.normal_stiffness_n_m > B.PENALTY_FACTOR * E * g.size * len_scale:
-                key = f"blocks[{i}].material.normal_stiffness_n_m"
+                key = f"{prefix}.material.normal_stiffness_n_m"
             elif b.youngs_modulus_pa is not None and b.youngs_modulus_pa > 1e12:
-                key = f"blocks[{i}].youngs_modulus_pa"
+                key = f"{prefix}.youngs_modulus_pa"
             elif b.density_kg_m3 < 100.0:
-                key = f"blocks[{i}].density_kg_m3"
+                key = f"{prefix}.density_kg_m3"
             else:
                 key = "simulation.block_dt_safety"
-            why = (f"the critical DDA step of {b.name!r} (blocks[{i}]: mass {mass:.3g} kg, contact stiffness k_n = {kn:.3g} N/m)")
+            why = (f"the critical DDA step of {b.name!r} ({prefix}: mass {mass:.3g} kg, contact stiffness k_n = {kn:.3g} N/m)")
             if best is None or dt < best[0]:
                 best = (dt, key, why)
     return best
@@ -648,11 +662,11 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
     if fs is not None:
         cands.append(fs[:3])
         c0, u, flow_key = fs[3], fs[4], fs[5]
-    bs = _block_step(scene) if scene.blocks else None
+    bs = _block_step(scene) if scene.blocks or scene.rock_mass else None
     if bs is not None:
         cands.append(bs)
     c = scene.coupling
-    if fs is not None and scene.blocks and c is not None and c.stiffness_n_m is not None:
+    if fs is not None and (scene.blocks or scene.rock_mass) and c is not None and c.stiffness_n_m is not None:
         m = scene.fluid.rest_density_kg_m3 * scene.fluid.spacing_m ** scene.dim
         om = math.sqrt(3.0 * c.stiffness_n_m / m)
         cands.append((0.5 * 2.0 / om, "coupling.stiffness_n_m", f"the fluid-block penalty spring K_s = {c.stiffness_n_m:.3g} N/m"))

@@ -13,6 +13,7 @@ from scipy.spatial import ConvexHull
 from rockwave.rockmass import (
     JointSet,
     box_halfspaces,
+    cut_box,
     cut_convex,
     cut_mesh,
     hull_halfspaces,
@@ -30,7 +31,7 @@ def normals(sets, dim=3):
     return np.array([joint_normal(s.dip_deg, s.dip_direction_deg, dim) for s in sets])
 
 
-def cut_box(lo, hi, sets, seed=0, R=None, origin=None):
+def cut_region(lo, hi, sets, seed=0, R=None, origin=None):
     A, b, c = box_halfspaces(lo, hi, R)
     return cut_convex(A, b, c, sets, normals(sets), c[0] if origin is None else origin, seed=seed), A, b
 
@@ -46,19 +47,25 @@ def test_joint_normal_geological_convention():
 def test_volumes_sum_and_faces_lie_on_planes():
     rot = trimesh.transformations.rotation_matrix(0.4, [0.3, 1, 0.2])[:3, :3]
     for R in (None, rot):
-        cut, A, b = cut_box([0, 0, 0], [2.0, 1.5, 1.0], OBLIQUE, seed=5, R=R)
+        cut, A, b = cut_region([0, 0, 0], [2.0, 1.5, 1.0], OBLIQUE, seed=5, R=R)
         cut = merge_slivers(cut, 0.06)
         assert cut.merged > 0 and len(cut) > 50
         assert abs(cut.volumes.sum() / 3.0 - 1) < 1e-9
         assert (cut.volumes >= 0.06 ** 3).all()
-        planes = [(n, t) for n, ts in zip(cut.normals, cut.positions) for t in ts] + list(zip(A, b))
+        planes = [(s, n, t) for s, (n, ts) in enumerate(zip(cut.normals, cut.positions)) for t in ts]
+        planes += [(-1, n, t) for n, t in zip(A, b)]  # the region's faces
         for i in range(len(cut)):
             v = cut.block_vertices(i)
             h = ConvexHull(v)
             assert abs(h.volume - cut.volumes[i]) < 1e-9 * cut.volumes[i]
+            sets_on = set()
             for eq in h.equations:
                 n, d = eq[:3], -eq[3]
-                assert any(abs(abs(n @ pn) - 1) < 1e-9 and abs(d - np.sign(n @ pn) * t) < 1e-9 for pn, t in planes), (i, eq)
+                on = [s for s, pn, t in planes if abs(abs(n @ pn) - 1) < 1e-9 and abs(d - np.sign(n @ pn) * t) < 1e-9]
+                assert on, (i, eq)  # every face lies on a joint plane or the region boundary
+                sets_on.update(s for s in on if s >= 0)
+            # the sets the block has faces on (they give its contact material)
+            assert sets_on == set(np.flatnonzero(cut.on_set[i])), i
 
 
 def test_hull_region_volume():
@@ -74,7 +81,7 @@ def test_orthogonal_sets_analytic_count(offsets):
     spacing = [0.5, 0.4, 0.3]
     sets = [JointSet(90, 90, spacing[0], offset_m=offsets[0]), JointSet(90, 0, spacing[1], offset_m=offsets[1]),
             JointSet(0, 0, spacing[2], offset_m=offsets[2])]
-    cut, _, _ = cut_box([0, 0, 0], size, sets)
+    cut, _, _ = cut_region([0, 0, 0], size, sets)
     # slabs along an axis: 1 + the planes o + k s strictly inside (0, L)
     expect = 1
     for L, s, o in zip(size, spacing, offsets):
@@ -83,12 +90,13 @@ def test_orthogonal_sets_analytic_count(offsets):
         expect *= 1 + int(np.sum((t > 1e-9) & (t < L - 1e-9)))
     assert len(cut) == expect
     assert abs(cut.volumes.sum() / size.prod() - 1) < 1e-12
+    assert len(cut_box([0, 0, 0], size, sets)) == expect  # the benchmarks' entry point
 
 
 def test_slivers_merge_into_neighbours():
     # 1.0 m cut every 0.3 m leaves 0.1 m slabs at the far end of each axis
     sets = [JointSet(90, 90, 0.3), JointSet(90, 0, 0.3), JointSet(0, 0, 0.3)]
-    cut, _, _ = cut_box([0, 0, 0], [1.0, 1.0, 1.0], sets)
+    cut, _, _ = cut_region([0, 0, 0], [1.0, 1.0, 1.0], sets)
     assert len(cut) == 64
     merged = merge_slivers(cut, 0.2)  # 0.3 x 0.3 x 0.1 (size 0.208) stays, 0.3 x 0.1 x 0.1 and 0.1^3 merge
     assert len(merged) < 64 and (merged.volumes >= 0.2 ** 3).all()
@@ -98,9 +106,9 @@ def test_slivers_merge_into_neighbours():
 
 
 def test_seed_reproduces():
-    a = merge_slivers(cut_box([0, 0, 0], [2, 1.5, 1], OBLIQUE, seed=7)[0], 0.05)
-    b = merge_slivers(cut_box([0, 0, 0], [2, 1.5, 1], OBLIQUE, seed=7)[0], 0.05)
-    c = merge_slivers(cut_box([0, 0, 0], [2, 1.5, 1], OBLIQUE, seed=8)[0], 0.05)
+    a = merge_slivers(cut_region([0, 0, 0], [2, 1.5, 1], OBLIQUE, seed=7)[0], 0.05)
+    b = merge_slivers(cut_region([0, 0, 0], [2, 1.5, 1], OBLIQUE, seed=7)[0], 0.05)
+    c = merge_slivers(cut_region([0, 0, 0], [2, 1.5, 1], OBLIQUE, seed=8)[0], 0.05)
     assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.start, b.start)
     assert len(a) != len(c) or not np.allclose(a.volumes, c.volumes)
 
