@@ -502,11 +502,11 @@ def rock_mass_specs(scene) -> list:
             raise SceneError(scene.path, [(f"rock_mass[{i}].{e.key}", str(e))]) from None
         mats = block_materials(entry, cut)
         shapes: dict[bytes, tuple] = {}
+        quantum = 1e-9 * float(np.ptp(cut.vertices, axis=0).max())  # one length for all: a scaled copy is another shape
         for k in range(len(cut)):
             v = cut.block_vertices(k)
             mean = v.mean(axis=0)
-            scale = float(np.ptp(v, axis=0).max())
-            key = np.round((v - mean) / (1e-9 * scale)).astype(np.int64).tobytes()
+            key = np.round((v - mean) / quantum).astype(np.int64).tobytes()
             if key not in shapes:
                 try:
                     g = geometry.prism(v, name=f"{entry.name}_{k}")

@@ -249,3 +249,21 @@ def test_cut_rock_mass_settles_under_gravity():
     assert np.isfinite(x).all() and np.abs(x - x0).max() < 1e-4  # resting: settles by the contact compliance only
     assert np.abs(v).max() < 1e-2
     assert (x[1:, 2] > 0.1).all()  # still on the floor, none fell through
+
+
+def test_mesh_region_in_a_scene(tmp_path):
+    from rockwave.rocks import block_specs
+
+    top = 3 - 2 / math.tan(math.radians(40))
+    slope = trimesh.convex.convex_hull(np.array([[0, 0, 0], [3, 0, 0], [0, 1, 0], [3, 1, 0], [0, 0, 2], [0, 1, 2],
+                                                 [top, 0, 2], [top, 1, 2]], float))
+    slope.export(tmp_path / "slope.stl")
+    _l_mesh().export(tmp_path / "l.stl")
+    d = scene(rock_mass__0__region={"mesh": "slope.stl"})
+    d["blocks"][0].update(size_m=[6.0, 4.0, 0.5], position_m=[1.5, 0.5, -0.25])
+    rock = [s for s in block_specs(parse_scene(d, tmp_path / "s.toml")) if s.name.startswith("rock_")]
+    stored = trimesh.load(tmp_path / "slope.stl")  # STL keeps float32 vertices
+    assert abs(sum(s.geometry.volume for s in rock) / stored.volume - 1) < 1e-9
+    with pytest.raises(SceneError) as e:
+        block_specs(parse_scene(scene(rock_mass__0__region={"mesh": "l.stl"}), tmp_path / "s.toml"))
+    assert "rock_mass[0].region.mesh" in str(e.value) and "3.5 m^3" in str(e.value)
