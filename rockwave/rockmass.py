@@ -487,10 +487,42 @@ def block_materials(entry, cut: Cut):
     return out
 
 
+def block_geometries(cut: Cut, name: str = "rock") -> tuple[list, np.ndarray]:
+    """One ConvexPolyhedron per block (blocks of one shape, such as a regular cut's interior, share one; the
+    shapes found with np.unique on the vertices about their mean, quantised to 1e-9 of the cut's size) and
+    the blocks' centroid positions (n, 3)."""
+    from rockwave import geometry
+
+    n = len(cut)
+    geoms: list = [None] * n
+    pos = np.zeros((n, 3))
+    counts = np.diff(cut.start)
+    quantum = 1e-9 * float(np.ptp(cut.vertices, axis=0).max())  # one length for all: a scaled copy is another shape
+    for nv in np.unique(counts):
+        ids = np.flatnonzero(counts == nv)
+        V = cut.vertices[cut.start[ids][:, None] + np.arange(nv)]  # (k, nv, 3)
+        mean = V.mean(axis=1)
+        keys = np.round((V - mean[:, None]) / quantum).astype(np.int64).reshape(len(ids), -1)
+        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+        inverse = inverse.ravel()
+        shapes, delta = [], np.zeros((len(first), 3))
+        for u, f in enumerate(first):
+            k = int(ids[f])
+            try:
+                g = geometry.prism(V[f], name=f"{name}_{k}")
+            except (geometry.GeometryError, ValueError) as e:
+                raise RockMassError("joint_sets", f"block {k} near {np.round(mean[f], 4).tolist()} m: {e}") from None
+            shapes.append(g)
+            delta[u] = np.asarray(g.origin_offset) - mean[f]  # centroid minus vertex mean, the same for the whole shape
+        pos[ids] = mean + delta[inverse]
+        for m, u in zip(ids.tolist(), inverse.tolist()):
+            geoms[m] = shapes[u]
+    return geoms, pos
+
+
 def rock_mass_specs(scene) -> list:
     """BlockSpecs of every [[rock_mass]] entry of a validated scene (SceneError naming rock_mass[i].<key>).
     Blocks of one shape (a regular cut's interior) share one ConvexPolyhedron."""
-    from rockwave import geometry
     from rockwave.blocks import BlockSpec
     from rockwave.scene import SceneError
 
@@ -501,20 +533,9 @@ def rock_mass_specs(scene) -> list:
         except RockMassError as e:
             raise SceneError(scene.path, [(f"rock_mass[{i}].{e.key}", str(e))]) from None
         mats = block_materials(entry, cut)
-        shapes: dict[bytes, tuple] = {}
-        quantum = 1e-9 * float(np.ptp(cut.vertices, axis=0).max())  # one length for all: a scaled copy is another shape
-        for k in range(len(cut)):
-            v = cut.block_vertices(k)
-            mean = v.mean(axis=0)
-            key = np.round((v - mean) / quantum).astype(np.int64).tobytes()
-            if key not in shapes:
-                try:
-                    g = geometry.prism(v, name=f"{entry.name}_{k}")
-                except (geometry.GeometryError, ValueError) as e:
-                    raise SceneError(scene.path, [(f"rock_mass[{i}]", f"block {k}: {e}")]) from None
-                shapes[key] = (g, np.asarray(g.origin_offset) - mean)
-            g, delta = shapes[key]
-            specs.append(BlockSpec(geometry=g, position=tuple(mean + delta), density=entry.density_kg_m3, kind=entry.kind,
+        geoms, positions = block_geometries(cut, entry.name)
+        for k, (g, pos) in enumerate(zip(geoms, positions.tolist())):
+            specs.append(BlockSpec(geometry=g, position=tuple(pos), density=entry.density_kg_m3, kind=entry.kind,
                                    youngs_modulus=entry.youngs_modulus_pa, poisson_ratio=entry.poisson_ratio,
                                    material=mats[k], name=f"{entry.name}_{k}"))
     return specs

@@ -263,7 +263,15 @@ def test_mesh_region_in_a_scene(tmp_path):
     d["blocks"][0].update(size_m=[6.0, 4.0, 0.5], position_m=[1.5, 0.5, -0.25])
     rock = [s for s in block_specs(parse_scene(d, tmp_path / "s.toml")) if s.name.startswith("rock_")]
     stored = trimesh.load(tmp_path / "slope.stl")  # STL keeps float32 vertices
-    assert abs(sum(s.geometry.volume for s in rock) / stored.volume - 1) < 1e-9
+    vol = np.array([s.geometry.volume for s in rock])
+    assert abs(vol.sum() / stored.volume - 1) < 1e-9
+    # the blocks' centroids and shared shapes put the mass where the slope has it
+    com = (vol[:, None] * np.array([s.position for s in rock])).sum(axis=0) / vol.sum()
+    assert np.allclose(com, stored.center_mass, atol=1e-9)
+    eq = ConvexHull(stored.vertices).equations
+    for s in rock:  # each block's world vertices lie in the slope
+        w = s.geometry.vertices + np.asarray(s.position)
+        assert (w @ eq[:, :3].T + eq[:, 3] < 1e-6).all()
     with pytest.raises(SceneError) as e:
         block_specs(parse_scene(scene(rock_mass__0__region={"mesh": "l.stl"}), tmp_path / "s.toml"))
     assert "rock_mass[0].region.mesh" in str(e.value) and "3.5 m^3" in str(e.value)
