@@ -15,10 +15,11 @@ intersection of the region's half-spaces with one slab of every set (the cell of
 k_1..k_m). Cells whose parallelepiped (three independent sets) lies inside the region are taken as
 they are, in one vectorised pass; cells on the region's boundary get their vertices by enumerating
 the intersections of three of their planes that satisfy all of their half-spaces (vectorised over
-cells), and scipy's Qhull gives their volume. A closed mesh region (the slope) must be convex and is
-cut as the hull of its vertices; a non-convex mesh is refused, not decomposed: its cells clipped by
-the concave surface would not be convex (DDA blocks are), and a decomposition adds cuts that are
-not joints. A concave slope is given as several convex [[rock_mass]] entries.
+cells), and scipy's Qhull gives their volume. A closed mesh region (the slope) that is convex is cut
+as the hull of its vertices. A non-convex one is cut cell by cell: each cell of its bounding box is
+clipped by the mesh (signed columns under its triangles, see _clip_cell_by_mesh); a clipped cell that
+is not one convex piece (it straddles a concave edge no joint plane runs through) makes the region
+refused, not decomposed: DDA blocks are convex, and a decomposition adds cuts that are not joints.
 
 Blocks smaller than ``min_block_size`` (equivalent size V^(1/3)) merge into a face neighbour when
 the union stays convex (the joint between them is taken not to run through there); a sliver with no
@@ -289,21 +290,126 @@ def cut_box(box_min, box_max, sets: list[JointSet], seed: int = 0, orientation_d
     return merge_slivers(cut, min_block_size)
 
 
+def winding_number(points: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """Generalised winding number of a closed, outward-oriented triangle mesh at points (1 inside, 0 outside):
+    the solid angles of the triangles (Van Oosterom & Strackee 1983) summed over 4 pi."""
+    w = np.zeros(len(points))
+    for c0 in range(0, len(points), 256):
+        p = points[c0:c0 + 256]
+        a, b, c = (tris[None, :, k] - p[:, None] for k in range(3))  # (k, F, 3)
+        la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+        num = np.einsum("kfi,kfi->kf", a, np.cross(b, c))
+        den = la * lb * lc + np.einsum("kfi,kfi->kf", a, b) * lc + np.einsum("kfi,kfi->kf", b, c) * la \
+            + np.einsum("kfi,kfi->kf", c, a) * lb
+        w[c0:c0 + 256] = np.arctan2(num, den).sum(axis=1) / (2 * np.pi)
+    return w
+
+
+def _clip_cell_by_mesh(Ac, bc, cverts, tris, tri_n, tol):
+    """Vertices (of the hull) and volume of the cell {Ac x <= bc} (vertices cverts) intersected with a closed
+    mesh, or None if empty. The mesh's inside is the signed sum of the columns under its triangles (a vertical
+    ray from a point inside crosses the surface above it once more upward-facing than downward-facing), so
+
+        V(cell & mesh) = sum_t sign(n_z,t) V(cell & {(x, y) in proj t, z <= plane of t})
+
+    each term a convex polytope (vertices from every three of its planes, volume by Qhull). The pieces' vertices
+    inside or on the mesh hold every vertex of the clipped cell: their hull has its volume iff it is convex.
+    Returns (hull vertices, volume of the clipped cell, hull volume, hull centroid, hull equations)."""
+    lo, hi = cverts.min(axis=0) - tol, cverts.max(axis=0) + tol
+    tmin, tmax = tris.min(axis=1), tris.max(axis=1)
+    rel = np.flatnonzero((tmin[:, 0] <= hi[0]) & (tmax[:, 0] >= lo[0]) & (tmin[:, 1] <= hi[1]) & (tmax[:, 1] >= lo[1])
+                         & (tmax[:, 2] >= lo[2]) & (np.abs(tri_n[:, 2]) > 1e-12))
+    if len(rel) == 0:
+        return None
+    T = tris[rel]
+    sgn = np.sign(tri_n[rel, 2])
+    # the column's side planes (inward: orient each projected edge so that the third corner is inside)
+    As, bs = [], []
+    for k in range(3):
+        p, q, r = T[:, k], T[:, (k + 1) % 3], T[:, (k + 2) % 3]
+        e = q - p
+        nrm = np.stack([e[:, 1], -e[:, 0], np.zeros(len(T))], axis=1)
+        flip = np.einsum("ti,ti->t", nrm, r - p) > 0  # r on the positive side: the outward normal is -nrm
+        nrm[flip] *= -1
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        As.append(nrm)
+        bs.append(np.einsum("ti,ti->t", nrm, p))
+    up = tri_n[rel] * sgn[:, None]  # the triangle's normal turned upward: below it is up.x <= up.p
+    As.append(up)
+    bs.append(np.einsum("ti,ti->t", up, T[:, 0]))
+    A = np.concatenate([np.broadcast_to(Ac, (len(T),) + Ac.shape), np.stack(As, axis=1)], axis=1)
+    b = np.concatenate([np.broadcast_to(bc, (len(T), len(bc))), np.stack(bs, axis=1)], axis=1)
+    vol, moment, cand = 0.0, np.zeros(3), []
+    for t, pts in enumerate(_solve_vertices(A, b, tol)):
+        hp = _hull_props(pts, tol)
+        if hp is None:
+            continue
+        vol += sgn[t] * hp[0]
+        moment += sgn[t] * hp[0] * hp[1]
+        on_tri = np.abs(pts @ up[t] - b[t, -1]) <= tol
+        cand.append((pts[on_tri], pts[~on_tri]))
+    if not cand or vol <= 0:
+        return None
+    on = np.concatenate([c[0] for c in cand])  # on a triangle and in the cell: on the clipped cell's boundary
+    off = np.concatenate([c[1] for c in cand])
+    if len(off):
+        # the others count when inside the mesh; a point on its surface (a cell corner on a face) is tested a
+        # millionth of the way toward the clipped cell's centroid (inside it when the clipped cell is convex)
+        off = np.unique(off, axis=0)
+        cen = moment / vol
+        off = off[winding_number(off + 1e-6 * (cen - off), tris) > 0.5]
+    hp = _hull_props(np.concatenate([on, off]), tol)
+    if hp is None:
+        return None
+    return hp[2], vol, hp[0], hp[1], hp[3]
+
+
 def cut_mesh(mesh, sets: list[JointSet], normals, origin, seed: int = 0, convex_tol: float = 1e-6) -> Cut:
-    """Cut a closed trimesh region by the joint sets. The mesh must be convex (its volume within convex_tol of
-    its hull's): it is then cut exactly as the hull of its vertices. A non-convex mesh is refused
-    (RockMassError naming region.mesh): cells clipped by a concave surface are not convex, and decomposing
-    them would add cuts that are not joints."""
+    """Cut a closed, outward-oriented trimesh region by the joint sets. A convex mesh (volume within
+    convex_tol of its hull's) is cut exactly as the hull of its vertices (vectorised). A non-convex one is cut
+    cell by cell: each cell of its bounding box is clipped by the mesh (_clip_cell_by_mesh); a clipped cell
+    that is not one convex piece is a RockMassError naming region.mesh (refused, not decomposed: DDA blocks
+    are convex and a decomposition adds cuts that are not joints)."""
     vol = abs(float(mesh.volume))
     hv = float(mesh.convex_hull.volume)
-    if hv - vol > convex_tol * hv:
-        raise RockMassError("region.mesh", (
-            f"the mesh is not convex: volume {vol:.6g} m^3, its hull {hv:.6g} m^3 ({100 * (1 - vol / hv):.3g}% short). "
-            f"Blocks cut from it would not all be convex (DDA blocks are), and the region is refused rather than "
-            f"decomposed (a decomposition adds cuts that are not joints): split the mesh into convex parts along planes "
-            f"that are joints of the rock mass, one [[rock_mass]] each"))
-    A, b, corners = hull_halfspaces(np.asarray(mesh.vertices))
-    return cut_convex(A, b, corners, sets, normals, origin, seed=seed)
+    if hv - vol <= convex_tol * hv:
+        A, b, corners = hull_halfspaces(np.asarray(mesh.vertices))
+        return cut_convex(A, b, corners, sets, normals, origin, seed=seed)
+    normals = np.asarray(normals, float)
+    lo, hi = np.asarray(mesh.bounds, float)
+    A, b, corners = box_halfspaces(lo, hi)
+    box = cut_convex(A, b, corners, sets, normals, origin, seed=seed)
+    L = float(np.ptp(corners, axis=0).max())
+    tol = 1e-9 * L
+    tris = np.asarray(mesh.triangles, float)
+    tri_n = np.asarray(mesh.face_normals, float)
+    m = len(sets)
+    out_v, vols, cens, cells, on = [], [], [], [], []
+    for i in range(len(box)):
+        k = box.cells[i]
+        t_lo = np.array([box.positions[s][k[s]] for s in range(m)])
+        t_hi = np.array([box.positions[s][k[s] + 1] for s in range(m)])
+        Ac = np.concatenate([A, normals, -normals])
+        bc = np.concatenate([b, t_hi, -t_lo])
+        res = _clip_cell_by_mesh(Ac, bc, box.block_vertices(i), tris, tri_n, tol)
+        if res is None:
+            continue
+        hverts, v, hvol, hcen, heq = res
+        if v <= 1e-12 * vol:
+            continue
+        if abs(hvol - v) > convex_tol * hvol:
+            raise RockMassError("region.mesh", (
+                f"the mesh is not convex, and the cell of joint-plane indices {k.tolist()} (near "
+                f"{np.round(hcen, 4).tolist()} m) clipped by it is not one convex piece: volume {v:.6g} m^3, its hull "
+                f"{hvol:.6g} m^3 ({100 * (1 - v / hvol):.3g}% short). DDA blocks are convex, and the region is refused "
+                f"rather than decomposed (a decomposition adds cuts that are not joints): put a joint plane through the "
+                f"concave edge (offset_m), or split the mesh there into convex parts, one [[rock_mass]] each"))
+        out_v.append(hverts)
+        vols.append(hvol)
+        cens.append(hcen)
+        cells.append(k)
+        on.append(_faces_on(heq, normals, t_lo, t_hi, 1e-7 * L))
+    return _csr(out_v, vols, cens, cells, on, normals, box.positions, m)
 
 
 def _csr(out_v, vols, cens, cells, on, normals, pos, m) -> Cut:

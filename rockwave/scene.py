@@ -247,7 +247,7 @@ _ROCK_MASS = _list(
         box_max_m=Key("vec", "upper corner of the box (before turning)", length="dim"),
         orientation_deg=Key("vec", "the box turned about its centre by successive turns about the fixed x, y, z axes (3D)", length=3, default=[0.0, 0.0, 0.0]),
         vertices_m=Key("points", "points whose convex hull is the region (3D)", length=3),
-        mesh=Key("path", "closed mesh file (STL, OBJ, PLY, GLB), may be non-convex (a slope); every cell clipped by it must stay convex (3D)"),
+        mesh=Key("path", "closed mesh file (STL, OBJ, PLY, GLB), may be non-convex (a slope): every cell clipped by it must be one convex piece (a joint plane through each concave edge), else the region is refused (3D)"),
         mesh_scale=Key("float", "uniform scale applied to the mesh", default=1.0, min=0, min_open=True),
         mesh_offset_m=Key("vec", "translation applied to the mesh after scaling", length=3, default=[0.0, 0.0, 0.0]),
         depth_m=Key("float", "2D: extrusion depth along z of the blocks (centred on z = 0)", default=1.0, min=0, min_open=True),

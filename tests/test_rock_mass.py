@@ -122,9 +122,20 @@ def test_mesh_regions():
                                                  [3 - 2 / math.tan(math.radians(40)), 1, 2]], float))
     cut = cut_mesh(slope, OBLIQUE, normals(OBLIQUE), [0, 0, 0], seed=2)
     assert len(cut) > 50 and abs(cut.volumes.sum() / slope.volume - 1) < 1e-9
-    L = _l_mesh()  # an L-shaped section: refused with its volume shortfall
+    # an L-shaped section (a slope with a bench): cut cell by cell; fine while joint planes run through its
+    # concave edge (x = 1, z = 1), refused when a cell straddles it
+    L = _l_mesh()
     assert L.is_watertight and abs(L.volume - 3.0) < 1e-12
-    with pytest.raises(RockMassError, match=r"not convex: volume 3 m\^3, its hull 3.5 m\^3"):
+    sets = [JointSet(90, 90, 0.5), JointSet(0, 0, 0.5), JointSet(90, 0, 0.3, random_offset=True)]
+    cut = cut_mesh(L, sets, normals(sets), [0, 0, 0], seed=3)
+    y_slabs = 1 + int(np.sum((cut.positions[2] > 1e-9) & (cut.positions[2] < 1 - 1e-9)))
+    assert len(cut) == 12 * y_slabs and abs(cut.volumes.sum() / 3.0 - 1) < 1e-9
+    faces = [(n, t) for n, ts in zip(cut.normals, cut.positions) for t in ts]
+    faces += [(n, float(n @ v)) for n, v in zip(L.face_normals, L.triangles[:, 0])]
+    for i in range(len(cut)):
+        for eq in ConvexHull(cut.block_vertices(i)).equations:
+            assert any(abs(abs(eq[:3] @ n) - 1) < 1e-9 and abs(-eq[3] - np.sign(eq[:3] @ n) * t) < 1e-9 for n, t in faces)
+    with pytest.raises(RockMassError, match=r"not one convex piece: volume [0-9.]+ m\^3, its hull [0-9.]+ m\^3"):
         cut_mesh(L, OBLIQUE, normals(OBLIQUE), [0, 0, 0])
 
 
@@ -273,5 +284,7 @@ def test_mesh_region_in_a_scene(tmp_path):
         w = s.geometry.vertices + np.asarray(s.position)
         assert (w @ eq[:, :3].T + eq[:, 3] < 1e-6).all()
     with pytest.raises(SceneError) as e:
-        block_specs(parse_scene(scene(rock_mass__0__region={"mesh": "l.stl"}), tmp_path / "s.toml"))
-    assert "rock_mass[0].region.mesh" in str(e.value) and "3.5 m^3" in str(e.value)
+        # joint planes at x = 0.2 + 0.5 k and z = 0.3 k: none runs through the concave edge (x = 1, z = 1)
+        block_specs(parse_scene(scene(rock_mass__0__region={"mesh": "l.stl"}, rock_mass__0__joint_sets__0__offset_m=0.2),
+                                tmp_path / "s.toml"))
+    assert "rock_mass[0].region.mesh" in str(e.value) and "not one convex piece" in str(e.value)
