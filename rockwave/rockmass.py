@@ -21,7 +21,7 @@ clipped by the mesh (signed columns under its triangles, see _clip_cell_by_mesh)
 is not one convex piece (it straddles a concave edge no joint plane runs through) makes the region
 refused, not decomposed: DDA blocks are convex, and a decomposition adds cuts that are not joints.
 
-Blocks smaller than ``min_block_size`` (equivalent size V^(1/3)) merge into a face neighbour when
+Blocks whose largest inscribed sphere is narrower than ``min_block_size`` merge into a face neighbour when
 the union stays convex (the joint between them is taken not to run through there); a sliver with no
 such neighbour is an error. Non-persistent joints (persistence p < 1: the fraction of the joint
 plane that is open) are cut through, and their contacts carry Jennings' (1970) equivalent strength
@@ -46,7 +46,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 __all__ = ["RockMassError", "JointSet", "Cut", "joint_normal", "plane_positions", "box_halfspaces",
            "hull_halfspaces", "cut_convex", "cut_box", "cut_mesh", "merge_slivers", "jennings_strength",
-           "rock_mass_specs", "resize_box_region"]
+           "rock_mass_specs", "resize_box_region", "inscribed_diameter", "block_widths"]
 
 
 class RockMassError(ValueError):
@@ -78,7 +78,8 @@ class JointSet:
 class Cut:
     """Blocks of a cut rock mass: vertices in CSR form (block i: ``vertices[start[i]:start[i+1]]``),
     volume and centroid, the plane index of each set per block (``cells``; merged blocks keep their
-    largest cell's), which sets it has faces on (``on_set``), and the planes (n, t) of every set."""
+    largest cell's), which sets it has faces on (``on_set``), the planes (n, t) of every set, and the
+    inscribed-sphere diameter where the cut knows it without a computation (``width``, else NaN)."""
 
     vertices: np.ndarray
     start: np.ndarray
@@ -89,6 +90,7 @@ class Cut:
     normals: np.ndarray
     positions: list = field(default_factory=list)
     merged: int = 0
+    width: np.ndarray | None = None  # diameter of the largest inscribed sphere where known (parallelepipeds), else NaN
 
     def __len__(self) -> int:
         return len(self.volumes)
@@ -271,8 +273,10 @@ def cut_convex(A, b, corners, sets: list[JointSet], normals, origin, seed: int =
     for j in np.flatnonzero(~ins):
         i = keep_i[j]
         on_set[j] = _faces_on(eqs[i], normals, t_lo[i], t_hi[i], 1e-7 * L)
+    # a parallelepiped's largest inscribed sphere: the ball at its centre as wide as its thinnest slab
+    width = np.where(ins, np.min(t_hi[keep_i] - t_lo[keep_i], axis=1) * np.ones(len(keep_i)), np.nan)
     return Cut(vertices=V, start=start, volumes=vols[keep_i], centroids=cens[keep_i], cells=idx[keep_i],
-               on_set=on_set, normals=normals, positions=pos)
+               on_set=on_set, normals=normals, positions=pos, width=width)
 
 
 def cut_box(box_min, box_max, sets: list[JointSet], seed: int = 0, orientation_deg=(0.0, 0.0, 0.0), origin=None,
@@ -421,16 +425,43 @@ def _csr(out_v, vols, cens, cells, on, normals, pos, m) -> Cut:
                normals=normals, positions=pos)
 
 
+def inscribed_diameter(eq: np.ndarray) -> float:
+    """Diameter of the largest sphere inside the convex polytope {x: n_f.x + e_f <= 0} (unit n_f): the
+    Chebyshev centre, max r with n_f.x + r <= -e_f (a linear programme, scipy HiGHS)."""
+    from scipy.optimize import linprog
+
+    A = np.concatenate([eq[:, :3], np.ones((len(eq), 1))], axis=1)
+    res = linprog(c=[0, 0, 0, -1.0], A_ub=A, b_ub=-eq[:, 3], bounds=[(None, None)] * 3 + [(0, None)], method="highs")
+    return 2.0 * float(res.x[3]) if res.status == 0 else 0.0
+
+
+def block_widths(cut: Cut, min_size: float = math.inf) -> np.ndarray:
+    """Inscribed-sphere diameter of every block; where (6 V / pi)^(1/3) (the sphere of the block's volume, an
+    upper bound) is already below min_size, that bound stands in (such a block is a sliver either way)."""
+    w = np.full(len(cut), np.nan) if cut.width is None else cut.width.copy()
+    bound = (6.0 * cut.volumes / math.pi) ** (1.0 / 3.0)
+    todo = np.isnan(w) & (bound >= min_size)
+    w[np.isnan(w) & ~todo] = bound[np.isnan(w) & ~todo]
+    for i in np.flatnonzero(todo):
+        w[i] = inscribed_diameter(ConvexHull(cut.block_vertices(i)).equations)
+    return w
+
+
 def merge_slivers(cut: Cut, min_size: float) -> Cut:
-    """Merge every block with V^(1/3) < min_size into a face neighbour (one cell index apart in one set)
-    such that the union is convex (its hull's volume equals the sum within 1e-9), the neighbour with the
-    largest volume first; the smallest block goes first and a merged block that is still small goes again.
-    A block that cannot merge is a RockMassError naming min_block_size_m."""
+    """Merge every block whose largest inscribed sphere is narrower than min_size (a sliver: a thin plate, a
+    needle or a small block, the shapes that make the DDA step small) into a face neighbour (one cell index
+    apart in one set), or two at once, such that the union is convex (its hull's volume equals the sum within
+    1e-9): the largest neighbour first, the thinnest sliver first, and a merged block still too thin goes
+    again. A sliver that cannot merge is a RockMassError naming min_block_size_m."""
     n = len(cut)
-    small = np.flatnonzero(cut.volumes < min_size ** 3)
-    if min_size <= 0 or len(small) == 0:
+    if min_size <= 0 or n == 0:
         return cut
-    L = float(np.ptp(cut.vertices, axis=0).max()) if len(cut.vertices) else 1.0
+    width = block_widths(cut, min_size)
+    small = np.flatnonzero(width < min_size)
+    if len(small) == 0:
+        cut.width = width
+        return cut
+    L = float(np.ptp(cut.vertices, axis=0).max())
     tol = 1e-9 * L
     group = np.arange(n)
     members: dict[int, list[int]] = {i: [i] for i in range(n)}
@@ -442,11 +473,14 @@ def merge_slivers(cut: Cut, min_size: float) -> Cut:
     for i, c in enumerate(map(tuple, cut.cells)):
         by_cell.setdefault(c, []).append(i)
     m = cut.cells.shape[1]
-    queue = sorted(small.tolist(), key=lambda i: gvol[i])
+    def order_key(i):  # the thinnest first; of equally thin ones the largest (a face sliver before an edge's)
+        return (round(width[i] / tol), -gvol[i])
+
+    queue = sorted(small.tolist(), key=order_key)
     merged = 0
     while queue:
         g = queue.pop(0)
-        if group[g] != g or gvol[g] >= min_size ** 3:
+        if group[g] != g or width[g] >= min_size:
             continue
         nbrs = set()
         for i in members[g]:
@@ -461,19 +495,25 @@ def merge_slivers(cut: Cut, min_size: float) -> Cut:
         for h in nbrs:
             if h not in gverts:
                 gverts[h] = cut.block_vertices(h)
-        # one neighbour (the largest first), else two at once (a sliver in the corner between two blocks)
+        # one neighbour, else two at once (a sliver in the corner between two blocks): of the convex unions the
+        # one with the widest inscribed sphere (a thin slab joins the block across its thin side), then the largest
         order = sorted(nbrs, key=lambda h: -gvol[h])
-        for hs in [(h,) for h in order] + list(combinations(order, 2)):
-            hp = _hull_props(np.concatenate([gverts[g]] + [gverts[h] for h in hs]), tol)
-            if hp is not None and hp[0] <= (gvol[g] + sum(gvol[h] for h in hs)) * (1 + 1e-9):
-                best = (hs, hp)
+        for tries in ([(h,) for h in order], list(combinations(order, 2))):
+            found = []
+            for hs in tries:
+                hp = _hull_props(np.concatenate([gverts[g]] + [gverts[h] for h in hs]), tol)
+                if hp is not None and hp[0] <= (gvol[g] + sum(gvol[h] for h in hs)) * (1 + 1e-9):
+                    found.append((inscribed_diameter(hp[3]), hp[0], hs, hp))
+            if found:
+                wbest, _, hs, hp = max(found, key=lambda f: (round(f[0] / tol), f[1]))
+                best = (hs, hp, wbest)
                 break
         if best is None:
             raise RockMassError("min_block_size_m", (
-                f"= {min_size:g} m: block #{g} near {np.round(gcen[g], 4).tolist()} m has size V^(1/3) = "
-                f"{gvol[g] ** (1 / 3):.4g} m (volume {gvol[g]:.4g} m^3) and no face neighbour it can merge with into a convex "
-                f"block; lower min_block_size_m, or move the joint planes (offset_m) so that no sliver forms there"))
-        hs, (_, _, hv, heq) = best
+                f"= {min_size:g} m: block #{g} near {np.round(gcen[g], 4).tolist()} m is a sliver (its largest inscribed "
+                f"sphere is {width[g]:.4g} m across, volume {gvol[g]:.4g} m^3) with no face neighbour it can merge with into "
+                f"a convex block; lower min_block_size_m, or move the joint planes (offset_m) so that no sliver forms there"))
+        hs, (_, _, hv, heq), wbest = best
         parts = (g,) + hs
         vol = sum(gvol[k] for k in parts)  # the exact sum (the hull agrees within 1e-9)
         cen = sum(gvol[k] * gcen[k] for k in parts) / vol
@@ -484,10 +524,11 @@ def merge_slivers(cut: Cut, min_size: float) -> Cut:
                     group[i] = keep_g
                 members[keep_g] += members.pop(other)
         gvol[keep_g], gcen[keep_g], gverts[keep_g], geq[keep_g] = vol, cen, hv, heq
+        width[keep_g] = wbest
         merged += len(hs)
-        if vol < min_size ** 3:
+        if width[keep_g] < min_size:
             queue.append(keep_g)
-            queue.sort(key=lambda i: gvol[i])
+            queue.sort(key=order_key)
     roots = np.flatnonzero(group == np.arange(n))
     out_v, on = [], []
     for r in roots:
@@ -495,6 +536,7 @@ def merge_slivers(cut: Cut, min_size: float) -> Cut:
         on.append(np.any(cut.on_set[members[r]], axis=0) if len(members[r]) == 1 else _merged_on_set(cut, gverts[r], geq[r], members[r]))
     res = _csr(out_v, gvol[roots], gcen[roots], cut.cells[roots], on, cut.normals, cut.positions, m)
     res.merged = merged
+    res.width = width[roots]
     return res
 
 

@@ -254,7 +254,7 @@ _ROCK_MASS = _list(
     ),
     origin_m=Key("vec", "a point every set's plane 0 passes through before offset_m (default: the region's first corner: box_min_m turned, else the lower corner of its bounds)", length="dim"),
     seed=Key("int", "seed of the random plane offsets and spacing jitter (the same seed gives the same blocks)", default=0, min=0),
-    min_block_size_m=Key("float", "blocks with V^(1/3) below this merge into a face neighbour (one or two) whose union with them is convex; 0: no merging", default=0.0, min=0.0),
+    min_block_size_m=Key("float", "blocks whose largest inscribed sphere is narrower than this (small blocks, thin plates, needles) merge into one or two face neighbours whose union with them is convex; 0: no merging", default=0.0, min=0.0),
     density_kg_m3=Key("float", "rock density", default=2600.0, min=0, min_open=True),
     kind=Key("str", "'rigid' or 'deformable' (Shi's constant strain)", default="rigid", choices=("rigid", "deformable")),
     youngs_modulus_pa=Key("float", "Young's modulus E (sets the default contact stiffness); default 10 GPa", min=0, min_open=True),

@@ -94,15 +94,21 @@ def test_orthogonal_sets_analytic_count(offsets):
 
 
 def test_slivers_merge_into_neighbours():
-    # 1.0 m cut every 0.3 m leaves 0.1 m slabs at the far end of each axis
-    sets = [JointSet(90, 90, 0.3), JointSet(90, 0, 0.3), JointSet(0, 0, 0.3)]
+    # 1.0 m cut every 0.3 m along x leaves 0.1 m thick slabs at the far end (y, z: 0.25 m, no sliver)
+    sets = [JointSet(90, 90, 0.3), JointSet(90, 0, 0.25), JointSet(0, 0, 0.25)]
     cut, _, _ = cut_region([0, 0, 0], [1.0, 1.0, 1.0], sets)
     assert len(cut) == 64
-    merged = merge_slivers(cut, 0.2)  # 0.3 x 0.3 x 0.1 (size 0.208) stays, 0.3 x 0.1 x 0.1 and 0.1^3 merge
-    assert len(merged) < 64 and (merged.volumes >= 0.2 ** 3).all()
+    merged = merge_slivers(cut, 0.2)  # the 0.1 x 0.25 x 0.25 slabs (inscribed sphere 0.1 m) join the blocks beside
+    assert len(merged) == 48 and merged.merged == 16
     assert abs(merged.volumes.sum() - 1.0) < 1e-12
-    for i in range(len(merged)):  # every block still convex: its hull holds exactly its volume
-        assert abs(ConvexHull(merged.block_vertices(i)).volume - merged.volumes[i]) < 1e-9
+    for i in range(len(merged)):
+        v = merged.block_vertices(i)
+        assert abs(ConvexHull(v).volume - merged.volumes[i]) < 1e-9  # still convex: its hull holds exactly its volume
+        assert np.ptp(v, axis=0).min() >= 0.25 - 1e-9  # boxes: the thinnest side is the inscribed sphere's diameter
+    assert sorted(np.round(np.ptp(merged.block_vertices(i), axis=0)[0], 9) for i in range(len(merged)))[-16:] == [0.4] * 16
+    # a thin plate: V^(1/3) = 0.22 m but only 0.05 m thick, merged all the same
+    plate = merge_slivers(cut_region([0, 0, 0], [1.0, 1.0, 1.0], [JointSet(0, 0, 0.95)])[0], 0.1)
+    assert len(plate) == 1
 
 
 def test_seed_reproduces():
@@ -288,3 +294,20 @@ def test_mesh_region_in_a_scene(tmp_path):
         block_specs(parse_scene(scene(rock_mass__0__region={"mesh": "l.stl"}, rock_mass__0__joint_sets__0__offset_m=0.2),
                                 tmp_path / "s.toml"))
     assert "rock_mass[0].region.mesh" in str(e.value) and "not one convex piece" in str(e.value)
+
+
+def test_irregular_blocks_settle_without_blowing_up():
+    """Oblique sets: wedges and irregular blocks, slivers merged, resting on the floor and on each other."""
+    import rockwave
+
+    d = scene(rock_mass__0__seed=4, rock_mass__0__min_block_size_m=0.12, rock_mass__0__joint_sets=[
+        {"dip_deg": 60, "dip_direction_deg": 30, "spacing_m": 0.3, "random_offset": True},
+        {"dip_deg": 70, "dip_direction_deg": 200, "spacing_m": 0.35, "random_offset": True},
+        {"dip_deg": 15, "dip_direction_deg": 100, "spacing_m": 0.25, "random_offset": True}])
+    d["simulation"]["duration_s"] = 0.01
+    sim = rockwave.Simulation(parse_scene(d), device="cpu")
+    assert sim.blocks.num_blocks > 10
+    x0 = sim.block_positions().copy()
+    sim.advance(0.01)  # free fall would reach 0.1 m/s and 0.5 mm
+    x, v = sim.block_positions(), sim.block_velocities()
+    assert np.isfinite(x).all() and np.abs(x - x0).max() < 2e-4 and np.abs(v).max() < 0.03
