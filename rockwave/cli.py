@@ -143,7 +143,9 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         rl = found["run_length"]
         print(f"{scene_path}: ok ({scene.dim}D, {len(scene.fluid.regions) if scene.fluid is not None else 0} fluid region(s), "
-              f"{len(scene.blocks)} block entr{'y' if len(scene.blocks) == 1 else 'ies'}, duration {rl.duration:g} s; "
+              f"{len(scene.blocks)} block entr{'y' if len(scene.blocks) == 1 else 'ies'}"
+              + (f", {len(scene.rock_mass)} rock mass{'' if len(scene.rock_mass) == 1 else 'es'}" if scene.rock_mass else "")
+              + f", duration {rl.duration:g} s; "
               f"on {device}: {rl.describe()})")
         return 0
     # run: the checks of validate that need no block model (Simulation builds the blocks and checks them)
