@@ -149,11 +149,8 @@ def hull_halfspaces(points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise RockMassError("region.vertices_m", f"the points span no volume ({str(e).splitlines()[0]})") from None
     eq = hull.equations
     scale = float(np.ptp(pts, axis=0).max())
-    keep: list[int] = []
-    for i, row in enumerate(eq):
-        if not any(np.allclose(row[:3], eq[j, :3], atol=1e-9) and abs(row[3] - eq[j, 3]) < 1e-9 * scale for j in keep):
-            keep.append(i)
-    eq = eq[keep]
+    _, keep = np.unique(np.round(eq / np.array([1e-9, 1e-9, 1e-9, 1e-9 * scale])), axis=0, return_index=True)
+    eq = eq[np.sort(keep)]  # one row per plane (a duplicate split by the rounding costs only time)
     return eq[:, :3].copy(), -eq[:, 3].copy(), pts[hull.vertices]
 
 
