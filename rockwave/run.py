@@ -70,7 +70,7 @@ class _Watch:
         self.cost_checked = False
 
     def note(self) -> str:
-        return f"step {self.sim.dt:.3g} s ({self.sim.clock.limiting or 'fixed'})"
+        return f"step {self.sim.clock.describe()}"
 
     def __call__(self) -> None:
         sim = self.sim
@@ -270,6 +270,9 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         "simulated_s": sim.time - t0,
         "steps": sim.steps,
         "step_limited_by": sim.clock.limiting,
+        "steps_limited_by": dict(sim.clock.steps_limited_by),
+        "block_substeps": sim.clock.substeps if sim.clock.block_substep is not None else None,
+        "block_steps": sim.clock.block_steps if sim.blocks is not None else None,
         "wall_s": wall,
         "particle_steps_per_s": nf * (sim.steps - steps0) / wall if wall > 0 and nf else None,
         "block_steps_per_s": sim.blocks.num_blocks * (sim.steps - steps0) / wall if wall > 0 and sim.blocks is not None else None,
