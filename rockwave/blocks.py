@@ -1016,10 +1016,12 @@ class BlockSolver:
         self._integrate(state, dt, t)
         state.time = t + dt
 
-    def substeps(self, state: BlockState, ts: TimeStep, n: int):
+    def substeps(self, state: BlockState, ts: TimeStep, n: int, keep_pairs: bool = False):
         """Multi-rate stepping (rockwave/clock.py): n steps of ts.dt / n from ts.time with the external
         load (ext_force / ext_torque: the water's reaction, written once per fluid step by the coupling)
-        held over all of them, so the blocks receive exactly the impulse ts.dt x load. n = 1 is step()."""
+        held over all of them, so the blocks receive exactly the impulse ts.dt x load. n = 1 is step().
+        ``keep_pairs``: the first sub-step's broad phase serves all n (the caller checked with
+        pairs_hold() that no block moves margin/2 over ts.dt, so the pair list stays complete)."""
         if n == 1:
             return self.step(state, ts)
         h = ts.dt / n
@@ -1032,13 +1034,30 @@ class BlockSolver:
             held = self._held_load = (wp.zeros(nb, dtype=wp.vec3, device=self.device), wp.zeros(nb, dtype=wp.vec3, device=self.device))
         wp.copy(held[0], state.ext_force)  # integrate_blocks zeroes the load after each sub-step
         wp.copy(held[1], state.ext_torque)
+        contacts_only = keep_pairs and self.has_free_blocks
         for i in range(n):
             if i:
                 wp.copy(state.ext_force, held[0])
                 wp.copy(state.ext_torque, held[1])
-            self._contact_forces(state, h)
+            if i and contacts_only:
+                self._prepare(state)
+                self._narrow_phase(state, h)
+            else:
+                self._contact_forces(state, h)
             self._integrate(state, h, ts.time + i * h)
         state.time = ts.time + ts.dt
+
+    def pairs_hold(self, state: BlockState, dt: float, headroom: float = 2.0) -> bool:
+        """Whether one broad phase can serve a whole step dt of sub-steps: max over movable blocks of
+        (|v| + |w| r) dt, times ``headroom`` for the speed growing before the next check, is within
+        margin/2 (the distance the kept pair list tolerates, aabbs_left_pair_boxes). A host read."""
+        mov = self.model.movable
+        if not np.any(mov):
+            return True
+        v = np.linalg.norm(state.v.numpy()[mov], axis=1)
+        w = np.linalg.norm(state.w.numpy()[mov], axis=1)
+        reach = float(np.max(v + w * self.model.np["radius"][mov]))
+        return headroom * reach * dt <= 0.5 * self.margin
 
     # ---- diagnostics ----
     def contacts(self, state: BlockState) -> list:

@@ -173,7 +173,12 @@ class Simulation:
         if self.coupling is not None:
             self.coupling.apply(self.state, ts)
         if self.block_solver is not None:  # 2D: with the planar constraint
-            self.block_solver.substeps(self.block_state, ts, self.clock.substeps)  # water's load held (multi-rate)
+            n = self.clock.substeps
+            if n > 1 and (self.clock.steps % self.clock.update_interval == 0 or not hasattr(self, "_pairs_hold")):
+                # one broad phase per fluid step while the blocks move < margin/2 in it (a host read, at the
+                # clock's update rhythm)
+                self._pairs_hold = self.block_solver.pairs_hold(self.block_state, ts.dt)
+            self.block_solver.substeps(self.block_state, ts, n, keep_pairs=n > 1 and self._pairs_hold)  # water's load held
 
     # Chunks (step_many; advance on a GPU): a reorder of the fluid by cell, then reorder_interval
     # steps. A fluid-only scene on a GPU replays a chunk as one CUDA graph (dt is read from the device
