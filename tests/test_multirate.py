@@ -114,3 +114,18 @@ def test_substep_cap_names_the_stiffness_key():
     assert f"more than {MAX_BLOCK_SUBSTEPS}" in str(e.value) and "submarine_slide_2d.toml" in str(e.value)
     sim = _sim(_slide_dict(k_n=1.0e14, stepping="single"))  # the old behaviour: a tiny step, no error
     assert sim.clock.limiting == "blocks" and sim.blocks.np["k_n"][1] == 1.0e14
+
+
+def test_fixed_step_above_the_block_limit_substeps():
+    """simulation.time_step = 'fixed': multi-rate checks dt_s against the fluid-rate bounds only and
+    sub-steps the blocks; single-rate refuses a dt_s above the critical DDA step, as before."""
+    d = _slide_dict()
+    d["simulation"].update(time_step="fixed", dt_s=2.0e-4)
+    sim = _sim(d)
+    stable = sim.block_solver.stable_dt(sim.block_state)
+    assert sim.clock.substeps == int(np.ceil(2.0e-4 / stable)) > 1
+    sim.advance(1.0e-3)
+    assert sim.steps == 5 and sim.block_state.time == pytest.approx(1.0e-3)
+    d["simulation"]["block_stepping"] = "single"
+    with pytest.raises(SceneError, match=r"simulation\.dt_s.*critical DDA step"):
+        _sim(d)
