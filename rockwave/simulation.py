@@ -96,10 +96,10 @@ class Simulation:
         from rockwave.clock import MAX_BLOCK_SUBSTEPS
         from rockwave.scene import SceneError
 
-        bs, stable = self.block_solver, self.block_solver.stable_dt(self.block_state)
+        stable = self.block_solver.stable_dt(self.block_state)
 
         def error(n: int, dt: float) -> SceneError:
-            b, mode = bs.critical_block()
+            b, mode = self.block_solver.critical_block()
             name = self.blocks.names[b]
             entries = [i for i, e in enumerate(self.scene.blocks) if name == e.name or name.startswith(f"{e.name}_")]
             where = f"blocks[{entries[0]}]" if entries else "blocks"
