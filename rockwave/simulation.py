@@ -183,7 +183,8 @@ class Simulation:
     # Chunks (step_many; advance on a GPU): a reorder of the fluid by cell, then reorder_interval
     # steps. A fluid-only scene on a GPU replays a chunk as one CUDA graph (dt is read from the device
     # array clock.dt_array, so one graph serves every dt); blocks and the coupling read counters back
-    # each step, and the ghost step reads its ghost count, so their chunks are plain launches.
+    # each step, and the ghost step reads its ghost count, so their chunks are plain launches. The block
+    # sub-step count (multi-rate) follows dt alone, so it is fixed within a chunk.
     def _chunk_size(self) -> int:
         fs = self.fluid_solver
         if fs is None or self.fluid.n_fluid == 0:
