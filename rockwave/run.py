@@ -158,7 +158,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     escaped = 0
     t0 = sim.time
     interrupted = False
-    first, steps0 = 0, sim.steps
+    first, steps0, block_steps0 = 0, sim.steps, sim.clock.block_steps
     if resumed is not None:  # outputs continue where the checkpoint was taken
         meta = resumed[1]
         t0, first, escaped = meta["t0"], meta["frame"] + 1, meta["escaped"]
@@ -275,7 +275,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         "block_steps": sim.clock.block_steps if sim.blocks is not None else None,
         "wall_s": wall,
         "particle_steps_per_s": nf * (sim.steps - steps0) / wall if wall > 0 and nf else None,
-        "block_steps_per_s": sim.blocks.num_blocks * (sim.steps - steps0) / wall if wall > 0 and sim.blocks is not None else None,
+        "block_steps_per_s": (sim.blocks.num_blocks * (sim.clock.block_steps - block_steps0) / wall  # sub-steps counted
+                              if wall > 0 and sim.blocks is not None else None),
         "particles_outside_domain": escaped,
         "usd": str(out / o.usd) if usd is not None else None,
         "interrupted": interrupted,
