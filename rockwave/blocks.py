@@ -1048,10 +1048,11 @@ class BlockSolver:
         state.time = ts.time + ts.dt
 
     def pairs_hold(self, state: BlockState, dt: float, headroom: float = 2.0) -> bool:
-        """Whether one broad phase can serve a whole step dt of sub-steps: max over movable blocks of
-        (|v| + |w| r) dt, times ``headroom`` for the speed growing before the next check, is within
-        margin/2 (the distance the kept pair list tolerates, aabbs_left_pair_boxes). A host read."""
-        mov = self.model.movable
+        """Whether one broad phase can serve a whole step dt of sub-steps: max over the blocks that move
+        (rigid, deformable, kinematic) of (|v| + |w| r) dt, times ``headroom`` for the speed growing before
+        the next check, is within margin/2 (the distance the kept pair list tolerates,
+        aabbs_left_pair_boxes). A host read."""
+        mov = self.model.np["kinds"] != KINDS["fixed"]
         if not np.any(mov):
             return True
         v = np.linalg.norm(state.v.numpy()[mov], axis=1)

@@ -50,6 +50,15 @@ def test_fluid_sets_the_step_and_blocks_substep(tmp_path):
     assert clock.substeps == int(np.ceil(clock.dt / block_stable - 1e-9)) > 1
     assert clock.block_dt <= block_stable
     assert "(fluid), blocks" in clock.describe()
+    # one broad phase serves the sub-steps of a fluid step while no block moves margin/2 in it
+    bs, st = sim.block_solver, sim.block_state
+    assert bs.pairs_hold(st, clock.dt)
+    v = st.v.numpy()
+    v[1] = (0.99 * 0.25 * bs.margin / clock.dt, 0.0, 0.0)  # 2 |v| dt just within margin/2
+    st.v.assign(v)
+    assert bs.pairs_hold(st, clock.dt) and not bs.pairs_hold(st, 1.02 * clock.dt)
+    v[1] = 0.0
+    st.v.assign(v)
     summary = sim.run(tmp_path, duration=0.005, progress=False)
     on_disk = json.loads((tmp_path / "run.json").read_text())
     assert on_disk["steps_limited_by"] == summary["steps_limited_by"]
