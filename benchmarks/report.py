@@ -15,7 +15,8 @@ from pathlib import Path
 
 from benchmarks.common import RESULTS, ROOT, rel
 
-PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface", "chart")
+PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface",
+              "multirate", "chart")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -246,7 +247,17 @@ def _chart(ch: dict) -> list[str]:
     return L + ([""] if ch.get("skipped") else [])
 
 
-TABLES = {"accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
+def _multirate(mr: dict) -> list[str]:
+    L = ["### Multi-rate stepping: submarine_slide_2d (wall s per simulated s)", ""]
+    L += _table(["spacing m", "run", "particles", "step s (set by)", "block sub-steps", "wall s / sim s", "ratio"],
+                [[_f(r["spacing_m"], "g"), r["variant"], r["particles"], f"{r['dt_s']:.3g} ({r['limited_by']})",
+                  r["block_substeps"], _f(r["wall_per_sim_s"], ".3g"),
+                  f"{r['over_no_block']:.2f} of no_block" if "over_no_block" in r else
+                  f"{r['over_multirate']:.1f}x multirate" if "over_multirate" in r else ""] for r in mr["runs"]])
+    return L + [""]
+
+
+TABLES = {"multirate": _multirate, "accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
           "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface,
           "chart": _chart}
 

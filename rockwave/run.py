@@ -70,7 +70,7 @@ class _Watch:
         self.cost_checked = False
 
     def note(self) -> str:
-        return f"step {self.sim.dt:.3g} s ({self.sim.clock.limiting or 'fixed'})"
+        return f"step {self.sim.clock.describe()}"
 
     def __call__(self) -> None:
         sim = self.sim
@@ -158,7 +158,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     escaped = 0
     t0 = sim.time
     interrupted = False
-    first, steps0 = 0, sim.steps
+    first, steps0, block_steps0 = 0, sim.steps, sim.clock.block_steps
     if resumed is not None:  # outputs continue where the checkpoint was taken
         meta = resumed[1]
         t0, first, escaped = meta["t0"], meta["frame"] + 1, meta["escaped"]
@@ -270,9 +270,13 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         "simulated_s": sim.time - t0,
         "steps": sim.steps,
         "step_limited_by": sim.clock.limiting,
+        "steps_limited_by": dict(sim.clock.steps_limited_by),
+        "block_substeps": sim.clock.substeps if sim.clock.block_substep is not None else None,
+        "block_steps": sim.clock.block_steps if sim.blocks is not None else None,
         "wall_s": wall,
         "particle_steps_per_s": nf * (sim.steps - steps0) / wall if wall > 0 and nf else None,
-        "block_steps_per_s": sim.blocks.num_blocks * (sim.steps - steps0) / wall if wall > 0 and sim.blocks is not None else None,
+        "block_steps_per_s": (sim.blocks.num_blocks * (sim.clock.block_steps - block_steps0) / wall  # sub-steps counted
+                              if wall > 0 and sim.blocks is not None else None),
         "particles_outside_domain": escaped,
         "usd": str(out / o.usd) if usd is not None else None,
         "interrupted": interrupted,
