@@ -99,8 +99,11 @@ def test_water_block_impulse_equal_and_opposite_over_a_fluid_step():
 def test_slide_motion_agrees_with_single_rate():
     """The slide's travel and speed after 0.1 s: multi-rate (10 block sub-steps per fluid step) against
     one step for both at the block limit. Contact stiffness 1e7 N/m so the single-rate run stays short
-    (k_n does not change a frictionless slide). Measured: 2.0% (travel) and 1.8% (speed) apart; the
-    dry slide would be 17% further, so 5% separates a right water load from a missing one."""
+    (k_n does not change a frictionless slide). Measured: 2.0% (travel) and 1.8% (speed) apart with penalty
+    walls on the fixed slope; 4.2% and 8.4% with the slope an Adami wall (the default since fixed blocks have wall
+    particles: the single-rate run also steps the water 10x finer, and the end speed carries the water's pressure
+    oscillation). The dry slide would be 17% further and ~60% faster, so 5% on travel and 10% on speed separate a
+    right water load from a missing one."""
     out = {}
     for mode in ("multirate", "single"):
         sim = _sim(_slide_dict(stepping=mode, k_n=1.0e7))
@@ -112,7 +115,7 @@ def test_slide_motion_agrees_with_single_rate():
     travel, speed = out["single"][:2]
     assert travel > 0.015  # it slides
     assert out["multirate"][0] == pytest.approx(travel, rel=0.05)
-    assert out["multirate"][1] == pytest.approx(speed, rel=0.05)
+    assert out["multirate"][1] == pytest.approx(speed, rel=0.10)
 
 
 def test_substep_cap_names_the_stiffness_key():
