@@ -737,7 +737,13 @@ def run_study(study: Study | str | os.PathLike, out: str | os.PathLike | None = 
         slots = local_slots(study.device, workers if workers is not None else study.workers, study.workers_per_gpu)
         parallel = len(slots)
     elif executor == "ray":
-        parallel = 1
+        import ray
+
+        if not ray.is_initialized():
+            ray.init(address=ray_address, **(ray_init or {}))
+        res = ray.cluster_resources()
+        gps = gpus_per_scenario or 0.0
+        parallel = max(1, int(res.get("GPU", 0) / gps) if gps > 0 else int(res.get("CPU", 1)))
     else:
         parallel = 1
     bar = StudyProgress(study, total, skipped, parallel, enabled=progress)

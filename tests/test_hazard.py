@@ -6,11 +6,12 @@ speed (peak speed, runout); and the scene checks of the [hazard] keys."""
 import json
 
 import pytest
-from conftest import DEVICE
-from helpers import tank_2d
 
 from rockwave.scene import SceneError, parse_scene
 from rockwave.simulation import Simulation
+
+from conftest import DEVICE
+from helpers import tank_2d
 
 
 def _run(data, tmp_path, duration):
