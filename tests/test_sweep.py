@@ -48,6 +48,8 @@ def test_scenarios_and_keys(tmp_path):
     assert st.scenarios[0].data["simulation"]["duration_s"] == 0.02
     assert st.scenarios[0].data["output"]["usd"] == ""  # not kept
     assert len({sc.id for sc in st.scenarios}) == 4
+    script = sweep.slurm_script(st).read_text()  # a job array for sites without Ray: one task per scenario
+    assert "#SBATCH --array=0-3" in script and '--only "$SLURM_ARRAY_TASK_ID"' in script
     # Latin hypercube: each key's n strata hit once
     lhs = _study(tmp_path, "lhs.toml").read_text().replace('results = "results"', 'results = "r2"\nsample = "lhs"\nn = 5')
     lhs = lhs.replace("steps = 2\n", "").replace("values = [2000.0, 2600.0]", "range = [2000.0, 3000.0]")
@@ -115,11 +117,11 @@ def test_killed_study_resumes_only_what_was_missing(tmp_path):
         proc.wait()
     done = {f.parent.name: f.stat().st_mtime_ns for f in res.glob("*/result.json")}
     assert 1 <= len(done) < 4
-    r = sweep.run_study(p, workers=1, progress=False, plots=False)
+    r = sweep.run_study(p, executor="inline", progress=False, plots=False)
     assert r.skipped == len(done) and r.ran == 4 - len(done)
     assert all((res / k / "result.json").stat().st_mtime_ns == t for k, t in done.items())  # not run again
     assert [row["status"] for row in r.rows] == ["ok"] * 4
-    again = sweep.run_study(p, workers=1, progress=False, plots=False)
+    again = sweep.run_study(p, executor="inline", progress=False, plots=False)
     assert again.ran == 0 and again.skipped == 4
 
 
