@@ -407,8 +407,10 @@ class StudyProgress:
     """Whole-study progress: done / running / failed / queued and an ETA from the mean wall time of the scenarios
     finished in this session; one line on stderr per event and progress.json in the result folder."""
 
-    def __init__(self, study: Study, total: int, skipped: int, parallel: int, enabled: bool = True, stream=None):
+    def __init__(self, study: Study, total: int, skipped: int, parallel: int, enabled: bool = True, stream=None,
+                 write_file: bool = True):
         self.study, self.total, self.skipped, self.parallel = study, total, skipped, max(1, parallel)
+        self.write_file = write_file  # not for one array task of many (--only): they would overwrite each other
         self.done = self.failed = 0
         self.walls: list[float] = []
         self.t0 = time.perf_counter()
@@ -441,8 +443,9 @@ class StudyProgress:
         try:
             from rockwave.run import atomic_write_text
 
-            self.study.results.mkdir(parents=True, exist_ok=True)
-            atomic_write_text(self.study.results / "progress.json", json.dumps(state, indent=2))
+            if self.write_file:
+                self.study.results.mkdir(parents=True, exist_ok=True)
+                atomic_write_text(self.study.results / "progress.json", json.dumps(state, indent=2))
         except OSError:
             pass
         if not self.enabled:
@@ -746,7 +749,7 @@ def run_study(study: Study | str | os.PathLike, out: str | os.PathLike | None = 
         parallel = max(1, int(res.get("GPU", 0) / gps) if gps > 0 else int(res.get("CPU", 1)))
     else:
         parallel = 1
-    bar = StudyProgress(study, total, skipped, parallel, enabled=progress)
+    bar = StudyProgress(study, total, skipped, parallel, enabled=progress, write_file=only is None)
     failed = 0
 
     def on_result(res: dict, running: int) -> None:
@@ -814,6 +817,8 @@ def cli(args) -> int:
         executor = "ray"
         address = None if args.ray == "local" else args.ray
         init = {"num_cpus": args.workers} if args.ray == "local" and args.workers else None
+    elif args.only:
+        executor = "inline"  # one array task: this process runs its scenario(s)
     gps = args.gpus_per_scenario
     if executor == "ray" and gps is None:
         import ray
