@@ -90,6 +90,7 @@ def test_local_and_ray_give_identical_tables(tmp_path):
     csv_a, pq_a = _table(tmp_path / "local")
     rows = {r["index"]: r for r in a.rows}
     assert rows[0]["slide.peak_speed_m_s"] > 0 and "g0.2.max_crest_m" in rows[0]
+    assert rows[0]["slide.runout_m"] > rows[1]["slide.runout_m"]  # friction 10 degrees slides further than 20
     assert (tmp_path / "local" / "max_wave_height.png").is_file() and (tmp_path / "local" / "runup.png").is_file()
     ray = pytest.importorskip("ray", reason="ray is not installed (pip install 'rockwave[sweep]')")
     try:
