@@ -93,7 +93,7 @@ def test_coasting_block_peak_speed_and_runout(tmp_path):
     """A block alone in zero gravity moving at 0.5 m/s: peak speed 0.5 m/s, runout 0.5 T."""
     d = {"simulation": {"dimension": 3, "duration_s": 0.2}, "gravity": {"acceleration_m_s2": [0.0, 0.0, 0.0]},
          "blocks": [{"name": "rock", "shape": "box", "size_m": [0.2, 0.2, 0.2], "position_m": [0.0, 0.0, 1.0],
-                     "velocity_m_s": [0.3, 0.4, 0.0]}],
+                     "velocity_m_s": [0.3, 0.4, 0.0], "material": {"normal_stiffness_n_m": 1.0e5}}],  # soft: few steps
          "hazard": {"slides": [{"block": "rock"}]}}
     hz, sim = _run(_no_outputs(d), tmp_path, 0.2)
     sl = hz["slides"]["rock"]
