@@ -702,6 +702,54 @@ python -m rockwave sweep {study.path} --out {res} --only "$SLURM_ARRAY_TASK_ID" 
     return p
 
 
+class GpuSampler:
+    """GPU utilisation while a study runs (this machine's GPUs): ``nvidia-smi`` every ``interval`` seconds in a
+    thread; ``summary()`` gives the mean and peak utilisation [%] and the peak memory used [MiB] per GPU (None
+    without nvidia-smi)."""
+
+    def __init__(self, interval: float = 1.0):
+        import shutil
+        import threading
+
+        self.interval = interval
+        self.rows: list[list[tuple[float, float]]] = []
+        self.exe = shutil.which("nvidia-smi")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True) if self.exe else None
+
+    def __enter__(self):
+        if self._thread is not None:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join(timeout=5)
+
+    def _run(self) -> None:
+        import subprocess
+
+        while not self._stop.is_set():
+            try:
+                out = subprocess.run([self.exe, "--query-gpu=utilization.gpu,memory.used", "--format=csv,noheader,nounits"],
+                                     capture_output=True, text=True, timeout=10).stdout
+                self.rows.append([tuple(float(x) for x in line.split(",")) for line in out.strip().splitlines()])
+            except (OSError, ValueError, subprocess.SubprocessError):
+                pass
+            self._stop.wait(self.interval)
+
+    def summary(self) -> dict | None:
+        rows = [r for r in self.rows if r and len(r) == len(self.rows[0])]
+        if not rows:
+            return None
+        n = len(rows[0])
+        return {"samples": len(rows), "interval_s": self.interval,
+                "utilisation_mean_pct": [sum(r[g][0] for r in rows) / len(rows) for g in range(n)],
+                "utilisation_max_pct": [max(r[g][0] for r in rows) for g in range(n)],
+                "memory_max_mib": [max(r[g][1] for r in rows) for g in range(n)]}
+
+
 @dataclass
 class StudyResult:
     rows: list
@@ -758,18 +806,12 @@ def run_study(study: Study | str | os.PathLike, out: str | os.PathLike | None = 
         write_result(Path(study.results / "scenarios" / res["id"]), res)
         bar.finished(res, running)
 
+    sampler = GpuSampler()
     if todo:
         bar.start(min(parallel, len(todo)))
-        if executor == "local":
-            run_local(todo, slots, on_result, fn)
-        elif executor == "ray":
-            gps = gpus_per_scenario if gpus_per_scenario is not None else 0.0
-            run_ray(todo, ray_address, on_result, gps, ray_init)
-        elif executor == "inline":
-            for c in todo:
-                on_result((fn or run_scenario)(c), 0)
-        else:
-            raise ValueError(f"executor {executor!r}: expected 'local', 'ray' or 'inline'")
+    with sampler:
+        _execute(todo, executor, slots if executor == "local" else None, on_result, fn, study, gpus_per_scenario,
+                 ray_address, ray_init)
     rows = study_rows(study)
     paths = write_table(study, rows) if only is None else {}
     pics = write_plots(study, rows) if plots and only is None and rows else []
@@ -782,9 +824,25 @@ def run_study(study: Study | str | os.PathLike, out: str | os.PathLike | None = 
             "study": str(study.path), "scene": str(study.scene_path), "sample": study.sample, "keys": study.keys,
             "scenarios": len(study.scenarios), "ran_now": len(todo), "skipped": skipped, "failed": sum(r["status"] != "ok" for r in rows),
             "wall_s_this_session": wall, "scenarios_per_hour_this_session": 3600.0 * len(todo) / wall if todo and wall > 0 else None,
-            "scenario_wall_s_sum": sum(ok_walls), "executor": executor,
+            "scenario_wall_s_sum": sum(ok_walls), "executor": executor, "parallel_slots": parallel,
+            "gpu": sampler.summary(),
         }, indent=2))
     return StudyResult(rows, paths, pics, len(todo), skipped, failed, wall)
+
+
+def _execute(todo, executor, slots, on_result, fn, study, gpus_per_scenario, ray_address, ray_init) -> None:
+    if not todo:
+        return
+    if executor == "local":
+        run_local(todo, slots, on_result, fn)
+    elif executor == "ray":
+        gps = gpus_per_scenario if gpus_per_scenario is not None else 0.0
+        run_ray(todo, ray_address, on_result, gps, ray_init)
+    elif executor == "inline":
+        for c in todo:
+            on_result((fn or run_scenario)(c), 0)
+    else:
+        raise ValueError(f"executor {executor!r}: expected 'local', 'ray' or 'inline'")
 
 
 def cli(args) -> int:
