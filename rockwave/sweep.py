@@ -257,6 +257,12 @@ def load_study(path: str | os.PathLike, results: str | os.PathLike | None = None
     device = st.get("device", "auto")
     if not isinstance(device, str):
         err("study.device", f"expected a string ('auto', 'cpu', 'cuda', 'cuda:N'), got {device!r}")
+    else:
+        from rockwave.device import device_syntax_error
+
+        why = device_syntax_error(device)
+        if why:
+            err("study.device", why)
     for k in ("workers", "workers_per_gpu"):
         w = st.get(k)
         if w is not None and (isinstance(w, bool) or not isinstance(w, int) or w < (0 if k == "workers" else 1)):
@@ -287,6 +293,9 @@ def load_study(path: str | os.PathLike, results: str | os.PathLike | None = None
             continue
         if key in keys:
             err(f"{where}.key", f"{key!r} is varied twice (vary[{keys.index(key)}])")
+            continue
+        if key == "simulation.duration_s" and dur is not None:
+            err(f"{where}.key", "simulation.duration_s is also set by study.duration_s: remove one of them")
             continue
         spec = _values(v, sample, where, err)
         if spec is not None:
