@@ -26,6 +26,7 @@ WATCH_INTERVAL_S = 2.0  # wall seconds between progress lines and health checks 
 COST_STEPS = 5  # steps after the first whose measured cost feeds the run-length check
 
 
+HAZARD_FILE = "hazard.json"  # the [hazard] summary (rockwave/hazard.py), also under "hazard" in run.json
 MANIFEST = ".rockwave-outputs.json"  # the outputs a run writes into its folder (removed by the next fresh run there)
 
 
@@ -133,7 +134,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
 
     o = scene.output
     if resumed is None:  # before the recorders make their files and folders
-        names = ["run.json", ckpt.FILE_NAME]
+        names = ["run.json", ckpt.FILE_NAME] + ([HAZARD_FILE] if scene.hazard is not None else [])
         if o.usd:
             names += [o.usd, Path(o.usd).stem + ".clips"]
         if sim.gauge_names and o.gauges_csv:
@@ -196,6 +197,13 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
 
     watch = _Watch(sim, bar, t0 + duration, t0, force or bool(getattr(sim, "run_length_forced", False)),
                    lambda: check_health(rec.Frame(sim, -1)))
+
+    hazard = None
+    if scene.hazard is not None:  # [hazard]: statistics reduced on the device after each step (rockwave/hazard.py)
+        from rockwave.hazard import HazardMonitor
+
+        hazard = HazardMonitor(sim)
+        watch = hazard.wrap(watch)
 
     stop = []
 
@@ -283,6 +291,9 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         "resumed_from_frame": resumed[1]["frame"] if resumed is not None else None,
         "checkpoint": str(checkpointer.path) if checkpointer.written_frame is not None else None,
     }
+    if hazard is not None:
+        summary["hazard"] = hazard.result()
+        atomic_write_text(out / HAZARD_FILE, json.dumps(summary["hazard"], indent=2))
     atomic_write_text(_summary_path(out), json.dumps(summary, indent=2))
     if interrupted:
         raise KeyboardInterrupt
