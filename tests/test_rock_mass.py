@@ -311,3 +311,28 @@ def test_irregular_blocks_settle_without_blowing_up():
     sim.advance(0.01)  # free fall would reach 0.1 m/s and 0.5 mm
     x, v = sim.block_positions(), sim.block_velocities()
     assert np.isfinite(x).all() and np.abs(x - x0).max() < 2e-4 and np.abs(v).max() < 0.03
+
+
+def test_rock_mass_blocks_in_hazard_and_substep_errors():
+    """A rock mass's blocks (name_i) are blocks of the scene for [hazard] slides, and a rock mass too stiff for
+    multi-rate sub-stepping is refused naming its own stiffness key."""
+    import tomllib
+    from pathlib import Path
+
+    import rockwave
+
+    d = scene()
+    d["hazard"] = {"slides": [{"block": "rock_3"}]}
+    parse_scene(d)  # no error: rock_3 is one of the rock mass's blocks
+    d["hazard"] = {"slides": [{"block": "granite_3"}]}
+    with pytest.raises(SceneError, match=r"hazard\.slides\[0\]\.block"):
+        parse_scene(d)
+    path = Path(__file__).resolve().parent.parent / "scenes" / "submarine_slide_2d.toml"
+    d = tomllib.loads(path.read_text())
+    d["fluid"]["spacing_m"] = 0.04
+    d["rock_mass"] = [{"name": "boulders", "region": {"box_min_m": [2.6, 0.0], "box_max_m": [3.0, 0.2], "depth_m": 0.1},
+                       "material": {"normal_stiffness_n_m": 1.0e14},
+                       "joint_sets": [{"dip_deg": 90, "dip_direction_deg": 90, "spacing_m": 0.2}]}]
+    with pytest.raises(SceneError, match=r"rock_mass\[0\]\.material\.normal_stiffness_n_m") as e:
+        rockwave.Simulation(parse_scene(d, path, path.parent), device="cpu")
+    assert "'boulders_" in str(e.value)
