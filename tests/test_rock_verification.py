@@ -133,3 +133,88 @@ def test_sliding_block_matches_exact_displacement(width, aspect, kn):
     disp, ext, speed, tilt, T = block_on_slope(35.0, 30.0, width, aspect * width, kn, 1.0)
     a = g * (math.sin(math.radians(35.0)) - math.cos(math.radians(35.0)) * math.tan(math.radians(30.0)))
     assert disp == pytest.approx(0.5 * a * T * T, rel=0.01)
+
+
+# ------------------------------------------------------------------------------------------------
+# wedge on two joints (Hoek & Bray)
+# ------------------------------------------------------------------------------------------------
+
+
+def wedge_limit(psi, delta_a, delta_b):
+    """Hoek & Bray (Rock Slope Engineering, 4th ed., ch. 8 (wedge), eq. for the wedge factor): a wedge on two
+    planes A and B through a line plunging at psi, each plane dipping at delta_a / delta_b from the horizontal
+    in the section normal to that line.  The normal reactions balance the weight's component normal to the
+    line, W cos(psi): R_A n_A + R_B n_B = W cos(psi) e_z, so R_A = W cos(psi) sin(delta_b) / sin(delta_a +
+    delta_b), R_B = W cos(psi) sin(delta_a) / sin(delta_a + delta_b) (for a symmetric wedge R_A + R_B =
+    W cos(psi) sin(beta) / sin(xi / 2), beta = 90 deg, xi = 180 deg - 2 delta: Hoek & Bray's wedge factor).
+    FS = (R_A + R_B) tan(phi) / (W sin(psi)); returns ((R_A + R_B) / (W cos psi), the limit friction angle
+    [deg] where FS = 1)."""
+    a, b, p = (math.radians(v) for v in (delta_a, delta_b, psi))
+    k = (math.sin(a) + math.sin(b)) / math.sin(a + b)
+    return k, math.degrees(math.atan(math.tan(p) / k))
+
+
+def wedge_specs(psi, delta_a, delta_b, phi, kn=None, height=0.4, length=1.0, start=-1.0):
+    """A triangular prism wedge resting in contact (no gap, no pre-set penetration) in the groove of two fixed
+    boxes whose top faces are the joint planes A and B.  Local frame: the line of intersection along x
+    (downhill), plane A rising towards +y at delta_a, plane B towards -y at delta_b; the whole set is turned
+    by psi about y so the line plunges at psi.  Returns (specs, world direction of the line, wedge mass)."""
+    a, b = math.radians(delta_a), math.radians(delta_b)
+    Rw = rot_y(psi)
+    mat = ContactMaterial(friction_angle_deg=phi, normal_stiffness=kn)
+    pa = np.array([0.0, height / math.tan(a), height])  # top corners of the section (on plane A / B)
+    pb = np.array([0.0, -height / math.tan(b), height])
+    section = [np.zeros(3), pa, pb]
+    verts = [s + [x, 0.0, 0.0] for s in section for x in (-length / 2, length / 2)]
+    centroid = np.mean(section, axis=0) + [start, 0.0, 0.0]
+    verts_world = [Rw @ v for v in verts]
+    poly = G.prism([v - Rw @ np.mean(section, axis=0) for v in verts_world], name="wedge")
+    specs = []
+    gap = 1e-3  # the two joint blocks stop 1 mm short of the groove line (they do not touch each other)
+    for name, R_j, side, w in (("joint_A", rot_x(delta_a), 1.0, 1.5), ("joint_B", rot_x(-delta_b), -1.0, 1.5)):
+        size = (4.0, w, 0.3)
+        c = R_j @ [0.0, side * (gap + w / 2), -size[2] / 2]
+        specs.append(BlockSpec(G.box(size), kind="fixed", position=tuple(Rw @ c), orientation=mat_to_quat(Rw @ R_j),
+                               name=name, material=mat))
+    specs.append(BlockSpec(poly, position=tuple(Rw @ centroid), density=RHO, material=mat, name="wedge"))
+    mass = RHO * 0.5 * height * (pa[1] - pb[1]) * length
+    return specs, Rw @ [1.0, 0.0, 0.0], mass
+
+
+def wedge_run(psi, delta_a, delta_b, phi, t_end, kn=None, t_mid=None):
+    """The wedge after t_end: (displacement along the line of intersection [m], elastic shear extension [m],
+    speed [m/s], acceleration along the line from t_mid to t_end [m/s^2], T [s])."""
+    specs, line, mass = wedge_specs(psi, delta_a, delta_b, phi, kn=kn)
+    model = BlockModel(specs, device=DEVICE)
+    x0 = model.base_position[2]
+    mid = []
+
+    def record(t, state):
+        if t_mid is not None and not mid and t >= t_mid:
+            mid.append((t, float(state.velocities_numpy()[2] @ line)))
+
+    state, T = simulate(model, t_end, record)
+    v_end = float(state.velocities_numpy()[2] @ line)
+    accel = (v_end - mid[0][1]) / (T - mid[0][0]) if mid else None
+    return ((state.positions_numpy()[2] - x0) @ line, shear_extension(model, state),
+            float(np.linalg.norm(state.velocities_numpy()[2])), accel, T)
+
+
+WEDGE = (30.0, 40.0, 55.0)  # plunge of the line of intersection, dips of planes A and B in its normal section
+
+
+def test_hoek_bray_wedge_limit():
+    # the asymmetric wedge's limit friction angle from Hoek & Bray's reactions (21.48 deg; the plane failure
+    # limit would be 30 deg): 0.5 deg above it the wedge holds (moves less than its elastic shear deflection + 1 mm, at rest), 0.5 deg below
+    # it slides, and once sliding its acceleration along the line is g (sin psi - k cos psi tan phi).
+    # Soft joints (k_n 1e7 N/m per point for this 0.4 m x 1 m wedge, 390 kg).
+    psi, da, db = WEDGE
+    k, phi_lim = wedge_limit(psi, da, db)
+    assert 1.46 < k < 1.47 and 21.4 < phi_lim < 21.5  # the reference itself (sin 40 + sin 55) / sin 95
+    disp, ext, speed, _, T = wedge_run(psi, da, db, phi_lim + 0.5, 2.0, kn=1e7)
+    assert disp - ext < 1e-3 and speed < 1e-3, (disp, ext, speed)
+    phi = phi_lim - 0.5
+    disp, ext, speed, accel, T = wedge_run(psi, da, db, phi, 2.0, kn=1e7, t_mid=1.0)
+    a = g * (math.sin(math.radians(psi)) - k * math.cos(math.radians(psi)) * math.tan(math.radians(phi)))
+    assert disp > 0.1, disp  # 0.5 a T^2 = 0.25 m
+    assert accel == pytest.approx(a, rel=0.03), (accel, a)
