@@ -218,3 +218,88 @@ def test_hoek_bray_wedge_limit():
     a = g * (math.sin(math.radians(psi)) - k * math.cos(math.radians(psi)) * math.tan(math.radians(phi)))
     assert disp > 0.1, disp  # 0.5 a T^2 = 0.25 m
     assert accel == pytest.approx(a, rel=0.03), (accel, a)
+
+
+# ------------------------------------------------------------------------------------------------
+# block on a shaking slope (Newmark 1965)
+# ------------------------------------------------------------------------------------------------
+
+
+def newmark_displacement(beta, phi, base_accel, t_end, dt=2e-5):
+    """Newmark (1965, "Effects of earthquakes on dams and embankments", Geotechnique 15(2)) rigid-plastic
+    sliding block on a plane inclined at beta, friction angle phi, whose base accelerates along the plane by
+    base_accel(t) (positive downhill).  Relative to the base, with u downhill:
+        sliding downhill (du/dt > 0):  d2u/dt2 = g sin(beta) - a_b(t) - g cos(beta) tan(phi)
+        sliding uphill   (du/dt < 0):  d2u/dt2 = g sin(beta) - a_b(t) + g cos(beta) tan(phi)
+    and at rest on the base (du/dt = 0) while |g sin(beta) - a_b(t)| <= g cos(beta) tan(phi).  Integrated at
+    a fine step; a sliding phase ends on the step where du/dt changes sign.  Returns u(t_end) [m]."""
+    b, mu = math.radians(beta), math.tan(math.radians(phi))
+    drive0, fric = g * math.sin(b), g * math.cos(b) * mu
+    u, v = 0.0, 0.0
+    for k in range(int(round(t_end / dt))):
+        t = (k + 0.5) * dt
+        drive = drive0 - base_accel(t)
+        if v == 0.0:
+            if abs(drive) <= fric:
+                continue
+            a = drive - math.copysign(fric, drive)
+        else:
+            a = drive - math.copysign(fric, v)
+        v_new = v + a * dt
+        if v != 0.0 and v_new * v < 0.0:
+            u += 0.5 * v * (v / -a)  # stops within the step
+            v = 0.0
+        else:
+            u += 0.5 * (v + v_new) * dt
+            v = v_new
+    return u
+
+
+def shaking_slope(beta, phi, amp, freq, t_end, width=1.0, kn=None):
+    """A width-sized cube resting in contact on a kinematic slope that moves along its own dip direction by
+    u_b = amp sin(2 pi freq t); the block starts with the base's velocity (both at zero acceleration).
+    Returns (the block's displacement relative to the base along the dip [m], T [s])."""
+    R = rot_y(beta)
+    n, d = R @ [0, 0, 1], R @ [1, 0, 0]
+    omega = 2 * math.pi * freq
+    slope = (6 * width, 3 * width, width / 2)
+    mat = ContactMaterial(friction_angle_deg=phi, normal_stiffness=kn)
+    specs = [BlockSpec(G.box(slope), kind="kinematic", orientation=mat_to_quat(R), name="base", material=mat,
+                       motion=KinematicMotion.sine(tuple(amp * d), freq)),
+             BlockSpec(G.box((width, width, width)), position=tuple((slope[2] + width) / 2 * n),
+                       orientation=mat_to_quat(R), density=RHO, material=mat, name="block",
+                       velocity=tuple(amp * omega * d))]
+    model = BlockModel(specs, device=DEVICE)
+    x0 = model.base_position
+    state, T = simulate(model, t_end)
+    x = state.positions_numpy()
+    return float(((x[1] - x0[1]) - (x[0] - x0[0])) @ d), T
+
+
+NEWMARK = (20.0, 30.0, 2.0)  # slope beta [deg], friction phi [deg], shaking frequency [Hz]; a_y = 0.20 g
+
+
+def test_newmark_reference_integrator():
+    # the reference itself: no shaking and phi < beta slides as 1/2 g (sin b - cos b tan phi) t^2; a stable
+    # block under no shaking stays; a constant uphill base acceleration beyond the yield one slides as
+    # 1/2 (a_0 - a_y) t^2
+    a = g * (math.sin(math.radians(30.0)) - math.cos(math.radians(30.0)) * math.tan(math.radians(20.0)))
+    assert newmark_displacement(30.0, 20.0, lambda t: 0.0, 1.0) == pytest.approx(0.5 * a, rel=1e-4)
+    assert newmark_displacement(20.0, 30.0, lambda t: 0.0, 1.0) == 0.0
+    a_y = g * (math.cos(math.radians(20.0)) * math.tan(math.radians(30.0)) - math.sin(math.radians(20.0)))
+    assert newmark_displacement(20.0, 30.0, lambda t: -3.0, 1.0) == pytest.approx(0.5 * (3.0 - a_y), rel=1e-4)
+
+
+@pytest.mark.parametrize("peak_g", [0.3, 0.6])
+def test_newmark_block_on_shaking_slope(peak_g):
+    # a 1 m cube on a 20 deg slope (phi 30 deg: yield acceleration 0.20 g along the slope) shaken along its
+    # dip at 2 Hz with peak acceleration 0.3 g / 0.6 g for 2 s (4 cycles; the uphill yield, 0.88 g, is not
+    # reached): its permanent displacement relative to the base is Newmark's within 5% (measured +0.35% /
+    # +0.24% at k_n 1e8 N/m per point)
+    beta, phi, freq = NEWMARK
+    omega = 2 * math.pi * freq
+    amp = peak_g * g / omega**2
+    disp, T = shaking_slope(beta, phi, amp, freq, 2.0, kn=1e8)
+    ref = newmark_displacement(beta, phi, lambda t: -amp * omega**2 * math.sin(omega * t), T)
+    assert ref > 0.03, ref  # 40 mm / 352 mm: the shaking is strong enough to slide, every cycle
+    assert disp == pytest.approx(ref, rel=0.05), (disp, ref)
