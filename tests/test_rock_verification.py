@@ -11,15 +11,18 @@ import numpy as np
 import pytest
 import warp as wp
 
+import rockwave
 from rockwave import geometry as G
 from rockwave.blocks import BlockModel, BlockSolver, BlockSpec, ContactMaterial, KinematicMotion
 from rockwave.kernels import blocks as K
+from rockwave.scene import load_scene
 from rockwave.solver import TimeStep
 
 wp.config.quiet = True
 DEVICE = os.environ.get("ROCKWAVE_TEST_DEVICE", "cpu")
 g = 9.81
 RHO = 2600.0
+SCENES = os.path.join(os.path.dirname(__file__), os.pardir, "scenes")
 
 
 def rot_y(deg):
@@ -302,4 +305,40 @@ def test_newmark_block_on_shaking_slope(peak_g):
     disp, T = shaking_slope(beta, phi, amp, freq, 2.0, kn=1e8)
     ref = newmark_displacement(beta, phi, lambda t: -amp * omega**2 * math.sin(omega * t), T)
     assert ref > 0.03, ref  # 40 mm / 352 mm: the shaking is strong enough to slide, every cycle
+    assert disp == pytest.approx(ref, rel=0.05), (disp, ref)
+
+
+# ------------------------------------------------------------------------------------------------
+# the shipped scenes (Simulation path, as the CLI runs them)
+# ------------------------------------------------------------------------------------------------
+
+
+def test_wedge_scene_slides_at_the_hoek_bray_acceleration():
+    # scenes/wedge_hoek_bray.toml: phi 21.0 deg, 0.48 deg below the limit; acceleration along the line of
+    # intersection from the positions at 1, 1.5 and 2 s
+    psi, da, db = WEDGE
+    k, phi_lim = wedge_limit(psi, da, db)
+    sim = rockwave.Simulation(load_scene(os.path.join(SCENES, "wedge_hoek_bray.toml")), device=DEVICE)
+    line = rot_y(psi) @ [1.0, 0.0, 0.0]
+    x = []
+    for t in (1.0, 0.5, 0.5):
+        sim.advance(t)
+        x.append(float(sim.block_positions()[2] @ line))
+    accel = (x[2] - 2 * x[1] + x[0]) / 0.25
+    a = g * (math.sin(math.radians(psi)) - k * math.cos(math.radians(psi)) * math.tan(math.radians(21.0)))
+    assert accel == pytest.approx(a, rel=0.03), (accel, a)
+
+
+def test_newmark_scene_matches_the_rigid_plastic_displacement():
+    # scenes/newmark_shaking_base.toml: the cube's displacement relative to the shaken slope after 2 s
+    beta, phi, freq = NEWMARK
+    omega = 2 * math.pi * freq
+    amp = 0.4 * g / omega**2
+    sim = rockwave.Simulation(load_scene(os.path.join(SCENES, "newmark_shaking_base.toml")), device=DEVICE)
+    d = rot_y(beta) @ [1.0, 0.0, 0.0]
+    x0 = sim.block_positions().copy()
+    sim.advance(2.0)
+    x = sim.block_positions()
+    disp = float(((x[1] - x0[1]) - (x[0] - x0[0])) @ d)
+    ref = newmark_displacement(beta, phi, lambda t: -amp * omega**2 * math.sin(omega * t), 2.0)
     assert disp == pytest.approx(ref, rel=0.05), (disp, ref)
