@@ -27,6 +27,10 @@ MOTION_TABLE = wp.constant(2)
 
 MAX_CONTACTS = 16  # contact points kept per pair (host side constant)
 K_MAX = wp.constant(MAX_CONTACTS)
+# a pair's contact points while narrow_phase generates them (thread-local, K_MAX of each), before they
+# are given exactly nc entries of the table's point pool
+PointCoord = wp.types.vector(length=MAX_CONTACTS, dtype=wp.float32)
+PointKey = wp.types.vector(length=MAX_CONTACTS, dtype=wp.int32)
 # damping ratio of the shear dashpot of a stuck contact point: overdamped, so a suddenly loaded stuck
 # spring settles without overshoot (critical damping overshoots the load by 13%, more than a small
 # friction margin); the dashpot only ever takes the Coulomb capacity the spring leaves (narrow_phase)
@@ -142,14 +146,19 @@ class BlockLoads:
 @wp.struct
 class ContactTable:
     """Contact history hash table (BlockState, two of them swapped each step): per slot the pair key
-    (-1 empty), common-plane normal, gap or its lower bound, contact point count; per point
-    (slot * K_MAX + k) the feature key, shear spring force, position, depth, normal force, the
-    closing speed when the point first touched [m/s] and the step's Coulomb cap mu F_n + c A [N]."""
+    (-1 empty), common-plane normal, gap or its lower bound, contact point count nc and the first of
+    its points in the point pool (pstart); per point (pstart + k, k < nc: a pair in contact takes
+    exactly nc entries, so the pool is sized from the live contact points, not a capacity per pair) the
+    feature key, shear spring force, position, depth, normal force, the closing speed when the point
+    first touched [m/s] and the step's Coulomb cap mu F_n + c A [N]. pcount[0]: pool entries
+    requested this step (above the pool's length: it overflowed; BlockSolver grows it and redoes)."""
 
     keys: wp.array(dtype=wp.int64)
     normal: wp.array(dtype=wp.vec3)
     gapb: wp.array(dtype=float)
     nc: wp.array(dtype=int)
+    pstart: wp.array(dtype=int)
+    pcount: wp.array(dtype=int)
     ckey: wp.array(dtype=wp.vec2i)
     shear: wp.array(dtype=wp.vec3)
     pos: wp.array(dtype=wp.vec3)
@@ -863,28 +872,33 @@ def bp_large_pairs(grid: BroadPhaseGrid, kinds: wp.array(dtype=int), pl: PairLis
 
 @wp.func
 def add_contact(
-    slot: int,
     nc: int,
     p: wp.vec3,
     depth: float,
     ka: int,
     kb: int,
     dup_tol: float,
-    c_pos: wp.array(dtype=wp.vec3),
-    c_depth: wp.array(dtype=float),
-    c_key: wp.array(dtype=wp.vec2i),
+    px: PointCoord,
+    py: PointCoord,
+    pz: PointCoord,
+    pd: PointCoord,
+    pka: PointKey,
+    pkb: PointKey,
 ):
-    # append a contact point unless one already sits within dup_tol (coincident features)
-    base = slot * K_MAX
+    # append a contact point to the pair's thread-local list unless one already sits within dup_tol
+    # (coincident features)
     for k in range(nc):
-        if wp.length(c_pos[base + k] - p) < dup_tol:
-            return nc
+        if wp.length(wp.vec3(px[k], py[k], pz[k]) - p) < dup_tol:
+            return nc, px, py, pz, pd, pka, pkb
     if nc >= K_MAX:
-        return nc
-    c_pos[base + nc] = p
-    c_depth[base + nc] = depth
-    c_key[base + nc] = wp.vec2i(ka, kb)
-    return nc + 1
+        return nc, px, py, pz, pd, pka, pkb
+    px[nc] = p[0]
+    py[nc] = p[1]
+    pz[nc] = p[2]
+    pd[nc] = depth
+    pka[nc] = ka
+    pkb[nc] = kb
+    return nc + 1, px, py, pz, pd, pka, pkb
 
 
 @wp.kernel
@@ -935,6 +949,7 @@ def narrow_screen(
                 cur.gapb[slot] = gb
                 pl.gap[tid] = gb
                 cur.nc[slot] = 0
+                cur.pstart[slot] = 0
                 return
         n0 = x[B] - x[A]
         if oslot >= 0:
@@ -947,6 +962,7 @@ def narrow_screen(
             cur.gapb[slot] = gap
             pl.gap[tid] = gap
             cur.nc[slot] = 0
+            cur.pstart[slot] = 0
             return
     k = wp.atomic_add(counters, 3, 1)
     pl.active[k] = tid
@@ -1070,6 +1086,7 @@ def narrow_phase(
     cur.gapb[slot] = gap
     pl.gap[tid] = gap
     cur.nc[slot] = 0
+    cur.pstart[slot] = 0
     if gap > 0.0:
         return
     size = wp.min(block_size[A], block_size[B])
@@ -1079,6 +1096,12 @@ def narrow_phase(
     loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv)
     loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv)
     nc = int(0)
+    px = PointCoord()
+    py = PointCoord()
+    pz = PointCoord()
+    pd = PointCoord()
+    pka = PointKey()
+    pkb = PointKey()
     # vertices of A that may lie inside B: column through the vertex along n meets B's bottom
     for k in range(cA):
         va = sA + k
@@ -1087,7 +1110,7 @@ def narrow_phase(
             t_lo, t_hi, hit = column_through(pa, n, face_start[B], face_count[B], face_he, wv, he_vertex, he_next, tol)
             d = wp.min(-t_lo, over)
             if hit == 1 and d > 0.0:
-                nc = add_contact(slot, nc, pa + (0.5 * t_lo) * n, d, va, -1, dup_tol, new_pos, new_depth, new_ckey)
+                nc, px, py, pz, pd, pka, pkb = add_contact(nc, pa + (0.5 * t_lo) * n, d, va, -1, dup_tol, px, py, pz, pd, pka, pkb)
     # vertices of B that may lie inside A
     for k in range(cB):
         vb = sB + k
@@ -1096,7 +1119,7 @@ def narrow_phase(
             t_lo, t_hi, hit = column_through(pb, n, face_start[A], face_count[A], face_he, wv, he_vertex, he_next, tol)
             d = wp.min(t_hi, over)
             if hit == 1 and d > 0.0:
-                nc = add_contact(slot, nc, pb + (0.5 * t_hi) * n, d, -1, vb, dup_tol, new_pos, new_depth, new_ckey)
+                nc, px, py, pz, pd, pka, pkb = add_contact(nc, pb + (0.5 * t_hi) * n, d, -1, vb, dup_tol, px, py, pz, pd, pka, pkb)
     # edge-edge crossings of the two contact patches, projected on the plane
     t1 = wp.vec3(1.0, 0.0, 0.0)
     if wp.abs(n[0]) > 0.6:
@@ -1146,17 +1169,26 @@ def narrow_phase(
                                     if d > 0.0:
                                         ha = wp.min(h, he_twin[h])
                                         hb2 = wp.min(g, he_twin[g])
-                                        nc = add_contact(slot, nc, 0.5 * (xa_ + xb_), d, ha, hb2, dup_tol, new_pos, new_depth, new_ckey)
+                                        nc, px, py, pz, pd, pka, pkb = add_contact(
+                                            nc, 0.5 * (xa_ + xb_), d, ha, hb2, dup_tol, px, py, pz, pd, pka, pkb)
                         g = he_twin[he_prev[g]]
                         if g == g0:
                             break
             h = he_twin[he_prev[h]]
             if h == h0:
                 break
-    cur.nc[slot] = nc
     if nc == 0:
         return
-    base = slot * K_MAX
+    # exactly nc entries of the point pool; past its end: none (the host grows the pool and redoes the step)
+    base = wp.atomic_add(cur.pcount, 0, nc)
+    if base + nc > new_pos.shape[0]:
+        return
+    for k in range(nc):
+        new_pos[base + k] = wp.vec3(px[k], py[k], pz[k])
+        new_depth[base + k] = pd[k]
+        new_ckey[base + k] = wp.vec2i(pka[k], pkb[k])
+    cur.nc[slot] = nc
+    cur.pstart[slot] = base
     # contact patch area (convex polygon through the points, angular order) -> area share
     cen = wp.vec3(0.0, 0.0, 0.0)
     for k in range(nc):
@@ -1207,8 +1239,10 @@ def narrow_phase(
     if m_eff > 0.0:
         v_rest = g_mag / wp.sqrt(float(nc) * kn / m_eff)
     onc = int(0)
+    obase = int(0)
     if oslot >= 0:
         onc = prev.nc[oslot]
+        obase = prev.pstart[oslot]
     # pass 1: springs, the Coulomb cap and which points stick (the stuck points share the shear dashpot)
     cs0 = 2.0 * ZETA_STUCK * wp.sqrt(ks * m_eff / float(nc))
     if not implicit and dt > 0.0:
@@ -1228,15 +1262,15 @@ def narrow_phase(
         hist = int(-1)
         ck = new_ckey[c]
         for m in range(onc):
-            ok = prev.ckey[oslot * K_MAX + m]
+            ok = prev.ckey[obase + m]
             if ok[0] == ck[0] and ok[1] == ck[1]:
-                hist = oslot * K_MAX + m
-                vimp = prev.vimp[oslot * K_MAX + m]
+                hist = obase + m
+                vimp = prev.vimp[obase + m]
                 # sliding last step: the spring sat at that step's cap mu F_n + c A
-                if wp.length(prev.shear[oslot * K_MAX + m]) >= (1.0 - 1.0e-5) * prev.fcap[oslot * K_MAX + m]:
+                if wp.length(prev.shear[obase + m]) >= (1.0 - 1.0e-5) * prev.fcap[obase + m]:
                     was_sliding = 1
                 # shear spring carried from last step, rotated onto the new plane keeping its magnitude
-                fo = prev.shear[oslot * K_MAX + m]
+                fo = prev.shear[obase + m]
                 mag = wp.length(fo)
                 fp = fo - wp.dot(fo, n) * n
                 lp = wp.length(fp)
@@ -1357,14 +1391,22 @@ def rehash_table(prev: ContactTable, cur: ContactTable):
     cur.normal[t] = prev.normal[s]
     cur.gapb[t] = prev.gapb[s]
     nc = prev.nc[s]
+    i = prev.pstart[s]
+    o = int(0)
+    if nc > 0:
+        o = wp.atomic_add(cur.pcount, 0, nc)
+        if o + nc > cur.pos.shape[0]:
+            nc = 0  # the host sizes the new pool for every point (BlockState.alloc_tables)
     cur.nc[t] = nc
+    cur.pstart[t] = o
     for k in range(nc):
-        cur.ckey[t * K_MAX + k] = prev.ckey[s * K_MAX + k]
-        cur.shear[t * K_MAX + k] = prev.shear[s * K_MAX + k]
-        cur.vimp[t * K_MAX + k] = prev.vimp[s * K_MAX + k]
-        cur.fcap[t * K_MAX + k] = prev.fcap[s * K_MAX + k]
-        cur.fn[t * K_MAX + k] = prev.fn[s * K_MAX + k]
-        cur.depth[t * K_MAX + k] = prev.depth[s * K_MAX + k]
+        cur.ckey[o + k] = prev.ckey[i + k]
+        cur.shear[o + k] = prev.shear[i + k]
+        cur.pos[o + k] = prev.pos[i + k]
+        cur.vimp[o + k] = prev.vimp[i + k]
+        cur.fcap[o + k] = prev.fcap[i + k]
+        cur.fn[o + k] = prev.fn[i + k]
+        cur.depth[o + k] = prev.depth[i + k]
 
 
 # ----------------------------------------------------------------------------------------------

@@ -513,11 +513,19 @@ class BlockState:
             setattr(self.loads, name, getattr(self, name))
         self.tables = [None, None]
         self.table_views = [None, None]  # K.ContactTable over tables[0], tables[1] (swapped with them)
-        self.alloc_tables(_next_pow2(4 * (8 * n + 64)))
+        # small to start with: BlockSolver grows both from the live pairs and contact points
+        self.alloc_tables(_next_pow2(2 * n + 64), 4 * n + 64)
 
-    def alloc_tables(self, cap: int):
+    def alloc_tables(self, cap: int, point_cap: int | None = None):
+        """(Re)allocate both contact-history tables: ``cap`` pair slots (a power of two; BlockSolver keeps
+        it >= 2x the candidate pairs) and ``point_cap`` contact points each (None: as now). tables[0]'s
+        history is kept (rehashed). Sized from the live pairs and points, not a capacity per block."""
         d = self.model.device
-        km = K.MAX_CONTACTS
+        if point_cap is None:
+            point_cap = self.point_cap
+        old = self.tables[0]
+        if old is not None:
+            point_cap = max(int(point_cap), int(old["pcount"].numpy()[0]))
 
         def make():
             return dict(
@@ -525,19 +533,21 @@ class BlockState:
                 normal=wp.zeros(cap, dtype=wp.vec3, device=d),
                 gapb=wp.zeros(cap, dtype=wp.float32, device=d),  # gap (or lower bound) along normal
                 nc=wp.zeros(cap, dtype=int, device=d),
-                ckey=wp.zeros(cap * km, dtype=wp.vec2i, device=d),
-                shear=wp.zeros(cap * km, dtype=wp.vec3, device=d),
-                pos=wp.zeros(cap * km, dtype=wp.vec3, device=d),
-                depth=wp.zeros(cap * km, dtype=wp.float32, device=d),
-                fn=wp.zeros(cap * km, dtype=wp.float32, device=d),
-                vimp=wp.zeros(cap * km, dtype=wp.float32, device=d),  # closing speed at first touch
-                fcap=wp.zeros(cap * km, dtype=wp.float32, device=d),  # Coulomb cap of the step
+                pstart=wp.zeros(cap, dtype=int, device=d),  # first point in the pool
+                pcount=wp.zeros(1, dtype=int, device=d),  # pool entries taken this step
+                ckey=wp.zeros(point_cap, dtype=wp.vec2i, device=d),
+                shear=wp.zeros(point_cap, dtype=wp.vec3, device=d),
+                pos=wp.zeros(point_cap, dtype=wp.vec3, device=d),
+                depth=wp.zeros(point_cap, dtype=wp.float32, device=d),
+                fn=wp.zeros(point_cap, dtype=wp.float32, device=d),
+                vimp=wp.zeros(point_cap, dtype=wp.float32, device=d),  # closing speed at first touch
+                fcap=wp.zeros(point_cap, dtype=wp.float32, device=d),  # Coulomb cap of the step
             )
 
-        old = self.tables[0]
         self.tables = [make(), make()]
         self.table_views = [_table_view(t) for t in self.tables]
         self.table_cap = cap
+        self.point_cap = point_cap
         if old is not None:  # keep the contact history (rehash into the larger table)
             wp.launch(K.rehash_table, dim=old["keys"].shape[0], inputs=[_table_view(old), self.table_views[0]], device=d)
 
@@ -791,6 +801,8 @@ class BlockSolver:
         self.hi_bp = wp.zeros(n, dtype=wp.vec3, device=d)
         self._moved = wp.ones(1, dtype=int, device=d)
         self.broad_phases = 0  # broad phases run (diagnostics)
+        self.point_regrows = 0  # narrow phases redone after the contact-point pool grew (diagnostics)
+        self.contact_points = 0  # contact points of the last step (counter-read path; diagnostics)
         # the paths, chosen once
         self._grid_pass = self._grid_pass_sync_free if self.sync_free else self._grid_pass_counted
         self._step_broad_phase = self._broad_phase_if_moved if self._keep_pairs else self._broad_phase_always
@@ -951,22 +963,43 @@ class BlockSolver:
         the world vertices) skip FCP and contact generation (narrow_screen); detect() turns it off so
         that every pair's gap is FCP's."""
         m, d = self.model, self.device
-        if 2 * self.pair_cap > state.table_cap:
-            state.alloc_tables(_next_pow2(4 * self.pair_cap))
-        old, new = state.table_views
-        new.keys.fill_(-1)
+        n = self.pair_cap if self.sync_free else self._pair_count
+        # history tables sized from the live pairs (slots >= 2x the pairs: linear probing at load <= 1/2)
+        # and contact points; sync-free (few blocks): for every pair at K_MAX points, so nothing is read back
+        cap, pcap = state.table_cap, state.point_cap
+        if 2 * n > cap:
+            cap = _next_pow2(2 * n)
+        if self.sync_free:
+            pcap = max(pcap, K.MAX_CONTACTS * self.pair_cap)
+        if (cap, pcap) != (state.table_cap, state.point_cap):
+            state.alloc_tables(cap, pcap)
         wp.launch(K.pose_motion, dim=m.num_blocks,
                   inputs=[state.world_verts, m.vert_start, m.vert_count, state.x, state.wv_ref, state.x_ref,
                           state.motion_dx, state.motion_rho], device=d)
-        n = self.pair_cap if self.sync_free else self._pair_count
-        if n > 0:
-            self.counters[3:4].zero_()  # length of the active list
-            wp.launch(K.narrow_screen, dim=n,
-                      inputs=[self.pair_list, m.num_blocks, int(screen), state.world_verts, m.topology, state.bodies,
-                              state.motion_dx, state.motion_rho, old, new], device=d)
-            wp.launch(K.narrow_phase, dim=n,
-                      inputs=[self.pair_list, dt, self.g_mag, state.world_verts, m.topology, m.props, m.material, state.bodies,
-                              old, new, state.loads], device=d)
+        while True:
+            old, new = state.table_views
+            new.keys.fill_(-1)
+            new.pcount.zero_()
+            if n > 0:
+                self.counters[3:4].zero_()  # length of the active list
+                wp.launch(K.narrow_screen, dim=n,
+                          inputs=[self.pair_list, m.num_blocks, int(screen), state.world_verts, m.topology, state.bodies,
+                                  state.motion_dx, state.motion_rho, old, new], device=d)
+                wp.launch(K.narrow_phase, dim=n,
+                          inputs=[self.pair_list, dt, self.g_mag, state.world_verts, m.topology, m.props, m.material,
+                                  state.bodies, old, new, state.loads], device=d)
+            if self.sync_free or n == 0:
+                break
+            used = int(new.pcount.numpy()[0])  # the counter-read path: one read of the points taken
+            self.contact_points = used
+            if used <= state.point_cap:
+                break
+            # the pool overflowed: grow it to the live points (+50%) and redo this narrow phase from
+            # zeroed contact accumulators (the same launches on the same inputs: the same result)
+            state.alloc_tables(state.table_cap, used + used // 2 + 64)
+            for a in (state.force, state.torque, state.strain_force, state.damp_c, state.damp_b, state.contact_count):
+                a.zero_()
+            self.point_regrows += 1
         state.swap_tables()  # tables[0] now holds this step's history
 
     def _contact_forces_all(self, state: BlockState, dt: float):
@@ -1022,15 +1055,39 @@ class BlockSolver:
         t = state.tables[0]
         normal = t["normal"].numpy()
         nc = t["nc"].numpy()
+        ps = t["pstart"].numpy()
         pos = t["pos"].numpy()
         dep = t["depth"].numpy()
         fn = t["fn"].numpy()
-        km = K.MAX_CONTACTS
         out = []
         for p in range(n):
             s = slots[p]
             k = nc[s] if s >= 0 else 0
+            i = ps[s] if s >= 0 else 0
             out.append(dict(blocks=(int(pairs[p][0]), int(pairs[p][1])), normal=normal[s].astype(float),
-                            gap=float(gaps[p]), points=pos[s * km: s * km + k].astype(float),
-                            depths=dep[s * km: s * km + k].astype(float), normal_forces=fn[s * km: s * km + k].astype(float)))
+                            gap=float(gaps[p]), points=pos[i: i + k].astype(float),
+                            depths=dep[i: i + k].astype(float), normal_forces=fn[i: i + k].astype(float)))
+        return out
+
+    def device_bytes(self, state: BlockState) -> dict:
+        """Device memory of the block solver [bytes]: every Warp array of the model (``model``), the state
+        without its history tables (``state``), the two contact-history tables (``history``) and the
+        solver's buffers (``solver``: AABBs, broad-phase grid, pair list), each array counted once;
+        ``total`` and ``per_block`` (total / blocks)."""
+        seen = set()
+
+        def walk(obj):
+            tot = 0
+            items = obj.items() if isinstance(obj, dict) else vars(obj).items()
+            for name, a in items:
+                if isinstance(a, wp.array) and a.ptr is not None and id(a) not in seen and name != "model":
+                    seen.add(id(a))
+                    tot += a.capacity
+            return tot
+
+        out = dict(model=walk(self.model), history=sum(walk(t) for t in state.tables))
+        out["state"] = walk(state)
+        out["solver"] = walk(self)
+        out["total"] = out["model"] + out["history"] + out["state"] + out["solver"]
+        out["per_block"] = out["total"] / self.model.num_blocks
         return out
