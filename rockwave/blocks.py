@@ -382,6 +382,21 @@ class BlockModel:
         self.he_prev = arr(np.concatenate(hp).astype(np.int32), int)
         self.he_twin = arr(np.concatenate(ht).astype(np.int32), int)
         self.num_vertices = nv
+        self.num_half_edges = nh
+        # each block's half-edges in walk order (vertex by vertex, around each vertex as narrow_phase
+        # walks them): the work items of narrow_phase_coop (kernels/blocks.py)
+        walk_count = wp.zeros(nv, dtype=int, device=d)
+        wp.launch(K.vertex_walk_count, dim=nv, inputs=[self.vertex_out_he, self.he_prev, self.he_twin, walk_count], device=d)
+        wc = walk_count.numpy().astype(np.int64)
+        off = np.concatenate([[0], np.cumsum(wc)])
+        vs = np.asarray(vstart, np.int64)
+        self.he_start = arr(off[vs].astype(np.int32), int)
+        self.he_count = arr((off[vs + np.asarray(vcount, np.int64)] - off[vs]).astype(np.int32), int)
+        self.he_walk = wp.zeros(max(1, int(off[-1])), dtype=int, device=d)
+        wp.launch(K.vertex_walk_fill, dim=nv,
+                  inputs=[self.vertex_out_he, self.he_prev, self.he_twin, arr(off[:-1].astype(np.int32), int), self.he_walk],
+                  device=d)
+        self.max_vertex_pair = int(np.sum(np.sort(np.asarray(vcount))[-2:]))  # most vertices of any two blocks
         self.kinds = arr(kinds, int)
         self.mass = arr(mass.astype(np.float32), f32)
         self.inv_mass = arr(inv_mass.astype(np.float32), f32)
@@ -415,7 +430,7 @@ class BlockModel:
         # kernel argument groups (kernels/blocks.py), built once
         self.topology = K.BlockTopology()
         for name in ("vert_start", "vert_count", "face_start", "face_count", "face_he", "vertex_out_he", "he_vertex",
-                     "he_next", "he_prev", "he_twin", "block_size"):
+                     "he_next", "he_prev", "he_twin", "block_size", "he_start", "he_count", "he_walk"):
             setattr(self.topology, name, getattr(self, name))
         self.props = K.BlockProps()
         for name in ("kinds", "inv_mass", "inertia_body", "inv_inertia_body", "strain_minv", "strain_k", "strain_damp"):
@@ -733,6 +748,15 @@ class BlockOptions:
     broad phase (kernels/blocks.py aabbs_left_pair_boxes); None: on for the counter-read path (more than
     sync_free_max_blocks blocks), off for the sync-free one. False: a broad phase every step."""
 
+    coop_min_vertices: int = 32
+    """A candidate pair whose two blocks have more vertices than this together goes to the cooperative
+    narrow phase (kernels/blocks.py narrow_phase_coop: one thread block per pair, the work over
+    vertices, faces and half-edge pairs spread over its lanes); smaller pairs: one thread each [-]."""
+
+    narrow_block_dim: int = 32
+    """Threads per pair in the cooperative narrow phase (a GPU warp; Warp's CPU backend runs 1 unless
+    warp.config.enable_cpu_blocks) [-]."""
+
     @classmethod
     def from_scene(cls, scene) -> "BlockOptions":
         """The options a scene sets (``simulation.block_dt_safety``), defaults for the rest."""
@@ -760,12 +784,18 @@ class BlockSolver:
         self.contact_points_for_dt = int(opt.contact_points_for_dt)
         self.g_mag = float(np.linalg.norm(model.gravity))  # |g| for the resting-contact speed (narrow_phase)
         self.large_cells = int(opt.large_block_cells)
+        self.coop_min = int(opt.coop_min_vertices)
+        self.narrow_block_dim = int(opt.narrow_block_dim)
+        if self.coop_min < 0 or self.narrow_block_dim < 1:
+            raise ValueError("BlockOptions: coop_min_vertices must be >= 0 and narrow_block_dim >= 1")
+        self.has_big_pairs = model.max_vertex_pair > self.coop_min  # any pair for narrow_phase_coop?
+        self.coop_pairs = 0  # pairs the last narrow phase gave narrow_phase_coop (counter-read path; diagnostics)
         n = model.num_blocks
         d = self.device
         self.lo = wp.zeros(n, dtype=wp.vec3, device=d)
         self.hi = wp.zeros(n, dtype=wp.vec3, device=d)
         self.is_large = wp.zeros(n, dtype=int, device=d)
-        self.counters = wp.zeros(4, dtype=int, device=d)
+        self.counters = wp.zeros(5, dtype=int, device=d)
         self.grid = K.BroadPhaseGrid()  # kernel argument groups, refreshed when a capacity grows
         self.grid.lo, self.grid.hi, self.grid.is_large = self.lo, self.hi, self.is_large
         self.grid.inv_s = 1.0 / self.cell_size
@@ -853,8 +883,10 @@ class BlockSolver:
         self.pair_slot = wp.zeros(cap, dtype=int, device=d)
         self.pair_oslot = wp.zeros(cap, dtype=int, device=d)
         self.active = wp.zeros(cap, dtype=int, device=d)  # pairs not certified separated (narrow_screen)
+        self.active_big = wp.zeros(cap if self.has_big_pairs else 1, dtype=int, device=d)  # of them: narrow_phase_coop's
         pl = self.pair_list
         pl.pairs, pl.gap, pl.slot, pl.oslot, pl.active = self.pairs, self.pair_gap, self.pair_slot, self.pair_oslot, self.active
+        pl.active_big = self.active_big
 
     # ---- time step limits ----
     def critical_dt(self) -> float:
@@ -981,13 +1013,24 @@ class BlockSolver:
             new.keys.fill_(-1)
             new.pcount.zero_()
             if n > 0:
-                self.counters[3:4].zero_()  # length of the active list
+                self.counters[3:5].zero_()  # lengths of the active lists
+                coop_min = self.coop_min if self.has_big_pairs else m.max_vertex_pair
                 wp.launch(K.narrow_screen, dim=n,
-                          inputs=[self.pair_list, m.num_blocks, int(screen), state.world_verts, m.topology, state.bodies,
-                                  state.motion_dx, state.motion_rho, old, new], device=d)
+                          inputs=[self.pair_list, m.num_blocks, int(screen), coop_min, state.world_verts, m.topology,
+                                  state.bodies, state.motion_dx, state.motion_rho, old, new], device=d)
                 wp.launch(K.narrow_phase, dim=n,
-                          inputs=[self.pair_list, dt, self.g_mag, state.world_verts, m.topology, m.props, m.material,
-                                  state.bodies, old, new, state.loads], device=d)
+                          inputs=[self.pair_list, coop_min, state.world_verts, m.topology, state.bodies, old, new], device=d)
+                if self.has_big_pairs:
+                    nb = n
+                    if not self.sync_free:  # the counter-read path: launch for the big pairs only
+                        nb = self.coop_pairs = int(self.counters.numpy()[4])
+                    if nb > 0:
+                        wp.launch_tiled(K.narrow_phase_coop, dim=[nb], block_dim=self.narrow_block_dim,
+                                        inputs=[self.pair_list, state.world_verts, m.topology, state.bodies, old, new],
+                                        device=d)
+                wp.launch(K.contact_forces, dim=n,
+                          inputs=[self.pair_list, dt, self.g_mag, m.props, m.material, state.bodies, old, new,
+                                  state.loads], device=d)
             if self.sync_free or n == 0:
                 break
             used = int(new.pcount.numpy()[0])  # the counter-read path: one read of the points taken
