@@ -604,7 +604,7 @@ def hash_cell(cx: int, cy: int, cz: int, nbuckets: int):
 @wp.func
 def hash_key(key: wp.int64, cap: int):
     h = wp.uint64(key) * wp.uint64(11400714819323198485)  # Fibonacci hashing
-    return int((h >> wp.uint64(33)) & wp.uint64(cap - 1))
+    return int((h >> wp.uint64(33)) % wp.uint64(cap))  # any capacity (the tables are sized from the live pairs)
 
 
 @wp.func
@@ -617,7 +617,9 @@ def table_find(key: wp.int64, keys: wp.array(dtype=wp.int64), cap: int):
             return s
         if kk == wp.int64(-1):
             return -1
-        s = (s + 1) & (cap - 1)
+        s = s + 1
+        if s == cap:
+            s = 0
     return -1
 
 
@@ -628,7 +630,9 @@ def table_insert(key: wp.int64, keys: wp.array(dtype=wp.int64), cap: int):
         old = wp.atomic_cas(keys, s, wp.int64(-1), key)
         if old == wp.int64(-1) or old == key:
             return s
-        s = (s + 1) & (cap - 1)
+        s = s + 1
+        if s == cap:
+            s = 0
     return -1
 
 

@@ -224,6 +224,11 @@ def _next_pow2(n: int) -> int:
     return 1 << max(4, int(math.ceil(math.log2(max(1, n)))))
 
 
+def _table_slots(pairs: int) -> int:
+    """Contact-history slots for ``pairs`` candidate pairs: 1.5x (linear probing at load <= 2/3) + 64."""
+    return 3 * pairs // 2 + 64
+
+
 class BlockModel:
     """Static description of all blocks, as device arrays (V vertices, F faces, H half-edges, N blocks).
 
@@ -383,20 +388,9 @@ class BlockModel:
         self.he_twin = arr(np.concatenate(ht).astype(np.int32), int)
         self.num_vertices = nv
         self.num_half_edges = nh
-        # each block's half-edges in walk order (vertex by vertex, around each vertex as narrow_phase
-        # walks them): the work items of narrow_phase_coop (kernels/blocks.py)
-        walk_count = wp.zeros(nv, dtype=int, device=d)
-        wp.launch(K.vertex_walk_count, dim=nv, inputs=[self.vertex_out_he, self.he_prev, self.he_twin, walk_count], device=d)
-        wc = walk_count.numpy().astype(np.int64)
-        off = np.concatenate([[0], np.cumsum(wc)])
-        vs = np.asarray(vstart, np.int64)
-        self.he_start = arr(off[vs].astype(np.int32), int)
-        self.he_count = arr((off[vs + np.asarray(vcount, np.int64)] - off[vs]).astype(np.int32), int)
-        self.he_walk = wp.zeros(max(1, int(off[-1])), dtype=int, device=d)
-        wp.launch(K.vertex_walk_fill, dim=nv,
-                  inputs=[self.vertex_out_he, self.he_prev, self.he_twin, arr(off[:-1].astype(np.int32), int), self.he_walk],
-                  device=d)
         self.max_vertex_pair = int(np.sum(np.sort(np.asarray(vcount))[-2:]))  # most vertices of any two blocks
+        # half-edges in walk order: built by half_edge_walk() when a solver has pairs of big blocks
+        self.he_start = self.he_count = self.he_walk = wp.zeros(1, dtype=int, device=d)
         self.kinds = arr(kinds, int)
         self.mass = arr(mass.astype(np.float32), f32)
         self.inv_mass = arr(inv_mass.astype(np.float32), f32)
@@ -444,6 +438,27 @@ class BlockModel:
             setattr(self.motion, name, getattr(self, name))
         if check_overlap:
             check_initial_overlap(self, tol=overlap_tol)
+
+    def half_edge_walk(self) -> None:
+        """Each block's half-edges in walk order (vertex by vertex, around each vertex as narrow_phase
+        walks them; topology.he_walk / he_start / he_count): the work items of narrow_phase_coop
+        (kernels/blocks.py). Built once, on the first solver that has pairs of big blocks."""
+        if self.he_walk.shape[0] > 1 or self.num_half_edges <= 1:
+            return
+        d = self.device
+        walk_count = wp.zeros(self.num_vertices, dtype=int, device=d)
+        wp.launch(K.vertex_walk_count, dim=self.num_vertices, inputs=[self.vertex_out_he, self.he_prev, self.he_twin, walk_count],
+                  device=d)
+        off = np.concatenate([[0], np.cumsum(walk_count.numpy().astype(np.int64))])
+        vs = self.np["vert_start"].astype(np.int64)
+        ve = vs + self.np["vert_count"].astype(np.int64)
+        self.he_start = wp.array(off[vs].astype(np.int32), dtype=int, device=d)
+        self.he_count = wp.array((off[ve] - off[vs]).astype(np.int32), dtype=int, device=d)
+        self.he_walk = wp.zeros(int(off[-1]), dtype=int, device=d)
+        wp.launch(K.vertex_walk_fill, dim=self.num_vertices,
+                  inputs=[self.vertex_out_he, self.he_prev, self.he_twin, wp.array(off[:-1].astype(np.int32), dtype=int, device=d),
+                          self.he_walk], device=d)
+        self.topology.he_start, self.topology.he_count, self.topology.he_walk = self.he_start, self.he_count, self.he_walk
 
     def initial_poses(self):
         """(positions (N,3), quaternions (N,4) xyzw) at t = 0, kinematic motion applied."""
@@ -529,11 +544,11 @@ class BlockState:
         self.tables = [None, None]
         self.table_views = [None, None]  # K.ContactTable over tables[0], tables[1] (swapped with them)
         # small to start with: BlockSolver grows both from the live pairs and contact points
-        self.alloc_tables(_next_pow2(2 * n + 64), 4 * n + 64)
+        self.alloc_tables(_table_slots(n), 4 * n + 64)
 
     def alloc_tables(self, cap: int, point_cap: int | None = None):
-        """(Re)allocate both contact-history tables: ``cap`` pair slots (a power of two; BlockSolver keeps
-        it >= 2x the candidate pairs) and ``point_cap`` contact points each (None: as now). tables[0]'s
+        """(Re)allocate both contact-history tables: ``cap`` pair slots (BlockSolver keeps it >= 1.5x the
+        candidate pairs: _table_slots) and ``point_cap`` contact points each (None: as now). tables[0]'s
         history is kept (rehashed). Sized from the live pairs and points, not a capacity per block."""
         d = self.model.device
         if point_cap is None:
@@ -789,6 +804,8 @@ class BlockSolver:
         if self.coop_min < 0 or self.narrow_block_dim < 1:
             raise ValueError("BlockOptions: coop_min_vertices must be >= 0 and narrow_block_dim >= 1")
         self.has_big_pairs = model.max_vertex_pair > self.coop_min  # any pair for narrow_phase_coop?
+        if self.has_big_pairs:
+            model.half_edge_walk()
         self.coop_pairs = 0  # pairs the last narrow phase gave narrow_phase_coop (counter-read path; diagnostics)
         n = model.num_blocks
         d = self.device
@@ -986,7 +1003,7 @@ class BlockSolver:
         if flags & 2:
             self._alloc_large(2 * int(c[2]))
         if flags & 4:
-            self._alloc_pairs(2 * int(c[0]))
+            self._alloc_pairs(int(c[0]) + int(c[0]) // 4 + 64)  # the live pairs + 25%
         return False
 
     def _narrow_phase(self, state: BlockState, dt: float, screen: bool = True):
@@ -996,11 +1013,11 @@ class BlockSolver:
         that every pair's gap is FCP's."""
         m, d = self.model, self.device
         n = self.pair_cap if self.sync_free else self._pair_count
-        # history tables sized from the live pairs (slots >= 2x the pairs: linear probing at load <= 1/2)
+        # history tables sized from the live pairs (slots >= 1.5x the pairs: linear probing at load <= 2/3)
         # and contact points; sync-free (few blocks): for every pair at K_MAX points, so nothing is read back
         cap, pcap = state.table_cap, state.point_cap
-        if 2 * n > cap:
-            cap = _next_pow2(2 * n)
+        if 3 * n > 2 * cap:
+            cap = _table_slots(n)
         if self.sync_free:
             pcap = max(pcap, K.MAX_CONTACTS * self.pair_cap)
         if (cap, pcap) != (state.table_cap, state.point_cap):
