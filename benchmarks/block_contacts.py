@@ -1,9 +1,9 @@
 """Part ``block_contacts``: the DDA block solver at scale: block-steps/s, device bytes and contacts per block.
 
-N cubes (1 m, 2600 kg/m3) stand in columns of ``block_layers`` on a fixed floor, 5 cm apart side to side,
+N cubes (1 m, 2600 kg/m3) stand in columns of ``contacts_layers`` on a fixed floor, 5 cm apart side to side,
 each resting on the one below from t = 0 (no gap, no pre-set penetration), and settle under gravity at the
-solver's stable step. After ``block_warmup_steps`` (the pools and tables have grown to the live contacts),
-``block_steps`` steps are timed (device synchronised): ``block_steps_per_s`` = N x steps / wall time.
+solver's stable step. After ``contacts_warmup_steps`` (the pools and tables have grown to the live contacts),
+``contacts_steps`` steps are timed (device synchronised): ``block_steps_per_s`` = N x steps / wall time.
 ``bytes_per_block`` = BlockSolver.device_bytes(): every device array of the model, the state, the two
 contact-history tables and the solver's buffers over N (issue 21 target: <= 4 KB, 1 M blocks well under
 10 GB); ``points_per_block`` = contact points per block (each point counted for both blocks of its pair),
@@ -20,8 +20,8 @@ import math
 import time
 
 CONFIG = {
-    "quick": dict(block_counts=[1000], block_layers=4, block_warmup_steps=5, block_steps=20),
-    "full": dict(block_counts=[10_000, 100_000, 1_000_000], block_layers=4, block_warmup_steps=20, block_steps=200),
+    "quick": dict(contacts_blocks=[1000], contacts_layers=4, contacts_warmup_steps=5, contacts_steps=20),
+    "full": dict(contacts_blocks=[10_000, 100_000, 1_000_000], contacts_layers=4, contacts_warmup_steps=20, contacts_steps=200),
 }
 
 
@@ -82,8 +82,8 @@ def run(device: str, cfg: dict) -> dict:
     from benchmarks.common import log
 
     cases = []
-    for n in cfg["block_counts"]:
-        r = measure(device, int(n), int(cfg["block_layers"]), int(cfg["block_warmup_steps"]), int(cfg["block_steps"]))
+    for n in cfg["contacts_blocks"]:
+        r = measure(device, int(n), int(cfg["contacts_layers"]), int(cfg["contacts_warmup_steps"]), int(cfg["contacts_steps"]))
         log(f"  {n} blocks: {r['block_steps_per_s']:.4g} block-steps/s, {r['bytes_per_block']:.0f} B/block, "
             f"{r['points_per_block']:.2f} contact points/block (build {r['build_s']:.1f} s)")
         cases.append(r)
@@ -101,7 +101,7 @@ def main() -> None:
     import warp as wp
 
     wp.config.quiet = True
-    cfg = dict(block_counts=a.blocks, block_layers=a.layers, block_warmup_steps=a.warmup, block_steps=a.steps)
+    cfg = dict(contacts_blocks=a.blocks, contacts_layers=a.layers, contacts_warmup_steps=a.warmup, contacts_steps=a.steps)
     print(json.dumps(run(a.device, cfg), indent=1))
 
 

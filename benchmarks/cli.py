@@ -43,6 +43,7 @@ PARTS = {
     "readers": "benchmarks.readers",
     "surface": "benchmarks.surface",
     "chart": "benchmarks.chart",
+    "block_contacts": "benchmarks.block_contacts",
 }
 SUITES = ("quick", "full")
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")

@@ -15,7 +15,8 @@ from pathlib import Path
 
 from benchmarks.common import RESULTS, ROOT, rel
 
-PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface", "chart")
+PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface", "chart",
+              "block_contacts")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -232,9 +233,18 @@ def _chart(ch: dict) -> list[str]:
     return L + ([""] if ch.get("skipped") else [])
 
 
+def _block_contacts(bc: dict) -> list[str]:
+    L = ["Cubes in columns of 4 on a floor settling under gravity, the DDA block solver alone (benchmarks/block_contacts.py):", ""]
+    return L + _table(["blocks", "build s", "block-steps/s", "bytes/block", "history bytes/block", "contact points/block",
+                       "candidate pairs/block"],
+                      [[r["blocks"], _f(r["build_s"], ".1f"), _f(r["block_steps_per_s"], ".4g"), _f(r["bytes_per_block"], ".0f"),
+                        _f(r["bytes"]["history"] / r["blocks"], ".0f"), _f(r["points_per_block"], ".2f"),
+                        _f(r["pairs_per_block"], ".2f")] for r in bc["cases"]]) + [""]
+
+
 TABLES = {"accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
           "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface,
-          "chart": _chart}
+          "chart": _chart, "block_contacts": _block_contacts}
 
 
 def title(res: dict) -> str:

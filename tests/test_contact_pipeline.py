@@ -101,3 +101,51 @@ def test_cooperative_lanes_give_the_same_contacts():
     for a, b in zip(c1, c0):
         _same_contacts(a, b)
     assert np.array_equal(s1.positions_numpy(), s0.positions_numpy())
+
+
+def _grid(n, steps, layers=4, shrink_pool=False):
+    from benchmarks.block_contacts import grid_specs
+
+    model = BlockModel(grid_specs(n, layers), device=DEVICE, check_overlap=False)
+    state = model.state()
+    solver = BlockSolver(model)
+    if shrink_pool:  # a pool far below the live contact points: the first narrow phase must grow it
+        state.alloc_tables(state.table_cap, 8)
+    dt = solver.stable_dt(state)
+    for _ in range(steps):
+        _step(solver, state, dt)
+    return model, state, solver
+
+
+def test_block_solver_memory_per_block_within_4_kb():
+    # issue 21: 1,000 cubes in columns of 4 on a floor, 5 cm apart (10 candidate pairs per block: the
+    # AABB margin reaches the side neighbours), resting from t = 0. Every device array of the block
+    # solver (model, state, both history tables, broad phase) counted: <= 4 KB per block (before:
+    # ~54 KB, the history tables a capacity per block), so 1 M blocks take < 4 GB
+    n = 1000
+    model, state, solver = _grid(n, 20)
+    mem = solver.device_bytes(state)
+    assert mem["per_block"] <= 4096, mem
+    assert mem["total"] == mem["model"] + mem["state"] + mem["history"] + mem["solver"]
+    # the history is sized from the live pairs and points, not from a capacity per block
+    live_points = int(state.tables[0]["pcount"].numpy()[0])
+    assert state.table_cap <= 3 * solver.pair_count // 2 + 64 + n // 10
+    assert state.point_cap <= max(4 * n + 64, 3 * live_points // 2 + 64)
+    # the physics the pool holds: every face-to-face contact found with its 4 corners (columns of 4:
+    # 8 points on each of the lower 3 blocks, 4 on the top one, 7 per block on average)
+    assert live_points == 4 * n
+    counts = state.contact_counts()[1:].reshape(-1, 4)
+    assert np.all(counts == [8, 8, 8, 4])
+
+
+def test_point_pool_growth_redoes_the_step_bit_for_bit():
+    # the counter-read path (> 64 blocks) starting from an 8-point pool: the first narrow phase overflows,
+    # the pool grows to the live points and the narrow phase is redone from zeroed accumulators; the
+    # trajectory is the one of a pool that was large enough
+    _, s0, sol0 = _grid(100, 6)
+    _, s1, sol1 = _grid(100, 6, shrink_pool=True)
+    assert sol0.point_regrows == 0 and sol1.point_regrows >= 1
+    assert s1.point_cap >= int(s1.tables[0]["pcount"].numpy()[0]) > 8
+    for a, b in ((s0.positions_numpy(), s1.positions_numpy()), (s0.velocities_numpy(), s1.velocities_numpy()),
+                 (s0.angular_velocities_numpy(), s1.angular_velocities_numpy())):
+        assert np.array_equal(a, b)
