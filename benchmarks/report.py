@@ -239,7 +239,10 @@ def _block_contacts(bc: dict) -> list[str]:
                        "candidate pairs/block"],
                       [[r["blocks"], _f(r["build_s"], ".1f"), _f(r["block_steps_per_s"], ".4g"), _f(r["bytes_per_block"], ".0f"),
                         _f(r["bytes"]["history"] / r["blocks"], ".0f"), _f(r["points_per_block"], ".2f"),
-                        _f(r["pairs_per_block"], ".2f")] for r in bc["cases"]]) + [""]
+                        _f(r["pairs_per_block"], ".2f")] for r in bc["cases"]]) + [""] + _table(
+        ["50-vertex prisms on a slope", "cooperative ms/step", "one thread per pair ms/step", "speed-up", "same trajectory"],
+        [[r["prisms"], _f(r["coop_ms_per_step"], ".3f"), _f(r["serial_ms_per_step"], ".3f"), _f(r["coop_speedup"], ".2f"),
+          r["same_trajectory"]] for r in bc.get("prisms", [])]) + [""]
 
 
 TABLES = {"accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,

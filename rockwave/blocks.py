@@ -763,10 +763,12 @@ class BlockOptions:
     broad phase (kernels/blocks.py aabbs_left_pair_boxes); None: on for the counter-read path (more than
     sync_free_max_blocks blocks), off for the sync-free one. False: a broad phase every step."""
 
-    coop_min_vertices: int = 32
+    coop_min_vertices: int | None = None
     """A candidate pair whose two blocks have more vertices than this together goes to the cooperative
     narrow phase (kernels/blocks.py narrow_phase_coop: one thread block per pair, the work over
-    vertices, faces and half-edge pairs spread over its lanes); smaller pairs: one thread each [-]."""
+    vertices, faces and half-edge pairs spread over its lanes; the same result); smaller pairs: one
+    thread each [-]. None: 32 on a GPU (or on the CPU with warp.config.enable_cpu_blocks), else off (Warp's
+    CPU backend runs one lane per block, where the cooperative kernel is the serial loop plus overhead)."""
 
     narrow_block_dim: int = 32
     """Threads per pair in the cooperative narrow phase (a GPU warp; Warp's CPU backend runs 1 unless
@@ -799,7 +801,10 @@ class BlockSolver:
         self.contact_points_for_dt = int(opt.contact_points_for_dt)
         self.g_mag = float(np.linalg.norm(model.gravity))  # |g| for the resting-contact speed (narrow_phase)
         self.large_cells = int(opt.large_block_cells)
-        self.coop_min = int(opt.coop_min_vertices)
+        coop = opt.coop_min_vertices
+        if coop is None:
+            coop = 32 if (self.device.is_cuda or wp.config.enable_cpu_blocks) else 2**31 - 1
+        self.coop_min = int(coop)
         self.narrow_block_dim = int(opt.narrow_block_dim)
         if self.coop_min < 0 or self.narrow_block_dim < 1:
             raise ValueError("BlockOptions: coop_min_vertices must be >= 0 and narrow_block_dim >= 1")

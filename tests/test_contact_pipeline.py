@@ -15,6 +15,7 @@ from rockwave.solver import TimeStep
 
 DEVICE = "cpu"
 SERIAL = BlockOptions(coop_min_vertices=10**9)  # every pair on the one-thread narrow phase
+COOP = BlockOptions(coop_min_vertices=32)  # pairs of > 32 vertices cooperative (the GPU default; off on the CPU)
 
 
 def _step(solver, state, dt):
@@ -67,7 +68,7 @@ def test_prism_contact_equals_the_serial_narrow_phase_and_runs_cooperatively():
     # pairs and the contact points spread over the lanes); the result is the serial one bit for bit:
     # the same contact points, depths and normal forces, the same trajectory
     specs = _prism_on_slope()
-    m1, s1, sol1, c1 = _run(specs, BlockOptions(), 200, every=50)
+    m1, s1, sol1, c1 = _run(specs, COOP, 200, every=50)
     assert sol1.has_big_pairs
     assert int(sol1.counters.numpy()[4]) == 1  # the last narrow phase gave the pair to narrow_phase_coop
     m0, s0, sol0, c0 = _run(specs, SERIAL, 200, every=50)
