@@ -13,7 +13,7 @@ alone.
 
 Big blocks (issue 20): ``contacts_prisms`` rows of 50-vertex prisms (a 25-gon extruded 1 m, radius 0.5 m)
 resting on a side face on one fixed 5 degree slope, ms per step with the cooperative narrow phase (one thread
-block of 32 lanes per pair, kernels/blocks.py narrow_phase_coop) and with every pair on one thread
+block of 32 lanes per pair, kernels/blocks_coop.py narrow_phase_coop) and with every pair on one thread
 (``BlockOptions(coop_min_vertices=10**9)``), same trajectory. On Warp's CPU backend both run one thread per
 pair (the cooperative kernel is then the serial loop plus its tile overhead, which is why the solver's default
 leaves it off there): the rows only mean something on a GPU.

@@ -38,6 +38,7 @@ import warp as wp
 
 from rockwave.geometry import ConvexPolyhedron, quat_to_matrix
 from rockwave.kernels import blocks as K
+from rockwave.kernels import blocks_coop as KC
 from rockwave.solver import TimeStep
 
 __all__ = [
@@ -765,7 +766,7 @@ class BlockOptions:
 
     coop_min_vertices: int | None = None
     """A candidate pair whose two blocks have more vertices than this together goes to the cooperative
-    narrow phase (kernels/blocks.py narrow_phase_coop: one thread block per pair, the work over
+    narrow phase (kernels/blocks_coop.py narrow_phase_coop: one thread block per pair, the work over
     vertices, faces and half-edge pairs spread over its lanes; the same result); smaller pairs: one
     thread each [-]. None: 32 on a GPU (or on the CPU with warp.config.enable_cpu_blocks), else off (Warp's
     CPU backend runs one lane per block, where the cooperative kernel is the serial loop plus overhead)."""
@@ -1047,7 +1048,7 @@ class BlockSolver:
                     if not self.sync_free:  # the counter-read path: launch for the big pairs only
                         nb = self.coop_pairs = int(self.counters.numpy()[4])
                     if nb > 0:
-                        wp.launch_tiled(K.narrow_phase_coop, dim=[nb], block_dim=self.narrow_block_dim,
+                        wp.launch_tiled(KC.narrow_phase_coop, dim=[nb], block_dim=self.narrow_block_dim,
                                         inputs=[self.pair_list, state.world_verts, m.topology, state.bodies, old, new],
                                         device=d)
                 wp.launch(K.contact_forces, dim=n,

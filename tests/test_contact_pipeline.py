@@ -1,5 +1,5 @@
 """The block-contact pipeline at scale (issues 20 and 21): the cooperative narrow phase of big blocks
-(kernels/blocks.py narrow_phase_coop, one thread block per pair) gives the serial narrow phase's
+(kernels/blocks_coop.py narrow_phase_coop, one thread block per pair) gives the serial narrow phase's
 contacts bit for bit, and the block solver's device memory stays within 4 KB per block because the
 contact history is sized from the live pairs and contact points."""
 
