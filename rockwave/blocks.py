@@ -807,8 +807,9 @@ class BlockSolver:
             coop = 32 if (self.device.is_cuda or wp.config.enable_cpu_blocks) else 2**31 - 1
         self.coop_min = int(coop)
         self.narrow_block_dim = int(opt.narrow_block_dim)
-        if self.coop_min < 0 or self.narrow_block_dim < 1:
-            raise ValueError("BlockOptions: coop_min_vertices must be >= 0 and narrow_block_dim >= 1")
+        if self.coop_min < 0 or not 1 <= self.narrow_block_dim <= 1024:
+            raise ValueError(f"BlockOptions: coop_min_vertices must be >= 0 (got {self.coop_min}) and narrow_block_dim "
+                             f"in 1..1024 (got {self.narrow_block_dim})")
         self.has_big_pairs = model.max_vertex_pair > self.coop_min  # any pair for narrow_phase_coop?
         if self.has_big_pairs:
             model.half_edge_walk()
