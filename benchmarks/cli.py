@@ -44,6 +44,7 @@ PARTS = {
     "surface": "benchmarks.surface",
     "multirate": "benchmarks.multirate",
     "chart": "benchmarks.chart",
+    "block_contacts": "benchmarks.block_contacts",
 }
 SUITES = ("quick", "full")
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")

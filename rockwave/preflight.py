@@ -39,9 +39,11 @@ SNAPSHOT_PER_FLUID = 36
 # host bytes per particle: seeding in float64 (lattice, masks, concatenations), per-frame read-backs
 HOST_PER_PARTICLE = 160
 HOST_PER_FLUID = 64
-# blocks: per block state/model arrays; contact history tables (2, each cap x (24 + 16 x 40) B)
-DEV_PER_BLOCK = 1200
-TABLE_SLOT_BYTES = 24 + 16 * 40
+# blocks: per block, everything the block solver holds (BlockSolver.device_bytes: model, state, the two
+# contact-history tables sized from the live contacts, broad phase; <= 4 KB measured for cubes 5 cm apart,
+# tests/test_contact_pipeline.py) and the checkpoint snapshot of one history table
+DEV_PER_BLOCK = 4096
+SNAPSHOT_PER_BLOCK = 1024
 
 
 def _fmt_bytes(n: float) -> str:
@@ -228,8 +230,7 @@ def estimate(scene: Scene, meshes: dict | None = None) -> Estimate:
         nodes = float(np.prod((np.asarray(hi, float) - np.asarray(lo, float)) / res + 1))
         dev += 8 * min(float(surf.get("max_grid_nodes") or 20_000_000), nodes)
     if nblocks:
-        cap = 1 << (int(4 * (8 * nblocks + 64)) - 1).bit_length()
-        dev += nblocks * DEV_PER_BLOCK + 3 * cap * TABLE_SLOT_BYTES  # two tables + the snapshot
+        dev += nblocks * (DEV_PER_BLOCK + SNAPSHOT_PER_BLOCK)
     host = n_all * HOST_PER_PARTICLE + nf * HOST_PER_FLUID + nblocks * 2000
     return Estimate(int(nf), int(nb), nblocks, int(dev), int(host))
 
