@@ -43,6 +43,7 @@ PARTS = {
     "readers": "benchmarks.readers",
     "surface": "benchmarks.surface",
     "chart": "benchmarks.chart",
+    "nonconvex": "benchmarks.nonconvex",
 }
 SUITES = ("quick", "full")
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")

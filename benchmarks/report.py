@@ -15,7 +15,7 @@ from pathlib import Path
 
 from benchmarks.common import RESULTS, ROOT, rel
 
-PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface", "chart")
+PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface", "chart", "nonconvex")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -232,9 +232,19 @@ def _chart(ch: dict) -> list[str]:
     return L + ([""] if ch.get("skipped") else [])
 
 
+def _nonconvex(nc: dict) -> list[str]:
+    L = ["Scanned-rock-like boulders (non-convex, CoACD parts) falling onto a slope (benchmarks/nonconvex.py):", ""]
+    return L + _table(["boulders", "parts each", "volume error", "decomposition s", "cached load s", "ms/step",
+                       "boulder-steps/s", "part-steps/s", "contacts per boulder", "travel m"],
+                      [[r["boulders"], r["parts_per_boulder"], _f(r["volume_error"], "+.2%"), _f(r["decompose_s"], ".1f"),
+                        _f(r["cached_load_s"], ".2f"), _f(r["step_ms"], ".3f"), _f(r["body_steps_per_s"], ".3g"),
+                        _f(r["part_steps_per_s"], ".3g"), _f(r["contacts_per_boulder"], ".1f"), _f(r["travel_m"], ".2f")]
+                       for r in nc["cases"]]) + [""]
+
+
 TABLES = {"accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
           "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface,
-          "chart": _chart}
+          "chart": _chart, "nonconvex": _nonconvex}
 
 
 def title(res: dict) -> str:

@@ -127,3 +127,46 @@ def block_specs(scene: Scene) -> list[BlockSpec]:
                 seen[s.name] = seen.get(s.name, -1) + 1
                 s.name = f"{s.name}_{seen[s.name]}"
     return specs
+
+
+def scanned_rock_mesh(radius_m: float = 0.5, subdivisions: int = 3, roughness: float = 0.15, bumps: int = 24,
+                      notch_depth: float = 0.7, notch_width_deg: float = 30.0, seed: int = 0):
+    """A scanned-rock-like closed, non-convex surface (trimesh.Trimesh, centred near the origin): an
+    icosphere of radius_m whose vertices move along their directions d,
+
+        r(d) = radius_m (1 + roughness sum_k a_k exp(-(1 - d.c_k) / s_k)) (1 - notch_depth v(d)),
+
+    with ``bumps`` random Gaussian bumps on the sphere (centres c_k, widths s_k, signed amplitudes a_k;
+    lumps and hollows) plus a finer octave of 4 x bumps at a quarter of the amplitude and width, and a notch v(d) = sqrt(max(0, 1 - |angle from the notch plane| / width)
+    max(0, d.axis)) on one side of the rock (a deep cleft: the surface there is far from its convex hull).  A radial
+    displacement of a sphere keeps the surface closed and free of self-intersections.  Seeded: the
+    same seed gives the same mesh."""
+    import trimesh
+
+    rng = np.random.default_rng(seed)
+    m = trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=1.0)
+    d = np.asarray(m.vertices, float)
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    c = rng.normal(size=(bumps, 3))
+    c /= np.linalg.norm(c, axis=1)[:, None]
+    width = rng.uniform(0.05, 0.3, bumps)
+    amp = rng.uniform(-1.0, 1.0, bumps)
+    r = 1.0 + roughness * (amp[None, :] * np.exp(-(1.0 - d @ c.T) / width[None, :])).sum(axis=1)
+    # a finer octave (knobs and pits a few vertices wide): 4 x the bumps, 1/4 the amplitude and width
+    cf = rng.normal(size=(4 * bumps, 3))
+    cf /= np.linalg.norm(cf, axis=1)[:, None]
+    wf = rng.uniform(0.0125, 0.075, 4 * bumps)
+    af = rng.uniform(-0.25, 0.25, 4 * bumps)
+    r = r + roughness * (af[None, :] * np.exp(-(1.0 - d @ cf.T) / wf[None, :])).sum(axis=1)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)  # the notch opens towards this direction
+    plane_n = np.cross(axis, rng.normal(size=3))
+    plane_n /= np.linalg.norm(plane_n)  # the notch plane holds the axis
+    ang = np.degrees(np.arcsin(np.clip(np.abs(d @ plane_n), 0.0, 1.0)))
+    notch = np.sqrt(np.clip(1.0 - ang / notch_width_deg, 0.0, None) * np.clip(d @ axis, 0.0, None))
+    r = r * (1.0 - notch_depth * notch)
+    if np.any(r <= 0.05):
+        raise ValueError("scanned_rock_mesh: roughness and notch_depth leave no rock (radius <= 0.05 of radius_m)")
+    out = trimesh.Trimesh(d * (radius_m * r)[:, None], m.faces, process=False)
+    out.apply_translation(-out.center_mass)
+    return out
