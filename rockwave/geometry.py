@@ -642,7 +642,7 @@ def decompose(mesh: trimesh.Trimesh, name: str, opt: Decomposition) -> CompoundB
     """A closed non-convex mesh (already checked watertight, positive volume) -> CompoundBlock.
 
     The parts come from CoACD at opt.concavity, or from the cache (keyed by the SHA-256 of the
-    vertices, faces, concavity, seed and CoACD version), written atomically after a fresh run.
+    normalised vertices, faces, concavity, seed and CoACD version), written atomically after a fresh run.
     Mass properties: the original mesh's (trimesh).  Raises DecompositionError when CoACD fails,
     returns no part, or more than opt.max_parts parts."""
     if not (isinstance(opt.max_parts, int) and opt.max_parts >= 1):
@@ -651,8 +651,13 @@ def decompose(mesh: trimesh.Trimesh, name: str, opt: Decomposition) -> CompoundB
         raise DecompositionError(f"mesh '{name}': concavity must be > 0, got {opt.concavity}", "concavity")
     verts = np.asarray(mesh.vertices, np.float64)
     faces = np.asarray(mesh.faces, np.int64)
+    # CoACD's concavity is relative to the bounding box, so it works on the mesh normalised to a unit
+    # diagonal (rounded to 1e-9 so that the same shape at another scale or place hits the same cache entry)
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+    unit = np.round((verts - centre) / diag, 9)
     cache = Path(opt.cache_dir) if opt.cache_dir else default_cache_dir()
-    key = _cache_key(verts, faces, opt)
+    key = _cache_key(unit, faces, opt)
     file = cache / f"{key}.npz"
     cached = False
     parts_raw = None
@@ -666,7 +671,7 @@ def decompose(mesh: trimesh.Trimesh, name: str, opt: Decomposition) -> CompoundB
         except Exception:  # noqa: BLE001  (a torn or foreign file: decompose again and overwrite it)
             parts_raw = None
     if parts_raw is None:
-        parts_raw = _run_coacd(verts, faces, opt, name)
+        parts_raw = _run_coacd(unit, faces, opt, name)
         if parts_raw:
             try:
                 cache.mkdir(parents=True, exist_ok=True)
@@ -688,7 +693,7 @@ def decompose(mesh: trimesh.Trimesh, name: str, opt: Decomposition) -> CompoundB
     inertia = np.asarray(props["inertia"], np.float64)
     parts, radius = [], []
     for k, (v, _) in enumerate(parts_raw):
-        p = _build(v, f"{name}[part {k}]")
+        p = _build(v * diag + centre, f"{name}[part {k}]")
         radius.append(p.bounding_radius)
         parts.append(shifted(p, np.asarray(p.origin_offset) - com))
     return CompoundBlock(

@@ -118,6 +118,13 @@ def test_cache_hit_on_second_load(tmp_path, monkeypatch):
     assert second.cached and second.num_parts == first.num_parts
     for a, b in zip(first.parts, second.parts):
         np.testing.assert_array_equal(a.vertices, b.vertices)
+    # the same shape at another scale and place: the same (normalised) entry, the parts scaled with it
+    big = l_mesh()
+    big.apply_scale(2.0)
+    big.apply_translation((5.0, -1.0, 3.0))
+    third = compound(big, cache)
+    assert third.cached and third.num_parts == first.num_parts
+    assert third.parts_volume == pytest.approx(8 * first.parts_volume, rel=1e-6)
     # another concavity is another decomposition: not served from this cache entry
     with pytest.raises(G.DecompositionError, match="decomposition failed"):
         compound(l_mesh(), G.Decomposition(concavity=0.1, cache_dir=cache.cache_dir))
@@ -233,9 +240,12 @@ def test_scene_builds_compound_and_reports(tmp_path):
 
 
 def test_part_bound_error_names_key_and_count(tmp_path):
+    n = len(block_specs(_scene(tmp_path, l_mesh())))  # the parts without a tight bound (max_parts 32)
+    assert n >= 2
     with pytest.raises(SceneError) as e:
-        block_specs(_scene(tmp_path, l_mesh(), decomposition={"cache_dir": "cache", "max_parts": 1}))
-    assert "blocks[0].decomposition.max_parts" in str(e.value) and "into 2 convex parts" in str(e.value)
+        block_specs(_scene(tmp_path, l_mesh(), decomposition={"cache_dir": "cache", "max_parts": n - 1}))
+    assert "blocks[0].decomposition.max_parts" in str(e.value)
+    assert f"into {n} convex parts" in str(e.value) and f"max_parts = {n - 1}" in str(e.value)
 
 
 def test_open_mesh_is_refused(tmp_path):
