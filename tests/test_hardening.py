@@ -237,8 +237,8 @@ def _region_mesh_scene(tmp, kind):
     return d
 
 
-def _block_mesh_scene(tmp, kind):
-    return blocks_scene({"shape": "mesh", "mesh": str(_mesh_file(tmp, f"b_{kind}.stl", kind)), "position_m": [0, 0, 1]})
+def _block_mesh_scene(tmp, kind, **block):
+    return blocks_scene({"shape": "mesh", "mesh": str(_mesh_file(tmp, f"b_{kind}.stl", kind)), "position_m": [0, 0, 1], **block})
 
 
 BOX = {"shape": "box", "size_m": [1.0, 1.0, 1.0]}
@@ -250,7 +250,8 @@ VALIDATE_CASES = {
     "region mesh garbage": (lambda t: _region_mesh_scene(t, "garbage"), "fluid.regions[0].mesh"),
     "region mesh flat": (lambda t: _region_mesh_scene(t, "flat"), "fluid.regions[0].mesh"),
     "region mesh in millimetres": (lambda t: _region_mesh_scene(t, "mm"), "fluid.regions[0].mesh"),
-    "block mesh not convex": (lambda t: _block_mesh_scene(t, "dent"), "blocks[0].mesh"),
+    "block mesh not convex, over its part bound": (lambda t: _block_mesh_scene(
+        t, "dent", decomposition={"max_parts": 1, "concavity": 0.01, "cache_dir": str(t / "cache")}), "blocks[0].decomposition.max_parts"),
     "block mesh open": (lambda t: _block_mesh_scene(t, "open"), "blocks[0].mesh"),
     "overlapping blocks": (lambda t: blocks_scene(dict(BOX, name="a", position_m=[0, 0, 1]), dict(BOX, name="b", position_m=[0.5, 0, 1])),
                            "overlap"),
