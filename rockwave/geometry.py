@@ -676,7 +676,7 @@ def decompose(mesh: trimesh.Trimesh, name: str, opt: Decomposition) -> CompoundB
             try:
                 cache.mkdir(parents=True, exist_ok=True)
                 tmp = cache / f".{key}.{os.getpid()}.tmp.npz"
-                np.savez(tmp, vertices=np.concatenate([v for v, _ in parts_raw]),
+                np.savez_compressed(tmp, vertices=np.concatenate([v for v, _ in parts_raw]),
                          faces=np.concatenate([f for _, f in parts_raw]),
                          nverts=np.array([len(v) for v, _ in parts_raw]), nfaces=np.array([len(f) for _, f in parts_raw]))
                 os.replace(tmp, file)

@@ -8,6 +8,7 @@ import copy
 import io
 import json
 import math
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -565,7 +566,7 @@ FUZZ_EXAMPLES = 12  # per shipped scene, derandomized: the same mutations on eve
 def _absolute_paths(node, base: Path):
     if isinstance(node, dict):
         for k, v in node.items():
-            if k in ("mesh", "file") and isinstance(v, str):
+            if k in ("mesh", "file", "cache_dir") and isinstance(v, str):
                 node[k] = str((base / v).resolve())
             else:
                 _absolute_paths(v, base)
@@ -660,6 +661,10 @@ def test_fuzz_mutated_shipped_scenes_validate_and_run_agree(tmp_path, name):
     exit code 2 (a run may also end in a one-line blow-up, exit 1); never a traceback; and validate
     refuses exactly what run refuses before stepping."""
     base = _small(name)
+    for b in base.get("blocks", []):  # a shipped decomposition cache is copied: mutations never write into scenes/
+        cache = b.get("decomposition", {}).get("cache_dir")
+        if cache:
+            b["decomposition"]["cache_dir"] = str(shutil.copytree(cache, tmp_path / "decompositions", dirs_exist_ok=True))
     counter = iter(range(10**6))
 
     @settings(max_examples=FUZZ_EXAMPLES, derandomize=True, deadline=None, database=None,
