@@ -42,6 +42,7 @@ PARTS = {
     "ghost_accuracy": "benchmarks.ghost_accuracy",
     "readers": "benchmarks.readers",
     "surface": "benchmarks.surface",
+    "multirate": "benchmarks.multirate",
     "chart": "benchmarks.chart",
     "nonconvex": "benchmarks.nonconvex",
 }

@@ -15,7 +15,8 @@ from pathlib import Path
 
 from benchmarks.common import RESULTS, ROOT, rel
 
-PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface", "chart", "nonconvex")
+PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface",
+              "multirate", "chart", "nonconvex")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -88,9 +89,10 @@ def _scaling(sc: dict) -> list[str]:
     L = []
     if sc.get("fluid"):
         L += ["### Fluid step throughput (3D dam break)", ""]
-        L += _table(["spacing m", "fluid particles", "neighbours", "steps/s", "particle-steps/s"],
+        L += _table(["spacing m", "fluid particles", "neighbours", "steps/s", "particle-steps/s", "neighbour pairs/s"],
                     [[f"{r['spacing_m']:g}", r["particles"], _f(r["neighbours"], ".1f"), _f(r["steps_per_s"], ".1f"),
-                      _f(r["particle_steps_per_s"], ".3g")] for r in sc["fluid"]]) + [""]
+                      _f(r["particle_steps_per_s"], ".3g"), _f(r["particle_steps_per_s"] * r["neighbours"], ".3g")]
+                     for r in sc["fluid"]]) + [""]
     if sc.get("blocks"):
         L += ["### Block step throughput (jointed rock slope)", ""]
         L += _table(["blocks", "contacts/block", "steps/s", "block-steps/s"],
@@ -110,8 +112,21 @@ def _scaling(sc: dict) -> list[str]:
     return L
 
 
+def _dualsphysics(ds: dict) -> list[str]:
+    L = [f"DualSPHysics side by side ({ds.get('case', '')}; benchmarks/peers/dualsphysics.py): water-level RMS / 0.55 m "
+         "per gauge, scored by the same function.", ""]
+    rows = [[r["code"], r.get("settings", ""), r.get("particles", "-"), _f(r.get("H1_rms")), _f(r.get("H2_rms")),
+             _f(r.get("H3_rms")), _f(r.get("H4_rms")), _f(r.get("h_rms")), _f(r.get("h_max")), _f(r.get("wall_per_sim_s"), ".1f")]
+            for r in ds.get("runs", [])]
+    return L + _table(["code", "settings", "fluid particles", "H1", "H2", "H3", "H4", "mean", "max", "wall s / sim s"], rows) + [""]
+
+
 def _peers(pe: dict) -> list[str]:
     L = ["### Peers", ""]
+    if "dualsphysics" in pe:
+        L += _dualsphysics(pe["dualsphysics"])
+        if "splash" not in pe and "warp_example" not in pe:
+            return L
     s = pe.get("splash", {})
     sp, rw, rc = s.get("splash", {}), s.get("rockwave", {}), s.get("rockwave_continuity", {})
     if "particles" in sp and "particles" in rw:
@@ -242,7 +257,17 @@ def _nonconvex(nc: dict) -> list[str]:
                        for r in nc["cases"]]) + [""]
 
 
-TABLES = {"accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
+def _multirate(mr: dict) -> list[str]:
+    L = ["### Multi-rate stepping: submarine_slide_2d (wall s per simulated s)", ""]
+    L += _table(["spacing m", "run", "particles", "step s (set by)", "block sub-steps", "wall s / sim s", "ratio"],
+                [[_f(r["spacing_m"], "g"), r["variant"], r["particles"], f"{r['dt_s']:.3g} ({r['limited_by']})",
+                  r["block_substeps"], _f(r["wall_per_sim_s"], ".3g"),
+                  f"{r['over_no_block']:.2f} of no_block" if "over_no_block" in r else
+                  f"{r['over_multirate']:.1f}x multirate" if "over_multirate" in r else ""] for r in mr["runs"]])
+    return L + [""]
+
+
+TABLES = {"multirate": _multirate, "accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
           "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface,
           "chart": _chart, "nonconvex": _nonconvex}
 

@@ -234,3 +234,106 @@ def gauge_pressure_wall_sums(
         wp.atomic_add(sums, g, 1, w)
 
 
+
+
+# ---------------------------------------------------------------------------------------------------
+# Hazard summary (rockwave/hazard.py): running extremes reduced on the device, one host read at the end.
+# ---------------------------------------------------------------------------------------------------
+
+# columns of a wave gauge's row in the hazard statistics
+HZ_MAX = wp.constant(0)  # highest eta
+HZ_T_MAX = wp.constant(1)
+HZ_MIN = wp.constant(2)  # lowest eta
+HZ_T_MIN = wp.constant(3)
+HZ_ARRIVAL = wp.constant(4)  # first time |eta| > threshold (NaN: not yet)
+HZ_PREV_ETA = wp.constant(5)  # the previous sample (NaN: dry)
+HZ_PREV_T = wp.constant(6)
+HZ_COLUMNS = 7
+
+
+@wp.kernel
+def hazard_wave_update(
+    level: wp.array(dtype=float),
+    still: wp.array(dtype=float),
+    threshold: wp.array(dtype=float),
+    t: float,
+    stats: wp.array2d(dtype=float),
+):
+    """One sample of each wave gauge (one thread per gauge; level: its height-gauge reading, NaN when dry).
+    eta = level - still. Keeps the highest crest max(eta) and the deepest trough min(eta) with their times,
+    and the first arrival: the first time |eta| exceeds the gauge's threshold, linearly interpolated between
+    the previous sample and this one (|eta| rising through the threshold). A dry sample (NaN) changes nothing
+    but the previous sample."""
+    g = wp.tid()
+    z = level[g]
+    if wp.isnan(z):
+        stats[g, HZ_PREV_ETA] = wp.nan
+        return
+    eta = z - still[g]
+    if eta > stats[g, HZ_MAX]:
+        stats[g, HZ_MAX] = eta
+        stats[g, HZ_T_MAX] = t
+    if eta < stats[g, HZ_MIN]:
+        stats[g, HZ_MIN] = eta
+        stats[g, HZ_T_MIN] = t
+    a = wp.abs(eta)
+    thr = threshold[g]
+    if wp.isnan(stats[g, HZ_ARRIVAL]) and a > thr:
+        t_arr = t
+        a0 = wp.abs(stats[g, HZ_PREV_ETA])
+        if not wp.isnan(a0) and a0 <= thr:
+            t_arr = stats[g, HZ_PREV_T] + (thr - a0) / (a - a0) * (t - stats[g, HZ_PREV_T])
+        stats[g, HZ_ARRIVAL] = t_arr
+    stats[g, HZ_PREV_ETA] = eta
+    stats[g, HZ_PREV_T] = t
+
+
+@wp.kernel
+def hazard_column_update(level: wp.array(dtype=float), offset: int, t: float, stats: wp.array2d(dtype=float)):
+    """Run-up columns (one thread per column; level[offset + c]: the top of the continuous water column on the
+    column's vertical line, NaN when dry): the highest top so far (stats[c, 0], -inf until wet) and its time."""
+    c = wp.tid()
+    z = level[offset + c]
+    if not wp.isnan(z) and z > stats[c, 0]:
+        stats[c, 0] = z
+        stats[c, 1] = t
+
+
+@wp.kernel
+def hazard_block_speed(v: wp.array(dtype=wp.vec3), index: wp.array(dtype=int), t: float, stats: wp.array2d(dtype=float)):
+    """Peak speed |v| of each watched block (one thread per slide; index: its block) and its time."""
+    i = wp.tid()
+    s = wp.length(v[index[i]])
+    if s > stats[i, 0]:
+        stats[i, 0] = s
+        stats[i, 1] = t
+
+
+@wp.kernel
+def hazard_side_volume(
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    point: wp.array(dtype=wp.vec3),
+    normal: wp.array(dtype=wp.vec3),
+    vol: wp.array(dtype=float),
+):
+    """The water volume on the positive side of each crossing line (plane through point, horizontal normal):
+    vol[l] += m_j / rho_j for (x_j - point_l).n_l > 0 (launched over fluid particles x lines)."""
+    j, l = wp.tid()
+    if wp.dot(x[j] - point[l], normal[l]) > 0.0:
+        wp.atomic_add(vol, l, particle_mass[j] / rho[j])
+
+
+@wp.kernel
+def hazard_crossing_update(vol: wp.array(dtype=float), t: float, stats: wp.array2d(dtype=float)):
+    """Crossing lines (one thread per line): stats[l, 0] the volume at the first sample (V0), then the net
+    volume moved across the line V - V0 now (col 1), its largest value (col 2) and that time (col 3)."""
+    l = wp.tid()
+    if wp.isnan(stats[l, 0]):
+        stats[l, 0] = vol[l]
+    dv = vol[l] - stats[l, 0]
+    stats[l, 1] = dv
+    if dv > stats[l, 2]:
+        stats[l, 2] = dv
+        stats[l, 3] = t

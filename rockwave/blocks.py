@@ -929,12 +929,21 @@ class BlockSolver:
                 imin = float(np.linalg.eigvalsh(m.np["inertia"][b]).min())
                 r = m.np["radius"][b]
                 om = max(math.sqrt(kn * nc / mass), math.sqrt(kn * nc * r * r / imin))
-                best = min(best, 2.0 / om * fac)
+                if 2.0 / om * fac < best:
+                    best, self._dt_crit_block = 2.0 / om * fac, (int(b), "contact")
                 if m.np["kinds"][b] == 1:
                     zs = m.specs[b].strain_damping_ratio
-                    best = min(best, 2.0 / m.strain_omega[b] * (math.sqrt(1 + zs * zs) - zs))
+                    ds = 2.0 / m.strain_omega[b] * (math.sqrt(1 + zs * zs) - zs)
+                    if ds < best:
+                        best, self._dt_crit_block = ds, (int(b), "strain")
             self._dt_crit = best
         return self._dt_crit
+
+    def critical_block(self) -> tuple[int, str] | None:
+        """(block index, 'contact' or 'strain'): the block and mode that set critical_dt() (None: no
+        movable block)."""
+        self.critical_dt()
+        return getattr(self, "_dt_crit_block", None)
 
     def stable_dt(self, state: BlockState) -> float:
         """Largest step the clock should take [s]: options.dt_safety x critical_dt() (the DDA limit
@@ -1075,6 +1084,50 @@ class BlockSolver:
         self._contact_forces(state, dt)
         self._integrate(state, dt, t)
         state.time = t + dt
+
+    def substeps(self, state: BlockState, ts: TimeStep, n: int, keep_pairs: bool = False):
+        """Multi-rate stepping (rockwave/clock.py): n steps of ts.dt / n from ts.time with the external
+        load (ext_force / ext_torque: the water's reaction, written once per fluid step by the coupling)
+        held over all of them, so the blocks receive exactly the impulse ts.dt x load. n = 1 is step().
+        ``keep_pairs``: the first sub-step's broad phase serves all n (the caller checked with
+        pairs_hold() that no block moves margin/2 over ts.dt, so the pair list stays complete)."""
+        if n == 1:
+            return self.step(state, ts)
+        h = ts.dt / n
+        dc = self.critical_dt()
+        if not 0.0 < h <= dc:
+            raise ValueError(f"block sub-step {h:.4g} s must be in (0, {dc:.4g}] s (the critical DDA step)")
+        held = getattr(self, "_held_load", None)
+        if held is None:
+            nb = self.model.num_blocks
+            held = self._held_load = (wp.zeros(nb, dtype=wp.vec3, device=self.device), wp.zeros(nb, dtype=wp.vec3, device=self.device))
+        wp.copy(held[0], state.ext_force)  # integrate_blocks zeroes the load after each sub-step
+        wp.copy(held[1], state.ext_torque)
+        contacts_only = keep_pairs and self.has_free_blocks
+        for i in range(n):
+            if i:
+                wp.copy(state.ext_force, held[0])
+                wp.copy(state.ext_torque, held[1])
+            if i and contacts_only:
+                self._prepare(state)
+                self._narrow_phase(state, h)
+            else:
+                self._contact_forces(state, h)
+            self._integrate(state, h, ts.time + i * h)
+        state.time = ts.time + ts.dt
+
+    def pairs_hold(self, state: BlockState, dt: float, headroom: float = 2.0) -> bool:
+        """Whether one broad phase can serve a whole step dt of sub-steps: max over the blocks that move
+        (rigid, deformable, kinematic) of (|v| + |w| r) dt, times ``headroom`` for the speed growing before
+        the next check, is within margin/2 (the distance the kept pair list tolerates,
+        aabbs_left_pair_boxes). A host read."""
+        mov = self.model.np["kinds"] != KINDS["fixed"]
+        if not np.any(mov):
+            return True
+        v = np.linalg.norm(state.v.numpy()[mov], axis=1)
+        w = np.linalg.norm(state.w.numpy()[mov], axis=1)
+        reach = float(np.max(v + w * self.model.np["radius"][mov]))
+        return headroom * reach * dt <= 0.5 * self.margin
 
     # ---- diagnostics ----
     def contacts(self, state: BlockState) -> list:

@@ -38,13 +38,74 @@ def hydrostatic_density(model, g_depth: np.ndarray) -> np.ndarray:
 
 
 def boundary_lattice(scene: Scene) -> tuple[float, int]:
-    """Boundary particle spacing and number of layers for a scene."""
+    """Boundary particle spacing and number of layers for a scene (without a tank: those of the wall
+    particles on fixed blocks, :func:`fixed_block_walls`)."""
     t, spacing = scene.tank, scene.fluid.spacing_m
-    if t is None:  # water held by fixed blocks only (rockwave/coupling.py): no boundary particles
-        return spacing, 1
-    bstep = spacing * t.boundary_spacing_ratio
     H = scene.fluid.support_radius_ratio * spacing
+    if t is None:
+        return spacing, max(1, int(math.ceil(H / spacing - 1e-9)))
+    bstep = spacing * t.boundary_spacing_ratio
     return bstep, (t.layers or max(1, int(math.ceil(H / bstep - 1e-9))))
+
+
+def _quat_matrix(q) -> np.ndarray:
+    x, y, z, w = (float(a) for a in q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: float, layers: int) -> np.ndarray:
+    """Wall particles inside the faces of the fixed blocks, for Adami walls (``fluid.boundary = "adami"``): a
+    lattice of ``step`` over each fixed block, kept within ``layers * step`` under its surface (the kernel
+    support), so that water on a fixed slope, floor or tank wall made of blocks feels the extrapolated wall
+    pressure (Adami et al. 2012) as it does at the [tank] walls; the penalty force of the coupling stays as the
+    guard against penetration. Only where the water can reach: within its seeded bounding box grown by its own
+    largest extent (farther faces keep the penalty alone). A point inside an earlier fixed block is left out
+    (no double walls where blocks overlap). Moving blocks keep the penalty coupling only (their wall particles
+    would move: not built yet)."""
+    dim = scene.dim
+    if parts.blocks is None or len(fluid_x) == 0:
+        return np.zeros((0, 3))
+    specs = [s for s in parts.blocks.specs if s.kind == "fixed"]
+    if not specs:
+        return np.zeros((0, 3))
+    lo_f, hi_f = fluid_x.min(axis=0), fluid_x.max(axis=0)
+    grow = float(np.max(hi_f[:dim] - lo_f[:dim]))
+    reach_lo, reach_hi = lo_f - grow, hi_f + grow
+    depth = layers * step
+    anchor = np.asarray(fluid_x[0], float)[:dim]
+    planes, out = [], []
+    for spec in specs:
+        R = _quat_matrix(spec.orientation)
+        n = np.asarray(spec.geometry.face_normals, float) @ R.T
+        d = np.asarray(spec.geometry.face_offsets, float) + n @ np.asarray(spec.position, float)
+        if dim == 2:  # the extrusion's caps are not walls in 2D
+            side = np.abs(n[:, 2]) < 0.5
+            n, d = n[side], d[side]
+        verts = np.asarray(spec.geometry.vertices, float) @ R.T + np.asarray(spec.position, float)
+        lo = np.maximum(verts.min(axis=0), reach_lo)[:dim]
+        hi = np.minimum(verts.max(axis=0), reach_hi)[:dim]
+        if np.any(hi <= lo):
+            planes.append((n, d))
+            continue
+        # the water's own lattice continued into the block: water filling a box up to a face sits step/2 from it,
+        # and so do the first wall layer's particles on the other side
+        k0 = np.floor((lo - anchor) / step)
+        k1 = np.ceil((hi - anchor) / step)
+        axes = [anchor[i] + np.arange(k0[i], k1[i] + 1) * step for i in range(dim)]
+        g = np.meshgrid(*axes, indexing="ij")
+        pts = np.zeros((g[0].size, 3))
+        for i in range(dim):
+            pts[:, i] = g[i].ravel()
+        sd = (pts @ n.T - d).max(axis=1)
+        pts = pts[(sd < 0.0) & (sd > -depth)]
+        for n2, d2 in planes:  # inside an earlier fixed block: already wall
+            if len(pts) and len(n2):
+                pts = pts[(pts @ n2.T - d2).max(axis=1) >= 0.0]
+        planes.append((n, d))
+        out.append(pts)
+    return np.concatenate(out) if out else np.zeros((0, 3))
 
 
 def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -135,6 +196,10 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
     if parts.blocks is not None:
         xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth, options)
     bstep, layers = boundary_lattice(scene)
+    if scene.fluid.boundary == "adami" and parts.blocks is not None:
+        xw = fixed_block_walls(scene, parts, xf, bstep, layers)
+        if len(xw):
+            xb = np.concatenate([xb, xw]) if len(xb) else xw
     fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, device, bstep, layers)
     fopts = getattr(options, "fluid", None) or FluidOptions()
     if fopts.cfl_number is None:  # the adaptive step's Courant number comes from the scene

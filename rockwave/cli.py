@@ -1,4 +1,4 @@
-"""Command line: ``python -m rockwave run|validate|info|schema|preview|plot``. A thin layer over the Python API."""
+"""Command line: ``python -m rockwave run|validate|info|schema|preview|plot|sweep``. A thin layer over the Python API."""
 
 from __future__ import annotations
 
@@ -71,6 +71,22 @@ def _parser() -> argparse.ArgumentParser:
     pl.add_argument("run_dir", help="a run's output folder (holds gauges.csv / blocks.csv and run.json)")
     pl.add_argument("--scene", default=None, help="scene file for gauge kinds and references (default: the one in run.json)")
     pl.add_argument("--out", default=None, help="PNG path (default: RUN_DIR/gauges.png)")
+    sw = sub.add_parser("sweep", help="run a scenario study: a base scene with keys varied (grid, random or Latin hypercube), "
+                        "each scenario's hazard summary in one table (rockwave/sweep.py)")
+    sw.add_argument("study", help="study TOML file ([study] scene, results, sample; [[vary]] key, values or range)")
+    sw.add_argument("--out", default=None, help="result folder (default: the study's results)")
+    sw.add_argument("--workers", type=int, default=None, help="local workers (default: one per GPU, else the CPU count)")
+    sw.add_argument("--ray", default=None, metavar="ADDRESS", help="run on a Ray cluster ('auto', 'ray://HOST:10001'; "
+                    "'local' starts one here) instead of the local process pool")
+    sw.add_argument("--gpus-per-scenario", type=float, default=None, help="Ray: GPUs per scenario (a fraction shares one GPU "
+                    "among small scenarios; default 1 when the cluster has GPUs, else 0)")
+    sw.add_argument("--retry-failed", action="store_true", help="run the failed scenarios again (finished ones are skipped)")
+    sw.add_argument("--only", type=int, action="append", default=None, metavar="INDEX", help="run only this scenario "
+                    "(a Slurm array task); repeatable")
+    sw.add_argument("--collect", action="store_true", help="run nothing: write the table and plots from the results so far")
+    sw.add_argument("--slurm", action="store_true", help="write RESULTS/sweep.sbatch (a job array, one task per scenario) and stop")
+    sw.add_argument("--list", action="store_true", help="validate the study and list its scenarios; run nothing")
+    sw.add_argument("--quiet", action="store_true", help="no progress lines")
     return p
 
 
@@ -104,6 +120,10 @@ def main(argv: list[str] | None = None) -> int:
             return _fail(e.one_line() if isinstance(e, SceneError) else str(e))
         print(path)
         return 0
+    if args.command == "sweep":
+        from rockwave.sweep import cli as sweep_cli
+
+        return sweep_cli(args)
     if args.command == "info":
         import warp as wp
 

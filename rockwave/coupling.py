@@ -72,7 +72,9 @@ are computed first (they only read x(t), v(t) and the block poses); the fluid st
 coupling impulse dt f/m is then added exactly as if f/m had been part of the semi-implicit Euler
 acceleration (v += dt f/m, x += dt^2 f/m); the block step uses the reactions. The exchange is
 therefore equal and opposite within each step: water + blocks conserve momentum up to the
-external forces (gravity, fixed walls, kinematic blocks, tank particles).
+external forces (gravity, fixed walls, kinematic blocks, tank particles). With multi-rate stepping
+(rockwave/clock.py) the block step is n sub-steps of dt/n with the reactions held over all of them
+(BlockSolver.substeps): the blocks still receive -f dt, the impulse the water took, once per fluid step.
 
 2D scenes: blocks are 3D prisms extruded along z (their z-extent is their depth; they move in the
 x-y plane only: BlockModel(planar=True), enforced inside BlockSolver.step). A 2D particle's mass and forces are per metre of depth,

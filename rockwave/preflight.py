@@ -649,8 +649,8 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
         cands.append(fs[:3])
         c0, u, flow_key = fs[3], fs[4], fs[5]
     bs = _block_step(scene) if scene.blocks else None
-    if bs is not None:
-        cands.append(bs)
+    if bs is not None and (fs is None or sim.get("block_stepping", "multirate") == "single"):
+        cands.append(bs)  # with water, multi-rate blocks sub-step inside the fluid's step (rockwave/clock.py)
     c = scene.coupling
     if fs is not None and scene.blocks and c is not None and c.stiffness_n_m is not None:
         m = scene.fluid.rest_density_kg_m3 * scene.fluid.spacing_m ** scene.dim

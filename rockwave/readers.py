@@ -55,8 +55,8 @@ class Gauges:
 
     MAX_SAMPLES = 1 << 16  # per gauge line; the step grows past s/8 only for a domain 8192 spacings tall
 
-    def __init__(self, scene, fluid, device, blocks=None, block_state=None):
-        g = scene.output.gauges
+    def __init__(self, scene, fluid, device, blocks=None, block_state=None, gauges=None):
+        g = scene.output.gauges if gauges is None else gauges  # gauges: objects with name, kind, position_m
         self.names = [gg.name for gg in g]
         self.fluid = fluid
         self.up = up = scene.dim - 1
@@ -128,13 +128,7 @@ class Gauges:
             wp.launch(gk.gauge_pressure_wall_sums, dim=(m.n_boundary, n),
                       inputs=[state.x, state.wall_pressure, m.particle_mass, self.pos, m.params], outputs=[self.sums], device=d)
         wp.launch(gk.gauge_pressure, dim=n, inputs=[self.sums], outputs=[self.out], device=d)
-        if self.any_height:
-            self.phi_f.zero_()
-            wp.launch(gk.gauge_fluid_profile, dim=(m.n_fluid, n),
-                      inputs=[state.x, state.rho, m.particle_mass, self.pos, self.is_height, self.up, self.z0, self.dz,
-                              m.params], outputs=[self.phi_f], device=d)
-            wp.launch(gk.gauge_level, dim=n, inputs=[self.phi_f, self.phi_s, self.is_height, self.z0, self.dz,
-                                                     self.reach], outputs=[self.out], device=d)
+        self.launch_levels(state)
         names = self.names
 
         def finish(vals):
@@ -142,6 +136,19 @@ class Gauges:
 
         self.hosts.reverse()
         return _queue_copy(self.hosts[0], self.out, n, d, finish)
+
+    def launch_levels(self, state) -> wp.array:
+        """Queue the height gauges' readings into ``self.out`` on the device (no host read; rockwave/hazard.py
+        reduces them there). Returns ``self.out``."""
+        m = self.fluid
+        if self.any_height and m.n_fluid:
+            self.phi_f.zero_()
+            wp.launch(gk.gauge_fluid_profile, dim=(m.n_fluid, len(self.names)),
+                      inputs=[state.x, state.rho, m.particle_mass, self.pos, self.is_height, self.up, self.z0, self.dz,
+                              m.params], outputs=[self.phi_f], device=self.device)
+            wp.launch(gk.gauge_level, dim=len(self.names), inputs=[self.phi_f, self.phi_s, self.is_height, self.z0, self.dz,
+                                                                   self.reach], outputs=[self.out], device=self.device)
+        return self.out
 
     def profiles(self, state) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(z, phi_f, phi_s) along the height gauges' lines now (host copies; rows in gauge order): for

@@ -26,6 +26,7 @@ WATCH_INTERVAL_S = 2.0  # wall seconds between progress lines and health checks 
 COST_STEPS = 5  # steps after the first whose measured cost feeds the run-length check
 
 
+HAZARD_FILE = "hazard.json"  # the [hazard] summary (rockwave/hazard.py), also under "hazard" in run.json
 MANIFEST = ".rockwave-outputs.json"  # the outputs a run writes into its folder (removed by the next fresh run there)
 
 
@@ -70,7 +71,7 @@ class _Watch:
         self.cost_checked = False
 
     def note(self) -> str:
-        return f"step {self.sim.dt:.3g} s ({self.sim.clock.limiting or 'fixed'})"
+        return f"step {self.sim.clock.describe()}"
 
     def __call__(self) -> None:
         sim = self.sim
@@ -133,7 +134,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
 
     o = scene.output
     if resumed is None:  # before the recorders make their files and folders
-        names = ["run.json", ckpt.FILE_NAME]
+        names = ["run.json", ckpt.FILE_NAME] + ([HAZARD_FILE] if scene.hazard is not None else [])
         if o.usd:
             names += [o.usd, Path(o.usd).stem + ".clips"]
         if sim.gauge_names and o.gauges_csv:
@@ -158,7 +159,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     escaped = 0
     t0 = sim.time
     interrupted = False
-    first, steps0 = 0, sim.steps
+    first, steps0, block_steps0 = 0, sim.steps, sim.clock.block_steps
     if resumed is not None:  # outputs continue where the checkpoint was taken
         meta = resumed[1]
         t0, first, escaped = meta["t0"], meta["frame"] + 1, meta["escaped"]
@@ -196,6 +197,13 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
 
     watch = _Watch(sim, bar, t0 + duration, t0, force or bool(getattr(sim, "run_length_forced", False)),
                    lambda: check_health(rec.Frame(sim, -1)))
+
+    hazard = None
+    if scene.hazard is not None:  # [hazard]: statistics reduced on the device after each step (rockwave/hazard.py)
+        from rockwave.hazard import HazardMonitor
+
+        hazard = HazardMonitor(sim)
+        watch = hazard.wrap(watch)
 
     stop = []
 
@@ -270,15 +278,22 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         "simulated_s": sim.time - t0,
         "steps": sim.steps,
         "step_limited_by": sim.clock.limiting,
+        "steps_limited_by": dict(sim.clock.steps_limited_by),
+        "block_substeps": sim.clock.substeps if sim.clock.block_substep is not None else None,
+        "block_steps": sim.clock.block_steps if sim.blocks is not None else None,
         "wall_s": wall,
         "particle_steps_per_s": nf * (sim.steps - steps0) / wall if wall > 0 and nf else None,
-        "block_steps_per_s": sim.blocks.num_blocks * (sim.steps - steps0) / wall if wall > 0 and sim.blocks is not None else None,
+        "block_steps_per_s": (sim.blocks.num_blocks * (sim.clock.block_steps - block_steps0) / wall  # sub-steps counted
+                              if wall > 0 and sim.blocks is not None else None),
         "particles_outside_domain": escaped,
         "usd": str(out / o.usd) if usd is not None else None,
         "interrupted": interrupted,
         "resumed_from_frame": resumed[1]["frame"] if resumed is not None else None,
         "checkpoint": str(checkpointer.path) if checkpointer.written_frame is not None else None,
     }
+    if hazard is not None:
+        summary["hazard"] = hazard.result()
+        atomic_write_text(out / HAZARD_FILE, json.dumps(summary["hazard"], indent=2))
     atomic_write_text(_summary_path(out), json.dumps(summary, indent=2))
     if interrupted:
         raise KeyboardInterrupt

@@ -104,6 +104,7 @@ SCHEMA: dict[str, Key] = {
         dt_s=Key("float", "fixed time step (time_step = 'fixed'); refused if above the stability limit", min=0, min_open=True),
         block_dt_safety=Key("float", "block step = this fraction of the critical DDA step 2/omega_max", default=0.5, min=0.0, max=1.0, min_open=True),
         dt_update_interval=Key("int", "steps between adaptive time-step updates (one host read each)", default=10, min=1, max=10000),
+        block_stepping=Key("str", "with water and blocks: 'multirate': the water's limits set the step and the blocks sub-step inside it at their own (the water's load held over the step; at most 1000 sub-steps); 'single': one step for both at the smallest limit (README 'Multi-rate stepping')", default="multirate", choices=("multirate", "single")),
         device=Key("str", "'auto' (first GPU if any, else CPU), 'cpu', 'cuda' or 'cuda:N'; the CLI --device overrides", default="auto"),
     ),
     "gravity": _sec(
@@ -211,6 +212,27 @@ SCHEMA: dict[str, Key] = {
         stiffness_n_m=Key("float", "explicit K_s (N/m per particle; per metre of depth in 2D), overrides stiffness_factor", min=0, min_open=True),
         damping_n_s_m=Key("float", "explicit K_d (N s/m), overrides damping_ratio", min=0.0),
         squeeze_out=Key("bool", "water pinched between a moving block and an opposing solid face closer than 2 d0 + H is pushed out along the gap, so a block can settle onto another (rockwave/coupling.py)", default=True),
+    ),
+    "hazard": _sec(
+        "hazard summary reduced on the device during a run (rockwave/hazard.py), written to hazard.json and run.json", optional=True,
+        sample_interval_s=Key("float", "simulated seconds between samples of the wave gauges, run-up lines and crossings (block speeds: every step); default 0.01 s, or the frame interval if shorter", min=0, min_open=True),
+        gauges=_list("wave gauges: eta = water level (the height gauge's top of the continuous water column from the bed) - still level; reports the highest crest, the deepest trough, their times, and the first arrival time (|eta| first above arrival_threshold_m, interpolated between samples)",
+                     name=Key("str", "gauge name (hazard.json key, study table column prefix)", required=True),
+                     position_m=Key("vec", "gauge position (the vertical coordinate is not used)", length="dim", required=True),
+                     still_level_m=Key("float", "still water level (default: the gauge's reading at the start of the run)"),
+                     arrival_threshold_m=Key("float", "first arrival: the first time |eta| exceeds this (default half the particle spacing)", min=0, min_open=True)),
+        runup=_list("run-up along a line across a shore: the highest top of a continuous water column from the bed (phi >= 0.5, as the height gauge: single spray particles and films thinner than about one particle layer read dry) on any of `columns` vertical lines from start_m to end_m, at any sample",
+                    name=Key("str", "run-up line name", required=True),
+                    start_m=Key("vec", "one end of the line (the vertical coordinate is not used)", length="dim", required=True),
+                    end_m=Key("vec", "the other end", length="dim", required=True),
+                    columns=Key("int", "vertical lines along it (default: one per particle spacing, at most 256)", min=2, max=1024),
+                    still_level_m=Key("float", "still water level for the run-up above it (default: the highest reading along the line at the start)")),
+        slides=_list("blocks whose initial and final centroid, runout (distance between them) and peak speed are reported",
+                     block=Key("str", "block name (an array's blocks are name_0, name_1, ...)", required=True)),
+        crossings=_list("water volume moved across a vertical line (2D) or plane (3D): V - V0 of the water on the side the normal points to (2D: per metre of depth)",
+                        name=Key("str", "crossing name", required=True),
+                        position_m=Key("vec", "a point of the line or plane", length="dim", required=True),
+                        normal=Key("vec", "horizontal direction towards the side counted", length="dim", required=True)),
     ),
     "output": _sec(
         "what a run writes into its output folder",
@@ -370,6 +392,7 @@ class Scene:
     blocks: list = field(default_factory=list)
     raw: dict = field(repr=False, default_factory=dict)
     coupling: Node | None = None  # [coupling] (rockwave/coupling.py); None: defaults
+    hazard: Node | None = None  # [hazard] (rockwave/hazard.py); None: no hazard summary
 
     @property
     def dim(self) -> int:
@@ -705,6 +728,9 @@ def parse_scene(data: dict, path: str | os.PathLike = "<scene>", base_dir: str |
     s = v.section(data, SCHEMA, "")
     if not v.errors or all(not e[0].startswith("simulation.dimension") for e in v.errors):
         _cross_checks(v, s)
+        from rockwave.hazard import check_hazard_keys
+
+        check_hazard_keys(v.err, s, dim)
     if s["fluid"] is not None and s["fluid"]["regions"] is None:
         s["fluid"]["regions"] = []
     if s["gravity"]["acceleration_m_s2"] is None:
@@ -712,7 +738,8 @@ def parse_scene(data: dict, path: str | os.PathLike = "<scene>", base_dir: str |
     if v.errors:
         raise SceneError(path, v.errors)
     return Scene(path=str(path), simulation=s["simulation"], gravity=s["gravity"], fluid=s["fluid"], tank=s["tank"],
-                 obstacles=s["obstacles"], output=s["output"], blocks=s["blocks"], raw=data, coupling=s["coupling"])
+                 obstacles=s["obstacles"], output=s["output"], blocks=s["blocks"], raw=data, coupling=s["coupling"],
+                 hazard=s["hazard"])
 
 
 def load_scene(path: str | os.PathLike) -> Scene:

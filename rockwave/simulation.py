@@ -75,14 +75,49 @@ class Simulation:
         self.coupling = parts.coupling
         self.removed_inside_blocks = parts.removed_inside_blocks
         self.gravity = np.asarray(builder.pad3(scene.gravity.acceleration_m_s2))
-        self.clock = Clock(scene, self.device, self._limits(), self._stability_bounds())
+        self.clock = Clock(scene, self.device, self._limits(), self._stability_bounds(), self._block_substep())
         self.gauge_names = [g.name for g in scene.output.gauges]
         self._readers = None
         self._graph = None
 
     # ---------------------------------------------------------------- the clock's questions ----
+    @property
+    def multirate(self) -> bool:
+        """Blocks sub-step inside each fluid step (simulation.block_stepping = 'multirate' with water and
+        blocks; rockwave/clock.py)."""
+        return (self.block_solver is not None and self.coupling is not None
+                and self.scene.simulation.get("block_stepping", "multirate") == "multirate")
+
+    def _block_substep(self):
+        """Multi-rate: (the blocks' stable step [s], f(n) -> the SceneError of a sub-step count n above
+        the cap, naming the stiffness to soften); None: one block step per step."""
+        if not self.multirate:
+            return None
+        from rockwave.clock import MAX_BLOCK_SUBSTEPS
+        from rockwave.scene import SceneError
+
+        stable = self.block_solver.stable_dt(self.block_state)
+
+        def error(n: int, dt: float) -> SceneError:
+            b, mode = self.block_solver.critical_block()
+            name = self.blocks.names[b]
+            entries = [i for i, e in enumerate(self.scene.blocks) if name == e.name or name.startswith(f"{e.name}_")]
+            where = f"blocks[{entries[0]}]" if entries else "blocks"
+            if mode == "strain":
+                key, what = f"{where}.youngs_modulus_pa", "the strain modes of the deformable block"
+            else:
+                key = f"{where}.material.normal_stiffness_n_m"
+                what = f"its contact stiffness k_n = {self.blocks.np['k_n'][b]:.3g} N/m per point"
+            return SceneError(self.scene.path, [(key, (
+                f"block {name!r} needs {n} sub-steps of {stable:.3g} s in each fluid step of {dt:.3g} s, more than "
+                f"{MAX_BLOCK_SUBSTEPS} ({what}); soften it (the sub-step grows as 1/sqrt(k)) or set "
+                f"simulation.block_stepping = 'single'"))])
+
+        return stable, error
+
     def _limits(self) -> dict:
-        """Each present solver's stable step, f(initial) [s] (rockwave/clock.py)."""
+        """Each present solver's stable step, f(initial) [s] (rockwave/clock.py); in multi-rate stepping
+        the blocks' limit sets their sub-step instead (_block_substep)."""
         out = {}
         if self.fluid is not None and self.fluid.n_fluid:
             from rockwave.fluid import fluid_dt_limit
@@ -90,7 +125,7 @@ class Simulation:
             g = gravity_norm(self.scene)
             out["fluid"] = lambda initial: (fluid_dt_limit(self.fluid, self.scene.simulation.cfl_number, 0.0, g) if initial
                                             else self.fluid_solver.stable_dt(self.state))
-        if self.block_solver is not None:
+        if self.block_solver is not None and not self.multirate:
             out["blocks"] = lambda initial: self.block_solver.stable_dt(self.block_state)  # dt_safety x critical
         if self.coupling is not None:
             out["coupling"] = lambda initial: self.coupling.stable_dt()  # dt_safety (0.5) x critical
@@ -104,7 +139,7 @@ class Simulation:
 
             out.append((fluid_dt_limit(self.fluid, 0.4, 0.0, gravity_norm(self.scene)),
                         f"0.4 h/c0 with h = {0.5 * self.fluid.support_radius:g} m, c0 = {self.fluid.sound_speed:g} m/s"))
-        if self.block_solver is not None:
+        if self.block_solver is not None and not self.multirate:
             out.append((self.block_solver.critical_dt(), "the critical DDA step 2/omega_max of the stiffest block contact"))
         if self.coupling is not None:
             out.append((self.coupling.critical_dt(),
@@ -137,13 +172,19 @@ class Simulation:
             self.fluid_solver.step(self.state, ts)
         if self.coupling is not None:
             self.coupling.apply(self.state, ts)
-        if self.block_solver is not None:
-            self.block_solver.step(self.block_state, ts)  # 2D: with the planar constraint
+        if self.block_solver is not None:  # 2D: with the planar constraint
+            n = self.clock.substeps
+            if n > 1 and (self.clock.steps % self.clock.update_interval == 0 or not hasattr(self, "_pairs_hold")):
+                # one broad phase per fluid step while the blocks move < margin/2 in it (a host read, at the
+                # clock's update rhythm)
+                self._pairs_hold = self.block_solver.pairs_hold(self.block_state, ts.dt)
+            self.block_solver.substeps(self.block_state, ts, n, keep_pairs=n > 1 and self._pairs_hold)  # water's load held
 
     # Chunks (step_many; advance on a GPU): a reorder of the fluid by cell, then reorder_interval
     # steps. A fluid-only scene on a GPU replays a chunk as one CUDA graph (dt is read from the device
     # array clock.dt_array, so one graph serves every dt); blocks and the coupling read counters back
-    # each step, and the ghost step reads its ghost count, so their chunks are plain launches.
+    # each step, and the ghost step reads its ghost count, so their chunks are plain launches. The block
+    # sub-step count (multi-rate) follows dt alone, so it is fixed within a chunk.
     def _chunk_size(self) -> int:
         fs = self.fluid_solver
         if fs is None or self.fluid.n_fluid == 0:

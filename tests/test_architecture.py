@@ -3,6 +3,7 @@ chooses the step and says which solver set it, the ghost step composes the fluid
 state travels in a checkpoint, and an option a method cannot honour is a SceneError."""
 
 import copy
+import math
 
 import numpy as np
 import pytest
@@ -112,8 +113,10 @@ def test_the_clock_alone_chooses_the_step_and_names_the_limit():
     assert blocks.clock.limiting == "blocks" and blocks.clock.target == blocks.block_solver.stable_dt(blocks.block_state)
     coupled = rockwave.Simulation(load_scene(ROOT / "scenes" / "floating_box_2d.toml"), device=DEVICE)
     limits = {n: f(True) for n, f in coupled.clock.limits.items()}
-    assert set(limits) == {"fluid", "blocks", "coupling"}
+    assert set(limits) == {"fluid", "coupling"}  # multi-rate: the blocks sub-step inside (tests/test_multirate.py)
     assert coupled.clock.target == min(limits.values()) and coupled.clock.limiting == min(limits, key=limits.get)
+    block = coupled.block_solver.stable_dt(coupled.block_state)
+    assert coupled.clock.substeps == math.ceil(coupled.clock.dt / block - 1e-9) and coupled.clock.block_dt <= block
 
 
 def test_recorded_run_is_bit_identical_to_advancing_without_outputs(tmp_path):

@@ -280,3 +280,41 @@ def test_chart_part_smoke(tmp_path):
     merged = chart.merge(part, {"rows": [dict(rows[("dam_break", "old-default")], error=0.5)], "skipped": []})
     assert len(merged["rows"]) == len(part["rows"]) and [r["error"] for r in merged["rows"] if r["case"] == "dam_break"
                                                           and r["formulation"] == "old-default"] == [0.5]
+
+
+def test_dualsphysics_case_and_scoring(tmp_path):
+    """The DualSPHysics side by side (benchmarks/peers/dualsphysics.py): the case rewrite sets spacing, h/dp,
+    duration and the four gauges; gauges that read the measured level score ~0, a 5.5 cm offset scores 0.1,
+    and a dry line (level = its lowest point) reads 0."""
+    from pathlib import Path
+
+    from benchmarks.peers import dualsphysics as D
+
+    src = ('<case><casedef><constantsdef><hdp value="2" /></constantsdef><geometry><definition dp="0.015">'
+           '</definition></geometry></casedef><execution><parameters>'
+           '<parameter key="TimeMax" value="2" /></parameters>\n    </execution></case>')
+    x = D.case_xml(src, 0.012, 1.5, 1.5)
+    assert 'dp="0.012"' in x and '<hdp value="1.5"' in x and 'key="TimeMax" value="1.5"' in x
+    assert x.count("<swl ") == 4 and 'point0 x="2.638" y="0.5" z="0.006"' in x
+    with np.testing.assert_raises(ValueError):
+        D.case_xml(src.replace("TimeMax", "TimeMin"), 0.012, 2.0, 1.5)
+    wl, _ = H.load_spheric()
+    t = np.arange(0.0, 1.5 + 1e-9, 0.01)
+
+    def write(folder: Path, offset: float):
+        folder.mkdir()
+        for i, (name, xg) in enumerate(D.GAUGES.items()):
+            level = np.interp(t, wl[:, 0], wl[:, 1 + i]) + offset
+            z0 = 0.006
+            rows = [f"{tt:.6f};{xg};0.5;{max(h, z0):.6f};{xg};0.5;{z0};{xg};0.5;1" for tt, h in zip(t, level)]
+            (folder / f"GaugesSWL_{name}.csv").write_text("time [s];swlx [m];swly [m];swlz [m];pos0x;pos0y;pos0z;pos2x;pos2y;pos2z\n"
+                                                          + "\n".join(rows) + "\n")
+
+    write(tmp_path / "exact", 0.0)
+    write(tmp_path / "high", 0.055)
+    exact = D.score(tmp_path / "exact", wall_s=30.0)
+    assert exact["h_rms"] < 0.01 and abs(exact["wall_per_sim_s"] - 20.0) < 1e-9
+    high = D.score(tmp_path / "high")
+    assert abs(high["H2_rms"] - 0.1) < 0.01  # H2 is wet throughout: the offset shows in full
+    tt, h = D.read_gauge(tmp_path / "exact" / "GaugesSWL_H1.csv")
+    assert h[0] == 0.0  # dry at the start: the lowest point reads 0

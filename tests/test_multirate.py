@@ -1,0 +1,143 @@
+"""Multi-rate stepping (rockwave/clock.py, README "Multi-rate stepping"): in a scene with water and
+blocks the fluid's limits set the step and the blocks sub-step inside it with the water's load held.
+All on scenes/submarine_slide_2d.toml at 40 mm spacing (~1,400 particles)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import rockwave
+from rockwave.clock import MAX_BLOCK_SUBSTEPS
+from rockwave.coupling import CouplingOptions
+from rockwave.scene import SceneError, parse_scene
+from rockwave.simulation import SimulationOptions
+
+from conftest import DEVICE
+
+SCENE = Path(__file__).resolve().parent.parent / "scenes" / "submarine_slide_2d.toml"
+
+
+def _slide_dict(spacing: float = 0.04, stepping: str = "multirate", k_n: float | None = None, lift: float = 0.0) -> dict:
+    d = tomllib.loads(SCENE.read_text())
+    d["fluid"]["spacing_m"] = spacing
+    d["simulation"]["block_stepping"] = stepping
+    slide = d["blocks"][1]
+    if k_n is not None:
+        slide["material"]["normal_stiffness_n_m"] = k_n
+    if lift:
+        slide["vertices_m"] = [[x, y + lift, z] for x, y, z in slide["vertices_m"]]
+    return d
+
+
+def _sim(d: dict, options: SimulationOptions | None = None) -> rockwave.Simulation:
+    return rockwave.Simulation(parse_scene(d, SCENE, SCENE.parent), device=DEVICE, options=options)
+
+
+def test_fluid_sets_the_step_and_blocks_substep(tmp_path):
+    """The stiff rock contact (E = 10 GPa) no longer sets the step: the fluid does, the blocks take
+    ceil(dt / their stable step) sub-steps; run.json and the progress note say so."""
+    sim = _sim(_slide_dict())
+    clock = sim.clock
+    block_stable = sim.block_solver.stable_dt(sim.block_state)
+    assert clock.limiting == "fluid"
+    assert clock.dt > 10 * block_stable  # measured: 0.50 ms against 12.7 us
+    assert clock.substeps == int(np.ceil(clock.dt / block_stable - 1e-9)) > 1
+    assert clock.block_dt <= block_stable
+    assert "(fluid), blocks" in clock.describe()
+    # one broad phase serves the sub-steps of a fluid step while no block moves margin/2 in it
+    bs, st = sim.block_solver, sim.block_state
+    assert bs.pairs_hold(st, clock.dt)
+    v = st.v.numpy()
+    v[1] = (0.99 * 0.25 * bs.margin / clock.dt, 0.0, 0.0)  # 2 |v| dt just within margin/2
+    st.v.assign(v)
+    assert bs.pairs_hold(st, clock.dt) and not bs.pairs_hold(st, 1.02 * clock.dt)
+    v[1] = 0.0
+    st.v.assign(v)
+    summary = sim.run(tmp_path, duration=0.005, progress=False)
+    on_disk = json.loads((tmp_path / "run.json").read_text())
+    assert on_disk["steps_limited_by"] == summary["steps_limited_by"]
+    assert on_disk["step_limited_by"] == "fluid"
+    assert on_disk["steps_limited_by"] == {"fluid": sim.steps}
+    assert on_disk["block_substeps"] == clock.substeps > 1
+    assert on_disk["block_steps"] >= sim.steps * 10
+    # single-rate (the old behaviour): the block contact sets the one step
+    single = _sim(_slide_dict(stepping="single"))
+    assert single.clock.limiting == "blocks" and single.clock.substeps == 1
+    assert single.clock.dt == pytest.approx(block_stable)
+
+
+def test_water_block_impulse_equal_and_opposite_over_a_fluid_step():
+    """One fluid step of n > 1 block sub-steps, the slide lifted off the slope (no rock contact): the
+    block's momentum change minus gravity's impulse is exactly minus the slide's impulse on the water
+    (all coupling impulses on the water less those of the fixed slope, tracked)."""
+    d = _slide_dict(lift=0.05)
+    scene = parse_scene(d, SCENE, SCENE.parent)
+    opts = SimulationOptions(coupling=dataclasses.replace(CouplingOptions.from_scene(scene), track_walls=True))
+    sim = rockwave.Simulation(scene, device=DEVICE, options=opts)
+    b = sim.blocks.names.index("slide")
+    mass, depth, dt = sim.blocks.np["mass"][b], sim.coupling.depth[b], sim.dt
+    assert sim.clock.substeps > 1
+    p0 = mass * sim.block_velocities()[b].astype(np.float64)
+    walls0 = sim.coupling.wall_impulse.copy()
+    sim.step()
+    assert all(c["gap"] > 0 for c in sim.block_solver.contacts(sim.block_state))  # no rock contact force
+    dp_block = mass * sim.block_velocities()[b].astype(np.float64) - p0 - mass * np.array([0.0, -9.81, 0.0]) * dt
+    water_all = depth * sim.fluid.fluid_mass * sim.coupling.dv.numpy().astype(np.float64).sum(axis=0)
+    water_from_slide = water_all - depth * (sim.coupling.wall_impulse - walls0)
+    assert np.linalg.norm(dp_block[:2]) > 0.1 * mass * 9.81 * dt  # the water carries a good part of the weight
+    # float32 sums over ~1,400 particles: 1e-4 relative; the load applied to the first sub-step only
+    # would miss by (1 - 1/n) of it
+    np.testing.assert_allclose(dp_block[:2], -water_from_slide[:2], rtol=0, atol=1e-4 * np.linalg.norm(dp_block[:2]))
+
+
+def test_slide_motion_agrees_with_single_rate():
+    """The slide's travel and speed after 0.1 s: multi-rate (10 block sub-steps per fluid step) against
+    one step for both at the block limit. Contact stiffness 1e7 N/m so the single-rate run stays short
+    (k_n does not change a frictionless slide). Measured: 2.0% (travel) and 1.8% (speed) apart with penalty
+    walls on the fixed slope; 4.2% and 8.4% with the slope an Adami wall (the default since fixed blocks have wall
+    particles: the single-rate run also steps the water 10x finer, and the end speed carries the water's pressure
+    oscillation). The dry slide would be 17% further and ~60% faster, so 5% on travel and 10% on speed separate a
+    right water load from a missing one."""
+    out = {}
+    for mode in ("multirate", "single"):
+        sim = _sim(_slide_dict(stepping=mode, k_n=1.0e7))
+        b = sim.blocks.names.index("slide")
+        x0 = sim.block_positions()[b].copy()
+        sim.advance(0.1)
+        out[mode] = (np.linalg.norm(sim.block_positions()[b] - x0), np.linalg.norm(sim.block_velocities()[b]), sim.clock.substeps)
+    assert out["multirate"][2] >= 5 and out["single"][2] == 1
+    travel, speed = out["single"][:2]
+    assert travel > 0.015  # it slides
+    assert out["multirate"][0] == pytest.approx(travel, rel=0.05)
+    assert out["multirate"][1] == pytest.approx(speed, rel=0.10)
+
+
+def test_substep_cap_names_the_stiffness_key():
+    """A contact so stiff that a fluid step needs more than MAX_BLOCK_SUBSTEPS block steps is refused
+    with the key to soften; the material is never changed silently."""
+    with pytest.raises(SceneError, match=r"blocks\[1\]\.material\.normal_stiffness_n_m") as e:
+        _sim(_slide_dict(k_n=1.0e14))
+    assert f"more than {MAX_BLOCK_SUBSTEPS}" in str(e.value) and "submarine_slide_2d.toml" in str(e.value)
+    sim = _sim(_slide_dict(k_n=1.0e14, stepping="single"))  # the old behaviour: a tiny step, no error
+    assert sim.clock.limiting == "blocks" and sim.blocks.np["k_n"][1] == 1.0e14
+
+
+def test_fixed_step_above_the_block_limit_substeps():
+    """simulation.time_step = 'fixed': multi-rate checks dt_s against the fluid-rate bounds only and
+    sub-steps the blocks; single-rate refuses a dt_s above the critical DDA step, as before."""
+    d = _slide_dict()
+    d["simulation"].update(time_step="fixed", dt_s=2.0e-4)
+    sim = _sim(d)
+    stable = sim.block_solver.stable_dt(sim.block_state)
+    assert sim.clock.substeps == int(np.ceil(2.0e-4 / stable)) > 1
+    sim.advance(1.0e-3)
+    assert sim.steps == 5 and sim.block_state.time == pytest.approx(1.0e-3)
+    d["simulation"]["block_stepping"] = "single"
+    with pytest.raises(SceneError, match=r"simulation\.dt_s.*critical DDA step"):
+        _sim(d)
