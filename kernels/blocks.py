@@ -177,7 +177,8 @@ class ContactTable:
 class BroadPhaseGrid:
     """Uniform-grid broad phase (BlockSolver): each block's AABB (lo, hi, grown by the margin), 1 / cell
     size [1/m], the hashed buckets of (block, cell) entries (counting sort: count, start, fill), the
-    entries, and the large blocks (over large_cells cells) tested against every block."""
+    entries, the large blocks (over large_cells cells) tested against every block, and each block's
+    body (body[b] = b, or the first part of b's compound block: parts of one body are never paired)."""
 
     lo: wp.array(dtype=wp.vec3)
     hi: wp.array(dtype=wp.vec3)
@@ -191,6 +192,7 @@ class BroadPhaseGrid:
     entry_cell: wp.array(dtype=wp.vec3i)
     is_large: wp.array(dtype=int)
     large_list: wp.array(dtype=int)
+    body: wp.array(dtype=int)
 
 
 @wp.struct
@@ -839,9 +841,10 @@ def bp_pairs(grid: BroadPhaseGrid, kinds: wp.array(dtype=int), pl: PairList):
     li = lo[i]
     hi_i = hi[i]
     mov_i = movable(kinds[i])
+    body_i = grid.body[i]
     for e2 in range(e1 + 1, end):
         j = entry_block[e2]
-        if j == i:
+        if grid.body[j] == body_i:  # j == i, or two parts of one compound block
             continue
         cj = entry_cell[e2]
         if ci[0] != cj[0] or ci[1] != cj[1] or ci[2] != cj[2]:
@@ -867,7 +870,7 @@ def bp_large_pairs(grid: BroadPhaseGrid, kinds: wp.array(dtype=int), pl: PairLis
     if k >= wp.min(pl.counters[2], large_list.shape[0]):
         return
     L = large_list[k]
-    if j == L:
+    if grid.body[j] == grid.body[L]:  # j == L, or two parts of one compound block
         return
     if grid.is_large[j] != 0 and j < L:
         return
@@ -1579,6 +1582,37 @@ def integrate_blocks(
     ext_torque[b] = wp.vec3(0.0, 0.0, 0.0)
     loads.damp_c[b] = wp.spatial_matrix()
     loads.damp_b[b] = wp.spatial_vector()
+
+
+@wp.kernel
+def compound_loads(start: wp.array(dtype=int), count: wp.array(dtype=int), loads: BlockLoads):
+    """Compound (non-convex) blocks, one thread per body: every part carries the body's pose, mass and
+    inertia, and its loads are about the body's centroid (the parts' common x), so the body's load is the
+    plain sum over its parts (F = sum F_p, tau = sum tau_p; the implicit dashpots C, b likewise, all in
+    [v, w] of the same body); each part gets the sum, summed in one order, so all parts integrate the
+    same motion bit for bit. Rigid parts only (no strain force)."""
+    c = wp.tid()
+    s = start[c]
+    f = wp.vec3(0.0, 0.0, 0.0)
+    t = wp.vec3(0.0, 0.0, 0.0)
+    fe = wp.vec3(0.0, 0.0, 0.0)
+    te = wp.vec3(0.0, 0.0, 0.0)
+    C = wp.spatial_matrix()
+    bb = wp.spatial_vector()
+    for k in range(count[c]):
+        f = f + loads.force[s + k]
+        t = t + loads.torque[s + k]
+        fe = fe + loads.ext_force[s + k]
+        te = te + loads.ext_torque[s + k]
+        C = C + loads.damp_c[s + k]
+        bb = bb + loads.damp_b[s + k]
+    for k in range(count[c]):
+        loads.force[s + k] = f
+        loads.torque[s + k] = t
+        loads.ext_force[s + k] = fe
+        loads.ext_torque[s + k] = te
+        loads.damp_c[s + k] = C
+        loads.damp_b[s + k] = bb
 
 
 @wp.kernel

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from rockwave.geometry import ConvexPolyhedron, quat_to_matrix
+from rockwave.geometry import CompoundBlock, ConvexPolyhedron, quat_to_matrix
 from rockwave.kernels import blocks as K
 from rockwave.kernels import blocks_coop as KC
 from rockwave.solver import TimeStep
@@ -45,6 +45,7 @@ __all__ = [
     "ContactMaterial",
     "KinematicMotion",
     "BlockSpec",
+    "CompoundPart",
     "BlockModel",
     "BlockState",
     "BlockSolver",
@@ -166,6 +167,20 @@ class KinematicMotion:
         return np.array([np.interp(t, tt, d[:, k]) for k in range(3)])
 
 
+@dataclass(frozen=True)
+class CompoundPart:
+    """Marks a BlockSpec as part ``part`` of one rigid compound block (a decomposed non-convex mesh).
+
+    The specs of one compound are consecutive, parts 0 .. body.num_parts - 1, with the same position
+    (the body's centroid), orientation, velocities, kind and density; each has geometry =
+    body.parts[part] (in the body frame).  In the model every part carries the body's mass and
+    inertia (of the original mesh) and the body's pose; a compound stage (kernels/blocks.py
+    compound_loads) sums the parts' loads, so every part integrates the same body motion."""
+
+    body: CompoundBlock
+    part: int
+
+
 @dataclass
 class BlockSpec:
     """One block as a scene gives it.
@@ -174,7 +189,8 @@ class BlockSpec:
     orientation: quaternion (x, y, z, w).  density kg/m^3.  velocity m/s, angular_velocity rad/s (world).
     kind: "rigid" | "deformable" | "fixed" | "kinematic".  youngs_modulus Pa (None -> 10 GPa),
     poisson_ratio.  motion: KinematicMotion (kinematic only).  strain_damping_ratio: damping of the
-    deformable block's strain modes.
+    deformable block's strain modes.  compound: CompoundPart when this block is one convex part of a
+    rigid compound (non-convex) block, else None.
     """
 
     geometry: ConvexPolyhedron
@@ -190,6 +206,39 @@ class BlockSpec:
     material: ContactMaterial = field(default_factory=ContactMaterial)
     name: str = ""
     strain_damping_ratio: float = 0.05
+    compound: CompoundPart | None = None
+
+
+def _compound_ranges(specs: list) -> tuple[np.ndarray, list]:
+    """body_of (N,): the index of each block's body (its first part; a convex block is its own body)
+    and the (first part, part count) ranges of the compound bodies; checks CompoundPart's contract."""
+    n = len(specs)
+    body_of = np.arange(n)
+    ranges = []
+    b = 0
+    while b < n:
+        c = specs[b].compound
+        if c is None:
+            b += 1
+            continue
+        body = c.body
+        name = specs[b].name or body.name
+        if c.part != 0 or b + body.num_parts > n:
+            raise ValueError(f"block '{name}': compound parts must be listed in order, parts 0 .. {body.num_parts - 1}")
+        for k in range(body.num_parts):
+            s = specs[b + k]
+            if s.compound is None or s.compound.body is not body or s.compound.part != k or s.geometry is not body.parts[k]:
+                raise ValueError(f"block '{name}': compound parts must be listed in order, parts 0 .. {body.num_parts - 1}")
+            if s.kind == "deformable":
+                raise ValueError(f"block '{name}': a compound (non-convex) block must be rigid, fixed or kinematic, "
+                                 f"not deformable")
+            for attr in ("position", "orientation", "velocity", "angular_velocity", "kind", "density"):
+                if np.any(np.asarray(getattr(s, attr), dtype=object) != np.asarray(getattr(specs[b], attr), dtype=object)):
+                    raise ValueError(f"block '{name}': the parts of a compound block must share its {attr}")
+        body_of[b: b + body.num_parts] = b
+        ranges.append((b, body.num_parts))
+        b += body.num_parts
+    return body_of, ranges
 
 
 def _quat(q) -> np.ndarray:
@@ -288,6 +337,7 @@ class BlockModel:
         tcount = np.zeros(n, np.int32)
         tab_t, tab_x = [], []
         nv = nf = nh = 0
+        body_of, compounds = _compound_ranges(self.specs)
         for b, s in enumerate(specs):
             g = s.geometry
             if not isinstance(g, ConvexPolyhedron):
@@ -318,12 +368,19 @@ class BlockModel:
             inertia[b] = g.inertia(s.density)
             size[b] = 2.0 * g.bounding_radius
             radius[b] = g.bounding_radius
+            body = s.compound.body if s.compound is not None else None
+            if body is not None:  # a part: the body's mass properties (the original mesh's) and extent
+                mass[b] = body.mass(s.density)
+                inertia[b] = body.inertia(s.density)
+                size[b] = 2.0 * body.part_radius[s.compound.part]
+                radius[b] = body.bounding_radius
             E = DEFAULT_YOUNGS_MODULUS if s.youngs_modulus is None else float(s.youngs_modulus)
             nu = float(s.poisson_ratio)
             if not (E > 0 and -1.0 < nu < 0.5):
                 raise ValueError(f"block '{name}': need youngs_modulus > 0 and -1 < poisson_ratio < 0.5")
             m = s.material
-            kn[b] = PENALTY_FACTOR * E * g.size if m.normal_stiffness is None else float(m.normal_stiffness)
+            L = g.size if body is None else body.size
+            kn[b] = PENALTY_FACTOR * E * L if m.normal_stiffness is None else float(m.normal_stiffness)
             ks[b] = kn[b] / (2.0 * (1.0 + nu)) if m.shear_stiffness is None else float(m.shear_stiffness)
             if kn[b] <= 0 or ks[b] < 0:
                 raise ValueError(f"block '{name}': contact stiffness must be positive")
@@ -369,6 +426,11 @@ class BlockModel:
             motion_type=mtype,
         )
         self.movable = movable
+        # compound blocks (CompoundPart): body_of[b] = first part of b's body (b for a convex block);
+        # lead: the blocks that stand for a body (momentum, energy); compound_start/count: the bodies' parts
+        self.body_of = body_of
+        self.lead = body_of == np.arange(n)
+        self.num_compounds = len(compounds)
         d = self.device
         f32 = wp.float32
 
@@ -392,6 +454,10 @@ class BlockModel:
         self.max_vertex_pair = int(np.sum(np.sort(np.asarray(vcount))[-2:]))  # most vertices of any two blocks
         # half-edges in walk order: built by half_edge_walk() when a solver has pairs of big blocks
         self.he_start = self.he_count = self.he_walk = wp.zeros(1, dtype=int, device=d)
+        self.block_body = arr(body_of.astype(np.int32), int)
+        if compounds:
+            self.compound_start = arr(np.asarray([c[0] for c in compounds], np.int32), int)
+            self.compound_count = arr(np.asarray([c[1] for c in compounds], np.int32), int)
         self.kinds = arr(kinds, int)
         self.mass = arr(mass.astype(np.float32), f32)
         self.inv_mass = arr(inv_mass.astype(np.float32), f32)
@@ -621,7 +687,7 @@ class BlockState:
         """Sum of m v over movable blocks (kg m/s)."""
         m = self.model
         mv = m.np["mass"][:, None] * self.velocities_numpy()
-        return mv[m.movable].sum(axis=0)
+        return mv[m.movable & m.lead].sum(axis=0)
 
     def kinetic_energy(self) -> float:
         """Translational + rotational (+ strain-rate) kinetic energy of movable blocks (J)."""
@@ -631,7 +697,7 @@ class BlockState:
         q = self.orientations_numpy()
         sr = self.strain_rate.numpy().astype(np.float64)
         e = 0.0
-        for b in np.nonzero(m.movable)[0]:
+        for b in np.nonzero(m.movable & m.lead)[0]:
             R = quat_to_matrix(q[b])
             Iw = R @ m.np["inertia"][b] @ R.T
             e += 0.5 * m.np["mass"][b] * v[b] @ v[b] + 0.5 * w[b] @ Iw @ w[b]
@@ -688,7 +754,7 @@ def check_initial_overlap(model: BlockModel, positions=None, quats=None, tol: fl
     Rs = [quat_to_matrix(q) for q in quats]
     worst = None
     for i, j in _sweep_pairs(positions, rad):
-        if not (model.movable[i] or model.movable[j]):
+        if not (model.movable[i] or model.movable[j]) or model.body_of[i] == model.body_of[j]:
             continue
         gi, gj = model.specs[i].geometry, model.specs[j].geometry
         vi = gi.vertices @ Rs[i].T + positions[i]
@@ -823,6 +889,7 @@ class BlockSolver:
         self.grid = K.BroadPhaseGrid()  # kernel argument groups, refreshed when a capacity grows
         self.grid.lo, self.grid.hi, self.grid.is_large = self.lo, self.hi, self.is_large
         self.grid.inv_s = 1.0 / self.cell_size
+        self.grid.body = model.block_body  # parts of one compound block are never paired
         self.grid.large_cells = self.large_cells
         self.pair_list = K.PairList()
         self.pair_list.counters = self.counters
@@ -1089,6 +1156,8 @@ class BlockSolver:
     def _integrate(self, state: BlockState, dt: float, t: float):
         """Integration from t to t + dt (and the planar constraint of a 2D model)."""
         m, d = self.model, self.device
+        if m.num_compounds:  # compound blocks: each part gets its body's summed load
+            wp.launch(K.compound_loads, dim=m.num_compounds, inputs=[m.compound_start, m.compound_count, state.loads], device=d)
         wp.launch(K.integrate_blocks, dim=m.num_blocks,
                   inputs=[m.props, m.motion, wp.vec3(*m.gravity), float(t + dt), float(dt), state.bodies, state.loads],
                   device=d)

@@ -588,7 +588,10 @@ def _block_step(scene: Scene) -> tuple[float, str, str] | None:
             elif b.shape == "prism":
                 parts = [geometry.prism(b.vertices_m)]
             else:
-                loaded = geometry.load_mesh(b.mesh)
+                from rockwave.rocks import decomposition_of
+
+                # a non-convex mesh: its CompoundBlock (decomposed at mesh_scale; the same mass properties API)
+                loaded = geometry.load_mesh(b.mesh, decomposition=decomposition_of(scene, b), scale=b.mesh_scale)
                 parts = loaded if isinstance(loaded, list) else [loaded]
         except Exception:  # noqa: BLE001  (a bad shape is reported by the block checks, with its key)
             continue
@@ -600,7 +603,7 @@ def _block_step(scene: Scene) -> tuple[float, str, str] | None:
             continue
         fac = math.sqrt(1.0 + zeta * zeta) - zeta
         for g in parts:
-            scale = b.mesh_scale if b.shape == "mesh" else 1.0
+            scale = b.mesh_scale if b.shape == "mesh" and not isinstance(g, geometry.CompoundBlock) else 1.0
             vol_scale, len_scale = scale ** 3, scale
             mass = g.mass(b.density_kg_m3) * vol_scale
             imin = float(np.linalg.eigvalsh(g.inertia(b.density_kg_m3)).min()) * vol_scale * len_scale ** 2
