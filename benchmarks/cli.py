@@ -44,6 +44,8 @@ PARTS = {
     "surface": "benchmarks.surface",
     "multirate": "benchmarks.multirate",
     "chart": "benchmarks.chart",
+    "block_contacts": "benchmarks.block_contacts",
+    "nonconvex": "benchmarks.nonconvex",
 }
 SUITES = ("quick", "full")
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")

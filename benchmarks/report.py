@@ -16,7 +16,7 @@ from pathlib import Path
 from benchmarks.common import RESULTS, ROOT, rel
 
 PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface",
-              "multirate", "chart")
+              "multirate", "chart", "block_contacts", "nonconvex")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -247,6 +247,16 @@ def _chart(ch: dict) -> list[str]:
     return L + ([""] if ch.get("skipped") else [])
 
 
+def _nonconvex(nc: dict) -> list[str]:
+    L = ["Scanned-rock-like boulders (non-convex, CoACD parts) falling onto a slope (benchmarks/nonconvex.py):", ""]
+    return L + _table(["boulders", "parts each", "volume error", "decomposition s", "cached load s", "ms/step",
+                       "boulder-steps/s", "part-steps/s", "contacts per boulder", "travel m"],
+                      [[r["boulders"], r["parts_per_boulder"], _f(r["volume_error"], "+.2%"), _f(r["decompose_s"], ".1f"),
+                        _f(r["cached_load_s"], ".2f"), _f(r["step_ms"], ".3f"), _f(r["body_steps_per_s"], ".3g"),
+                        _f(r["part_steps_per_s"], ".3g"), _f(r["contacts_per_boulder"], ".1f"), _f(r["travel_m"], ".2f")]
+                       for r in nc["cases"]]) + [""]
+
+
 def _multirate(mr: dict) -> list[str]:
     L = ["### Multi-rate stepping: submarine_slide_2d (wall s per simulated s)", ""]
     L += _table(["spacing m", "run", "particles", "step s (set by)", "block sub-steps", "wall s / sim s", "ratio"],
@@ -257,9 +267,21 @@ def _multirate(mr: dict) -> list[str]:
     return L + [""]
 
 
+def _block_contacts(bc: dict) -> list[str]:
+    L = ["Cubes in columns of 4 on a floor settling under gravity, the DDA block solver alone (benchmarks/block_contacts.py):", ""]
+    return L + _table(["blocks", "build s", "block-steps/s", "bytes/block", "history bytes/block", "contact points/block",
+                       "candidate pairs/block"],
+                      [[r["blocks"], _f(r["build_s"], ".1f"), _f(r["block_steps_per_s"], ".4g"), _f(r["bytes_per_block"], ".0f"),
+                        _f(r["bytes"]["history"] / r["blocks"], ".0f"), _f(r["points_per_block"], ".2f"),
+                        _f(r["pairs_per_block"], ".2f")] for r in bc["cases"]]) + [""] + _table(
+        ["50-vertex prisms on a slope", "cooperative ms/step", "one thread per pair ms/step", "speed-up", "same trajectory"],
+        [[r["prisms"], _f(r["coop_ms_per_step"], ".3f"), _f(r["serial_ms_per_step"], ".3f"), _f(r["coop_speedup"], ".2f"),
+          r["same_trajectory"]] for r in bc.get("prisms", [])]) + [""]
+
+
 TABLES = {"multirate": _multirate, "accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
           "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface,
-          "chart": _chart}
+          "chart": _chart, "block_contacts": _block_contacts, "nonconvex": _nonconvex}
 
 
 def title(res: dict) -> str:

@@ -2,7 +2,8 @@
 
 A kernel module pairs with the host module of the same name: fluid with rockwave/fluid.py (the SPH fluid
 step; its helpers are shared by ghost, diffusion, readers and surface), ghost with rockwave/ghost.py,
-blocks with rockwave/blocks.py (DDA), coupling with rockwave/coupling.py, readers with rockwave/readers.py
+blocks with rockwave/blocks.py (DDA; blocks_coop: its cooperative narrow phase of big blocks, launched at
+its own block size), coupling with rockwave/coupling.py, readers with rockwave/readers.py
 (gauges), sampling with rockwave/sampling.py, surface with rockwave/export/surface.py; diffusion is the
 density diffusion term of rockwave/fluid.py. Host modules import the fluid kernels as ``sph``.
 

@@ -27,6 +27,10 @@ MOTION_TABLE = wp.constant(2)
 
 MAX_CONTACTS = 16  # contact points kept per pair (host side constant)
 K_MAX = wp.constant(MAX_CONTACTS)
+# a pair's contact points while narrow_phase generates them (thread-local, K_MAX of each), before they
+# are given exactly nc entries of the table's point pool
+PointCoord = wp.types.vector(length=MAX_CONTACTS, dtype=wp.float32)
+PointKey = wp.types.vector(length=MAX_CONTACTS, dtype=wp.int32)
 # damping ratio of the shear dashpot of a stuck contact point: overdamped, so a suddenly loaded stuck
 # spring settles without overshoot (critical damping overshoots the load by 13%, more than a small
 # friction margin); the dashpot only ever takes the Coulomb capacity the spring leaves (narrow_phase)
@@ -50,7 +54,9 @@ FLAG_CONTACT_OVERFLOW = wp.constant(8)
 @wp.struct
 class BlockTopology:
     """Static geometry of all blocks (BlockModel): per-block ranges into the concatenated vertex and
-    face arrays, the half-edge mesh (global indices) and each block's bounding diameter [m]."""
+    face arrays, the half-edge mesh (global indices), each block's bounding diameter [m], and its
+    half-edges in walk order (he_walk[he_start[b] ...]: vertex by vertex, each vertex's outgoing ones
+    around it, the order in which narrow_phase walks them; narrow_phase_coop's work items)."""
 
     vert_start: wp.array(dtype=int)
     vert_count: wp.array(dtype=int)
@@ -63,6 +69,9 @@ class BlockTopology:
     he_prev: wp.array(dtype=int)
     he_twin: wp.array(dtype=int)
     block_size: wp.array(dtype=float)
+    he_start: wp.array(dtype=int)
+    he_count: wp.array(dtype=int)
+    he_walk: wp.array(dtype=int)
 
 
 @wp.struct
@@ -142,14 +151,19 @@ class BlockLoads:
 @wp.struct
 class ContactTable:
     """Contact history hash table (BlockState, two of them swapped each step): per slot the pair key
-    (-1 empty), common-plane normal, gap or its lower bound, contact point count; per point
-    (slot * K_MAX + k) the feature key, shear spring force, position, depth, normal force, the
-    closing speed when the point first touched [m/s] and the step's Coulomb cap mu F_n + c A [N]."""
+    (-1 empty), common-plane normal, gap or its lower bound, contact point count nc and the first of
+    its points in the point pool (pstart); per point (pstart + k, k < nc: a pair in contact takes
+    exactly nc entries, so the pool is sized from the live contact points, not a capacity per pair) the
+    feature key, shear spring force, position, depth, normal force, the closing speed when the point
+    first touched [m/s] and the step's Coulomb cap mu F_n + c A [N]. pcount[0]: pool entries
+    requested this step (above the pool's length: it overflowed; BlockSolver grows it and redoes)."""
 
     keys: wp.array(dtype=wp.int64)
     normal: wp.array(dtype=wp.vec3)
     gapb: wp.array(dtype=float)
     nc: wp.array(dtype=int)
+    pstart: wp.array(dtype=int)
+    pcount: wp.array(dtype=int)
     ckey: wp.array(dtype=wp.vec2i)
     shear: wp.array(dtype=wp.vec3)
     pos: wp.array(dtype=wp.vec3)
@@ -163,7 +177,8 @@ class ContactTable:
 class BroadPhaseGrid:
     """Uniform-grid broad phase (BlockSolver): each block's AABB (lo, hi, grown by the margin), 1 / cell
     size [1/m], the hashed buckets of (block, cell) entries (counting sort: count, start, fill), the
-    entries, and the large blocks (over large_cells cells) tested against every block."""
+    entries, the large blocks (over large_cells cells) tested against every block, and each block's
+    body (body[b] = b, or the first part of b's compound block: parts of one body are never paired)."""
 
     lo: wp.array(dtype=wp.vec3)
     hi: wp.array(dtype=wp.vec3)
@@ -177,17 +192,21 @@ class BroadPhaseGrid:
     entry_cell: wp.array(dtype=wp.vec3i)
     is_large: wp.array(dtype=int)
     large_list: wp.array(dtype=int)
+    body: wp.array(dtype=int)
 
 
 @wp.struct
 class PairList:
     """Candidate pairs of the broad phase (BlockSolver): pairs (A < B), the counters ([0] pairs,
-    [1] overflow flags, [2] large blocks, [3] active pairs), the compact list of pairs not certified
-    separated, each pair's history slots (this step, last step: -1 none) and gap [m]."""
+    [1] overflow flags, [2] large blocks, [3] active pairs, [4] active pairs of big blocks), the
+    compact list of pairs not certified separated (active) and those of them with more than coop_min
+    vertices together (active_big: narrow_phase_coop), each pair's history slots (this step, last
+    step: -1 none) and gap [m]."""
 
     pairs: wp.array(dtype=wp.vec2i)
     counters: wp.array(dtype=int)
     active: wp.array(dtype=int)
+    active_big: wp.array(dtype=int)
     slot: wp.array(dtype=int)
     oslot: wp.array(dtype=int)
     gap: wp.array(dtype=float)
@@ -587,7 +606,7 @@ def hash_cell(cx: int, cy: int, cz: int, nbuckets: int):
 @wp.func
 def hash_key(key: wp.int64, cap: int):
     h = wp.uint64(key) * wp.uint64(11400714819323198485)  # Fibonacci hashing
-    return int((h >> wp.uint64(33)) & wp.uint64(cap - 1))
+    return int((h >> wp.uint64(33)) % wp.uint64(cap))  # any capacity (the tables are sized from the live pairs)
 
 
 @wp.func
@@ -600,7 +619,9 @@ def table_find(key: wp.int64, keys: wp.array(dtype=wp.int64), cap: int):
             return s
         if kk == wp.int64(-1):
             return -1
-        s = (s + 1) & (cap - 1)
+        s = s + 1
+        if s == cap:
+            s = 0
     return -1
 
 
@@ -611,7 +632,9 @@ def table_insert(key: wp.int64, keys: wp.array(dtype=wp.int64), cap: int):
         old = wp.atomic_cas(keys, s, wp.int64(-1), key)
         if old == wp.int64(-1) or old == key:
             return s
-        s = (s + 1) & (cap - 1)
+        s = s + 1
+        if s == cap:
+            s = 0
     return -1
 
 
@@ -818,9 +841,10 @@ def bp_pairs(grid: BroadPhaseGrid, kinds: wp.array(dtype=int), pl: PairList):
     li = lo[i]
     hi_i = hi[i]
     mov_i = movable(kinds[i])
+    body_i = grid.body[i]
     for e2 in range(e1 + 1, end):
         j = entry_block[e2]
-        if j == i:
+        if grid.body[j] == body_i:  # j == i, or two parts of one compound block
             continue
         cj = entry_cell[e2]
         if ci[0] != cj[0] or ci[1] != cj[1] or ci[2] != cj[2]:
@@ -846,7 +870,7 @@ def bp_large_pairs(grid: BroadPhaseGrid, kinds: wp.array(dtype=int), pl: PairLis
     if k >= wp.min(pl.counters[2], large_list.shape[0]):
         return
     L = large_list[k]
-    if j == L:
+    if grid.body[j] == grid.body[L]:  # j == L, or two parts of one compound block
         return
     if grid.is_large[j] != 0 and j < L:
         return
@@ -862,29 +886,43 @@ def bp_large_pairs(grid: BroadPhaseGrid, kinds: wp.array(dtype=int), pl: PairLis
 
 
 @wp.func
+def contact_tangent(n: wp.vec3):
+    # a unit tangent of the contact plane (t1; t2 = n x t1)
+    t1 = wp.vec3(1.0, 0.0, 0.0)
+    if wp.abs(n[0]) > 0.6:
+        t1 = wp.vec3(0.0, 1.0, 0.0)
+    return wp.normalize(t1 - wp.dot(t1, n) * n)
+
+
+@wp.func
 def add_contact(
-    slot: int,
     nc: int,
     p: wp.vec3,
     depth: float,
     ka: int,
     kb: int,
     dup_tol: float,
-    c_pos: wp.array(dtype=wp.vec3),
-    c_depth: wp.array(dtype=float),
-    c_key: wp.array(dtype=wp.vec2i),
+    px: PointCoord,
+    py: PointCoord,
+    pz: PointCoord,
+    pd: PointCoord,
+    pka: PointKey,
+    pkb: PointKey,
 ):
-    # append a contact point unless one already sits within dup_tol (coincident features)
-    base = slot * K_MAX
+    # append a contact point to the pair's thread-local list unless one already sits within dup_tol
+    # (coincident features)
     for k in range(nc):
-        if wp.length(c_pos[base + k] - p) < dup_tol:
-            return nc
+        if wp.length(wp.vec3(px[k], py[k], pz[k]) - p) < dup_tol:
+            return nc, px, py, pz, pd, pka, pkb
     if nc >= K_MAX:
-        return nc
-    c_pos[base + nc] = p
-    c_depth[base + nc] = depth
-    c_key[base + nc] = wp.vec2i(ka, kb)
-    return nc + 1
+        return nc, px, py, pz, pd, pka, pkb
+    px[nc] = p[0]
+    py[nc] = p[1]
+    pz[nc] = p[2]
+    pd[nc] = depth
+    pka[nc] = ka
+    pkb[nc] = kb
+    return nc + 1, px, py, pz, pd, pka, pkb
 
 
 @wp.kernel
@@ -892,6 +930,7 @@ def narrow_screen(
     pl: PairList,
     nblocks: int,
     screen: int,
+    coop_min: int,
     wv: wp.array(dtype=wp.vec3),
     topo: BlockTopology,
     bodies: BlockBodies,
@@ -935,6 +974,7 @@ def narrow_screen(
                 cur.gapb[slot] = gb
                 pl.gap[tid] = gb
                 cur.nc[slot] = 0
+                cur.pstart[slot] = 0
                 return
         n0 = x[B] - x[A]
         if oslot >= 0:
@@ -947,27 +987,28 @@ def narrow_screen(
             cur.gapb[slot] = gap
             pl.gap[tid] = gap
             cur.nc[slot] = 0
+            cur.pstart[slot] = 0
             return
     k = wp.atomic_add(counters, 3, 1)
     pl.active[k] = tid
+    if topo.vert_count[A] + topo.vert_count[B] > coop_min:
+        kb = wp.atomic_add(counters, 4, 1)
+        pl.active_big[kb] = tid
 
 
 @wp.kernel
 def narrow_phase(
     pl: PairList,
-    dt: float,
-    g_mag: float,
+    coop_min: int,
     wv: wp.array(dtype=wp.vec3),
     topo: BlockTopology,
-    props: BlockProps,
-    mat: BlockMaterial,
     bodies: BlockBodies,
     prev: ContactTable,
     cur: ContactTable,
-    loads: BlockLoads,
 ):
-    """FCP narrow phase and contact forces: world vertices wv, previous contact history `prev` (read),
-    this step's `cur` (written: planes, gaps, points, shear springs), forces into `loads`."""
+    """FCP narrow phase of the pairs of small blocks (vert_count[A] + vert_count[B] <= coop_min; the
+    others: narrow_phase_coop, the same algorithm): world vertices wv, previous contact history `prev`
+    (read), this step's `cur` (written: plane, gap, contact points); contact_forces then acts on them."""
     # local names for the grouped arrays (the arithmetic below reads them as before)
     vert_start = topo.vert_start
     vert_count = topo.vert_count
@@ -980,19 +1021,10 @@ def narrow_phase(
     he_prev = topo.he_prev
     he_twin = topo.he_twin
     block_size = topo.block_size
-    kinds = props.kinds
-    inv_mass = props.inv_mass
     x = bodies.x
-    q = bodies.q
-    v = bodies.v
-    w = bodies.w
-    strain_rate = bodies.strain_rate
     new_pos = cur.pos
     new_depth = cur.depth
     new_ckey = cur.ckey
-    force = loads.force
-    torque = loads.torque
-    strain_force = loads.strain_force
     # one thread per pair of the compact list from narrow_screen (pairs not certified separated)
     li = wp.tid()
     if li >= pl.counters[3]:
@@ -1006,6 +1038,8 @@ def narrow_phase(
     cA = vert_count[A]
     sB = vert_start[B]
     cB = vert_count[B]
+    if cA + cB > coop_min:
+        return  # narrow_phase_coop
     # FCP step i: warm start from last step's plane, else PB of the centroids
     n0 = x[B] - x[A]
     if oslot >= 0:
@@ -1070,6 +1104,7 @@ def narrow_phase(
     cur.gapb[slot] = gap
     pl.gap[tid] = gap
     cur.nc[slot] = 0
+    cur.pstart[slot] = 0
     if gap > 0.0:
         return
     size = wp.min(block_size[A], block_size[B])
@@ -1079,6 +1114,12 @@ def narrow_phase(
     loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv)
     loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv)
     nc = int(0)
+    px = PointCoord()
+    py = PointCoord()
+    pz = PointCoord()
+    pd = PointCoord()
+    pka = PointKey()
+    pkb = PointKey()
     # vertices of A that may lie inside B: column through the vertex along n meets B's bottom
     for k in range(cA):
         va = sA + k
@@ -1087,7 +1128,7 @@ def narrow_phase(
             t_lo, t_hi, hit = column_through(pa, n, face_start[B], face_count[B], face_he, wv, he_vertex, he_next, tol)
             d = wp.min(-t_lo, over)
             if hit == 1 and d > 0.0:
-                nc = add_contact(slot, nc, pa + (0.5 * t_lo) * n, d, va, -1, dup_tol, new_pos, new_depth, new_ckey)
+                nc, px, py, pz, pd, pka, pkb = add_contact(nc, pa + (0.5 * t_lo) * n, d, va, -1, dup_tol, px, py, pz, pd, pka, pkb)
     # vertices of B that may lie inside A
     for k in range(cB):
         vb = sB + k
@@ -1096,12 +1137,9 @@ def narrow_phase(
             t_lo, t_hi, hit = column_through(pb, n, face_start[A], face_count[A], face_he, wv, he_vertex, he_next, tol)
             d = wp.min(t_hi, over)
             if hit == 1 and d > 0.0:
-                nc = add_contact(slot, nc, pb + (0.5 * t_hi) * n, d, -1, vb, dup_tol, new_pos, new_depth, new_ckey)
+                nc, px, py, pz, pd, pka, pkb = add_contact(nc, pb + (0.5 * t_hi) * n, d, -1, vb, dup_tol, px, py, pz, pd, pka, pkb)
     # edge-edge crossings of the two contact patches, projected on the plane
-    t1 = wp.vec3(1.0, 0.0, 0.0)
-    if wp.abs(n[0]) > 0.6:
-        t1 = wp.vec3(0.0, 1.0, 0.0)
-    t1 = wp.normalize(t1 - wp.dot(t1, n) * n)
+    t1 = contact_tangent(n)
     t2 = wp.cross(n, t1)
     for k in range(cA):
         va = sA + k
@@ -1146,17 +1184,71 @@ def narrow_phase(
                                     if d > 0.0:
                                         ha = wp.min(h, he_twin[h])
                                         hb2 = wp.min(g, he_twin[g])
-                                        nc = add_contact(slot, nc, 0.5 * (xa_ + xb_), d, ha, hb2, dup_tol, new_pos, new_depth, new_ckey)
+                                        nc, px, py, pz, pd, pka, pkb = add_contact(
+                                            nc, 0.5 * (xa_ + xb_), d, ha, hb2, dup_tol, px, py, pz, pd, pka, pkb)
                         g = he_twin[he_prev[g]]
                         if g == g0:
                             break
             h = he_twin[he_prev[h]]
             if h == h0:
                 break
-    cur.nc[slot] = nc
     if nc == 0:
         return
-    base = slot * K_MAX
+    # exactly nc entries of the point pool; past its end: none (the host grows the pool and redoes the step)
+    base = wp.atomic_add(cur.pcount, 0, nc)
+    if base + nc > new_pos.shape[0]:
+        return
+    for k in range(nc):
+        new_pos[base + k] = wp.vec3(px[k], py[k], pz[k])
+        new_depth[base + k] = pd[k]
+        new_ckey[base + k] = wp.vec2i(pka[k], pkb[k])
+    cur.nc[slot] = nc
+    cur.pstart[slot] = base
+
+
+@wp.kernel
+def contact_forces(
+    pl: PairList,
+    dt: float,
+    g_mag: float,
+    props: BlockProps,
+    mat: BlockMaterial,
+    bodies: BlockBodies,
+    prev: ContactTable,
+    cur: ContactTable,
+    loads: BlockLoads,
+):
+    """Contact forces at the step's contact points (narrow_phase / narrow_phase_coop wrote them into
+    `cur`; `prev`: last step's history), into `loads`: one thread per pair of the active list, in its
+    order (the forces add up in the same order whichever kernel found the points)."""
+    kinds = props.kinds
+    inv_mass = props.inv_mass
+    x = bodies.x
+    q = bodies.q
+    v = bodies.v
+    w = bodies.w
+    strain_rate = bodies.strain_rate
+    new_pos = cur.pos
+    new_depth = cur.depth
+    new_ckey = cur.ckey
+    force = loads.force
+    torque = loads.torque
+    strain_force = loads.strain_force
+    li = wp.tid()
+    if li >= pl.counters[3]:
+        return
+    tid = pl.active[li]
+    A = pl.pairs[tid][0]
+    B = pl.pairs[tid][1]
+    slot = pl.slot[tid]
+    oslot = pl.oslot[tid]
+    nc = cur.nc[slot]
+    if nc == 0:
+        return
+    base = cur.pstart[slot]
+    n = cur.normal[slot]
+    t1 = contact_tangent(n)
+    t2 = wp.cross(n, t1)
     # contact patch area (convex polygon through the points, angular order) -> area share
     cen = wp.vec3(0.0, 0.0, 0.0)
     for k in range(nc):
@@ -1207,8 +1299,10 @@ def narrow_phase(
     if m_eff > 0.0:
         v_rest = g_mag / wp.sqrt(float(nc) * kn / m_eff)
     onc = int(0)
+    obase = int(0)
     if oslot >= 0:
         onc = prev.nc[oslot]
+        obase = prev.pstart[oslot]
     # pass 1: springs, the Coulomb cap and which points stick (the stuck points share the shear dashpot)
     cs0 = 2.0 * ZETA_STUCK * wp.sqrt(ks * m_eff / float(nc))
     if not implicit and dt > 0.0:
@@ -1228,15 +1322,15 @@ def narrow_phase(
         hist = int(-1)
         ck = new_ckey[c]
         for m in range(onc):
-            ok = prev.ckey[oslot * K_MAX + m]
+            ok = prev.ckey[obase + m]
             if ok[0] == ck[0] and ok[1] == ck[1]:
-                hist = oslot * K_MAX + m
-                vimp = prev.vimp[oslot * K_MAX + m]
+                hist = obase + m
+                vimp = prev.vimp[obase + m]
                 # sliding last step: the spring sat at that step's cap mu F_n + c A
-                if wp.length(prev.shear[oslot * K_MAX + m]) >= (1.0 - 1.0e-5) * prev.fcap[oslot * K_MAX + m]:
+                if wp.length(prev.shear[obase + m]) >= (1.0 - 1.0e-5) * prev.fcap[obase + m]:
                     was_sliding = 1
                 # shear spring carried from last step, rotated onto the new plane keeping its magnitude
-                fo = prev.shear[oslot * K_MAX + m]
+                fo = prev.shear[obase + m]
                 mag = wp.length(fo)
                 fp = fo - wp.dot(fo, n) * n
                 lp = wp.length(fp)
@@ -1357,14 +1451,22 @@ def rehash_table(prev: ContactTable, cur: ContactTable):
     cur.normal[t] = prev.normal[s]
     cur.gapb[t] = prev.gapb[s]
     nc = prev.nc[s]
+    i = prev.pstart[s]
+    o = int(0)
+    if nc > 0:
+        o = wp.atomic_add(cur.pcount, 0, nc)
+        if o + nc > cur.pos.shape[0]:
+            nc = 0  # the host sizes the new pool for every point (BlockState.alloc_tables)
     cur.nc[t] = nc
+    cur.pstart[t] = o
     for k in range(nc):
-        cur.ckey[t * K_MAX + k] = prev.ckey[s * K_MAX + k]
-        cur.shear[t * K_MAX + k] = prev.shear[s * K_MAX + k]
-        cur.vimp[t * K_MAX + k] = prev.vimp[s * K_MAX + k]
-        cur.fcap[t * K_MAX + k] = prev.fcap[s * K_MAX + k]
-        cur.fn[t * K_MAX + k] = prev.fn[s * K_MAX + k]
-        cur.depth[t * K_MAX + k] = prev.depth[s * K_MAX + k]
+        cur.ckey[o + k] = prev.ckey[i + k]
+        cur.shear[o + k] = prev.shear[i + k]
+        cur.pos[o + k] = prev.pos[i + k]
+        cur.vimp[o + k] = prev.vimp[i + k]
+        cur.fcap[o + k] = prev.fcap[i + k]
+        cur.fn[o + k] = prev.fn[i + k]
+        cur.depth[o + k] = prev.depth[i + k]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1483,6 +1585,37 @@ def integrate_blocks(
 
 
 @wp.kernel
+def compound_loads(start: wp.array(dtype=int), count: wp.array(dtype=int), loads: BlockLoads):
+    """Compound (non-convex) blocks, one thread per body: every part carries the body's pose, mass and
+    inertia, and its loads are about the body's centroid (the parts' common x), so the body's load is the
+    plain sum over its parts (F = sum F_p, tau = sum tau_p; the implicit dashpots C, b likewise, all in
+    [v, w] of the same body); each part gets the sum, summed in one order, so all parts integrate the
+    same motion bit for bit. Rigid parts only (no strain force)."""
+    c = wp.tid()
+    s = start[c]
+    f = wp.vec3(0.0, 0.0, 0.0)
+    t = wp.vec3(0.0, 0.0, 0.0)
+    fe = wp.vec3(0.0, 0.0, 0.0)
+    te = wp.vec3(0.0, 0.0, 0.0)
+    C = wp.spatial_matrix()
+    bb = wp.spatial_vector()
+    for k in range(count[c]):
+        f = f + loads.force[s + k]
+        t = t + loads.torque[s + k]
+        fe = fe + loads.ext_force[s + k]
+        te = te + loads.ext_torque[s + k]
+        C = C + loads.damp_c[s + k]
+        bb = bb + loads.damp_b[s + k]
+    for k in range(count[c]):
+        loads.force[s + k] = f
+        loads.torque[s + k] = t
+        loads.ext_force[s + k] = fe
+        loads.ext_torque[s + k] = te
+        loads.damp_c[s + k] = C
+        loads.damp_b[s + k] = bb
+
+
+@wp.kernel
 def planar_blocks(z0: wp.array(dtype=float), kinds: wp.array(dtype=int), bodies: BlockBodies):
     """2D scenes (BlockModel.planar): blocks move in the x-y plane only (z fixed at z0, spin about z
     only); fixed blocks are left as they are."""
@@ -1511,3 +1644,34 @@ def clear_forces(loads: BlockLoads):
     loads.strain_force[b] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     loads.damp_c[b] = wp.spatial_matrix()
     loads.damp_b[b] = wp.spatial_vector()
+
+
+@wp.kernel
+def vertex_walk_count(vertex_out_he: wp.array(dtype=int), he_prev: wp.array(dtype=int), he_twin: wp.array(dtype=int),
+                      count: wp.array(dtype=int)):
+    # half-edges leaving vertex v, walked around it as narrow_phase does (at most MAX_VALENCE)
+    v = wp.tid()
+    h0 = vertex_out_he[v]
+    h = h0
+    c = int(0)
+    for k in range(MAX_VALENCE):
+        c += 1
+        h = he_twin[he_prev[h]]
+        if h == h0:
+            break
+    count[v] = c
+
+
+@wp.kernel
+def vertex_walk_fill(vertex_out_he: wp.array(dtype=int), he_prev: wp.array(dtype=int), he_twin: wp.array(dtype=int),
+                     offset: wp.array(dtype=int), he_walk: wp.array(dtype=int)):
+    # BlockTopology.he_walk: vertex v's outgoing half-edges in walk order from offset[v]
+    v = wp.tid()
+    h0 = vertex_out_he[v]
+    h = h0
+    o = offset[v]
+    for k in range(MAX_VALENCE):
+        he_walk[o + k] = h
+        h = he_twin[he_prev[h]]
+        if h == h0:
+            break

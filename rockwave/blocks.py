@@ -36,14 +36,16 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from rockwave.geometry import ConvexPolyhedron, quat_to_matrix
+from rockwave.geometry import CompoundBlock, ConvexPolyhedron, quat_to_matrix
 from rockwave.kernels import blocks as K
+from rockwave.kernels import blocks_coop as KC
 from rockwave.solver import TimeStep
 
 __all__ = [
     "ContactMaterial",
     "KinematicMotion",
     "BlockSpec",
+    "CompoundPart",
     "BlockModel",
     "BlockState",
     "BlockSolver",
@@ -165,6 +167,20 @@ class KinematicMotion:
         return np.array([np.interp(t, tt, d[:, k]) for k in range(3)])
 
 
+@dataclass(frozen=True)
+class CompoundPart:
+    """Marks a BlockSpec as part ``part`` of one rigid compound block (a decomposed non-convex mesh).
+
+    The specs of one compound are consecutive, parts 0 .. body.num_parts - 1, with the same position
+    (the body's centroid), orientation, velocities, kind and density; each has geometry =
+    body.parts[part] (in the body frame).  In the model every part carries the body's mass and
+    inertia (of the original mesh) and the body's pose; a compound stage (kernels/blocks.py
+    compound_loads) sums the parts' loads, so every part integrates the same body motion."""
+
+    body: CompoundBlock
+    part: int
+
+
 @dataclass
 class BlockSpec:
     """One block as a scene gives it.
@@ -173,7 +189,8 @@ class BlockSpec:
     orientation: quaternion (x, y, z, w).  density kg/m^3.  velocity m/s, angular_velocity rad/s (world).
     kind: "rigid" | "deformable" | "fixed" | "kinematic".  youngs_modulus Pa (None -> 10 GPa),
     poisson_ratio.  motion: KinematicMotion (kinematic only).  strain_damping_ratio: damping of the
-    deformable block's strain modes.
+    deformable block's strain modes.  compound: CompoundPart when this block is one convex part of a
+    rigid compound (non-convex) block, else None.
     """
 
     geometry: ConvexPolyhedron
@@ -189,6 +206,39 @@ class BlockSpec:
     material: ContactMaterial = field(default_factory=ContactMaterial)
     name: str = ""
     strain_damping_ratio: float = 0.05
+    compound: CompoundPart | None = None
+
+
+def _compound_ranges(specs: list) -> tuple[np.ndarray, list]:
+    """body_of (N,): the index of each block's body (its first part; a convex block is its own body)
+    and the (first part, part count) ranges of the compound bodies; checks CompoundPart's contract."""
+    n = len(specs)
+    body_of = np.arange(n)
+    ranges = []
+    b = 0
+    while b < n:
+        c = specs[b].compound
+        if c is None:
+            b += 1
+            continue
+        body = c.body
+        name = specs[b].name or body.name
+        if c.part != 0 or b + body.num_parts > n:
+            raise ValueError(f"block '{name}': compound parts must be listed in order, parts 0 .. {body.num_parts - 1}")
+        for k in range(body.num_parts):
+            s = specs[b + k]
+            if s.compound is None or s.compound.body is not body or s.compound.part != k or s.geometry is not body.parts[k]:
+                raise ValueError(f"block '{name}': compound parts must be listed in order, parts 0 .. {body.num_parts - 1}")
+            if s.kind == "deformable":
+                raise ValueError(f"block '{name}': a compound (non-convex) block must be rigid, fixed or kinematic, "
+                                 f"not deformable")
+            for attr in ("position", "orientation", "velocity", "angular_velocity", "kind", "density"):
+                if np.any(np.asarray(getattr(s, attr), dtype=object) != np.asarray(getattr(specs[b], attr), dtype=object)):
+                    raise ValueError(f"block '{name}': the parts of a compound block must share its {attr}")
+        body_of[b: b + body.num_parts] = b
+        ranges.append((b, body.num_parts))
+        b += body.num_parts
+    return body_of, ranges
 
 
 def _quat(q) -> np.ndarray:
@@ -222,6 +272,11 @@ def _elastic_D(E: float, nu: float) -> np.ndarray:
 
 def _next_pow2(n: int) -> int:
     return 1 << max(4, int(math.ceil(math.log2(max(1, n)))))
+
+
+def _table_slots(pairs: int) -> int:
+    """Contact-history slots for ``pairs`` candidate pairs: 1.5x (linear probing at load <= 2/3) + 64."""
+    return 3 * pairs // 2 + 64
 
 
 class BlockModel:
@@ -282,6 +337,7 @@ class BlockModel:
         tcount = np.zeros(n, np.int32)
         tab_t, tab_x = [], []
         nv = nf = nh = 0
+        body_of, compounds = _compound_ranges(self.specs)
         for b, s in enumerate(specs):
             g = s.geometry
             if not isinstance(g, ConvexPolyhedron):
@@ -312,12 +368,19 @@ class BlockModel:
             inertia[b] = g.inertia(s.density)
             size[b] = 2.0 * g.bounding_radius
             radius[b] = g.bounding_radius
+            body = s.compound.body if s.compound is not None else None
+            if body is not None:  # a part: the body's mass properties (the original mesh's) and extent
+                mass[b] = body.mass(s.density)
+                inertia[b] = body.inertia(s.density)
+                size[b] = 2.0 * body.part_radius[s.compound.part]
+                radius[b] = body.bounding_radius
             E = DEFAULT_YOUNGS_MODULUS if s.youngs_modulus is None else float(s.youngs_modulus)
             nu = float(s.poisson_ratio)
             if not (E > 0 and -1.0 < nu < 0.5):
                 raise ValueError(f"block '{name}': need youngs_modulus > 0 and -1 < poisson_ratio < 0.5")
             m = s.material
-            kn[b] = PENALTY_FACTOR * E * g.size if m.normal_stiffness is None else float(m.normal_stiffness)
+            L = g.size if body is None else body.size
+            kn[b] = PENALTY_FACTOR * E * L if m.normal_stiffness is None else float(m.normal_stiffness)
             ks[b] = kn[b] / (2.0 * (1.0 + nu)) if m.shear_stiffness is None else float(m.shear_stiffness)
             if kn[b] <= 0 or ks[b] < 0:
                 raise ValueError(f"block '{name}': contact stiffness must be positive")
@@ -363,6 +426,11 @@ class BlockModel:
             motion_type=mtype,
         )
         self.movable = movable
+        # compound blocks (CompoundPart): body_of[b] = first part of b's body (b for a convex block);
+        # lead: the blocks that stand for a body (momentum, energy); compound_start/count: the bodies' parts
+        self.body_of = body_of
+        self.lead = body_of == np.arange(n)
+        self.num_compounds = len(compounds)
         d = self.device
         f32 = wp.float32
 
@@ -382,6 +450,14 @@ class BlockModel:
         self.he_prev = arr(np.concatenate(hp).astype(np.int32), int)
         self.he_twin = arr(np.concatenate(ht).astype(np.int32), int)
         self.num_vertices = nv
+        self.num_half_edges = nh
+        self.max_vertex_pair = int(np.sum(np.sort(np.asarray(vcount))[-2:]))  # most vertices of any two blocks
+        # half-edges in walk order: built by half_edge_walk() when a solver has pairs of big blocks
+        self.he_start = self.he_count = self.he_walk = wp.zeros(1, dtype=int, device=d)
+        self.block_body = arr(body_of.astype(np.int32), int)
+        if compounds:
+            self.compound_start = arr(np.asarray([c[0] for c in compounds], np.int32), int)
+            self.compound_count = arr(np.asarray([c[1] for c in compounds], np.int32), int)
         self.kinds = arr(kinds, int)
         self.mass = arr(mass.astype(np.float32), f32)
         self.inv_mass = arr(inv_mass.astype(np.float32), f32)
@@ -415,7 +491,7 @@ class BlockModel:
         # kernel argument groups (kernels/blocks.py), built once
         self.topology = K.BlockTopology()
         for name in ("vert_start", "vert_count", "face_start", "face_count", "face_he", "vertex_out_he", "he_vertex",
-                     "he_next", "he_prev", "he_twin", "block_size"):
+                     "he_next", "he_prev", "he_twin", "block_size", "he_start", "he_count", "he_walk"):
             setattr(self.topology, name, getattr(self, name))
         self.props = K.BlockProps()
         for name in ("kinds", "inv_mass", "inertia_body", "inv_inertia_body", "strain_minv", "strain_k", "strain_damp"):
@@ -429,6 +505,27 @@ class BlockModel:
             setattr(self.motion, name, getattr(self, name))
         if check_overlap:
             check_initial_overlap(self, tol=overlap_tol)
+
+    def half_edge_walk(self) -> None:
+        """Each block's half-edges in walk order (vertex by vertex, around each vertex as narrow_phase
+        walks them; topology.he_walk / he_start / he_count): the work items of narrow_phase_coop
+        (kernels/blocks.py). Built once, on the first solver that has pairs of big blocks."""
+        if self.he_walk.shape[0] > 1 or self.num_half_edges <= 1:
+            return
+        d = self.device
+        walk_count = wp.zeros(self.num_vertices, dtype=int, device=d)
+        wp.launch(K.vertex_walk_count, dim=self.num_vertices, inputs=[self.vertex_out_he, self.he_prev, self.he_twin, walk_count],
+                  device=d)
+        off = np.concatenate([[0], np.cumsum(walk_count.numpy().astype(np.int64))])
+        vs = self.np["vert_start"].astype(np.int64)
+        ve = vs + self.np["vert_count"].astype(np.int64)
+        self.he_start = wp.array(off[vs].astype(np.int32), dtype=int, device=d)
+        self.he_count = wp.array((off[ve] - off[vs]).astype(np.int32), dtype=int, device=d)
+        self.he_walk = wp.zeros(int(off[-1]), dtype=int, device=d)
+        wp.launch(K.vertex_walk_fill, dim=self.num_vertices,
+                  inputs=[self.vertex_out_he, self.he_prev, self.he_twin, wp.array(off[:-1].astype(np.int32), dtype=int, device=d),
+                          self.he_walk], device=d)
+        self.topology.he_start, self.topology.he_count, self.topology.he_walk = self.he_start, self.he_count, self.he_walk
 
     def initial_poses(self):
         """(positions (N,3), quaternions (N,4) xyzw) at t = 0, kinematic motion applied."""
@@ -513,11 +610,19 @@ class BlockState:
             setattr(self.loads, name, getattr(self, name))
         self.tables = [None, None]
         self.table_views = [None, None]  # K.ContactTable over tables[0], tables[1] (swapped with them)
-        self.alloc_tables(_next_pow2(4 * (8 * n + 64)))
+        # small to start with: BlockSolver grows both from the live pairs and contact points
+        self.alloc_tables(_table_slots(n), 4 * n + 64)
 
-    def alloc_tables(self, cap: int):
+    def alloc_tables(self, cap: int, point_cap: int | None = None):
+        """(Re)allocate both contact-history tables: ``cap`` pair slots (BlockSolver keeps it >= 1.5x the
+        candidate pairs: _table_slots) and ``point_cap`` contact points each (None: as now). tables[0]'s
+        history is kept (rehashed). Sized from the live pairs and points, not a capacity per block."""
         d = self.model.device
-        km = K.MAX_CONTACTS
+        if point_cap is None:
+            point_cap = self.point_cap
+        old = self.tables[0]
+        if old is not None:
+            point_cap = max(int(point_cap), int(old["pcount"].numpy()[0]))
 
         def make():
             return dict(
@@ -525,19 +630,21 @@ class BlockState:
                 normal=wp.zeros(cap, dtype=wp.vec3, device=d),
                 gapb=wp.zeros(cap, dtype=wp.float32, device=d),  # gap (or lower bound) along normal
                 nc=wp.zeros(cap, dtype=int, device=d),
-                ckey=wp.zeros(cap * km, dtype=wp.vec2i, device=d),
-                shear=wp.zeros(cap * km, dtype=wp.vec3, device=d),
-                pos=wp.zeros(cap * km, dtype=wp.vec3, device=d),
-                depth=wp.zeros(cap * km, dtype=wp.float32, device=d),
-                fn=wp.zeros(cap * km, dtype=wp.float32, device=d),
-                vimp=wp.zeros(cap * km, dtype=wp.float32, device=d),  # closing speed at first touch
-                fcap=wp.zeros(cap * km, dtype=wp.float32, device=d),  # Coulomb cap of the step
+                pstart=wp.zeros(cap, dtype=int, device=d),  # first point in the pool
+                pcount=wp.zeros(1, dtype=int, device=d),  # pool entries taken this step
+                ckey=wp.zeros(point_cap, dtype=wp.vec2i, device=d),
+                shear=wp.zeros(point_cap, dtype=wp.vec3, device=d),
+                pos=wp.zeros(point_cap, dtype=wp.vec3, device=d),
+                depth=wp.zeros(point_cap, dtype=wp.float32, device=d),
+                fn=wp.zeros(point_cap, dtype=wp.float32, device=d),
+                vimp=wp.zeros(point_cap, dtype=wp.float32, device=d),  # closing speed at first touch
+                fcap=wp.zeros(point_cap, dtype=wp.float32, device=d),  # Coulomb cap of the step
             )
 
-        old = self.tables[0]
         self.tables = [make(), make()]
         self.table_views = [_table_view(t) for t in self.tables]
         self.table_cap = cap
+        self.point_cap = point_cap
         if old is not None:  # keep the contact history (rehash into the larger table)
             wp.launch(K.rehash_table, dim=old["keys"].shape[0], inputs=[_table_view(old), self.table_views[0]], device=d)
 
@@ -580,7 +687,7 @@ class BlockState:
         """Sum of m v over movable blocks (kg m/s)."""
         m = self.model
         mv = m.np["mass"][:, None] * self.velocities_numpy()
-        return mv[m.movable].sum(axis=0)
+        return mv[m.movable & m.lead].sum(axis=0)
 
     def kinetic_energy(self) -> float:
         """Translational + rotational (+ strain-rate) kinetic energy of movable blocks (J)."""
@@ -590,7 +697,7 @@ class BlockState:
         q = self.orientations_numpy()
         sr = self.strain_rate.numpy().astype(np.float64)
         e = 0.0
-        for b in np.nonzero(m.movable)[0]:
+        for b in np.nonzero(m.movable & m.lead)[0]:
             R = quat_to_matrix(q[b])
             Iw = R @ m.np["inertia"][b] @ R.T
             e += 0.5 * m.np["mass"][b] * v[b] @ v[b] + 0.5 * w[b] @ Iw @ w[b]
@@ -647,7 +754,7 @@ def check_initial_overlap(model: BlockModel, positions=None, quats=None, tol: fl
     Rs = [quat_to_matrix(q) for q in quats]
     worst = None
     for i, j in _sweep_pairs(positions, rad):
-        if not (model.movable[i] or model.movable[j]):
+        if not (model.movable[i] or model.movable[j]) or model.body_of[i] == model.body_of[j]:
             continue
         gi, gj = model.specs[i].geometry, model.specs[j].geometry
         vi = gi.vertices @ Rs[i].T + positions[i]
@@ -723,6 +830,17 @@ class BlockOptions:
     broad phase (kernels/blocks.py aabbs_left_pair_boxes); None: on for the counter-read path (more than
     sync_free_max_blocks blocks), off for the sync-free one. False: a broad phase every step."""
 
+    coop_min_vertices: int | None = None
+    """A candidate pair whose two blocks have more vertices than this together goes to the cooperative
+    narrow phase (kernels/blocks_coop.py narrow_phase_coop: one thread block per pair, the work over
+    vertices, faces and half-edge pairs spread over its lanes; the same result); smaller pairs: one
+    thread each [-]. None: 32 on a GPU (or on the CPU with warp.config.enable_cpu_blocks), else off (Warp's
+    CPU backend runs one lane per block, where the cooperative kernel is the serial loop plus overhead)."""
+
+    narrow_block_dim: int = 32
+    """Threads per pair in the cooperative narrow phase (a GPU warp; Warp's CPU backend runs 1 unless
+    warp.config.enable_cpu_blocks) [-]."""
+
     @classmethod
     def from_scene(cls, scene) -> "BlockOptions":
         """The options a scene sets (``simulation.block_dt_safety``), defaults for the rest."""
@@ -750,15 +868,28 @@ class BlockSolver:
         self.contact_points_for_dt = int(opt.contact_points_for_dt)
         self.g_mag = float(np.linalg.norm(model.gravity))  # |g| for the resting-contact speed (narrow_phase)
         self.large_cells = int(opt.large_block_cells)
+        coop = opt.coop_min_vertices
+        if coop is None:
+            coop = 32 if (self.device.is_cuda or wp.config.enable_cpu_blocks) else 2**31 - 1
+        self.coop_min = int(coop)
+        self.narrow_block_dim = int(opt.narrow_block_dim)
+        if self.coop_min < 0 or not 1 <= self.narrow_block_dim <= 1024:
+            raise ValueError(f"BlockOptions: coop_min_vertices must be >= 0 (got {self.coop_min}) and narrow_block_dim "
+                             f"in 1..1024 (got {self.narrow_block_dim})")
+        self.has_big_pairs = model.max_vertex_pair > self.coop_min  # any pair for narrow_phase_coop?
+        if self.has_big_pairs:
+            model.half_edge_walk()
+        self.coop_pairs = 0  # pairs the last narrow phase gave narrow_phase_coop (counter-read path; diagnostics)
         n = model.num_blocks
         d = self.device
         self.lo = wp.zeros(n, dtype=wp.vec3, device=d)
         self.hi = wp.zeros(n, dtype=wp.vec3, device=d)
         self.is_large = wp.zeros(n, dtype=int, device=d)
-        self.counters = wp.zeros(4, dtype=int, device=d)
+        self.counters = wp.zeros(5, dtype=int, device=d)
         self.grid = K.BroadPhaseGrid()  # kernel argument groups, refreshed when a capacity grows
         self.grid.lo, self.grid.hi, self.grid.is_large = self.lo, self.hi, self.is_large
         self.grid.inv_s = 1.0 / self.cell_size
+        self.grid.body = model.block_body  # parts of one compound block are never paired
         self.grid.large_cells = self.large_cells
         self.pair_list = K.PairList()
         self.pair_list.counters = self.counters
@@ -791,6 +922,8 @@ class BlockSolver:
         self.hi_bp = wp.zeros(n, dtype=wp.vec3, device=d)
         self._moved = wp.ones(1, dtype=int, device=d)
         self.broad_phases = 0  # broad phases run (diagnostics)
+        self.point_regrows = 0  # narrow phases redone after the contact-point pool grew (diagnostics)
+        self.contact_points = 0  # contact points of the last step (counter-read path; diagnostics)
         # the paths, chosen once
         self._grid_pass = self._grid_pass_sync_free if self.sync_free else self._grid_pass_counted
         self._step_broad_phase = self._broad_phase_if_moved if self._keep_pairs else self._broad_phase_always
@@ -841,8 +974,10 @@ class BlockSolver:
         self.pair_slot = wp.zeros(cap, dtype=int, device=d)
         self.pair_oslot = wp.zeros(cap, dtype=int, device=d)
         self.active = wp.zeros(cap, dtype=int, device=d)  # pairs not certified separated (narrow_screen)
+        self.active_big = wp.zeros(cap if self.has_big_pairs else 1, dtype=int, device=d)  # of them: narrow_phase_coop's
         pl = self.pair_list
         pl.pairs, pl.gap, pl.slot, pl.oslot, pl.active = self.pairs, self.pair_gap, self.pair_slot, self.pair_oslot, self.active
+        pl.active_big = self.active_big
 
     # ---- time step limits ----
     def critical_dt(self) -> float:
@@ -951,7 +1086,7 @@ class BlockSolver:
         if flags & 2:
             self._alloc_large(2 * int(c[2]))
         if flags & 4:
-            self._alloc_pairs(2 * int(c[0]))
+            self._alloc_pairs(int(c[0]) + int(c[0]) // 4 + 64)  # the live pairs + 25%
         return False
 
     def _narrow_phase(self, state: BlockState, dt: float, screen: bool = True):
@@ -960,22 +1095,54 @@ class BlockSolver:
         the world vertices) skip FCP and contact generation (narrow_screen); detect() turns it off so
         that every pair's gap is FCP's."""
         m, d = self.model, self.device
-        if 2 * self.pair_cap > state.table_cap:
-            state.alloc_tables(_next_pow2(4 * self.pair_cap))
-        old, new = state.table_views
-        new.keys.fill_(-1)
+        n = self.pair_cap if self.sync_free else self._pair_count
+        # history tables sized from the live pairs (slots >= 1.5x the pairs: linear probing at load <= 2/3)
+        # and contact points; sync-free (few blocks): for every pair at K_MAX points, so nothing is read back
+        cap, pcap = state.table_cap, state.point_cap
+        if 3 * n > 2 * cap:
+            cap = _table_slots(n)
+        if self.sync_free:
+            pcap = max(pcap, K.MAX_CONTACTS * self.pair_cap)
+        if (cap, pcap) != (state.table_cap, state.point_cap):
+            state.alloc_tables(cap, pcap)
         wp.launch(K.pose_motion, dim=m.num_blocks,
                   inputs=[state.world_verts, m.vert_start, m.vert_count, state.x, state.wv_ref, state.x_ref,
                           state.motion_dx, state.motion_rho], device=d)
-        n = self.pair_cap if self.sync_free else self._pair_count
-        if n > 0:
-            self.counters[3:4].zero_()  # length of the active list
-            wp.launch(K.narrow_screen, dim=n,
-                      inputs=[self.pair_list, m.num_blocks, int(screen), state.world_verts, m.topology, state.bodies,
-                              state.motion_dx, state.motion_rho, old, new], device=d)
-            wp.launch(K.narrow_phase, dim=n,
-                      inputs=[self.pair_list, dt, self.g_mag, state.world_verts, m.topology, m.props, m.material, state.bodies,
-                              old, new, state.loads], device=d)
+        while True:
+            old, new = state.table_views
+            new.keys.fill_(-1)
+            new.pcount.zero_()
+            if n > 0:
+                self.counters[3:5].zero_()  # lengths of the active lists
+                coop_min = self.coop_min if self.has_big_pairs else m.max_vertex_pair
+                wp.launch(K.narrow_screen, dim=n,
+                          inputs=[self.pair_list, m.num_blocks, int(screen), coop_min, state.world_verts, m.topology,
+                                  state.bodies, state.motion_dx, state.motion_rho, old, new], device=d)
+                wp.launch(K.narrow_phase, dim=n,
+                          inputs=[self.pair_list, coop_min, state.world_verts, m.topology, state.bodies, old, new], device=d)
+                if self.has_big_pairs:
+                    nb = n
+                    if not self.sync_free:  # the counter-read path: launch for the big pairs only
+                        nb = self.coop_pairs = int(self.counters.numpy()[4])
+                    if nb > 0:
+                        wp.launch_tiled(KC.narrow_phase_coop, dim=[nb], block_dim=self.narrow_block_dim,
+                                        inputs=[self.pair_list, state.world_verts, m.topology, state.bodies, old, new],
+                                        device=d)
+                wp.launch(K.contact_forces, dim=n,
+                          inputs=[self.pair_list, dt, self.g_mag, m.props, m.material, state.bodies, old, new,
+                                  state.loads], device=d)
+            if self.sync_free or n == 0:
+                break
+            used = int(new.pcount.numpy()[0])  # the counter-read path: one read of the points taken
+            self.contact_points = used
+            if used <= state.point_cap:
+                break
+            # the pool overflowed: grow it to the live points (+50%) and redo this narrow phase from
+            # zeroed contact accumulators (the same launches on the same inputs: the same result)
+            state.alloc_tables(state.table_cap, used + used // 2 + 64)
+            for a in (state.force, state.torque, state.strain_force, state.damp_c, state.damp_b, state.contact_count):
+                a.zero_()
+            self.point_regrows += 1
         state.swap_tables()  # tables[0] now holds this step's history
 
     def _contact_forces_all(self, state: BlockState, dt: float):
@@ -989,6 +1156,8 @@ class BlockSolver:
     def _integrate(self, state: BlockState, dt: float, t: float):
         """Integration from t to t + dt (and the planar constraint of a 2D model)."""
         m, d = self.model, self.device
+        if m.num_compounds:  # compound blocks: each part gets its body's summed load
+            wp.launch(K.compound_loads, dim=m.num_compounds, inputs=[m.compound_start, m.compound_count, state.loads], device=d)
         wp.launch(K.integrate_blocks, dim=m.num_blocks,
                   inputs=[m.props, m.motion, wp.vec3(*m.gravity), float(t + dt), float(dt), state.bodies, state.loads],
                   device=d)
@@ -1075,15 +1244,39 @@ class BlockSolver:
         t = state.tables[0]
         normal = t["normal"].numpy()
         nc = t["nc"].numpy()
+        ps = t["pstart"].numpy()
         pos = t["pos"].numpy()
         dep = t["depth"].numpy()
         fn = t["fn"].numpy()
-        km = K.MAX_CONTACTS
         out = []
         for p in range(n):
             s = slots[p]
             k = nc[s] if s >= 0 else 0
+            i = ps[s] if s >= 0 else 0
             out.append(dict(blocks=(int(pairs[p][0]), int(pairs[p][1])), normal=normal[s].astype(float),
-                            gap=float(gaps[p]), points=pos[s * km: s * km + k].astype(float),
-                            depths=dep[s * km: s * km + k].astype(float), normal_forces=fn[s * km: s * km + k].astype(float)))
+                            gap=float(gaps[p]), points=pos[i: i + k].astype(float),
+                            depths=dep[i: i + k].astype(float), normal_forces=fn[i: i + k].astype(float)))
+        return out
+
+    def device_bytes(self, state: BlockState) -> dict:
+        """Device memory of the block solver [bytes]: every Warp array of the model (``model``), the state
+        without its history tables (``state``), the two contact-history tables (``history``) and the
+        solver's buffers (``solver``: AABBs, broad-phase grid, pair list), each array counted once;
+        ``total`` and ``per_block`` (total / blocks)."""
+        seen = set()
+
+        def walk(obj):
+            tot = 0
+            items = obj.items() if isinstance(obj, dict) else vars(obj).items()
+            for name, a in items:
+                if isinstance(a, wp.array) and a.ptr is not None and id(a) not in seen and name != "model":
+                    seen.add(id(a))
+                    tot += a.capacity
+            return tot
+
+        out = dict(model=walk(self.model), history=sum(walk(t) for t in state.tables))
+        out["state"] = walk(state)
+        out["solver"] = walk(self)
+        out["total"] = out["model"] + out["history"] + out["state"] + out["solver"]
+        out["per_block"] = out["total"] / self.model.num_blocks
         return out

@@ -231,6 +231,10 @@ def build_blocks(scene: Scene, device: str, parts: Parts, options=None) -> None:
     from rockwave.rocks import block_specs
 
     specs = block_specs(scene)
+    from rockwave.rocks import compound_bodies
+
+    for name, body in compound_bodies(specs):  # what each non-convex mesh became
+        print(f"block '{name}': non-convex mesh -> {body.summary()}", flush=True)
     host_check = len(specs) <= 2000  # exact host test for small sets; device FCP for large ones
     try:
         # 2D: extruded prisms moving in the x-y plane (planar: the block step keeps them there)

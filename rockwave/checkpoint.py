@@ -43,7 +43,7 @@ from typing import Any, Callable
 import numpy as np
 import warp as wp
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 FILE_NAME = "checkpoint.npz"
 
 
@@ -179,6 +179,9 @@ class FluidProvider:
         sim.fluid_solver.restore_checkpoint(sim.state, solver, meta)
 
 
+_SLOT_FIELDS = ("keys", "normal", "gapb", "nc", "pstart")  # per pair slot; the other table fields are per point
+
+
 class BlockProvider:
     """BlockState arrays + time, the contact history (tables[0], occupied slots) and solver capacities."""
 
@@ -189,7 +192,7 @@ class BlockProvider:
         st, sol = self.sim.block_state, self.sim.block_solver
         arrays = {n: wp.clone(a) for n, a in _wp_arrays(st).items()}
         table = {k: wp.clone(a) for k, a in st.tables[0].items()}
-        meta = {"time": st.time, "table_cap": st.table_cap, "entry_cap": sol.entry_cap,
+        meta = {"time": st.time, "table_cap": st.table_cap, "point_cap": st.point_cap, "entry_cap": sol.entry_cap,
                 "large_cap": int(sol.large_list.shape[0]), "pair_cap": sol.pair_cap}
         return arrays, table, meta
 
@@ -198,12 +201,16 @@ class BlockProvider:
         out = {n: a.numpy() for n, a in arrays.items()}
         keys = table["keys"].numpy()
         occ = np.nonzero(keys >= 0)[0]
-        cap = keys.shape[0]
+        used = int(table["pcount"].numpy()[0])
         out["table/slots"] = occ.astype(np.int64)
         for k, a in table.items():
             h = a.numpy()
-            per = h.shape[0] // cap  # 1 for per-pair fields, MAX_CONTACTS for per-point ones
-            out[f"table/{k}"] = h.reshape(cap, per, *h.shape[1:])[occ]
+            if k == "pcount":
+                out[f"table/{k}"] = h
+            elif k in _SLOT_FIELDS:  # per pair slot: the occupied ones
+                out[f"table/{k}"] = h[occ]
+            else:  # per contact point: the pool entries taken
+                out[f"table/{k}"] = h[:used]
         return out, dict(meta)
 
     def restore(self, arrays, meta):
@@ -216,15 +223,19 @@ class BlockProvider:
             sol._alloc_pairs(int(meta["pair_cap"]))
         cap = int(meta["table_cap"])
         st.tables = [None, None]
-        st.alloc_tables(cap)
+        st.alloc_tables(cap, int(meta["point_cap"]))
         t = st.tables[0]
         slots = arrays["table/slots"]
         for k, a in t.items():
             h = a.numpy()
-            per = h.shape[0] // cap
-            h = h.reshape(cap, per, *h.shape[1:])
-            h[slots] = arrays[f"table/{k}"]
-            a.assign(h.reshape(a.numpy().shape))
+            saved = arrays[f"table/{k}"]
+            if k == "pcount":
+                h[:] = saved
+            elif k in _SLOT_FIELDS:
+                h[slots] = saved
+            else:
+                h[: saved.shape[0]] = saved
+            a.assign(h)
         plain = {n: a for n, a in arrays.items() if not n.startswith("table/")}
         ArrayGroup(lambda: st).restore(plain, {})
         st.time = float(meta["time"])

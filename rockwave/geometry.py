@@ -10,22 +10,32 @@ A block is a convex polyhedron stored in its *body frame* (centroid at the origi
   ``h = vertex_out_he[v]; repeat: h = he_twin[he_prev[h]]`` — O(valence), which FCP needs.
 * mass properties per unit density (volume, inertia tensor about the centroid), bounding radius.
 
-Non-convex meshes are refused (no well-kept convex-decomposition library is a dependency); the
-error says by how much the mesh falls short of its hull and suggests decomposing it.
+A non-convex closed mesh becomes a :class:`CompoundBlock`: one rigid body made of convex parts from
+CoACD (Wei et al. 2022, "Approximate convex decomposition for 3D meshes with collision-aware concavity
+and tree search", SIGGRAPH), cached by mesh hash (:func:`decompose`). Its mass properties come from the
+original mesh; each part is a ConvexPolyhedron in the *body's* frame (the body's centroid at the
+origin, so a part's own centroid is off the origin). Without a :class:`Decomposition` a non-convex
+mesh is refused, saying by how much it falls short of its hull.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 import trimesh
 
 __all__ = [
     "GeometryError",
+    "DecompositionError",
     "ConvexPolyhedron",
+    "CompoundBlock",
+    "Decomposition",
+    "decompose",
     "from_trimesh",
     "load_mesh",
     "box",
@@ -39,6 +49,19 @@ CONVEXITY_TOL = 1e-4
 
 class GeometryError(ValueError):
     """A mesh cannot be used as a DDA block; the message names the mesh/file and the reason."""
+
+
+class NonConvexError(GeometryError):
+    """A non-convex mesh given where a convex one is needed (no Decomposition)."""
+
+
+class DecompositionError(GeometryError):
+    """The convex decomposition of a non-convex mesh failed or broke a bound; ``key`` names the
+    Decomposition field (scene key ``blocks[i].decomposition.<key>``) that was exceeded, if any."""
+
+    def __init__(self, message: str, key: str = ""):
+        super().__init__(message)
+        self.key = key
 
 
 @dataclass
@@ -320,11 +343,12 @@ def _build(points: np.ndarray, name: str, origin_offset=None) -> ConvexPolyhedro
     )
 
 
-def from_trimesh(mesh: trimesh.Trimesh, name: str = "mesh") -> ConvexPolyhedron:
-    """Validate a closed convex triangle mesh and convert it to a ConvexPolyhedron.
+def from_trimesh(mesh: trimesh.Trimesh, name: str = "mesh", decomposition: "Decomposition | None" = None):
+    """Validate a closed triangle mesh and convert it to a ConvexPolyhedron (convex mesh) or, given a
+    Decomposition, a CompoundBlock (non-convex mesh).
 
-    Raises GeometryError for open (non-watertight), zero-volume or non-convex meshes.  Inverted
-    normals (negative signed volume) are fixed with a warning.
+    Raises GeometryError for open (non-watertight) or zero-volume meshes, and for non-convex meshes
+    without a Decomposition.  Inverted normals (negative signed volume) are fixed with a warning.
     """
     if not isinstance(mesh, trimesh.Trimesh):
         raise GeometryError(f"mesh '{name}': expected a trimesh.Trimesh, got {type(mesh).__name__}")
@@ -347,16 +371,22 @@ def from_trimesh(mesh: trimesh.Trimesh, name: str = "mesh") -> ConvexPolyhedron:
     hull_vol = float(mesh.convex_hull.volume)
     ratio = vol / hull_vol
     if ratio < 1.0 - CONVEXITY_TOL:
-        raise GeometryError(
+        if decomposition is not None:
+            return decompose(mesh, name, decomposition)
+        raise NonConvexError(
             f"mesh '{name}': not convex — its volume is {ratio:.4f} of its convex hull "
             f"({100 * (1 - ratio):.2f}% short). DDA blocks must be convex: split the mesh into convex "
-            f"parts (e.g. with CoACD or V-HACD) and give each part as its own block."
+            f"parts (e.g. with CoACD or V-HACD) and give each part as its own block, or let the scene "
+            f"decompose it (blocks[i].decomposition)."
         )
     return _build(np.asarray(mesh.vertices), name)
 
 
-def load_mesh(path) -> ConvexPolyhedron | list:
-    """Load STL/OBJ/PLY/GLB through trimesh.  One part -> ConvexPolyhedron; several -> list."""
+def load_mesh(path, decomposition: "Decomposition | None" = None, scale: float = 1.0):
+    """Load STL/OBJ/PLY/GLB through trimesh.  One part -> ConvexPolyhedron (or CompoundBlock); several
+    -> list.  A non-convex part becomes a CompoundBlock when a Decomposition is given (decomposed at
+    ``scale``, so its parts and cache entry are in metres); convex parts are returned unscaled (the
+    caller scales them, as before)."""
     path = os.fspath(path)
     if not os.path.exists(path):
         raise GeometryError(f"mesh file '{path}': does not exist")
@@ -380,7 +410,16 @@ def load_mesh(path) -> ConvexPolyhedron | list:
         m.merge_vertices()
         bodies = m.split(only_watertight=False) if m.body_count > 1 else [m]
         for k, b in enumerate(bodies):
-            out.append(from_trimesh(b, pname if len(bodies) == 1 else f"{pname}#{k}"))
+            bname = pname if len(bodies) == 1 else f"{pname}#{k}"
+            if decomposition is not None and scale != 1.0:
+                try:  # convex: unscaled, the caller scales it (as before)
+                    out.append(from_trimesh(b, bname))
+                except NonConvexError:
+                    b = b.copy()
+                    b.apply_scale(scale)
+                    out.append(from_trimesh(b, bname, decomposition))
+            else:
+                out.append(from_trimesh(b, bname, decomposition))
     return out[0] if len(out) == 1 else out
 
 
@@ -458,3 +497,208 @@ def half_edge_invariants(p: ConvexPolyhedron) -> dict:
         )
     )
     return res
+
+
+# ----------------------------------------------------------------------------------------------
+# non-convex meshes: compound blocks of convex parts (CoACD), cached by mesh hash
+# ----------------------------------------------------------------------------------------------
+
+DECOMPOSITION_CACHE_ENV = "ROCKWAVE_CACHE_DIR"
+CACHE_FORMAT = 1  # bump when the cached arrays change meaning
+
+
+def default_cache_dir() -> Path:
+    """$ROCKWAVE_CACHE_DIR/decompositions, else $XDG_CACHE_HOME/rockwave/decompositions, else
+    ~/.cache/rockwave/decompositions."""
+    root = os.environ.get(DECOMPOSITION_CACHE_ENV)
+    if root:
+        return Path(root) / "decompositions"
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return Path(xdg or Path.home() / ".cache") / "rockwave" / "decompositions"
+
+
+@dataclass(frozen=True)
+class Decomposition:
+    """How a non-convex mesh is split into convex parts (scene: ``blocks[i].decomposition``).
+
+    max_parts: the most convex parts allowed; more is a DecompositionError (key "max_parts").
+    concavity: CoACD's concavity threshold (its ``threshold``: the largest allowed distance, relative
+        to the mesh's bounding-box diagonal, between a part's hull surface and the mesh; smaller ->
+        more, tighter parts).
+    cache_dir: where decompositions are kept (None: default_cache_dir()).
+    seed: CoACD's random seed (its tree search is randomised; a fixed seed makes it repeatable).
+    """
+
+    max_parts: int = 32
+    concavity: float = 0.05
+    cache_dir: str | None = None
+    seed: int = 0
+
+
+@dataclass
+class CompoundBlock:
+    """One rigid block made of convex parts (a decomposed non-convex mesh), in its body frame: the
+    original mesh's centroid at the origin. Units: metres.
+
+    parts: ConvexPolyhedron per part, vertices in the body frame (each part's own centroid is off the
+        origin; its origin_offset is the body centroid in the source frame, as for every part).
+    part_radius: (P,) each part's bounding radius about its own centroid (m).
+    mesh_vertices (V, 3), mesh_triangles (T, 3): the original mesh in the body frame (what outputs show).
+    volume (m^3), inertia_unit (3, 3, about the centroid per unit density): the original mesh's.
+    bounding_radius: max |vertex| of the parts (m).  origin_offset: the centroid in the source frame.
+    parts_volume: sum of the parts' volumes (m^3).  cached: True when the parts came from the cache.
+    concavity, max_parts: the Decomposition used.
+    """
+
+    name: str
+    parts: list
+    part_radius: np.ndarray
+    mesh_vertices: np.ndarray
+    mesh_triangles: np.ndarray
+    volume: float
+    inertia_unit: np.ndarray
+    bounding_radius: float
+    origin_offset: np.ndarray
+    parts_volume: float
+    cached: bool = False
+    concavity: float = 0.0
+    max_parts: int = 0
+
+    @property
+    def num_parts(self) -> int:
+        return len(self.parts)
+
+    @property
+    def volume_error(self) -> float:
+        """Relative volume error of the decomposition: sum of part volumes / mesh volume - 1."""
+        return self.parts_volume / self.volume - 1.0
+
+    @property
+    def size(self) -> float:
+        """Equivalent size L = V^(1/3) of the original mesh (m)."""
+        return float(self.volume ** (1.0 / 3.0))
+
+    def mass(self, density: float) -> float:
+        return float(self.volume * density)
+
+    def inertia(self, density: float) -> np.ndarray:
+        """Inertia tensor of the original mesh about its centroid, body frame (kg m^2)."""
+        return self.inertia_unit * density
+
+    def summary(self) -> str:
+        return (f"{self.num_parts} convex parts (CoACD concavity {self.concavity:g}, max_parts {self.max_parts}), "
+                f"volume error {100 * self.volume_error:+.2f}% (parts {self.parts_volume:.6g} m^3 vs mesh "
+                f"{self.volume:.6g} m^3){' [cached]' if self.cached else ''}")
+
+
+def shifted(p: ConvexPolyhedron, t) -> ConvexPolyhedron:
+    """The same polyhedron with its frame origin moved by -t (vertices + t): face offsets
+    d' = d + n.t, inertia about the new origin by the parallel-axis theorem I_O = I_c + V (|t|^2 1 - t t^T),
+    origin_offset - t (the new origin in the source frame)."""
+    t = np.asarray(t, dtype=np.float64).reshape(3)
+    v = p.vertices + t
+    return replace(p, vertices=v, face_offsets=p.face_offsets + p.face_normals @ t,
+                   inertia_unit=p.inertia_unit + p.volume * (float(t @ t) * np.eye(3) - np.outer(t, t)),
+                   bounding_radius=float(np.max(np.linalg.norm(v, axis=1))),
+                   origin_offset=np.asarray(p.origin_offset, float) - t)
+
+
+def _cache_key(vertices: np.ndarray, faces: np.ndarray, opt: Decomposition) -> str:
+    import coacd
+
+    h = hashlib.sha256()
+    h.update(f"rockwave-coacd/{CACHE_FORMAT}/{_coacd_version(coacd)}/{opt.concavity!r}/{opt.seed}".encode())
+    h.update(np.ascontiguousarray(vertices, dtype="<f8").tobytes())
+    h.update(np.ascontiguousarray(faces, dtype="<i8").tobytes())
+    return h.hexdigest()
+
+
+def _coacd_version(coacd) -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("coacd")
+    except Exception:  # noqa: BLE001
+        return getattr(coacd, "__version__", "?")
+
+
+def _run_coacd(vertices: np.ndarray, faces: np.ndarray, opt: Decomposition, name: str) -> list:
+    """CoACD on the mesh -> list of (vertices (n, 3), faces (m, 3)) convex parts."""
+    try:
+        import coacd
+    except ImportError as exc:  # a dependency; only a broken install lands here
+        raise DecompositionError(f"mesh '{name}': non-convex, and the decomposition library coacd is not "
+                                 f"installed ({exc})") from exc
+    coacd.set_log_level("error")
+    try:
+        out = coacd.run_coacd(coacd.Mesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int32)),
+                              threshold=float(opt.concavity), seed=int(opt.seed))
+    except Exception as exc:  # noqa: BLE001  (CoACD raises plain exceptions)
+        raise DecompositionError(f"mesh '{name}': convex decomposition failed ({exc})") from exc
+    return [(np.asarray(v, np.float64), np.asarray(f, np.int64)) for v, f in out]
+
+
+def decompose(mesh: trimesh.Trimesh, name: str, opt: Decomposition) -> CompoundBlock:
+    """A closed non-convex mesh (already checked watertight, positive volume) -> CompoundBlock.
+
+    The parts come from CoACD at opt.concavity, or from the cache (keyed by the SHA-256 of the
+    normalised vertices, faces, concavity, seed and CoACD version), written atomically after a fresh run.
+    Mass properties: the original mesh's (trimesh).  Raises DecompositionError when CoACD fails,
+    returns no part, or more than opt.max_parts parts."""
+    if not (isinstance(opt.max_parts, int) and opt.max_parts >= 1):
+        raise DecompositionError(f"mesh '{name}': max_parts must be a whole number >= 1, got {opt.max_parts}", "max_parts")
+    if not opt.concavity > 0:
+        raise DecompositionError(f"mesh '{name}': concavity must be > 0, got {opt.concavity}", "concavity")
+    verts = np.asarray(mesh.vertices, np.float64)
+    faces = np.asarray(mesh.faces, np.int64)
+    # CoACD's concavity is relative to the bounding box, so it works on the mesh normalised to a unit
+    # diagonal (rounded to 1e-9 so that the same shape at another scale or place hits the same cache entry)
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    centre, diag = 0.5 * (lo + hi), float(np.linalg.norm(hi - lo))
+    unit = np.round((verts - centre) / diag, 9)
+    cache = Path(opt.cache_dir) if opt.cache_dir else default_cache_dir()
+    key = _cache_key(unit, faces, opt)
+    file = cache / f"{key}.npz"
+    cached = False
+    parts_raw = None
+    if file.exists():
+        try:
+            with np.load(file) as z:
+                pv, pf, nv, nf = z["vertices"], z["faces"], z["nverts"], z["nfaces"]
+            iv, jf = np.concatenate([[0], np.cumsum(nv)]), np.concatenate([[0], np.cumsum(nf)])
+            parts_raw = [(pv[iv[k]:iv[k + 1]], pf[jf[k]:jf[k + 1]]) for k in range(len(nv))]
+            cached = True
+        except Exception:  # noqa: BLE001  (a torn or foreign file: decompose again and overwrite it)
+            parts_raw = None
+    if parts_raw is None:
+        parts_raw = _run_coacd(unit, faces, opt, name)
+        if parts_raw:
+            try:
+                cache.mkdir(parents=True, exist_ok=True)
+                tmp = cache / f".{key}.{os.getpid()}.tmp.npz"
+                np.savez_compressed(tmp, vertices=np.concatenate([v for v, _ in parts_raw]),
+                         faces=np.concatenate([f for _, f in parts_raw]),
+                         nverts=np.array([len(v) for v, _ in parts_raw]), nfaces=np.array([len(f) for _, f in parts_raw]))
+                os.replace(tmp, file)
+            except OSError as exc:
+                warnings.warn(f"mesh '{name}': could not write the decomposition cache {file} ({exc})", stacklevel=2)
+    if not parts_raw:
+        raise DecompositionError(f"mesh '{name}': convex decomposition returned no part")
+    if len(parts_raw) > opt.max_parts:
+        raise DecompositionError(
+            f"mesh '{name}': decomposed into {len(parts_raw)} convex parts at concavity {opt.concavity:g}, "
+            f"more than max_parts = {opt.max_parts}; raise max_parts or the concavity threshold", "max_parts")
+    props = mesh.mass_properties  # density 1: the original mesh's volume, centroid and inertia
+    com = np.asarray(props["center_mass"], np.float64)
+    inertia = np.asarray(props["inertia"], np.float64)
+    parts, radius = [], []
+    for k, (v, _) in enumerate(parts_raw):
+        p = _build(v * diag + centre, f"{name}[part {k}]")
+        radius.append(p.bounding_radius)
+        parts.append(shifted(p, np.asarray(p.origin_offset) - com))
+    return CompoundBlock(
+        name=name, parts=parts, part_radius=np.asarray(radius), mesh_vertices=verts - com,
+        mesh_triangles=faces.copy(), volume=float(props["volume"]), inertia_unit=inertia,
+        bounding_radius=float(max(p.bounding_radius for p in parts)), origin_offset=com,
+        parts_volume=float(sum(p.volume for p in parts)), cached=cached, concavity=float(opt.concavity),
+        max_parts=int(opt.max_parts))

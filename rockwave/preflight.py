@@ -39,9 +39,11 @@ SNAPSHOT_PER_FLUID = 36
 # host bytes per particle: seeding in float64 (lattice, masks, concatenations), per-frame read-backs
 HOST_PER_PARTICLE = 160
 HOST_PER_FLUID = 64
-# blocks: per block state/model arrays; contact history tables (2, each cap x (24 + 16 x 40) B)
-DEV_PER_BLOCK = 1200
-TABLE_SLOT_BYTES = 24 + 16 * 40
+# blocks: per block, everything the block solver holds (BlockSolver.device_bytes: model, state, the two
+# contact-history tables sized from the live contacts, broad phase; <= 4 KB measured for cubes 5 cm apart,
+# tests/test_contact_pipeline.py) and the checkpoint snapshot of one history table
+DEV_PER_BLOCK = 4096
+SNAPSHOT_PER_BLOCK = 1024
 
 
 def _fmt_bytes(n: float) -> str:
@@ -231,8 +233,7 @@ def estimate(scene: Scene, meshes: dict | None = None) -> Estimate:
         nodes = float(np.prod((np.asarray(hi, float) - np.asarray(lo, float)) / res + 1))
         dev += 8 * min(float(surf.get("max_grid_nodes") or 20_000_000), nodes)
     if nblocks:
-        cap = 1 << (int(4 * (8 * nblocks + 64)) - 1).bit_length()
-        dev += nblocks * DEV_PER_BLOCK + 3 * cap * TABLE_SLOT_BYTES  # two tables + the snapshot
+        dev += nblocks * (DEV_PER_BLOCK + SNAPSHOT_PER_BLOCK)
     host = n_all * HOST_PER_PARTICLE + nf * HOST_PER_FLUID + nblocks * 2000
     return Estimate(int(nf), int(nb), nblocks, int(dev), int(host))
 
@@ -604,7 +605,10 @@ def _block_step(scene: Scene) -> tuple[float, str, str] | None:
             elif b.shape == "prism":
                 parts = [geometry.prism(b.vertices_m)]
             else:
-                loaded = geometry.load_mesh(b.mesh)
+                from rockwave.rocks import decomposition_of
+
+                # a non-convex mesh: its CompoundBlock (decomposed at mesh_scale; the same mass properties API)
+                loaded = geometry.load_mesh(b.mesh, decomposition=decomposition_of(scene, b), scale=b.mesh_scale)
                 parts = loaded if isinstance(loaded, list) else [loaded]
         except Exception:  # noqa: BLE001  (a bad shape is reported by the block checks, with its key)
             continue
@@ -616,7 +620,7 @@ def _block_step(scene: Scene) -> tuple[float, str, str] | None:
             continue
         fac = math.sqrt(1.0 + zeta * zeta) - zeta
         for g in parts:
-            scale = b.mesh_scale if b.shape == "mesh" else 1.0
+            scale = b.mesh_scale if b.shape == "mesh" and not isinstance(g, geometry.CompoundBlock) else 1.0
             vol_scale, len_scale = scale ** 3, scale
             mass = g.mass(b.density_kg_m3) * vol_scale
             imin = float(np.linalg.eigvalsh(g.inertia(b.density_kg_m3)).min()) * vol_scale * len_scale ** 2

@@ -101,7 +101,9 @@ def test_bad_block_input_errors():
     assert "simulation.dt_s" in str(e.value) and "critical DDA step" in str(e.value)
 
 
-def test_non_convex_mesh_refused(tmp_path):
+def test_non_convex_mesh_becomes_a_compound_block(tmp_path):
+    """A closed non-convex mesh is decomposed into convex parts of one rigid block (tests/test_nonconvex.py
+    checks the physics); a part bound it exceeds is an error naming the key."""
     import trimesh
 
     m = trimesh.util.concatenate([trimesh.creation.box((1, 1, 1)), trimesh.creation.box((1, 1, 1)).apply_translation((0.5, 0.5, 1.0))])
@@ -121,10 +123,15 @@ def test_non_convex_mesh_refused(tmp_path):
     path = tmp_path / "L.stl"
     m.export(path)
     d = incline_scene(20.0)
-    d["blocks"][1] = {"name": "L", "shape": "mesh", "mesh": str(path), "position_m": [0.0, 0.0, 3.0]}
+    d["blocks"][1] = {"name": "L", "shape": "mesh", "mesh": str(path), "position_m": [0.0, 0.0, 3.0],
+                      "decomposition": {"cache_dir": str(tmp_path / "cache")}}
+    sim = rockwave.Simulation(parse_scene(d, "b.toml"), device=DEVICE)
+    parts = [s for s in sim.blocks.specs if s.compound is not None]
+    assert len(parts) >= 2 and len(sim.blocks.specs) == 1 + len(parts)
+    d["blocks"][1]["decomposition"]["max_parts"] = 1
     with pytest.raises(SceneError) as e:
         rockwave.Simulation(parse_scene(d, "b.toml"), device=DEVICE)
-    assert "blocks[1].mesh" in str(e.value) and "not convex" in str(e.value)
+    assert "blocks[1].decomposition.max_parts" in str(e.value) and "max_parts = 1" in str(e.value)
 
 
 def test_kept_pair_list_matches_a_broad_phase_every_step():

@@ -23,7 +23,6 @@ from rockwave.blocks import (
     KinematicMotion,
     _sat_overlap,
 )
-from rockwave.kernels import blocks as K
 from rockwave.solver import TimeStep
 
 wp.config.quiet = True
@@ -679,8 +678,9 @@ def _cube_on_slope(alpha, phi, size, kn, t_end):
     t = state.tables[0]
     slots = np.nonzero(t["keys"].numpy() >= 0)[0]
     nc = t["nc"].numpy()
-    shear = t["shear"].numpy().reshape(-1, K.MAX_CONTACTS, 3)
-    ext = max(float(np.linalg.norm(shear[s, :nc[s]], axis=1).max(initial=0.0)) for s in slots)
+    ps = t["pstart"].numpy()
+    shear = t["shear"].numpy()
+    ext = max(float(np.linalg.norm(shear[ps[s]: ps[s] + nc[s]], axis=1).max(initial=0.0)) for s in slots)
     return ((state.positions_numpy()[1] - x0) @ d, ext / model.np["k_s"][1],
             float(np.linalg.norm(state.velocities_numpy()[1])), T)
 

@@ -8,6 +8,7 @@ import copy
 import io
 import json
 import math
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -237,8 +238,8 @@ def _region_mesh_scene(tmp, kind):
     return d
 
 
-def _block_mesh_scene(tmp, kind):
-    return blocks_scene({"shape": "mesh", "mesh": str(_mesh_file(tmp, f"b_{kind}.stl", kind)), "position_m": [0, 0, 1]})
+def _block_mesh_scene(tmp, kind, **block):
+    return blocks_scene({"shape": "mesh", "mesh": str(_mesh_file(tmp, f"b_{kind}.stl", kind)), "position_m": [0, 0, 1], **block})
 
 
 BOX = {"shape": "box", "size_m": [1.0, 1.0, 1.0]}
@@ -250,7 +251,8 @@ VALIDATE_CASES = {
     "region mesh garbage": (lambda t: _region_mesh_scene(t, "garbage"), "fluid.regions[0].mesh"),
     "region mesh flat": (lambda t: _region_mesh_scene(t, "flat"), "fluid.regions[0].mesh"),
     "region mesh in millimetres": (lambda t: _region_mesh_scene(t, "mm"), "fluid.regions[0].mesh"),
-    "block mesh not convex": (lambda t: _block_mesh_scene(t, "dent"), "blocks[0].mesh"),
+    "block mesh not convex, over its part bound": (lambda t: _block_mesh_scene(
+        t, "dent", decomposition={"max_parts": 1, "concavity": 0.01, "cache_dir": str(t / "cache")}), "blocks[0].decomposition.max_parts"),
     "block mesh open": (lambda t: _block_mesh_scene(t, "open"), "blocks[0].mesh"),
     "overlapping blocks": (lambda t: blocks_scene(dict(BOX, name="a", position_m=[0, 0, 1]), dict(BOX, name="b", position_m=[0.5, 0, 1])),
                            "overlap"),
@@ -564,7 +566,7 @@ FUZZ_EXAMPLES = 12  # per shipped scene, derandomized: the same mutations on eve
 def _absolute_paths(node, base: Path):
     if isinstance(node, dict):
         for k, v in node.items():
-            if k in ("mesh", "file") and isinstance(v, str):
+            if k in ("mesh", "file", "cache_dir") and isinstance(v, str):
                 node[k] = str((base / v).resolve())
             else:
                 _absolute_paths(v, base)
@@ -659,6 +661,10 @@ def test_fuzz_mutated_shipped_scenes_validate_and_run_agree(tmp_path, name):
     exit code 2 (a run may also end in a one-line blow-up, exit 1); never a traceback; and validate
     refuses exactly what run refuses before stepping."""
     base = _small(name)
+    for b in base.get("blocks", []):  # a shipped decomposition cache is copied: mutations never write into scenes/
+        cache = b.get("decomposition", {}).get("cache_dir")
+        if cache:
+            b["decomposition"]["cache_dir"] = str(shutil.copytree(cache, tmp_path / "decompositions", dirs_exist_ok=True))
     counter = iter(range(10**6))
 
     @settings(max_examples=FUZZ_EXAMPLES, derandomize=True, deadline=None, database=None,

@@ -364,7 +364,7 @@ def test_block_meshes(tmp_path):
         rc, err = _run_err(_block_mesh_scene(tmp_path, mesh), tmp_path)
         assert rc == 2 and "Traceback" not in err and "blocks[0].mesh" in err, (name, err)
         assert expect is None or expect in err, (name, err)
-    # non-convex: a clear error naming the cure (an L made of one watertight mesh)
+    # non-convex over its part bound: a clear error naming the key and the count (an L made of one watertight mesh)
     import trimesh.creation
 
     verts = np.array([[0, 0, 0], [2, 0, 0], [2, 1, 0], [1, 1, 0], [1, 2, 0], [0, 2, 0]], float)
@@ -372,8 +372,9 @@ def test_block_meshes(tmp_path):
         if _has_shapely() else None
     if lm is not None:
         lm.export(tmp_path / "l.stl")
-        rc, err = _run_err(_block_mesh_scene(tmp_path, tmp_path / "l.stl"), tmp_path)
-        assert rc == 2 and "not convex" in err and "blocks[0].mesh" in err
+        rc, err = _run_err(_block_mesh_scene(tmp_path, tmp_path / "l.stl",
+                                             decomposition={"max_parts": 1, "cache_dir": str(tmp_path / "cache")}), tmp_path)
+        assert rc == 2 and "max_parts = 1" in err and "blocks[0].decomposition.max_parts" in err
     # inverted normals: flipped with a warning; millimetres fixed by the suggested scale
     inv = _box_mesh(tmp_path, "inv.stl", size=(1, 1, 1), center=(0, 0, 0), invert=True)
     with pytest.warns(UserWarning, match="inverted"):

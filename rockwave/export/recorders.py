@@ -142,6 +142,21 @@ def block_prim_paths(names: list[str]) -> list[str]:
     return out
 
 
+def _prim_names(blocks) -> list[str]:
+    """Block names for prims: a compound block's first part stands for the body (its name)."""
+    return [n.removesuffix(".part0") if s.compound is not None and s.compound.part == 0 else n
+            for n, s in zip(blocks.names, blocks.specs)]
+
+
+class _MeshFaces:
+    """Points and triangle faces of a compound block's original mesh, shaped like a ConvexPolyhedron
+    for the USD setup (vertices, faces)."""
+
+    def __init__(self, vertices, triangles):
+        self.vertices = vertices
+        self.faces = [list(t) for t in triangles]
+
+
 class UsdRecorder:
     """The run's USD stage: particles, blocks and the fluid surface (rockwave/export/usd.py)."""
 
@@ -155,8 +170,10 @@ class UsdRecorder:
         self.spacing = float(sim.fluid.spacing) if sim.fluid is not None else 0.0
         self.surface = surface
         self.blocks = sim.blocks
-        self.prims = block_prim_paths(sim.blocks.names) if sim.blocks is not None else []
+        self.prims = block_prim_paths(_prim_names(sim.blocks)) if sim.blocks is not None else []
         self.deformable = [s.kind == "deformable" for s in sim.blocks.specs] if sim.blocks is not None else []
+        # compound (non-convex) blocks: one prim, named after the body, for the first part; the others skipped
+        self.skip = [s.compound is not None and s.compound.part != 0 for s in sim.blocks.specs] if sim.blocks is not None else []
         self.writer = UsdFrameWriter(path, scene.output.frame_rate_hz, "Z" if self.dim == 3 else "Y", self._setup,
                                      scene.output.chunk_frames)
 
@@ -193,6 +210,10 @@ class UsdRecorder:
         UsdGeom.Scope.Define(stage, BLOCKS_PRIM)
         for spec, prim in zip(self.blocks.specs, self.prims):
             geo = spec.geometry
+            if spec.compound is not None:
+                if spec.compound.part != 0:
+                    continue  # a compound block is one prim: its original mesh, posed by its first part
+                geo = _MeshFaces(spec.compound.body.mesh_vertices, spec.compound.body.mesh_triangles)
             mesh = UsdGeom.Mesh.Define(stage, prim)
             if spec.kind != "deformable":  # a deformable block's points come from the clips (a default would hide them)
                 mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(geo.vertices, dtype=np.float32)))
@@ -219,6 +240,8 @@ class UsdRecorder:
             b = f.blocks
             verts = f.block_vertices if any(self.deformable) else None
             for i, prim in enumerate(self.prims):
+                if self.skip[i]:
+                    continue
                 if self.deformable[i]:
                     samples[(prim, "points", "point3f[]")] = verts[i]
                 else:
