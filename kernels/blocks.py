@@ -1207,9 +1207,22 @@ def narrow_phase(
 
 
 @wp.kernel
+def set_block_clock(clock: wp.array(dtype=float), t_next: float, dt: float):
+    """The block step's clock on the device: [end time of the step, step length]."""
+    clock[0] = t_next
+    clock[1] = dt
+
+
+@wp.kernel
+def advance_block_clock(clock: wp.array(dtype=float)):
+    """Next sub-step of equal length (inside a captured CUDA graph of block sub-steps)."""
+    clock[0] = clock[0] + clock[1]
+
+
+@wp.kernel
 def contact_forces(
     pl: PairList,
-    dt: float,
+    clock: wp.array(dtype=float),
     g_mag: float,
     props: BlockProps,
     mat: BlockMaterial,
@@ -1220,7 +1233,9 @@ def contact_forces(
 ):
     """Contact forces at the step's contact points (narrow_phase / narrow_phase_coop wrote them into
     `cur`; `prev`: last step's history), into `loads`: one thread per pair of the active list, in its
-    order (the forces add up in the same order whichever kernel found the points)."""
+    order (the forces add up in the same order whichever kernel found the points). clock = [t_next, dt]
+    of this step (set_block_clock), read on the device so a CUDA graph can replay the step."""
+    dt = clock[1]
     kinds = props.kinds
     inv_mass = props.inv_mass
     x = bodies.x
@@ -1505,13 +1520,15 @@ def integrate_blocks(
     props: BlockProps,
     motion: BlockMotion,
     gravity: wp.vec3,
-    t_next: float,
-    dt: float,
+    clock: wp.array(dtype=float),
     bodies: BlockBodies,
     loads: BlockLoads,
 ):
     """One explicit step of every block: kinematic blocks follow their motion at t_next, rigid and
-    deformable ones integrate the contact and external loads (then zeroed) and gravity."""
+    deformable ones integrate the contact and external loads (then zeroed) and gravity.
+    clock = [t_next, dt] (set_block_clock)."""
+    t_next = clock[0]
+    dt = clock[1]
     x = bodies.x
     q = bodies.q
     v = bodies.v

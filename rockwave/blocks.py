@@ -822,6 +822,11 @@ class BlockOptions:
     reads nothing back from the device; above it capacities grow on demand (one counter read per
     step) [blocks]."""
 
+    substep_graphs: bool = True
+    """CUDA: multi-rate sub-steps 1..n-1 of a fluid step (kept pair list, sync-free path) replay one captured
+    graph per sub-step instead of ~12 launches from Python (each costs ~30-50 us of host time against a few
+    us of GPU work for a coupled scene's few blocks). Same kernels, same order; ignored on the CPU."""
+
     sync_check_interval_steps: int = 200
     """Sync-free path: the overflow flags (a bug if set) are read back every this many steps [steps]."""
 
@@ -921,6 +926,12 @@ class BlockSolver:
         self.lo_bp = wp.zeros(n, dtype=wp.vec3, device=d)
         self.hi_bp = wp.zeros(n, dtype=wp.vec3, device=d)
         self._moved = wp.ones(1, dtype=int, device=d)
+        # [t_next, dt] of the current (sub-)step, read by contact_forces and integrate_blocks on the device
+        self.block_clock = wp.zeros(2, dtype=float, device=d)
+        # CUDA graphs of one multi-rate sub-step (substeps()), keyed by the contact tables' parity and the
+        # addresses the graph baked in; None: not on this device (CPU, or graphs switched off)
+        self._substep_graphs: dict | None = {} if (wp.get_device(d).is_cuda and opt.substep_graphs) else None
+        self.graph_substeps = 0  # sub-steps replayed from a CUDA graph (diagnostics)
         self.broad_phases = 0  # broad phases run (diagnostics)
         self.point_regrows = 0  # narrow phases redone after the contact-point pool grew (diagnostics)
         self.contact_points = 0  # contact points of the last step (counter-read path; diagnostics)
@@ -1090,7 +1101,7 @@ class BlockSolver:
         return False
 
     def _narrow_phase(self, state: BlockState, dt: float, screen: bool = True):
-        """FCP narrow phase + contact forces. screen: pairs whose warm-start plane already separates
+        """FCP narrow phase + contact forces (at block_clock's dt, set by the caller; ``dt`` is that value). screen: pairs whose warm-start plane already separates
         them (gap > 0; first by the bound from last step's gap and the blocks' motion since, else from
         the world vertices) skip FCP and contact generation (narrow_screen); detect() turns it off so
         that every pair's gap is FCP's."""
@@ -1129,7 +1140,7 @@ class BlockSolver:
                                         inputs=[self.pair_list, state.world_verts, m.topology, state.bodies, old, new],
                                         device=d)
                 wp.launch(K.contact_forces, dim=n,
-                          inputs=[self.pair_list, dt, self.g_mag, m.props, m.material, state.bodies, old, new,
+                          inputs=[self.pair_list, self.block_clock, self.g_mag, m.props, m.material, state.bodies, old, new,
                                   state.loads], device=d)
             if self.sync_free or n == 0:
                 break
@@ -1153,19 +1164,24 @@ class BlockSolver:
     def _no_contacts(self, state: BlockState, dt: float):
         pass
 
-    def _integrate(self, state: BlockState, dt: float, t: float):
-        """Integration from t to t + dt (and the planar constraint of a 2D model)."""
+    def _set_clock(self, t_next: float, dt: float):
+        wp.launch(K.set_block_clock, dim=1, inputs=[self.block_clock, float(t_next), float(dt)], device=self.device)
+
+    def _integrate(self, state: BlockState):
+        """Integration over the clock's step (block_clock: [t_next, dt]; and the planar constraint of a 2D
+        model)."""
         m, d = self.model, self.device
         if m.num_compounds:  # compound blocks: each part gets its body's summed load
             wp.launch(K.compound_loads, dim=m.num_compounds, inputs=[m.compound_start, m.compound_count, state.loads], device=d)
         wp.launch(K.integrate_blocks, dim=m.num_blocks,
-                  inputs=[m.props, m.motion, wp.vec3(*m.gravity), float(t + dt), float(dt), state.bodies, state.loads],
+                  inputs=[m.props, m.motion, wp.vec3(*m.gravity), self.block_clock, state.bodies, state.loads],
                   device=d)
         if m.planar:
             wp.launch(K.planar_blocks, dim=m.num_blocks, inputs=[m.planar_z, m.kinds, state.bodies], device=d)
 
     def detect(self, state: BlockState):
         """Collision detection only (world vertices, broad + narrow phase), forces discarded."""
+        self._set_clock(0.0, 0.0)
         self._prepare(state)
         self._broad_phase(force=True)
         self._narrow_phase(state, 0.0, screen=False)
@@ -1181,8 +1197,9 @@ class BlockSolver:
             raise ValueError(f"dt = {dt:.4g} s exceeds the critical DDA time step {dc:.4g} s (2/omega_max); "
                              f"use BlockSolver.stable_dt(state) = {self.stable_dt(state):.4g} s "
                              f"(BlockOptions.dt_safety = {self.options.dt_safety:g} of the critical step)")
+        self._set_clock(t + dt, dt)
         self._contact_forces(state, dt)
-        self._integrate(state, dt, t)
+        self._integrate(state)
         state.time = t + dt
 
     def substeps(self, state: BlockState, ts: TimeStep, n: int, keep_pairs: bool = False):
@@ -1204,17 +1221,53 @@ class BlockSolver:
         wp.copy(held[0], state.ext_force)  # integrate_blocks zeroes the load after each sub-step
         wp.copy(held[1], state.ext_torque)
         contacts_only = keep_pairs and self.has_free_blocks
+        graphs = self._substep_graphs if (contacts_only and self.sync_free) else None
         for i in range(n):
+            if i and graphs is not None:  # sub-steps 1..n-1 replayed from a CUDA graph (the clock advances on the device)
+                if i == 1:
+                    self._set_clock(ts.time + h + h, h)
+                wp.capture_launch(self._substep_graph(state, held, h))
+                state.swap_tables()  # the graph's narrow phase wrote the other table
+                self.graph_substeps += 1
+                continue
             if i:
                 wp.copy(state.ext_force, held[0])
                 wp.copy(state.ext_torque, held[1])
+            self._set_clock(ts.time + i * h + h, h)
             if i and contacts_only:
                 self._prepare(state)
                 self._narrow_phase(state, h)
             else:
                 self._contact_forces(state, h)
-            self._integrate(state, h, ts.time + i * h)
+            self._integrate(state)
         state.time = ts.time + ts.dt
+
+    def _substep_one(self, state: BlockState, held, h: float):
+        """One kept-pairs sub-step at the device clock, then the clock advances (the captured body)."""
+        wp.copy(state.ext_force, held[0])
+        wp.copy(state.ext_torque, held[1])
+        self._prepare(state)
+        self._narrow_phase(state, h)
+        self._integrate(state)
+        wp.launch(K.advance_block_clock, dim=1, inputs=[self.block_clock], device=self.device)
+
+    def _substep_graph(self, state: BlockState, held, h: float):
+        """The CUDA graph of one kept-pairs sub-step for the tables' current parity, captured on first use
+        (sync-free path: no host read, no allocation inside). Its key holds every address it baked in
+        (state arrays, both contact tables, the pair list), so a reallocation captures a new one."""
+        t0, t1 = state.tables
+        key = (id(t0), id(t1), state.table_cap, state.point_cap, self.pair_cap, state.x.ptr, state.ext_force.ptr,
+               held[0].ptr, self.pair_list.active.ptr if hasattr(self.pair_list, "active") else 0)
+        g = self._substep_graphs.get(key)
+        if g is None:
+            if len(self._substep_graphs) > 8:  # stale keys after reallocations
+                self._substep_graphs.clear()
+            tables, views = list(state.tables), list(state.table_views)
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                self._substep_one(state, held, h)
+            state.tables, state.table_views = tables, views  # capture ran no kernel: the parity is unchanged
+            g = self._substep_graphs[key] = cap.graph
+        return g
 
     def pairs_hold(self, state: BlockState, dt: float, headroom: float = 2.0) -> bool:
         """Whether one broad phase can serve a whole step dt of sub-steps: max over the blocks that move

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import warp as wp
 
 import rockwave
 from rockwave.clock import MAX_BLOCK_SUBSTEPS
@@ -141,3 +142,24 @@ def test_fixed_step_above_the_block_limit_substeps():
     d["simulation"]["block_stepping"] = "single"
     with pytest.raises(SceneError, match=r"simulation\.dt_s.*critical DDA step"):
         _sim(d)
+
+
+@pytest.mark.skipif(not wp.get_device(DEVICE).is_cuda,
+                    reason="CUDA graphs of block sub-steps exist on CUDA only (the CPU launches each kernel); "
+                           "run with ROCKWAVE_TEST_DEVICE=cuda:0")
+def test_substep_graphs_replay_the_launched_substeps():
+    """On CUDA, sub-steps 1..n-1 of each fluid step replay a captured graph (BlockOptions.substep_graphs):
+    the slide moves as with the same kernels launched one by one (to float round-off: the contact loads
+    are atomic sums, whose order on a GPU is not fixed), and the graphs were used."""
+    runs = []
+    for graphs in (True, False):
+        sim = _sim(_slide_dict())
+        if not graphs:
+            sim.block_solver._substep_graphs = None
+        sim.advance(0.05)
+        assert sim.clock.substeps > 1
+        runs.append((sim.block_positions(), sim.block_velocities(), sim.block_solver.graph_substeps))
+    (x1, v1, g1), (x0, v0, g0) = runs
+    assert g1 > 0 and g0 == 0
+    assert np.abs(x1 - x0).max() < 1e-5
+    assert np.abs(v1 - v0).max() < 1e-3
