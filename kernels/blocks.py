@@ -287,6 +287,40 @@ def add_damper(
 
 
 @wp.func
+def inv_rocking_inertia(b: int, e: wp.vec3, c: wp.vec3, props: BlockProps, bodies: BlockBodies):
+    # 1 / I of block b about the axis e through the point c (parallel axes: e.I_w e + m |e x (x_b - c)|^2);
+    # 0 for a fixed or kinematic block
+    if not movable(props.kinds[b]):
+        return float(0.0)
+    R = wp.quat_to_matrix(bodies.q[b])
+    Iw = R * props.inertia_body[b] * wp.transpose(R)
+    arm = wp.cross(e, bodies.x[b] - c)
+    return 1.0 / (wp.dot(e, Iw * e) + wp.dot(arm, arm) / props.inv_mass[b])
+
+
+@wp.func
+def add_rocking_damper(
+    A: int,
+    B: int,
+    e: wp.vec3,
+    c: float,
+    wA: wp.vec3,
+    wB: wp.vec3,
+    kinds: wp.array(dtype=int),
+    loads: BlockLoads,
+):
+    # rotational dashpot c about the axis e between blocks A and B, implicit like add_damper: on B the
+    # torque -c e e.(w_B - w_A) with w_B at the end of the step, J = [0, e]
+    j = wp.spatial_vector(wp.vec3(0.0, 0.0, 0.0), e)
+    if movable(kinds[B]):
+        wp.atomic_add(loads.damp_c, B, c * wp.outer(j, j))
+        wp.atomic_add(loads.damp_b, B, (c * wp.dot(e, wA)) * j)
+    if movable(kinds[A]):
+        wp.atomic_add(loads.damp_c, A, c * wp.outer(j, j))
+        wp.atomic_add(loads.damp_b, A, (c * wp.dot(e, wB)) * j)
+
+
+@wp.func
 def solve6(Ain: wp.spatial_matrix, bin: wp.spatial_vector):
     # x = A^-1 b for a symmetric positive definite 6x6 (Gaussian elimination, no pivoting needed)
     A = Ain
@@ -1392,6 +1426,8 @@ def contact_forces(
         if not implicit and dt > 0.0:
             cs = wp.min(cs, m_eff / (float(n_stuck) * dt))  # explicit dashpot: c dt <= m (stable, no overshoot)
     # pass 2: forces
+    impact_pts = int(0)
+    cn_face = 2.0 * sq_n  # a resting point's normal dashpot
     for k in range(nc):
         c = base + k
         p = new_pos[c]
@@ -1404,6 +1440,7 @@ def contact_forces(
         zn = float(1.0)
         if cur.vimp[c] > v_rest:
             zn = zt
+            impact_pts += 1
         cn = 2.0 * zn * sq_n
         if not implicit and dt > 0.0:
             cn = wp.min(cn, m_eff / (float(nc) * dt))
@@ -1449,6 +1486,28 @@ def contact_forces(
             if kinds[A] == KIND_DEFORMABLE:
                 Xa = wp.quat_rotate_inv(q[A], p - x[A])
                 wp.atomic_add(strain_force, A, strain_gen_force(Xa, wp.quat_rotate_inv(q[A], -f)))
+    # rocking of a resting face: the point dashpots (critical for the normal translation, c_n per point) give
+    # its two rocking modes about the in-plane axes through the patch centre only c_n sum l_k^2 against
+    # 2 sqrt(K_e I_e) critical (K_e = k_n sum l_k^2, l_k the points' lever arms, I_e the blocks' inertia about
+    # that axis): zeta = sqrt(m / (n I_e / sum l_k^2)), 0.67 for a block of h/w 1.2 on its base. A suddenly
+    # loaded face (gravity on a block set down on it) then pitches and overshoots, as a stuck shear spring
+    # would without its overdamped dashpot; so the rocking modes get the stuck shear's ratio ZETA_STUCK,
+    # the missing part as an implicit rotational dashpot (resting faces of rigid blocks: not at an impact,
+    # which keeps the restitution's damping)
+    if implicit and nc >= 3 and impact_pts == 0:
+        for ax in range(2):
+            e = t1
+            if ax == 1:
+                e = t2
+            sl2 = float(0.0)
+            for k in range(nc):
+                lk = wp.dot(wp.cross(e, new_pos[base + k] - cen), n)
+                sl2 += lk * lk
+            inv_i = inv_rocking_inertia(A, e, cen, props, bodies) + inv_rocking_inertia(B, e, cen, props, bodies)
+            if sl2 > 0.0 and inv_i > 0.0:
+                c_rock = 2.0 * ZETA_STUCK * wp.sqrt(kn * sl2 / inv_i) - cn_face * sl2
+                if c_rock > 0.0:
+                    add_rocking_damper(A, B, e, c_rock, w[A], w[B], kinds, loads)
     wp.atomic_add(loads.contact_count, A, nc)
     wp.atomic_add(loads.contact_count, B, nc)
 
