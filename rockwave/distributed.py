@@ -304,7 +304,7 @@ class DistributedSimulation(Simulation):
         self.comm = comm if comm is not None else MPI.COMM_WORLD
         self.rank, self.size = self.comm.Get_rank(), self.comm.Get_size()
         from rockwave.device import resolve_device
-        from rockwave.scene import load_scene, Scene
+        from rockwave.scene import Scene, load_scene
 
         if not isinstance(scene, Scene):
             scene = load_scene(scene)
@@ -322,6 +322,7 @@ class DistributedSimulation(Simulation):
         self._last_gather = time.perf_counter()
         self._gather_every_step = scene.hazard is not None  # the hazard monitor reads the state after every step
         self._collective = False
+        self._busy = False  # rank 0 is inside a command the other ranks follow
 
     # ------------------------------------------------------------ the clock's questions ----
     def _limits(self) -> dict:
@@ -426,17 +427,28 @@ class DistributedSimulation(Simulation):
         if self.rank == 0 and self.size > 1:
             self._command(("stop",))
 
+    def finish(self) -> None:
+        """Rank 0 at the end of a run: close(), or MPI Abort when an error left the other ranks inside a step
+        (they wait in a collective that rank 0 will not join)."""
+        if self._busy:
+            require_mpi().COMM_WORLD.Abort(1)
+        self.close()
+
     def advance(self, duration: float, watch=None) -> None:
         if self.rank == 0:
             self._command(("advance", duration))
+        self._busy = True
         self._advance(duration, watch if self.rank == 0 else None)
+        self._busy = False
 
     def step(self, dt: float | None = None) -> None:
         if self._collective:  # inside advance: every rank is stepping
             return super().step(dt)
         if self.rank == 0:
             self._command(("step", dt))
+        self._busy = True
         self._step(dt)
+        self._busy = False
 
     def gather(self) -> None:
         """Rank 0: refresh the full state from the ranks (advance and step do it when they end)."""
