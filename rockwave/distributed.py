@@ -416,7 +416,7 @@ class DistributedSimulation(Simulation):
             if cmd[0] == "stop":
                 return
             if cmd[0] == "advance":
-                self._advance(cmd[1], None)
+                self._advance(cmd[1], None, cmd[2])
             elif cmd[0] == "step":
                 self._step(cmd[1])
             elif cmd[0] == "gather":
@@ -434,11 +434,13 @@ class DistributedSimulation(Simulation):
             require_mpi().COMM_WORLD.Abort(1)
         self.close()
 
-    def advance(self, duration: float, watch=None) -> None:
+    def advance(self, duration: float, watch=None, gather: bool = True) -> None:
+        """As Simulation.advance, on every rank; ``gather``: refresh rank 0's full state at the end (False:
+        a timing that leaves it out; call gather() before reading)."""
         if self.rank == 0:
-            self._command(("advance", duration))
+            self._command(("advance", duration, gather))
         self._busy = True
-        self._advance(duration, watch if self.rank == 0 else None)
+        self._advance(duration, watch if self.rank == 0 else None, gather)
         self._busy = False
 
     def step(self, dt: float | None = None) -> None:
@@ -465,7 +467,7 @@ class DistributedSimulation(Simulation):
         self.dfluid.gather()
         self._synced_time = self.clock.time
 
-    def _advance(self, duration: float, watch) -> None:
+    def _advance(self, duration: float, watch, gather: bool = True) -> None:
         def after_step():
             now = self.comm.bcast(time.perf_counter() - self._last_gather >= GATHER_WALL_S if self.rank == 0 else None,
                                   root=0)
@@ -480,8 +482,11 @@ class DistributedSimulation(Simulation):
             super().advance(duration, after_step)
         finally:
             self._collective = False
-        self.dfluid.gather()
-        self._last_gather = time.perf_counter()
+        if gather:
+            self.dfluid.gather()
+            self._last_gather = time.perf_counter()
+        else:
+            self.comm.Barrier()  # every rank finished its steps
         self._synced_time = self.clock.time
 
 
