@@ -144,16 +144,11 @@ class DistributedFluid:
 
         depth = 3 if (m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary) else 2
         self.dec = SlabDecomposition(m.initial_positions[: m.n_fluid], self.size, m.dim, m.support_radius, depth)
-        ax = self.dec.axis
-        lo, hi = self.dec.faces[self.rank], self.dec.faces[self.rank + 1]
-        self.lo, self.hi = lo, hi
-        xb = np.asarray(m.initial_positions[m.n_fluid: m.n_total], float)
-        reach = self.dec.halo + m.support_radius
-        self.boundary_index = np.flatnonzero((xb[:, ax] >= lo - reach) & (xb[:, ax] < hi + reach)) if len(xb) else np.zeros(0, int)
-        self.xb = xb[self.boundary_index]
         mass = m.particle_mass.numpy()
         self.fluid_mass = float(mass[0])
-        self.mb = mass[m.n_fluid:][self.boundary_index]
+        self._xb_all = np.asarray(m.initial_positions[m.n_fluid: m.n_total], float)
+        self._mb_all = mass[m.n_fluid:]
+        self._set_slab()
         self.lower = self.rank - 1 if self.rank > 0 else None
         self.upper = self.rank + 1 if self.rank < self.size - 1 else None
         self.options = replace(sim.options.fluid or _fluid_options(sim), neighbour_skin=0.0, reorder_interval=0,
@@ -163,6 +158,51 @@ class DistributedFluid:
         self.n_halo = 0
         self.migrated = 0  # particles this rank received from a neighbour's slab
         self.migrated_total = 0  # rank 0, after a gather: summed over ranks
+        self.rebalances = 0  # slab face moves (rebalance)
+
+    def _set_slab(self) -> None:
+        """This rank's slab [lo, hi) and its walls (within the halo + H of the slab)."""
+        ax = self.dec.axis
+        self.lo, self.hi = self.dec.faces[self.rank], self.dec.faces[self.rank + 1]
+        reach = self.dec.halo + self.global_model.support_radius
+        xb = self._xb_all
+        sel = (xb[:, ax] >= self.lo - reach) & (xb[:, ax] < self.hi + reach) if len(xb) else np.zeros(0, bool)
+        self.boundary_index = np.flatnonzero(sel)
+        self.xb, self.mb = xb[self.boundary_index], self._mb_all[self.boundary_index]
+        self._solver = None
+
+    def rebalance(self, tolerance: float, bins: int = 4096) -> bool:
+        """Move the slab faces when the busiest rank owns more than (1 + tolerance) x the mean count: new faces at
+        equal-count quantiles of a histogram of the owned coordinates summed over ranks (``bins`` bins between the
+        water's extremes); particles go to their new owners (all-to-all). Refused (False) when a slab would be
+        narrower than the halo. Collective."""
+        MPI = require_mpi()
+        comm, ax = self.comm, 1 + self.dec.axis
+        counts = np.array(comm.allgather(len(self.rows)))
+        if counts.max() <= (1.0 + tolerance) * counts.mean():
+            return False
+        c = self.rows[:, ax]
+        ext = np.array([c.min() if len(c) else np.inf, -c.max() if len(c) else np.inf])
+        comm.Allreduce(MPI.IN_PLACE, ext, op=MPI.MIN)
+        lo, hi = ext[0], -ext[1]
+        if not hi > lo:
+            return False
+        hist = np.histogram(c, bins=bins, range=(lo, hi))[0].astype(np.int64)
+        comm.Allreduce(MPI.IN_PLACE, hist, op=MPI.SUM)
+        cum = np.cumsum(hist)
+        edges = np.linspace(lo, hi, bins + 1)
+        inner = [float(edges[1 + np.searchsorted(cum, r * cum[-1] / self.size)]) for r in range(1, self.size)]
+        faces = np.array([-np.inf, *inner, np.inf])
+        widths = np.diff(faces)[1:-1]
+        if (len(widths) and widths.min() < self.dec.halo) or np.any(np.diff(faces) <= 0):
+            return False
+        self.dec.faces = faces
+        own = self.dec.owner(c)
+        parts = comm.alltoall([self.rows[own == r] for r in range(self.size)])
+        self.rows = np.concatenate(parts)
+        self._set_slab()
+        self.rebalances += 1
+        return True
 
     # ------------------------------------------------------------ partition / gather --------
     def partition(self) -> None:
@@ -299,8 +339,10 @@ class DistributedSimulation(Simulation):
     ``run``, ``advance``, ``step`` and the readers work as on one rank; the other ranks call ``serve()``
     (it returns when rank 0 calls ``close()``)."""
 
-    def __init__(self, scene, device: str | None = None, options: SimulationOptions | None = None, comm=None):
+    def __init__(self, scene, device: str | None = None, options: SimulationOptions | None = None, comm=None,
+                 balance_tolerance: float | None = 0.1, balance_interval: int = 20):
         MPI = require_mpi()
+        self.balance_tolerance, self.balance_interval = balance_tolerance, max(int(balance_interval), 1)
         self.comm = comm if comm is not None else MPI.COMM_WORLD
         self.rank, self.size = self.comm.Get_rank(), self.comm.Get_size()
         from rockwave.device import resolve_device
@@ -347,6 +389,8 @@ class DistributedSimulation(Simulation):
     # ------------------------------------------------------------ one step ------------------
     def _launch_step(self, ts, reorder: bool = False) -> None:
         df = self.dfluid
+        if self.balance_tolerance is not None and self.clock.steps % self.balance_interval == 0:
+            df.rebalance(self.balance_tolerance)
         state, local = df.local_state(df.halo())
         solver = df._solver[1]
         if self.coupling is not None:
@@ -500,9 +544,12 @@ def _main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=1, help="advance in this many equal parts (default 1)")
     ap.add_argument("--out", required=True, help=".npz of positions, velocities, densities, block poses")
     ap.add_argument("--plain", action="store_true", help="the one-process Simulation, no MPI")
+    ap.add_argument("--balance", type=float, default=0.1, help="move the slab faces when a rank owns more than "
+                    "(1 + BALANCE) x the mean (default 0.1)")
     a = ap.parse_args(argv)
     wp.config.quiet = True
-    sim = Simulation(a.scene, device="cpu") if a.plain else DistributedSimulation(a.scene, device="cpu")
+    sim = Simulation(a.scene, device="cpu") if a.plain else DistributedSimulation(a.scene, device="cpu",
+                                                                                   balance_tolerance=a.balance)
     if not a.plain and sim.rank != 0:
         sim.serve()
         return 0
@@ -511,7 +558,7 @@ def _main(argv=None) -> int:
     save = dict(x=sim.positions(), v=sim.velocities(), rho=sim.densities(), time=sim.time, steps=sim.steps,
                 dt=sim.dt, blocks=sim.block_positions(), block_v=sim.block_velocities(),
                 ranks=getattr(sim, "size", 1), migrated=sim.dfluid.migrated_total if not a.plain else 0,
-                axis=sim.dfluid.dec.axis if not a.plain else -1, faces=sim.dfluid.dec.faces if not a.plain else [])
+                axis=sim.dfluid.dec.axis if not a.plain else -1, rebalances=sim.dfluid.rebalances if not a.plain else 0, faces=sim.dfluid.dec.faces if not a.plain else [])
     if not a.plain:
         sim.close()
     np.savez(a.out, **save)
