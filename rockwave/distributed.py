@@ -22,6 +22,10 @@ Hydrodynamics simulations", IEEE TPDS 25(1)):
 * Boundary (wall) particles are static: each rank keeps those within its slab widened by the halo + H.
 * Migration: after the step, owned particles whose coordinate left the slab go to the neighbour rank
   (a particle moves far less than one slab per step: CFL).
+* Load balance: every ``balance_interval`` steps, when the busiest rank owns more than (1 + ``balance_tolerance``)
+  x the mean count, the faces move to equal-count quantiles of a histogram of the owned coordinates summed over
+  the ranks, and the particles go to their new owners (all-to-all); refused while a slab would be narrower
+  than the halo.
 * dt: every rank reduces max |v|^2 and max |a|^2 of its owned particles (MPI allreduce, max), so the fluid
   limit is the one-rank limit (Monaghan 1992, FluidSolver.stable_dt); the block and coupling limits are
   replicated.
@@ -35,9 +39,10 @@ Hydrodynamics simulations", IEEE TPDS 25(1)):
   differs from the last one it distributed).
 
 The CPU path packs halo and migration buffers with numpy on the host (one float64 row per particle:
-id, x, v, rho, a, p) and exchanges them with mpi4py (host MPI). Not done yet: Warp packing kernels and
-NCCL (nccl4py) on GPUs, moving slab faces during the run, Ghost SPH, per-rank memory below the full
-state (every rank builds the whole scene once).
+id, x, v, rho, a, p) and exchanges them with mpi4py (host MPI); the rank's solver arrays are rebuilt from
+them each step (the solver object itself when the local count changes). Not done yet: Warp packing kernels and
+NCCL (nccl4py) on GPUs with device-resident buffers, Ghost SPH, per-rank memory below the full state (every
+rank builds the whole scene once).
 
 Results differ from one rank within float round-off, not bit for bit: a rank's neighbour lists hold the
 same pairs in another order (its cell sort sees other slots), so the float32 sums over neighbours are
