@@ -15,7 +15,8 @@ Hydrodynamics simulations", IEEE TPDS 25(1)):
   j (|x_i - x_j| < H) *after* their densities were updated in the same step (summation: rho_j = sum_k m_k
   W_jk; continuity: rho_j += dt sum_k m_k v_jk . grad W_jk), so the neighbours' neighbours k must be present
   too: the halo is 2 H wide (3 H with Adami walls, whose wall pressure is extrapolated from the fluid within
-  H of the wall particle, itself within H of i). One support would need a second exchange inside the step
+  H of the wall particle, itself within H of i; one more with the delta-SPH density diffusion, which mixes the
+  neighbours' new densities into a density before the forces read it). One support would need a second exchange inside the step
   (the densities), i.e. a change to FluidSolver.step; the wider halo keeps the solver unchanged. Halo
   particles are fluid in the rank's arrays (after the owned ones); their results are wrong near the halo's
   outer edge and are thrown away after the step: they are never integrated into the rank's owned set.
@@ -147,7 +148,9 @@ class DistributedFluid:
         self.global_model = m
         from rockwave.kernels import fluid as sph
 
-        depth = 3 if (m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary) else 2
+        # supports of halo (module doc): 2, +1 when Adami walls extrapolate the fluid's new pressures, +1 when the
+        # delta-SPH diffusion mixes the neighbours' new densities into a density before the forces read it
+        depth = 2 + int(m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary > 0) + int(m.density_diffusion > 0.0)
         self.dec = SlabDecomposition(m.initial_positions[: m.n_fluid], self.size, m.dim, m.support_radius, depth)
         mass = m.particle_mass.numpy()
         self.fluid_mass = float(mass[0])

@@ -99,10 +99,11 @@ def _scene(tmp_path: Path, name: str, text: str) -> Path:
     return p
 
 
-def _mpi(args: list[str], cwd: Path, n: int = 2) -> None:
+def _mpi(args: list[str], cwd: Path, n: int = 2) -> subprocess.CompletedProcess:
     r = subprocess.run([MPIEXEC, "-n", str(n), sys.executable, *args], cwd=cwd, capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    return r
 
 
 def _two_ranks(scene: Path, duration: float, tmp_path: Path, n: int = 2) -> dict:
@@ -181,16 +182,17 @@ def _csv(path: Path) -> np.ndarray:
 
 
 def test_cli_checkpoint_resumes_on_other_rank_count(tmp_path):
-    """A run checkpointed on one rank resumes on two (`run --ranks --resume`); its gauges and block
-    trajectory follow the uninterrupted one-rank run."""
+    """A run checkpointed on one rank resumes on two (`run --resume` under mpiexec: the ranks are detected
+    without --ranks); its gauges and block trajectory follow the uninterrupted one-rank run."""
     scene = _scene(tmp_path, "coupled", COUPLED)
     cli = [sys.executable, "-m", "rockwave", "run", str(scene), "--quiet"]
     for out, dur in (("straight", "0.08"), ("split", "0.04")):
         r = subprocess.run(cli + ["--out", str(tmp_path / out), "--duration", dur], capture_output=True, text=True,
                            timeout=300)
         assert r.returncode == 0, r.stderr[-3000:]
-    _mpi(["-m", "rockwave", "run", str(scene), "--quiet", "--ranks", "--resume", "--out", str(tmp_path / "split"),
-          "--duration", "0.08"], tmp_path)
+    r = _mpi(["-m", "rockwave", "run", str(scene), "--quiet", "--resume", "--out", str(tmp_path / "split"),
+              "--duration", "0.08"], tmp_path)
+    assert r.stderr.count("2 ranks, slabs along axis 0") == 1  # one run on two ranks, not two runs
     for name in ("gauges.csv", "blocks.csv"):
         a, b = _csv(tmp_path / "straight" / name), _csv(tmp_path / "split" / name)
         assert a.shape == b.shape and len(a) == 5  # frames 0..4 at 50 Hz
