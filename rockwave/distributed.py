@@ -336,6 +336,13 @@ class DistributedFluid:
         return float(out[0]), float(out[1])
 
 
+def _lap(timings: dict, key: str, t0: float) -> float:
+    """Add the wall time since t0 to timings[key]; return now."""
+    now = time.perf_counter()
+    timings[key] = timings.get(key, 0.0) + now - t0
+    return now
+
+
 def _fluid_options(sim):
     from rockwave.fluid import FluidOptions
 
@@ -373,6 +380,9 @@ class DistributedSimulation(Simulation):
         self._gather_every_step = scene.hazard is not None  # the hazard monitor reads the state after every step
         self._collective = False
         self._busy = False  # rank 0 is inside a command the other ranks follow
+        # wall seconds of this rank's steps: halo + migration + rebalance ("exchange"), host rows <-> rank arrays
+        # and solver (re)allocation ("local_arrays"), the fluid step with the coupling ("fluid_step")
+        self.timings: dict[str, float] = {}
 
     # ------------------------------------------------------------ the clock's questions ----
     def _limits(self) -> dict:
@@ -396,11 +406,15 @@ class DistributedSimulation(Simulation):
 
     # ------------------------------------------------------------ one step ------------------
     def _launch_step(self, ts, reorder: bool = False) -> None:
-        df = self.dfluid
+        df, tm = self.dfluid, self.timings
+        t = time.perf_counter()
         if self.balance_tolerance is not None and self.clock.steps % self.balance_interval == 0:
             df.rebalance(self.balance_tolerance)
-        state, local = df.local_state(df.halo())
+        halo = df.halo()
+        t = _lap(tm, "exchange", t)
+        state, local = df.local_state(halo)
         solver = df._solver[1]
+        t = _lap(tm, "local_arrays", t)
         if self.coupling is not None:
             self._coupled_compute(state, local, ts)
         solver.step(state, ts)
@@ -410,8 +424,12 @@ class DistributedSimulation(Simulation):
                 self.coupling.apply(state, ts)
             finally:
                 self.coupling.fluid = keep
+        wp.synchronize_device(self.device)
+        t = _lap(tm, "fluid_step", t)
         df.read_back(state)
+        t = _lap(tm, "local_arrays", t)
         df.migrate()
+        t = _lap(tm, "exchange", t)
         if self.block_solver is not None:  # replicated: identical loads, identical steps on every rank
             n = self.clock.substeps
             if n > 1 and (self.clock.steps % self.clock.update_interval == 0 or not hasattr(self, "_pairs_hold")):
