@@ -11,15 +11,18 @@ Hydrodynamics simulations", IEEE TPDS 25(1)):
   the initial particle positions (the load balance of the start). Rank r owns the fluid particles whose
   coordinate lies in [face_r, face_r+1) (the outer faces at -inf / +inf, so particles leaving the domain
   stay owned).
-* Halo. The step reads, for an owned particle i, the positions, velocities and densities of its neighbours
-  j (|x_i - x_j| < H) *after* their densities were updated in the same step (summation: rho_j = sum_k m_k
-  W_jk; continuity: rho_j += dt sum_k m_k v_jk . grad W_jk), so the neighbours' neighbours k must be present
-  too: the halo is 2 H wide (3 H with Adami walls, whose wall pressure is extrapolated from the fluid within
-  H of the wall particle, itself within H of i; one more with the delta-SPH density diffusion, which mixes the
-  neighbours' new densities into a density before the forces read it). One support would need a second exchange inside the step
-  (the densities), i.e. a change to FluidSolver.step; the wider halo keeps the solver unchanged. Halo
-  particles are fluid in the rank's arrays (after the owned ones); their results are wrong near the halo's
-  outer edge and are thrown away after the step: they are never integrated into the rank's owned set.
+* Halo, one kernel support H wide: the neighbours' owned particles within H of the slab (positions,
+  velocities, densities, pressures) are fluid in the rank's arrays, after the owned ones. The forces on an
+  owned particle i read its neighbours' densities *updated in the same step* (summation: rho_j = sum_k m_k
+  W_jk; continuity: rho_j += dt sum_k m_k v_jk . grad W_jk), which a halo slot cannot compute (its k reach
+  2 H past the face). So the step's halo densities come from their owners: RankFluidSolver (FluidSolver with
+  its ``wall_pressure`` hook, which runs after the density passes and before the forces) sends each owned
+  particle's new rho, p and p/rho^2 to the ranks that hold it as halo, and takes theirs for its halo slots
+  (a second exchange inside the step; the step itself is FluidSolver.step, unchanged). One more support with
+  Adami walls (a wall particle within H of i extrapolates its pressure from the fluid within H of itself) and
+  one more with the delta-SPH density diffusion (it reads the neighbours' densities before the exchange).
+  Halo results (accelerations, new positions) are thrown away after the step: they are never integrated
+  into the rank's owned set.
 * Boundary (wall) particles are static: each rank keeps those within its slab widened by the halo + H.
 * Migration: after the step, owned particles whose coordinate left the slab go to the neighbour rank
   (a particle moves far less than one slab per step: CFL).
@@ -62,6 +65,7 @@ from dataclasses import replace
 import numpy as np
 import warp as wp
 
+from rockwave.fluid import FluidSolver
 from rockwave.simulation import Simulation, SimulationOptions
 
 # columns of a particle row (float64; ids are exact below 2^53, float32 values exactly)
@@ -148,9 +152,10 @@ class DistributedFluid:
         self.global_model = m
         from rockwave.kernels import fluid as sph
 
-        # supports of halo (module doc): 2, +1 when Adami walls extrapolate the fluid's new pressures, +1 when the
-        # delta-SPH diffusion mixes the neighbours' new densities into a density before the forces read it
-        depth = 2 + int(m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary > 0) + int(m.density_diffusion > 0.0)
+        # supports of halo (module doc): 1, +1 with Adami walls (a wall particle within H of a particle extrapolates
+        # the fluid within H of itself), +1 with delta-SPH diffusion (it reads the neighbours' densities before
+        # the halo's come from their owners)
+        depth = 1 + int(m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary > 0) + int(m.density_diffusion > 0.0)
         self.dec = SlabDecomposition(m.initial_positions[: m.n_fluid], self.size, m.dim, m.support_radius, depth)
         mass = m.particle_mass.numpy()
         self.fluid_mass = float(mass[0])
@@ -261,7 +266,7 @@ class DistributedFluid:
         for dest, src, buf in ((lower, upper, to_lower), (upper, lower, to_upper)):
             n_in = np.zeros(1, np.int64)
             comm.Sendrecv(np.array([len(buf)], np.int64), dest=dest, recvbuf=n_in, source=src, sendtag=1, recvtag=1)
-            recv = np.empty((int(n_in[0]) if src != MPI.PROC_NULL else 0, ROW))
+            recv = np.empty((int(n_in[0]) if src != MPI.PROC_NULL else 0, buf.shape[1]))
             comm.Sendrecv(np.ascontiguousarray(buf), dest=dest, recvbuf=recv, source=src, sendtag=2, recvtag=2)
             got.append(recv)
         return np.concatenate(got)
@@ -270,9 +275,28 @@ class DistributedFluid:
         """The neighbours' owned particles within the halo width of this rank's slab."""
         c = self.rows[:, 1 + self.dec.axis]
         h = self.dec.halo
-        to_lower = self.rows[c < self.lo + h] if self.lower is not None else self.rows[:0]
-        to_upper = self.rows[c >= self.hi - h] if self.upper is not None else self.rows[:0]
-        return self._sendrecv(to_lower, to_upper)
+        none = np.zeros(0, np.int64)
+        self._sent = (np.flatnonzero(c < self.lo + h) if self.lower is not None else none,
+                      np.flatnonzero(c >= self.hi - h) if self.upper is not None else none)
+        return self._sendrecv(self.rows[self._sent[0]], self.rows[self._sent[1]])
+
+    def exchange_densities(self, state, solver) -> None:
+        """Inside the step, after the densities and before the forces (RankFluidSolver.wall_pressure): the halo
+        particles take their owners' new rho, p and p/rho^2, computed there with all their neighbours (a halo
+        slot's own sum misses the neighbours beyond the halo). The halo rows are in the order halo() received
+        them, and the owners send the same rows in the same order."""
+        n_own = len(self.rows)
+        n = n_own + self.n_halo
+        cols = [state.rho, state.pressure, solver._pr2]
+        vals = np.stack([a.numpy()[:n].astype(np.float64) for a in cols], axis=1)
+        got = self._sendrecv(vals[self._sent[0]], vals[self._sent[1]])
+        if len(got) != self.n_halo:
+            raise RuntimeError(f"density exchange: {len(got)} values for {self.n_halo} halo particles")
+        vals[n_own:] = got
+        for k, a in enumerate(cols):
+            h = a.numpy()
+            h[:n] = vals[:, k]
+            a.assign(h)
 
     def migrate(self) -> None:
         """Owned particles that crossed a slab face go to the neighbour that owns them now."""
@@ -290,7 +314,7 @@ class DistributedFluid:
     def local_state(self, halo_rows: np.ndarray):
         """The rank's FluidState: owned particles, then halo particles (fluid, not kept), then its walls;
         the solver is rebuilt when the local particle count changes."""
-        from rockwave.fluid import FluidSolver, FluidState
+        from rockwave.fluid import FluidState
 
         m, d = self.global_model, self.global_model.device
         rows = np.concatenate([self.rows, halo_rows])
@@ -302,7 +326,7 @@ class DistributedFluid:
             local = replace(m, n_fluid=n, n_boundary=nb, params=_copy_params(m.params, n),
                             particle_mass=wp.array(mass, dtype=float, device=d),
                             initial_positions=pos, initial_velocities=np.zeros_like(pos))
-            self._solver = (n, FluidSolver(local, self.options), local)
+            self._solver = (n, RankFluidSolver(local, self.options, exchange=self.exchange_densities), local)
         local = self._solver[2]
         nw = max(nb, 1)
         x = np.concatenate([rows[:, X], self.xb]).astype(np.float32)
@@ -336,6 +360,19 @@ class DistributedFluid:
         return float(out[0]), float(out[1])
 
 
+class RankFluidSolver(FluidSolver):
+    """The fluid solver of one rank: FluidSolver.step unchanged, with the halo's densities taken from their
+    owners between the density and force passes (the wall_pressure hook runs there in every step)."""
+
+    def __init__(self, model, options, exchange):
+        super().__init__(model, options)
+        self._exchange = exchange
+
+    def wall_pressure(self, state) -> None:
+        self._exchange(state, self)
+        super().wall_pressure(state)
+
+
 def _lap(timings: dict, key: str, t0: float) -> float:
     """Add the wall time since t0 to timings[key]; return now."""
     now = time.perf_counter()
@@ -367,8 +404,6 @@ class DistributedSimulation(Simulation):
             scene = load_scene(scene)
         dev = rank_device(resolve_device(device if device is not None else scene.simulation.device), self.comm)
         super().__init__(scene, dev, options)
-        from rockwave.fluid import FluidSolver
-
         if self.fluid is None or self.fluid.n_fluid == 0:
             raise ValueError("--ranks decomposes the water: this scene has none (run it on one rank)")
         if type(self.fluid_solver) is not FluidSolver:
