@@ -94,15 +94,6 @@ def require_mpi():
     return MPI
 
 
-def nccl_available() -> bool:
-    """Whether nccl4py imports (the GPU transport; not used yet: host MPI carries the buffers)."""
-    try:
-        import nccl  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def rank_device(device: str, comm) -> str:
     """One GPU per rank: cuda devices are assigned by the rank within its node."""
     if not device.startswith("cuda"):
