@@ -53,6 +53,8 @@ def _parser() -> argparse.ArgumentParser:
                    "output.checkpoint_interval_s of wall-clock time, on Ctrl-C and on a blow-up)")
     r.add_argument("--checkpoint-every", type=float, default=None, metavar="SECONDS",
                    help="wall-clock seconds between checkpoints (overrides output.checkpoint_interval_s; 0: none)")
+    r.add_argument("--ranks", action="store_true", help="one scene on all ranks of the MPI job (mpiexec -n N ...; detected "
+                   "without the flag when the MPI world has more than one rank; README 'Several GPUs (MPI)')")
     v = sub.add_parser("validate", help="check a scene file without running it: every check 'run' makes before its first step")
     v.add_argument("scene", nargs="?", default=None, help=f"scene TOML file (default: the built-in {DEFAULT_SCENE_NAME})")
     v.add_argument("--device", default=None, help="device the memory and run-length estimates are for (default: the scene's)")
@@ -186,8 +188,20 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"--checkpoint-every must be a number of seconds >= 0, got {args.checkpoint_every}")
 
     out = Path(args.out) if args.out else Path("runs") / scene.name
+    from rockwave.distributed import world_size_from_env
+
+    ranks, sim = args.ranks or world_size_from_env() > 1, None
     try:
-        sim = Simulation(scene, device=device)
+        if ranks:  # rockwave/distributed.py: rank 0 runs the loop below, the other ranks follow it
+            from rockwave.distributed import DistributedSimulation
+
+            sim = DistributedSimulation(scene, device=device)
+            if sim.rank != 0:
+                sim.serve()
+                return 0
+            print(f"{sim.size} ranks, slabs along axis {sim.dfluid.dec.axis} (halo {sim.dfluid.dec.halo:g} m)", file=sys.stderr)
+        else:
+            sim = Simulation(scene, device=device)
         sim.run_length_forced = bool(args.yes)  # --yes, for the run loop's own run-length check
         if sim.fluid is not None and sim.fluid.n_fluid == 0:
             raise SceneError(scene.path, [("fluid.regions", "no water particle is left after seeding (outside the tank, "
@@ -211,6 +225,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"interrupted: frames written so far are in {out}; continue with --resume", file=sys.stderr)
         return 130
+    finally:
+        if ranks and sim is not None and getattr(sim, "rank", 1) == 0:
+            sim.finish()  # release the other ranks (or abort them when rank 0 stopped inside a step)
     rates = [f"{summary[k]:.3g} {k.replace('_per_s', '').replace('_', '-')}/s" for k in ("particle_steps_per_s", "block_steps_per_s") if summary.get(k)]
     left = summary.get("particles_outside_domain") or 0
     left = f"; {left} fluid particle(s) left the tank (particles_outside_domain in run.json)" if left else ""
