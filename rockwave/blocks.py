@@ -839,8 +839,9 @@ class BlockOptions:
     """A candidate pair whose two blocks have more vertices than this together goes to the cooperative
     narrow phase (kernels/blocks_coop.py narrow_phase_coop: one thread block per pair, the work over
     vertices, faces and half-edge pairs spread over its lanes; the same result); smaller pairs: one
-    thread each [-]. None: 32 on a GPU (or on the CPU with warp.config.enable_cpu_blocks), else off (Warp's
-    CPU backend runs one lane per block, where the cooperative kernel is the serial loop plus overhead)."""
+    thread each [-]. None: 32 on a GPU (or on the CPU with warp.config.enable_cpu_blocks), 0 (every pair) on
+    a GPU for models of at most sync_free_max_blocks blocks, else off (Warp's CPU backend runs one lane per
+    block, where the cooperative kernel is the serial loop plus overhead)."""
 
     narrow_block_dim: int = 32
     """Threads per pair in the cooperative narrow phase (a GPU warp; Warp's CPU backend runs 1 unless
@@ -876,6 +877,11 @@ class BlockSolver:
         coop = opt.coop_min_vertices
         if coop is None:
             coop = 32 if (self.device.is_cuda or wp.config.enable_cpu_blocks) else 2**31 - 1
+            if self.device.is_cuda and model.num_blocks <= opt.sync_free_max_blocks:
+                # few blocks (a coupled scene): the few pairs leave the GPU idle but for their threads, so every
+                # pair gets a thread block (measured, H100, submarine_slide_2d: one 14-vertex pair took 400 us
+                # in one thread, and the coupled run went from 41 to 25 wall s per simulated s at 20 mm)
+                coop = 0
         self.coop_min = int(coop)
         self.narrow_block_dim = int(opt.narrow_block_dim)
         if self.coop_min < 0 or not 1 <= self.narrow_block_dim <= 1024:
