@@ -81,48 +81,12 @@ def prism_specs(count: int, alpha_deg: float = 5.0, sides: int = 25, r: float = 
     return specs
 
 
-def measure_prisms(device: str, count: int, warmup: int, steps: int) -> dict:
-    import numpy as np
+def timed_steps(solver, state, device: str, warmup: int, steps: int) -> tuple[float, float]:
+    """(wall seconds of ``steps`` block steps after ``warmup`` untimed ones, the step: the stable step at start)."""
     import warp as wp
 
-    from rockwave.blocks import BlockModel, BlockOptions, BlockSolver
     from rockwave.solver import TimeStep
 
-    out = {"prisms": count, "steps": steps}
-    final = {}
-    for name, opt in (("coop", BlockOptions(coop_min_vertices=32)), ("serial", BlockOptions(coop_min_vertices=10**9))):
-        model = BlockModel(prism_specs(count), device=device, check_overlap=False)
-        state = model.state()
-        solver = BlockSolver(model, options=opt)
-        dt = solver.stable_dt(state)
-        dt_array = wp.array([dt], dtype=float, device=device)
-        for _ in range(warmup):
-            solver.step(state, TimeStep(dt, state.time, dt_array))
-        wp.synchronize_device(device)
-        t = time.perf_counter()
-        for _ in range(steps):
-            solver.step(state, TimeStep(dt, state.time, dt_array))
-        wp.synchronize_device(device)
-        out[f"{name}_ms_per_step"] = 1e3 * (time.perf_counter() - t) / steps
-        final[name] = state.positions_numpy()
-        out["points_per_prism"] = float(np.mean(state.contact_counts()[1:]))
-    out["coop_speedup"] = out["serial_ms_per_step"] / out["coop_ms_per_step"]
-    out["same_trajectory"] = bool(np.array_equal(final["coop"], final["serial"]))
-    return out
-
-
-def measure(device: str, n: int, layers: int, warmup: int, steps: int) -> dict:
-    import numpy as np
-    import warp as wp
-
-    from rockwave.blocks import BlockModel, BlockSolver
-    from rockwave.solver import TimeStep
-
-    t0 = time.perf_counter()
-    model = BlockModel(grid_specs(n, layers), device=device, check_overlap=False)
-    state = model.state()
-    solver = BlockSolver(model)
-    build_s = time.perf_counter() - t0
     dt = solver.stable_dt(state)
     dt_array = wp.array([dt], dtype=float, device=device)
     for _ in range(warmup):
@@ -132,7 +96,39 @@ def measure(device: str, n: int, layers: int, warmup: int, steps: int) -> dict:
     for _ in range(steps):
         solver.step(state, TimeStep(dt, state.time, dt_array))
     wp.synchronize_device(device)
-    wall = time.perf_counter() - t
+    return time.perf_counter() - t, dt
+
+
+def measure_prisms(device: str, count: int, warmup: int, steps: int) -> dict:
+    import numpy as np
+
+    from rockwave.blocks import BlockModel, BlockOptions, BlockSolver
+
+    out = {"prisms": count, "steps": steps}
+    final = {}
+    for name, opt in (("coop", BlockOptions(coop_min_vertices=32)), ("serial", BlockOptions(coop_min_vertices=10**9))):
+        model = BlockModel(prism_specs(count), device=device, check_overlap=False)
+        state = model.state()
+        solver = BlockSolver(model, options=opt)
+        out[f"{name}_ms_per_step"] = 1e3 * timed_steps(solver, state, device, warmup, steps)[0] / steps
+        final[name] = state.positions_numpy()
+        out["points_per_prism"] = float(np.mean(state.contact_counts()[1:]))
+    out["coop_speedup"] = out["serial_ms_per_step"] / out["coop_ms_per_step"]
+    out["same_trajectory"] = bool(np.array_equal(final["coop"], final["serial"]))
+    return out
+
+
+def measure(device: str, n: int, layers: int, warmup: int, steps: int) -> dict:
+    import numpy as np
+
+    from rockwave.blocks import BlockModel, BlockSolver
+
+    t0 = time.perf_counter()
+    model = BlockModel(grid_specs(n, layers), device=device, check_overlap=False)
+    state = model.state()
+    solver = BlockSolver(model)
+    build_s = time.perf_counter() - t0
+    wall, dt = timed_steps(solver, state, device, warmup, steps)
     mem = solver.device_bytes(state)
     counts = state.contact_counts()[1:]
     v = np.linalg.norm(state.velocities_numpy()[1:], axis=1)
