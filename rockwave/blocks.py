@@ -551,7 +551,8 @@ def _table_view(t: dict) -> "K.ContactTable":
 class BlockState:
     """Time-varying block data (device arrays, N blocks, V vertices).
 
-    x (N, vec3 m, centroid world), q (N, quat xyzw body->world), v (N, vec3 m/s), w (N, vec3 rad/s,
+    x (N, vec3 m, centroid world; float32, the part below its resolution in x_lo (N, vec3 m): the centroid
+    is x + x_lo, carried by a compensated sum in integrate_blocks), q (N, quat xyzw body->world), v (N, vec3 m/s), w (N, vec3 rad/s,
     world frame), strain / strain_rate (N, spatial_vector: eps_x, eps_y, eps_z, gamma_yz, gamma_zx,
     gamma_xy, body frame; zero for non-deformable), ext_force / ext_torque (N, vec3 N, N m about the
     centroid, world; other modules atomically add here before step, the solver zeroes them after use),
@@ -585,6 +586,7 @@ class BlockState:
         self.w = wp.array(ang.astype(np.float32), dtype=wp.vec3, device=d)
         self.strain = wp.zeros(n, dtype=wp.spatial_vector, device=d)
         self.strain_rate = wp.zeros(n, dtype=wp.spatial_vector, device=d)
+        self.x_lo = wp.zeros(n, dtype=wp.vec3, device=d)  # centroid = x + x_lo (kernels/blocks.py two_sum)
         self.force = wp.zeros(n, dtype=wp.vec3, device=d)
         self.torque = wp.zeros(n, dtype=wp.vec3, device=d)
         self.strain_force = wp.zeros(n, dtype=wp.spatial_vector, device=d)
@@ -603,7 +605,7 @@ class BlockState:
         # kernel argument groups (kernels/blocks.py) over the arrays above, built once (the arrays are
         # only ever assigned in place, e.g. by a checkpoint restore)
         self.bodies = K.BlockBodies()
-        for name in ("x", "q", "v", "w", "strain", "strain_rate"):
+        for name in ("x", "q", "v", "w", "strain", "strain_rate", "x_lo"):
             setattr(self.bodies, name, getattr(self, name))
         self.loads = K.BlockLoads()
         for name in ("force", "torque", "strain_force", "ext_force", "ext_torque", "contact_count", "damp_c", "damp_b"):
@@ -1041,8 +1043,8 @@ class BlockSolver:
     # ---- pipeline ----
     def _prepare(self, state: BlockState):
         m, d = self.model, self.device
-        wp.launch(K.world_vertices, dim=m.num_vertices,
-                  inputs=[m.body_verts, m.vert_block, state.x, state.q, state.strain, m.kinds, state.world_verts],
+        wp.launch(K.block_world_vertices, dim=m.num_vertices,
+                  inputs=[m.body_verts, m.vert_block, state.bodies, m.kinds, state.world_verts],
                   device=d)
         wp.launch(K.block_aabbs, dim=m.num_blocks,
                   inputs=[state.world_verts, m.vert_start, m.vert_count, self.margin, self.lo, self.hi,
