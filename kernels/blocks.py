@@ -176,6 +176,18 @@ class ContactTable:
 
 
 @wp.struct
+class WorldVerts:
+    """World vertices of every block (BlockState), each as a float32 pair: hi, the float32 world position
+    (what the AABBs, the broad phase and the readers use), and lo, the part below its resolution (from the
+    centroid's x_lo and the rounding of x + R X): vertex = hi + lo. The narrow phase reads them in a frame
+    of its pair (pair_vertex), where contact depths keep their bits however far the pair is from the
+    world origin."""
+
+    hi: wp.array(dtype=wp.vec3)
+    lo: wp.array(dtype=wp.vec3)
+
+
+@wp.struct
 class BroadPhaseGrid:
     """Uniform-grid broad phase (BlockSolver): each block's AABB (lo, hi, grown by the margin), 1 / cell
     size [1/m], the hashed buckets of (block, cell) entries (counting sort: count, start, fill), the
@@ -226,6 +238,28 @@ def two_sum(a: wp.vec3, b: wp.vec3):
     s = a + b
     bb = s - a
     return s, (a - (s - bb)) + (b - bb)
+
+
+@wp.func
+def pair_origin(A: int, B: int, x: wp.array(dtype=wp.vec3), block_size: wp.array(dtype=float)):
+    # origin of the pair frame of the narrow phase: the centroid of the smaller block rounded down to a
+    # power-of-two grid S >= its size, so the frame's coordinates stay within ~2 S of it, o is exact in
+    # float32 and hi - o of a vertex near the pair is exact (Sterbenz: both are multiples of the spacing
+    # at hi, and o moves only when the block crosses a grid line: between such moves a fixed block's
+    # vertices have the same pair-frame coordinates, bit for bit, every step)
+    b = A
+    if block_size[B] < block_size[A]:
+        b = B
+    S = wp.pow(2.0, wp.ceil(wp.log2(wp.max(block_size[b], 1.0e-6))))
+    c = x[b]
+    return wp.vec3(wp.floor(c[0] / S) * S, wp.floor(c[1] / S) * S, wp.floor(c[2] / S) * S)
+
+
+@wp.func
+def pair_vertex(wv: WorldVerts, o: wp.vec3, i: int):
+    # vertex i in the pair frame of origin o: (hi - o) + lo, the difference exact near o, so the frame's
+    # coordinates have float32's relative precision of the pair's size, not of the distance to the origin
+    return (wv.hi[i] - o) + wv.lo[i]
 
 
 @wp.func
@@ -354,14 +388,14 @@ def solve6(Ain: wp.spatial_matrix, bin: wp.spatial_vector):
 
 
 @wp.func
-def extent_along(n: wp.vec3, start: int, count: int, wv: wp.array(dtype=wp.vec3)):
+def extent_along(n: wp.vec3, start: int, count: int, wv: WorldVerts, o: wp.vec3):
     # min/max of n.x over a block's world vertices and where they are attained
     lo = float(1.0e30)
     hi = float(-1.0e30)
     ilo = int(start)
     ihi = int(start)
     for k in range(count):
-        d = wp.dot(n, wv[start + k])
+        d = wp.dot(n, pair_vertex(wv, o, start + k))
         if d < lo:
             lo = d
             ilo = start + k
@@ -372,10 +406,10 @@ def extent_along(n: wp.vec3, start: int, count: int, wv: wp.array(dtype=wp.vec3)
 
 
 @wp.func
-def signed_gap(n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: wp.array(dtype=wp.vec3)):
+def signed_gap(n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: WorldVerts, o: wp.vec3):
     # gap of the plane family with normal +-n: gap(+n) = min_B n.x - max_A n.x; keep the better sign
-    loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv)
-    loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv)
+    loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv, o)
+    loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv, o)
     gp = loB - hiA
     gm = loA - hiB
     if gm > gp:
@@ -385,13 +419,13 @@ def signed_gap(n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: wp.array(dtyp
 
 @wp.func
 def try_plane(
-    cand: wp.vec3, best_n: wp.vec3, best_gap: float, sA: int, cA: int, sB: int, cB: int, wv: wp.array(dtype=wp.vec3)
+    cand: wp.vec3, best_n: wp.vec3, best_gap: float, sA: int, cA: int, sB: int, cB: int, wv: WorldVerts, o: wp.vec3
 ):
     # keep the candidate plane with the largest gap (smallest overlap), FCP step iii
     ln = wp.length(cand)
     if ln < 1.0e-12:
         return best_n, best_gap
-    nn, g = signed_gap(cand / ln, sA, cA, sB, cB, wv)
+    nn, g = signed_gap(cand / ln, sA, cA, sB, cB, wv, o)
     if g > best_gap + 1.0e-9:
         return nn, g
     return best_n, best_gap
@@ -404,24 +438,24 @@ def he_dest(h: int, he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)
 
 @wp.func
 def face_plane_of_he(
-    h: int, wv: wp.array(dtype=wp.vec3), he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)
+    h: int, wv: WorldVerts, o: wp.vec3, he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)
 ):
     # outward normal and offset of the face left of half-edge h (CCW loop: n = (p1-p0) x (p2-p1))
     h1 = he_next[h]
-    p0 = wv[he_vertex[h]]
-    p1 = wv[he_vertex[h1]]
-    p2 = wv[he_vertex[he_next[h1]]]
+    p0 = pair_vertex(wv, o, he_vertex[h])
+    p1 = pair_vertex(wv, o, he_vertex[h1])
+    p2 = pair_vertex(wv, o, he_vertex[he_next[h1]])
     nf = wp.normalize(wp.cross(p1 - p0, p2 - p1))
     return nf, wp.dot(nf, p0)
 
 
 @wp.func
-def face_normal(h: int, wv: wp.array(dtype=wp.vec3), he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)):
+def face_normal(h: int, wv: WorldVerts, o: wp.vec3, he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)):
     # unit outward normal of the face left of half-edge h (as face_plane_of_he, without the offset)
     h1 = he_next[h]
-    p0 = wv[he_vertex[h]]
-    p1 = wv[he_vertex[h1]]
-    p2 = wv[he_vertex[he_next[h1]]]
+    p0 = pair_vertex(wv, o, he_vertex[h])
+    p1 = pair_vertex(wv, o, he_vertex[h1])
+    p2 = pair_vertex(wv, o, he_vertex[he_next[h1]])
     return wp.normalize(wp.cross(p1 - p0, p2 - p1))
 
 
@@ -450,7 +484,8 @@ def fcp_candidates(
     cA: int,
     sB: int,
     cB: int,
-    wv: wp.array(dtype=wp.vec3),
+    wv: WorldVerts,
+    o: wp.vec3,
     vertex_out_he: wp.array(dtype=int),
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
@@ -459,31 +494,31 @@ def fcp_candidates(
 ):
     # FCP candidate planes of the vertex pair (A, B): (a) PB of AB, (b) faces at A or B,
     # (c) edge at A x edge at B, (d) one edge at A or B and AB
-    xa = wv[a]
-    xb = wv[b]
+    xa = pair_vertex(wv, o, a)
+    xb = pair_vertex(wv, o, b)
     dab = xb - xa
     # (a) perpendicular bisector of AB
-    best_n, best_gap = try_plane(dab, best_n, best_gap, sA, cA, sB, cB, wv)
+    best_n, best_gap = try_plane(dab, best_n, best_gap, sA, cA, sB, cB, wv, o)
     # walk the half-edges leaving A: h -> twin(prev(h))
     h0 = vertex_out_he[a]
     h = h0
     for ka in range(MAX_VALENCE):
-        nf, df = face_plane_of_he(h, wv, he_vertex, he_next)
-        best_n, best_gap = try_plane(nf, best_n, best_gap, sA, cA, sB, cB, wv)  # (b)
-        ea = wv[he_dest(h, he_vertex, he_next)] - xa
+        nf, df = face_plane_of_he(h, wv, o, he_vertex, he_next)
+        best_n, best_gap = try_plane(nf, best_n, best_gap, sA, cA, sB, cB, wv, o)  # (b)
+        ea = pair_vertex(wv, o, he_dest(h, he_vertex, he_next)) - xa
         # (d) plane containing edge ea, as close to the PB as possible: n = AB - (AB.e)e
         le = wp.length(ea)
         if le > 0.0:
             eh = ea / le
-            best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv)
+            best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, o)
         # (c) edge at A x edge at B
         g0 = vertex_out_he[b]
         g = g0
         for kb in range(MAX_VALENCE):
-            eb = wv[he_dest(g, he_vertex, he_next)] - xb
+            eb = pair_vertex(wv, o, he_dest(g, he_vertex, he_next)) - xb
             c = wp.cross(ea, eb)
             if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
-                best_n, best_gap = try_plane(c, best_n, best_gap, sA, cA, sB, cB, wv)
+                best_n, best_gap = try_plane(c, best_n, best_gap, sA, cA, sB, cB, wv, o)
             g = he_twin[he_prev[g]]
             if g == g0:
                 break
@@ -494,13 +529,13 @@ def fcp_candidates(
     g0 = vertex_out_he[b]
     g = g0
     for kb in range(MAX_VALENCE):
-        nf, df = face_plane_of_he(g, wv, he_vertex, he_next)
-        best_n, best_gap = try_plane(-nf, best_n, best_gap, sA, cA, sB, cB, wv)
-        eb = wv[he_dest(g, he_vertex, he_next)] - xb
+        nf, df = face_plane_of_he(g, wv, o, he_vertex, he_next)
+        best_n, best_gap = try_plane(-nf, best_n, best_gap, sA, cA, sB, cB, wv, o)
+        eb = pair_vertex(wv, o, he_dest(g, he_vertex, he_next)) - xb
         le = wp.length(eb)
         if le > 0.0:
             eh = eb / le
-            best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv)
+            best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, o)
         g = he_twin[he_prev[g]]
         if g == g0:
             break
@@ -514,7 +549,8 @@ def column_through(
     fstart: int,
     fcount: int,
     face_he: wp.array(dtype=int),
-    wv: wp.array(dtype=wp.vec3),
+    wv: WorldVerts,
+    o: wp.vec3,
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
     tol: float,
@@ -525,7 +561,7 @@ def column_through(
     t_hi = float(1.0e30)
     hit = int(1)
     for k in range(fcount):
-        nf, df = face_plane_of_he(face_he[fstart + k], wv, he_vertex, he_next)
+        nf, df = face_plane_of_he(face_he[fstart + k], wv, o, he_vertex, he_next)
         c = wp.dot(nf, n)
         s = df - wp.dot(nf, p)
         if c > 1.0e-4:
@@ -556,22 +592,23 @@ def fcp_touching(
     fsB: int,
     fcB: int,
     face_he: wp.array(dtype=int),
-    wv: wp.array(dtype=wp.vec3),
+    wv: WorldVerts,
+    o: wp.vec3,
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
 ):
     # certificate that no plane separates better than (n, gap): a closest vertex p of one block whose
     # line along n meets the other block at q = p +- gap n (within tie); any plane's gap is <= |q - p|
     for k in range(cA):
-        p = wv[sA + k]
+        p = pair_vertex(wv, o, sA + k)
         if wp.dot(n, p) >= hiA - tie:
-            t_lo, t_hi, hit = column_through(p, n, fsB, fcB, face_he, wv, he_vertex, he_next, tie)
+            t_lo, t_hi, hit = column_through(p, n, fsB, fcB, face_he, wv, o, he_vertex, he_next, tie)
             if hit == 1 and t_lo <= gap + tie:
                 return int(1)
     for k in range(cB):
-        p = wv[sB + k]
+        p = pair_vertex(wv, o, sB + k)
         if wp.dot(n, p) <= loB + tie:
-            t_lo, t_hi, hit = column_through(p, n, fsA, fcA, face_he, wv, he_vertex, he_next, tie)
+            t_lo, t_hi, hit = column_through(p, n, fsA, fcA, face_he, wv, o, he_vertex, he_next, tie)
             if hit == 1 and t_hi >= -gap - tie:
                 return int(1)
     return int(0)
@@ -590,7 +627,8 @@ def fcp_plane(
     fsB: int,
     fcB: int,
     face_he: wp.array(dtype=int),
-    wv: wp.array(dtype=wp.vec3),
+    wv: WorldVerts,
+    o: wp.vec3,
     vertex_out_he: wp.array(dtype=int),
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
@@ -606,35 +644,35 @@ def fcp_plane(
     # better. gap(n) = min_B n.x - max_A n.x is concave in n, so for separated blocks the final fixed
     # point is the exact gap. Overlaps stop at the first fixed point: narrow_phase's SAT fallback
     # checks them (and resting face contacts would pay |face|^2 pairs every step).
-    best_n, best_gap = signed_gap(n0, sA, cA, sB, cB, wv)
+    best_n, best_gap = signed_gap(n0, sA, cA, sB, cB, wv, o)
     a = int(-1)
     b = int(-1)
     for it in range(FCP_MAX_ITER):
         n = best_n
         gap0 = best_gap
-        loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv)
-        loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv)
+        loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv, o)
+        loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv, o)
         if ihA != a or ilB != b:
             a = ihA
             b = ilB
             best_n, best_gap = fcp_candidates(
-                a, b, best_n, best_gap, sA, cA, sB, cB, wv, vertex_out_he, he_vertex, he_next, he_prev, he_twin
+                a, b, best_n, best_gap, sA, cA, sB, cB, wv, o, vertex_out_he, he_vertex, he_next, he_prev, he_twin
             )
         else:
             if gap0 <= 0.0:
                 break
-            touching = fcp_touching(n, gap0, tie, hiA, loB, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv,
+            touching = fcp_touching(n, gap0, tie, hiA, loB, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, o,
                                     he_vertex, he_next)
             if touching == 1:
                 break
             for ka in range(cA):
                 va = sA + ka
-                if wp.dot(n, wv[va]) >= hiA - tie:
+                if wp.dot(n, pair_vertex(wv, o, va)) >= hiA - tie:
                     for kb in range(cB):
                         vb = sB + kb
-                        if wp.dot(n, wv[vb]) <= loB + tie:
+                        if wp.dot(n, pair_vertex(wv, o, vb)) <= loB + tie:
                             best_n, best_gap = fcp_candidates(
-                                va, vb, best_n, best_gap, sA, cA, sB, cB, wv,
+                                va, vb, best_n, best_gap, sA, cA, sB, cB, wv, o,
                                 vertex_out_he, he_vertex, he_next, he_prev, he_twin,
                             )
             if best_gap <= gap0:
@@ -718,14 +756,18 @@ def block_world_vertices(
     vert_block: wp.array(dtype=int),
     bodies: BlockBodies,
     kinds: wp.array(dtype=int),
-    out: wp.array(dtype=wp.vec3),
+    out: WorldVerts,
 ):
+    """The block solver's world vertices x_world = (x + x_lo) + R (X + E X), as the float32 pair
+    hi + lo (WorldVerts; the arm x_lo + R (X + E X) rounded once, then added to x exactly by two_sum)."""
     v = wp.tid()
     b = vert_block[v]
     X = body_verts[v]
     if kinds[b] == KIND_DEFORMABLE:
         X = X + strain_matrix(bodies.strain[b]) * X
-    out[v] = bodies.x[b] + (bodies.x_lo[b] + wp.quat_rotate(bodies.q[b], X))
+    hi, lo = two_sum(bodies.x[b], bodies.x_lo[b] + wp.quat_rotate(bodies.q[b], X))
+    out.hi[v] = hi
+    out.lo[v] = lo
 
 
 @wp.kernel
@@ -992,7 +1034,7 @@ def narrow_screen(
     nblocks: int,
     screen: int,
     coop_min: int,
-    wv: wp.array(dtype=wp.vec3),
+    wv: WorldVerts,
     topo: BlockTopology,
     bodies: BlockBodies,
     dx: wp.array(dtype=wp.vec3),
@@ -1015,6 +1057,7 @@ def narrow_screen(
         return
     A = pairs[tid][0]
     B = pairs[tid][1]
+    o = pair_origin(A, B, x, topo.block_size)  # the pair frame (pair_vertex)
     key = wp.int64(A) * wp.int64(nblocks) + wp.int64(B)
     slot = table_insert(key, cur.keys, cur.keys.shape[0])
     pl.slot[tid] = slot
@@ -1042,7 +1085,7 @@ def narrow_screen(
             n0 = prev.normal[oslot]
         if wp.length(n0) < 1.0e-12:
             n0 = wp.vec3(0.0, 0.0, 1.0)
-        n, gap = signed_gap(wp.normalize(n0), topo.vert_start[A], topo.vert_count[A], topo.vert_start[B], topo.vert_count[B], wv)
+        n, gap = signed_gap(wp.normalize(n0), topo.vert_start[A], topo.vert_count[A], topo.vert_start[B], topo.vert_count[B], wv, o)
         if gap > 0.0:
             cur.normal[slot] = n
             cur.gapb[slot] = gap
@@ -1061,14 +1104,14 @@ def narrow_screen(
 def narrow_phase(
     pl: PairList,
     coop_min: int,
-    wv: wp.array(dtype=wp.vec3),
+    wv: WorldVerts,
     topo: BlockTopology,
     bodies: BlockBodies,
     prev: ContactTable,
     cur: ContactTable,
 ):
     """FCP narrow phase of the pairs of small blocks (vert_count[A] + vert_count[B] <= coop_min; the
-    others: narrow_phase_coop, the same algorithm): world vertices wv, previous contact history `prev`
+    others: narrow_phase_coop, the same algorithm): world vertices wv, o, previous contact history `prev`
     (read), this step's `cur` (written: plane, gap, contact points); contact_forces then acts on them."""
     # local names for the grouped arrays (the arithmetic below reads them as before)
     vert_start = topo.vert_start
@@ -1093,6 +1136,7 @@ def narrow_phase(
     tid = pl.active[li]
     A = pl.pairs[tid][0]
     B = pl.pairs[tid][1]
+    o = pair_origin(A, B, x, block_size)  # the pair frame (pair_vertex)
     slot = pl.slot[tid]
     oslot = pl.oslot[tid]
     sA = vert_start[A]
@@ -1108,12 +1152,12 @@ def narrow_phase(
     if wp.length(n0) < 1.0e-12:
         n0 = wp.vec3(0.0, 0.0, 1.0)
     # FCP's tie tolerance for closest vertices: float32 rounding of n.x (~1e-7 (|x| + size)) well inside
-    tie = 1.0e-6 * (block_size[A] + block_size[B] + wp.length(x[A]) + wp.length(x[B]))
+    tie = 1.0e-6 * (block_size[A] + block_size[B] + wp.length(x[A] - o) + wp.length(x[B] - o))
     fsA = face_start[A]
     fcA = face_count[A]
     fsB = face_start[B]
     fcB = face_count[B]
-    n, gap = fcp_plane(wp.normalize(n0), tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv,
+    n, gap = fcp_plane(wp.normalize(n0), tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, o,
                        vertex_out_he, he_vertex, he_next, he_prev, he_twin)
     if gap < 0.0:
         # FCP is a local search: before accepting an overlap, also try every face normal of both
@@ -1121,11 +1165,11 @@ def narrow_phase(
         n1 = n
         g1 = gap
         for k in range(face_count[A]):
-            nf, df = face_plane_of_he(face_he[face_start[A] + k], wv, he_vertex, he_next)
-            n1, g1 = try_plane(nf, n1, g1, sA, cA, sB, cB, wv)
+            nf, df = face_plane_of_he(face_he[face_start[A] + k], wv, o, he_vertex, he_next)
+            n1, g1 = try_plane(nf, n1, g1, sA, cA, sB, cB, wv, o)
         for k in range(face_count[B]):
-            nf, df = face_plane_of_he(face_he[face_start[B] + k], wv, he_vertex, he_next)
-            n1, g1 = try_plane(nf, n1, g1, sA, cA, sB, cB, wv)
+            nf, df = face_plane_of_he(face_he[face_start[B] + k], wv, o, he_vertex, he_next)
+            n1, g1 = try_plane(nf, n1, g1, sA, cA, sB, cB, wv, o)
         # and every edge-pair axis (exact SAT) when the blocks are small enough (E_A E_B <= 2048)
         if (cA + face_count[A] - 2) * (cB + face_count[B] - 2) <= SAT_EDGE_PAIRS:
             for ka in range(cA):
@@ -1135,10 +1179,10 @@ def narrow_phase(
                 for ia in range(MAX_VALENCE):
                     ua = he_dest(h, he_vertex, he_next)
                     if va < ua:
-                        ea = wv[ua] - wv[va]
+                        ea = pair_vertex(wv, o, ua) - pair_vertex(wv, o, va)
                         # normals of the two faces at edge (va, ua): its arc on A's Gauss map
-                        fa1 = face_normal(h, wv, he_vertex, he_next)
-                        fa2 = face_normal(he_twin[h], wv, he_vertex, he_next)
+                        fa1 = face_normal(h, wv, o, he_vertex, he_next)
+                        fa2 = face_normal(he_twin[h], wv, o, he_vertex, he_next)
                         for kb in range(cB):
                             vb = sB + kb
                             g0 = vertex_out_he[vb]
@@ -1146,12 +1190,12 @@ def narrow_phase(
                             for ib in range(MAX_VALENCE):
                                 ub = he_dest(gg, he_vertex, he_next)
                                 if vb < ub:
-                                    ax = wp.cross(ea, wv[ub] - wv[vb])
-                                    if wp.length(ax) > 1.0e-6 * wp.length(ea) * wp.length(wv[ub] - wv[vb]):
-                                        fb1 = face_normal(gg, wv, he_vertex, he_next)
-                                        fb2 = face_normal(he_twin[gg], wv, he_vertex, he_next)
+                                    ax = wp.cross(ea, pair_vertex(wv, o, ub) - pair_vertex(wv, o, vb))
+                                    if wp.length(ax) > 1.0e-6 * wp.length(ea) * wp.length(pair_vertex(wv, o, ub) - pair_vertex(wv, o, vb)):
+                                        fb1 = face_normal(gg, wv, o, he_vertex, he_next)
+                                        fb2 = face_normal(he_twin[gg], wv, o, he_vertex, he_next)
                                         if minkowski_edge_face(fa1, fa2, -fb1, -fb2):
-                                            n1, g1 = try_plane(ax, n1, g1, sA, cA, sB, cB, wv)
+                                            n1, g1 = try_plane(ax, n1, g1, sA, cA, sB, cB, wv, o)
                                 gg = he_twin[he_prev[gg]]
                                 if gg == g0:
                                     break
@@ -1159,7 +1203,7 @@ def narrow_phase(
                     if h == h0:
                         break
         if g1 > gap + 1.0e-7:
-            n, gap = fcp_plane(n1, tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv,
+            n, gap = fcp_plane(n1, tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, o,
                                vertex_out_he, he_vertex, he_next, he_prev, he_twin)
     cur.normal[slot] = n
     cur.gapb[slot] = gap
@@ -1172,8 +1216,8 @@ def narrow_phase(
     tol = 1.0e-6 * size
     dup_tol = 1.0e-4 * size
     over = -gap  # total overlap along n: max_A n.x - min_B n.x
-    loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv)
-    loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv)
+    loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv, o)
+    loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv, o)
     nc = int(0)
     px = PointCoord()
     py = PointCoord()
@@ -1184,18 +1228,18 @@ def narrow_phase(
     # vertices of A that may lie inside B: column through the vertex along n meets B's bottom
     for k in range(cA):
         va = sA + k
-        pa = wv[va]
+        pa = pair_vertex(wv, o, va)
         if wp.dot(n, pa) >= loB - tol:
-            t_lo, t_hi, hit = column_through(pa, n, face_start[B], face_count[B], face_he, wv, he_vertex, he_next, tol)
+            t_lo, t_hi, hit = column_through(pa, n, face_start[B], face_count[B], face_he, wv, o, he_vertex, he_next, tol)
             d = wp.min(-t_lo, over)
             if hit == 1 and d > 0.0:
                 nc, px, py, pz, pd, pka, pkb = add_contact(nc, pa + (0.5 * t_lo) * n, d, va, -1, dup_tol, px, py, pz, pd, pka, pkb)
     # vertices of B that may lie inside A
     for k in range(cB):
         vb = sB + k
-        pb = wv[vb]
+        pb = pair_vertex(wv, o, vb)
         if wp.dot(n, pb) <= hiA + tol:
-            t_lo, t_hi, hit = column_through(pb, n, face_start[A], face_count[A], face_he, wv, he_vertex, he_next, tol)
+            t_lo, t_hi, hit = column_through(pb, n, face_start[A], face_count[A], face_he, wv, o, he_vertex, he_next, tol)
             d = wp.min(t_hi, over)
             if hit == 1 and d > 0.0:
                 nc, px, py, pz, pd, pka, pkb = add_contact(nc, pb + (0.5 * t_hi) * n, d, -1, vb, dup_tol, px, py, pz, pd, pka, pkb)
@@ -1204,27 +1248,27 @@ def narrow_phase(
     t2 = wp.cross(n, t1)
     for k in range(cA):
         va = sA + k
-        pa = wv[va]
+        pa = pair_vertex(wv, o, va)
         if wp.dot(n, pa) < loB - tol:
             continue
         h0 = vertex_out_he[va]
         h = h0
         for ka in range(MAX_VALENCE):
             ua = he_dest(h, he_vertex, he_next)
-            qa = wv[ua]
+            qa = pair_vertex(wv, o, ua)
             if wp.dot(n, qa) < loB - tol or va < ua:
                 # edge (va, ua) once: from its lower end if both ends are in the patch
                 ea = qa - pa
                 for kk in range(cB):
                     vb = sB + kk
-                    pb = wv[vb]
+                    pb = pair_vertex(wv, o, vb)
                     if wp.dot(n, pb) > hiA + tol:
                         continue
                     g0 = vertex_out_he[vb]
                     g = g0
                     for kb in range(MAX_VALENCE):
                         ub = he_dest(g, he_vertex, he_next)
-                        qb = wv[ub]
+                        qb = pair_vertex(wv, o, ub)
                         if wp.dot(n, qb) > hiA + tol or vb < ub:
                             eb = qb - pb
                             # solve pa + s ea = pb + u eb in the plane (2D)
@@ -1260,7 +1304,7 @@ def narrow_phase(
     if base + nc > new_pos.shape[0]:
         return
     for k in range(nc):
-        new_pos[base + k] = wp.vec3(px[k], py[k], pz[k])
+        new_pos[base + k] = o + wp.vec3(px[k], py[k], pz[k])  # back to world
         new_depth[base + k] = pd[k]
         new_ckey[base + k] = wp.vec2i(pka[k], pkb[k])
     cur.nc[slot] = nc

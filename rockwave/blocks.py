@@ -596,6 +596,7 @@ class BlockState:
         self.damp_c = wp.zeros(n, dtype=wp.spatial_matrix, device=d)  # implicit contact dashpots (kernels/blocks.py)
         self.damp_b = wp.zeros(n, dtype=wp.spatial_vector, device=d)
         self.world_verts = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
+        self.world_verts_lo = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)  # vertex = world_verts + this
         # poses of the history table's planes (last narrow phase) and the motion since (pose_motion)
         self.wv_ref = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
         self.x_ref = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -607,6 +608,9 @@ class BlockState:
         self.bodies = K.BlockBodies()
         for name in ("x", "q", "v", "w", "strain", "strain_rate", "x_lo"):
             setattr(self.bodies, name, getattr(self, name))
+        self.verts = K.WorldVerts()
+        self.verts.hi = self.world_verts
+        self.verts.lo = self.world_verts_lo
         self.loads = K.BlockLoads()
         for name in ("force", "torque", "strain_force", "ext_force", "ext_torque", "contact_count", "damp_c", "damp_b"):
             setattr(self.loads, name, getattr(self, name))
@@ -678,10 +682,9 @@ class BlockState:
     def world_vertices(self) -> list:
         """World-space vertices per block (list of (V_b, 3) arrays) at the current pose and strain."""
         m = self.model
-        wp.launch(K.world_vertices, dim=m.num_vertices,
-                  inputs=[m.body_verts, m.vert_block, self.x, self.q, self.strain, m.kinds, self.world_verts],
-                  device=m.device)
-        wv = self.world_verts.numpy().astype(np.float64)
+        wp.launch(K.block_world_vertices, dim=m.num_vertices,
+                  inputs=[m.body_verts, m.vert_block, self.bodies, m.kinds, self.verts], device=m.device)
+        wv = self.world_verts.numpy().astype(np.float64) + self.world_verts_lo.numpy()
         s, c = m.np["vert_start"], m.np["vert_count"]
         return [wv[s[b]: s[b] + c[b]] for b in range(m.num_blocks)]
 
@@ -1044,8 +1047,7 @@ class BlockSolver:
     def _prepare(self, state: BlockState):
         m, d = self.model, self.device
         wp.launch(K.block_world_vertices, dim=m.num_vertices,
-                  inputs=[m.body_verts, m.vert_block, state.bodies, m.kinds, state.world_verts],
-                  device=d)
+                  inputs=[m.body_verts, m.vert_block, state.bodies, m.kinds, state.verts], device=d)
         wp.launch(K.block_aabbs, dim=m.num_blocks,
                   inputs=[state.world_verts, m.vert_start, m.vert_count, self.margin, self.lo, self.hi,
                           state.contact_count], device=d)
@@ -1135,17 +1137,17 @@ class BlockSolver:
                 self.counters[3:5].zero_()  # lengths of the active lists
                 coop_min = self.coop_min if self.has_big_pairs else m.max_vertex_pair
                 wp.launch(K.narrow_screen, dim=n,
-                          inputs=[self.pair_list, m.num_blocks, int(screen), coop_min, state.world_verts, m.topology,
+                          inputs=[self.pair_list, m.num_blocks, int(screen), coop_min, state.verts, m.topology,
                                   state.bodies, state.motion_dx, state.motion_rho, old, new], device=d)
                 wp.launch(K.narrow_phase, dim=n,
-                          inputs=[self.pair_list, coop_min, state.world_verts, m.topology, state.bodies, old, new], device=d)
+                          inputs=[self.pair_list, coop_min, state.verts, m.topology, state.bodies, old, new], device=d)
                 if self.has_big_pairs:
                     nb = n
                     if not self.sync_free:  # the counter-read path: launch for the big pairs only
                         nb = self.coop_pairs = int(self.counters.numpy()[4])
                     if nb > 0:
                         wp.launch_tiled(KC.narrow_phase_coop, dim=[nb], block_dim=self.narrow_block_dim,
-                                        inputs=[self.pair_list, state.world_verts, m.topology, state.bodies, old, new],
+                                        inputs=[self.pair_list, state.verts, m.topology, state.bodies, old, new],
                                         device=d)
                 wp.launch(K.contact_forces, dim=n,
                           inputs=[self.pair_list, self.block_clock, self.g_mag, m.props, m.material, state.bodies, old, new,
