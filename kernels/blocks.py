@@ -156,7 +156,7 @@ class ContactTable:
     (-1 empty), common-plane normal, gap or its lower bound, contact point count nc and the first of
     its points in the point pool (pstart); per point (pstart + k, k < nc: a pair in contact takes
     exactly nc entries, so the pool is sized from the live contact points, not a capacity per pair) the
-    feature key, shear spring force, position, depth, normal force, the closing speed when the point
+    feature key, shear spring force, position (relative to A's centroid x + x_lo), depth, normal force, the closing speed when the point
     first touched [m/s] and the step's Coulomb cap mu F_n + c A [N]. pcount[0]: pool entries
     requested this step (above the pool's length: it overflowed; BlockSolver grows it and redoes)."""
 
@@ -289,15 +289,15 @@ def strain_gen_force(X: wp.vec3, f: wp.vec3) -> wp.spatial_vector:
 def point_velocity(
     b: int,
     p: wp.vec3,
-    x: wp.array(dtype=wp.vec3),
+    xb: wp.vec3,
     q: wp.array(dtype=wp.quat),
     v: wp.array(dtype=wp.vec3),
     w: wp.array(dtype=wp.vec3),
     strain_rate: wp.array(dtype=wp.spatial_vector),
     kinds: wp.array(dtype=int),
 ):
-    # v(p) = v + w x r (+ R dE/dt R^T r for deformable blocks)
-    r = p - x[b]
+    # v(p) = v + w x r (+ R dE/dt R^T r for deformable blocks), r = p - x_b (p and x_b in one frame)
+    r = p - xb
     vel = v[b] + wp.cross(w[b], r)
     if kinds[b] == KIND_DEFORMABLE:
         X = wp.quat_rotate_inv(q[b], r)
@@ -314,32 +314,34 @@ def add_damper(
     c: float,
     vA: wp.vec3,
     vB: wp.vec3,
-    x: wp.array(dtype=wp.vec3),
+    xA: wp.vec3,
+    xB: wp.vec3,
     kinds: wp.array(dtype=int),
     loads: BlockLoads,
 ):
-    # dashpot c along unit e at point p between blocks A and B, implicit in each block's own velocity:
+    # dashpot c along unit e at point p between blocks A and B (centroids xA, xB in p's frame), implicit in each block's own velocity:
     # on B, f = -c e e.(v_B(p) - v_A(p)) with v_B(p) = J_B V_B at the end of the step and v_A(p) from the
     # start: the generalised force -C_B V_B + b_B, C_B += c J^T J, b_B += c (e.v_A(p)) J^T, J = [e, r x e]
     if movable(kinds[B]):
-        jb = wp.spatial_vector(e, wp.cross(p - x[B], e))
+        jb = wp.spatial_vector(e, wp.cross(p - xB, e))
         wp.atomic_add(loads.damp_c, B, c * wp.outer(jb, jb))
         wp.atomic_add(loads.damp_b, B, (c * wp.dot(e, vA)) * jb)
     if movable(kinds[A]):
-        ja = wp.spatial_vector(e, wp.cross(p - x[A], e))
+        ja = wp.spatial_vector(e, wp.cross(p - xA, e))
         wp.atomic_add(loads.damp_c, A, c * wp.outer(ja, ja))
         wp.atomic_add(loads.damp_b, A, (c * wp.dot(e, vB)) * ja)
 
 
 @wp.func
-def inv_rocking_inertia(b: int, e: wp.vec3, c: wp.vec3, props: BlockProps, bodies: BlockBodies):
-    # 1 / I of block b about the axis e through the point c (parallel axes: e.I_w e + m |e x (x_b - c)|^2);
+def inv_rocking_inertia(b: int, e: wp.vec3, c: wp.vec3, xb: wp.vec3, props: BlockProps, bodies: BlockBodies):
+    # 1 / I of block b about the axis e through the point c (parallel axes: e.I_w e + m |e x (x_b - c)|^2,
+    # x_b its centroid in c's frame);
     # 0 for a fixed or kinematic block
     if not movable(props.kinds[b]):
         return float(0.0)
     R = wp.quat_to_matrix(bodies.q[b])
     Iw = R * props.inertia_body[b] * wp.transpose(R)
-    arm = wp.cross(e, bodies.x[b] - c)
+    arm = wp.cross(e, xb - c)
     return 1.0 / (wp.dot(e, Iw * e) + wp.dot(arm, arm) / props.inv_mass[b])
 
 
@@ -1303,8 +1305,9 @@ def narrow_phase(
     base = wp.atomic_add(cur.pcount, 0, nc)
     if base + nc > new_pos.shape[0]:
         return
+    oA = (x[A] - o) + bodies.x_lo[A]  # A's centroid in the pair frame
     for k in range(nc):
-        new_pos[base + k] = o + wp.vec3(px[k], py[k], pz[k])  # back to world
+        new_pos[base + k] = wp.vec3(px[k], py[k], pz[k]) - oA  # relative to A's centroid (contact_forces)
         new_depth[base + k] = pd[k]
         new_ckey[base + k] = wp.vec2i(pka[k], pkb[k])
     cur.nc[slot] = nc
@@ -1367,6 +1370,10 @@ def contact_forces(
         return
     base = cur.pstart[slot]
     n = cur.normal[slot]
+    # the frame of the contact points (cur.pos): A's centroid x + x_lo at its origin, B's at xB; the
+    # difference of the nearby float32 centroids is exact, so lever arms keep their bits far from the origin
+    xA = wp.vec3(0.0, 0.0, 0.0)
+    xB = (x[B] - x[A]) + (bodies.x_lo[B] - bodies.x_lo[A])
     t1 = contact_tangent(n)
     t2 = wp.cross(n, t1)
     # contact patch area (convex polygon through the points, angular order) -> area share
@@ -1432,7 +1439,7 @@ def contact_forces(
     for k in range(nc):
         c = base + k
         p = new_pos[c]
-        vrel = point_velocity(B, p, x, q, v, w, strain_rate, kinds) - point_velocity(A, p, x, q, v, w, strain_rate, kinds)
+        vrel = point_velocity(B, p, xB, q, v, w, strain_rate, kinds) - point_velocity(A, p, xA, q, v, w, strain_rate, kinds)
         vn = wp.dot(vrel, n)
         vt = vrel - vn * n
         # history of this point (matched by feature key): shear spring, closing speed at first touch
@@ -1503,8 +1510,8 @@ def contact_forces(
         c = base + k
         p = new_pos[c]
         d = new_depth[c]
-        vA = point_velocity(A, p, x, q, v, w, strain_rate, kinds)
-        vB = point_velocity(B, p, x, q, v, w, strain_rate, kinds)
+        vA = point_velocity(A, p, xA, q, v, w, strain_rate, kinds)
+        vB = point_velocity(B, p, xB, q, v, w, strain_rate, kinds)
         vrel = vB - vA
         vn = wp.dot(vrel, n)
         vt = vrel - vn * n
@@ -1539,23 +1546,23 @@ def contact_forces(
                 f = f + fn * n
             else:
                 f = f + (kn * d) * n
-                add_damper(A, B, p, n, cn, vA, vB, x, kinds, loads)
+                add_damper(A, B, p, n, cn, vA, vB, xA, xB, kinds, loads)
             if stuck:
-                add_damper(A, B, p, t1, csk, vA, vB, x, kinds, loads)
-                add_damper(A, B, p, t2, csk, vA, vB, x, kinds, loads)
+                add_damper(A, B, p, t1, csk, vA, vB, xA, xB, kinds, loads)
+                add_damper(A, B, p, t2, csk, vA, vB, xA, xB, kinds, loads)
         elif stuck:
             f = f - csk * vt
         if movable(kinds[B]):
             wp.atomic_add(force, B, f)
-            wp.atomic_add(torque, B, wp.cross(p - x[B], f))
+            wp.atomic_add(torque, B, wp.cross(p - xB, f))
             if kinds[B] == KIND_DEFORMABLE:
-                Xb = wp.quat_rotate_inv(q[B], p - x[B])
+                Xb = wp.quat_rotate_inv(q[B], p - xB)
                 wp.atomic_add(strain_force, B, strain_gen_force(Xb, wp.quat_rotate_inv(q[B], f)))
         if movable(kinds[A]):
             wp.atomic_add(force, A, -f)
-            wp.atomic_add(torque, A, wp.cross(p - x[A], -f))
+            wp.atomic_add(torque, A, wp.cross(p - xA, -f))
             if kinds[A] == KIND_DEFORMABLE:
-                Xa = wp.quat_rotate_inv(q[A], p - x[A])
+                Xa = wp.quat_rotate_inv(q[A], p - xA)
                 wp.atomic_add(strain_force, A, strain_gen_force(Xa, wp.quat_rotate_inv(q[A], -f)))
     # rocking of a resting face: the point dashpots (critical for the normal translation, c_n per point) give
     # its two rocking modes about the in-plane axes through the patch centre only c_n sum l_k^2 against
@@ -1574,7 +1581,7 @@ def contact_forces(
             for k in range(nc):
                 lk = wp.dot(wp.cross(e, new_pos[base + k] - cen), n)
                 sl2 += lk * lk
-            inv_i = inv_rocking_inertia(A, e, cen, props, bodies) + inv_rocking_inertia(B, e, cen, props, bodies)
+            inv_i = inv_rocking_inertia(A, e, cen, xA, props, bodies) + inv_rocking_inertia(B, e, cen, xB, props, bodies)
             if sl2 > 0.0 and inv_i > 0.0:
                 c_rock = 2.0 * ZETA_STUCK * wp.sqrt(kn * sl2 / inv_i) - cn_face * sl2
                 if c_rock > 0.0:

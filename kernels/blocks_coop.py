@@ -511,8 +511,9 @@ def narrow_phase_coop(
     if lane == 0 and nc > 0:
         base = wp.atomic_add(cur.pcount, 0, nc)
         if base + nc <= cur.pos.shape[0]:
+            oA = (x[A] - o) + bodies.x_lo[A]  # A's centroid in the pair frame
             for k in range(nc):
-                cur.pos[base + k] = o + wp.vec3(px[k], py[k], pz[k])  # back to world
+                cur.pos[base + k] = wp.vec3(px[k], py[k], pz[k]) - oA  # relative to A's centroid (contact_forces)
                 cur.depth[base + k] = pd[k]
                 cur.ckey[base + k] = wp.vec2i(pka[k], pkb[k])
             cur.nc[slot] = nc

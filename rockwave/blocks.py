@@ -586,7 +586,12 @@ class BlockState:
         self.w = wp.array(ang.astype(np.float32), dtype=wp.vec3, device=d)
         self.strain = wp.zeros(n, dtype=wp.spatial_vector, device=d)
         self.strain_rate = wp.zeros(n, dtype=wp.spatial_vector, device=d)
-        self.x_lo = wp.zeros(n, dtype=wp.vec3, device=d)  # centroid = x + x_lo (kernels/blocks.py two_sum)
+        # centroid = x + x_lo (kernels/blocks.py two_sum): the specs' float64 poses to ~48 bits, so a scene placed
+        # far from the world origin starts with the same contacts as at the origin (kinematic blocks follow
+        # their float32 base position: BlockMotion.base_x)
+        lo = pos - pos.astype(np.float32)
+        lo[np.array([s.kind == "kinematic" for s in model.specs], dtype=bool)] = 0.0
+        self.x_lo = wp.array(lo.astype(np.float32), dtype=wp.vec3, device=d)
         self.force = wp.zeros(n, dtype=wp.vec3, device=d)
         self.torque = wp.zeros(n, dtype=wp.vec3, device=d)
         self.strain_force = wp.zeros(n, dtype=wp.spatial_vector, device=d)
@@ -1295,7 +1300,7 @@ class BlockSolver:
     # ---- diagnostics ----
     def contacts(self, state: BlockState) -> list:
         """Pairs examined in the last step: dicts with blocks (i, j), normal (i -> j), gap (m,
-        negative = overlap), points (k, 3), depths (k,), normal_forces (k,).  After step(), a pair
+        negative = overlap), points (k, 3, world), depths (k,), normal_forces (k,).  After step(), a pair
         certified separated by its warm-start plane keeps that plane and a positive lower bound of the
         gap; after detect() every gap is FCP's."""
         n = self.pair_count
@@ -1311,13 +1316,16 @@ class BlockSolver:
         pos = t["pos"].numpy()
         dep = t["depth"].numpy()
         fn = t["fn"].numpy()
+        # the table keeps points relative to block i's centroid x + x_lo (kernels/blocks.py contact_forces)
+        centroid = state.x.numpy().astype(np.float64) + state.x_lo.numpy()
         out = []
         for p in range(n):
             s = slots[p]
             k = nc[s] if s >= 0 else 0
             i = ps[s] if s >= 0 else 0
-            out.append(dict(blocks=(int(pairs[p][0]), int(pairs[p][1])), normal=normal[s].astype(float),
-                            gap=float(gaps[p]), points=pos[i: i + k].astype(float),
+            a = int(pairs[p][0])
+            out.append(dict(blocks=(a, int(pairs[p][1])), normal=normal[s].astype(float),
+                            gap=float(gaps[p]), points=pos[i: i + k].astype(float) + centroid[a],
                             depths=dep[i: i + k].astype(float), normal_forces=fn[i: i + k].astype(float)))
         return out
 

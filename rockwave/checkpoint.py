@@ -43,7 +43,8 @@ from typing import Any, Callable
 import numpy as np
 import warp as wp
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3  # 3: block centroids carry their float32 compensation (blocks/x_lo, blocks/world_verts_lo)
+READABLE_FORMATS = (2, 3)  # 2: read with zero compensation (the centroids as saved)
 FILE_NAME = "checkpoint.npz"
 
 
@@ -317,8 +318,9 @@ def read_file(path: str | os.PathLike) -> tuple[dict, dict]:
         meta = json.loads(arrays.pop("meta").tobytes().decode())
     except (OSError, ValueError, KeyError) as e:
         raise CheckpointError(f"{path}: not a readable checkpoint ({e})") from None
-    if meta.get("format") != FORMAT_VERSION:
-        raise CheckpointError(f"{path}: checkpoint format {meta.get('format')!r}, this rockwave reads {FORMAT_VERSION}")
+    if meta.get("format") not in READABLE_FORMATS:
+        raise CheckpointError(f"{path}: checkpoint format {meta.get('format')!r}, this rockwave reads "
+                              f"{', '.join(map(str, READABLE_FORMATS))}")
     return arrays, meta
 
 
@@ -356,6 +358,11 @@ def restore(sim, arrays: dict, meta: dict) -> None:
 
             print("resuming with changed settings: " + "; ".join(f"{k}: {a!r} -> {b!r}" for k, a, b in changes),
                   file=sys.stderr)
+    if meta.get("format") == 2 and "blocks/x" in arrays:
+        # before the compensated block positions (issue 20): the centroids and world vertices as saved
+        arrays = dict(arrays)
+        arrays.setdefault("blocks/x_lo", np.zeros_like(arrays["blocks/x"]))
+        arrays.setdefault("blocks/world_verts_lo", np.zeros_like(arrays["blocks/world_verts"]))
     provs = providers(sim)
     for name in meta["groups"]:
         if name not in provs:
