@@ -243,10 +243,10 @@ def two_sum(a: wp.vec3, b: wp.vec3):
 @wp.func
 def pair_origin(A: int, B: int, x: wp.array(dtype=wp.vec3), block_size: wp.array(dtype=float)):
     # origin of the pair frame of the narrow phase: the centroid of the smaller block rounded down to a
-    # power-of-two grid S >= its size, so the frame's coordinates stay within ~2 S of it, o is exact in
-    # float32 and hi - o of a vertex near the pair is exact (Sterbenz: both are multiples of the spacing
-    # at hi, and o moves only when the block crosses a grid line: between such moves a fixed block's
-    # vertices have the same pair-frame coordinates, bit for bit, every step)
+    # power-of-two grid S >= its size. The frame's coordinates near the pair stay within a few S; o is a
+    # multiple of S, hence of the float32 spacing at any world coordinate hi near it, so hi - o is exact; and
+    # o moves only when the block crosses a grid line, so between such moves a fixed block's vertices have
+    # the same pair-frame coordinates, bit for bit, every step
     b = A
     if block_size[B] < block_size[A]:
         b = B
@@ -743,7 +743,8 @@ def world_vertices(
     kinds: wp.array(dtype=int),
     out: wp.array(dtype=wp.vec3),
 ):
-    # x_world = x_c + R (X + E X)  (Shi's first-order displacement on top of the rigid motion)
+    # x_world = x_c + R (X + E X)  (Shi's first-order displacement on top of the rigid motion), float32 from
+    # the float32 centroid (the coupling's view; the block solver's own: block_world_vertices)
     v = wp.tid()
     b = vert_block[v]
     X = body_verts[v]

@@ -666,7 +666,8 @@ class BlockState:
 
     # ---- read-back helpers (host sync) ----
     def positions_numpy(self) -> np.ndarray:
-        return self.x.numpy().astype(np.float64)
+        """Centroids x + x_lo [m] (float64: the compensated sum's ~48 bits)."""
+        return self.x.numpy().astype(np.float64) + self.x_lo.numpy()
 
     def orientations_numpy(self) -> np.ndarray:
         return self.q.numpy().astype(np.float64)

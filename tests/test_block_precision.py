@@ -5,15 +5,20 @@ whatever the distance to the origin. Before, at 100 m the float32 spacing of a w
 exceeded the penetration itself. Short runs of one block on a fixed slope (~1000 steps, < 1 s each)."""
 
 import math
+import tomllib
 
 import numpy as np
 import pytest
 import warp as wp
 
-from conftest import DEVICE
+import rockwave
+from rockwave import checkpoint
 from rockwave import geometry as G
 from rockwave.blocks import BlockModel, BlockSolver, BlockSpec, ContactMaterial
+from rockwave.scene import parse_scene
 from rockwave.solver import TimeStep
+
+from conftest import DEVICE
 
 g = 9.81
 ALPHA = 35.0  # slope [deg]
@@ -65,7 +70,7 @@ def slide(offset_m):
 
 def centroid(state, b):
     """Block b's centroid x + x_lo in float64 [m]."""
-    return state.positions_numpy()[b] + state.x_lo.numpy()[b].astype(np.float64)
+    return state.positions_numpy()[b]
 
 
 @pytest.fixture(scope="module")
@@ -116,4 +121,48 @@ def test_compensated_centroid_moves_by_steps_below_the_float32_spacing():
         solver.step(state, TimeStep(dt, state.time, dt_array))
     moved = centroid(state, 0) - x0
     assert np.allclose(moved, v0 * 500 * dt, rtol=0.0, atol=1e-9), (moved, v0 * 500 * dt)
-    assert np.any(state.positions_numpy()[0] != x0.astype(np.float32))  # the float32 part itself moved
+    assert np.any(state.x.numpy()[0] != x0.astype(np.float32))  # the float32 part itself moved
+
+
+FAR_SCENE = """
+[simulation]
+duration_s = 1.0
+[[blocks]]
+name = "slope"
+shape = "box"
+size_m = [3.0, 1.0, 0.2]
+position_m = [700.3, -300.1, 99.9]
+kind = "fixed"
+[[blocks]]
+name = "slider"
+shape = "box"
+size_m = [0.2, 0.2, 0.2]
+position_m = [699.5, -300.1, 100.1]
+velocity_m_s = [1.5, 0.0, 0.0]
+[blocks.material]
+friction_angle_deg = 10.0
+"""
+
+
+def test_compensation_travels_in_checkpoints_and_format_2_reads_as_zero():
+    # checkpoint format 3 carries x_lo (a resumed run continues bit for bit); a format-2 checkpoint (before x_lo)
+    # still resumes, its centroids taken as saved (x_lo = 0)
+    scene = parse_scene(tomllib.loads(FAR_SCENE), "far.toml")
+    sim = rockwave.Simulation(scene, device=DEVICE)
+    sim.step_many(20)
+    x_lo = sim.block_state.x_lo.numpy().copy()
+    assert np.any(x_lo[1] != 0.0)  # 700 m from the origin the slider's centroid needs its compensation
+    arrays, groups = checkpoint.pack(sim, checkpoint.capture(sim))
+    assert "blocks/x_lo" in arrays
+    meta = {"format": checkpoint.FORMAT_VERSION, "scene": checkpoint.scene_identity(sim), "groups": groups}
+    resumed = rockwave.Simulation(scene, device=DEVICE)
+    checkpoint.restore(resumed, arrays, meta)
+    sim.step_many(20)
+    resumed.step_many(20)
+    assert np.array_equal(resumed.block_positions(), sim.block_positions())
+    old = {k: v for k, v in arrays.items() if k not in ("blocks/x_lo", "blocks/world_verts_lo")}
+    v2 = rockwave.Simulation(scene, device=DEVICE)
+    checkpoint.restore(v2, old, dict(meta, format=2))
+    assert not np.any(v2.block_state.x_lo.numpy()) and np.array_equal(v2.block_state.x.numpy(), arrays["blocks/x"])
+    with pytest.raises(checkpoint.CheckpointError, match="lacks"):
+        checkpoint.restore(rockwave.Simulation(scene, device=DEVICE), old, meta)  # format 3 must have it
