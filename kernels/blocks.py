@@ -177,14 +177,14 @@ class ContactTable:
 
 @wp.struct
 class WorldVerts:
-    """World vertices of every block (BlockState), each as a float32 pair: hi, the float32 world position
-    (what the AABBs, the broad phase and the readers use), and lo, the part below its resolution (from the
-    centroid's x_lo and the rounding of x + R X): vertex = hi + lo. The narrow phase reads them in a frame
-    of its pair (pair_vertex), where contact depths keep their bits however far the pair is from the
-    world origin."""
+    """World vertices of every block (BlockState): hi, the float32 world position (what the AABBs, the
+    broad phase and the readers use), and arm, the vertex relative to its block's float32 centroid x,
+    x_lo + R (X + E X) (~ the block's size, so float32 keeps its bits there): vertex = x + arm. The narrow
+    phase reads them in a frame of its pair (pair_vertex), where contact depths keep their bits however
+    far the pair is from the world origin."""
 
     hi: wp.array(dtype=wp.vec3)
-    lo: wp.array(dtype=wp.vec3)
+    arm: wp.array(dtype=wp.vec3)
 
 
 @wp.struct
@@ -244,9 +244,9 @@ def two_sum(a: wp.vec3, b: wp.vec3):
 def pair_origin(A: int, B: int, x: wp.array(dtype=wp.vec3), block_size: wp.array(dtype=float)):
     # origin of the pair frame of the narrow phase: the centroid of the smaller block rounded down to a
     # power-of-two grid S >= its size. The frame's coordinates near the pair stay within a few S; o is a
-    # multiple of S, hence of the float32 spacing at any world coordinate hi near it, so hi - o is exact; and
-    # o moves only when the block crosses a grid line, so between such moves a fixed block's vertices have
-    # the same pair-frame coordinates, bit for bit, every step
+    # multiple of S, hence of the float32 spacing at any world coordinate near it, so x_b - o is exact for a
+    # centroid near it; and o moves only when the block crosses a grid line, so between such moves a fixed
+    # block's vertices have the same pair-frame coordinates, bit for bit, every step
     b = A
     if block_size[B] < block_size[A]:
         b = B
@@ -256,10 +256,11 @@ def pair_origin(A: int, B: int, x: wp.array(dtype=wp.vec3), block_size: wp.array
 
 
 @wp.func
-def pair_vertex(wv: WorldVerts, o: wp.vec3, i: int):
-    # vertex i in the pair frame of origin o: (hi - o) + lo, the difference exact near o, so the frame's
-    # coordinates have float32's relative precision of the pair's size, not of the distance to the origin
-    return (wv.hi[i] - o) + wv.lo[i]
+def pair_vertex(wv: wp.array(dtype=wp.vec3), dc: wp.vec3, i: int):
+    # vertex i in the pair frame: dc + arm_i, dc = x_b - o its block's float32 centroid there (exact for a
+    # centroid near o, pair_origin), so the frame's coordinates have float32's relative precision of the
+    # pair's size, not of the distance to the origin
+    return dc + wv[i]
 
 
 @wp.func
@@ -390,14 +391,16 @@ def solve6(Ain: wp.spatial_matrix, bin: wp.spatial_vector):
 
 
 @wp.func
-def extent_along(n: wp.vec3, start: int, count: int, wv: WorldVerts, o: wp.vec3):
-    # min/max of n.x over a block's world vertices and where they are attained
+def extent_along(n: wp.vec3, start: int, count: int, wv: wp.array(dtype=wp.vec3), dc: wp.vec3):
+    # min/max of n.x over a block's vertices (pair frame: x = dc + arm, dc its centroid there) and where
+    # they are attained
     lo = float(1.0e30)
     hi = float(-1.0e30)
     ilo = int(start)
     ihi = int(start)
+    ndc = wp.dot(n, dc)
     for k in range(count):
-        d = wp.dot(n, pair_vertex(wv, o, start + k))
+        d = wp.dot(n, wv[start + k]) + ndc
         if d < lo:
             lo = d
             ilo = start + k
@@ -408,10 +411,10 @@ def extent_along(n: wp.vec3, start: int, count: int, wv: WorldVerts, o: wp.vec3)
 
 
 @wp.func
-def signed_gap(n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: WorldVerts, o: wp.vec3):
+def signed_gap(n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: wp.array(dtype=wp.vec3), dA: wp.vec3, dB: wp.vec3):
     # gap of the plane family with normal +-n: gap(+n) = min_B n.x - max_A n.x; keep the better sign
-    loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv, o)
-    loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv, o)
+    loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv, dA)
+    loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv, dB)
     gp = loB - hiA
     gm = loA - hiB
     if gm > gp:
@@ -421,13 +424,13 @@ def signed_gap(n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: WorldVerts, o
 
 @wp.func
 def try_plane(
-    cand: wp.vec3, best_n: wp.vec3, best_gap: float, sA: int, cA: int, sB: int, cB: int, wv: WorldVerts, o: wp.vec3
+    cand: wp.vec3, best_n: wp.vec3, best_gap: float, sA: int, cA: int, sB: int, cB: int, wv: wp.array(dtype=wp.vec3), dA: wp.vec3, dB: wp.vec3
 ):
     # keep the candidate plane with the largest gap (smallest overlap), FCP step iii
     ln = wp.length(cand)
     if ln < 1.0e-12:
         return best_n, best_gap
-    nn, g = signed_gap(cand / ln, sA, cA, sB, cB, wv, o)
+    nn, g = signed_gap(cand / ln, sA, cA, sB, cB, wv, dA, dB)
     if g > best_gap + 1.0e-9:
         return nn, g
     return best_n, best_gap
@@ -440,24 +443,25 @@ def he_dest(h: int, he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)
 
 @wp.func
 def face_plane_of_he(
-    h: int, wv: WorldVerts, o: wp.vec3, he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)
+    h: int, wv: wp.array(dtype=wp.vec3), dc: wp.vec3, he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)
 ):
-    # outward normal and offset of the face left of half-edge h (CCW loop: n = (p1-p0) x (p2-p1))
+    # outward normal and offset (pair frame; dc: the face's block's centroid there) of the face left of
+    # half-edge h (CCW loop: n = (p1-p0) x (p2-p1), from the block's arms)
     h1 = he_next[h]
-    p0 = pair_vertex(wv, o, he_vertex[h])
-    p1 = pair_vertex(wv, o, he_vertex[h1])
-    p2 = pair_vertex(wv, o, he_vertex[he_next[h1]])
+    p0 = wv[he_vertex[h]]
+    p1 = wv[he_vertex[h1]]
+    p2 = wv[he_vertex[he_next[h1]]]
     nf = wp.normalize(wp.cross(p1 - p0, p2 - p1))
-    return nf, wp.dot(nf, p0)
+    return nf, wp.dot(nf, p0) + wp.dot(nf, dc)
 
 
 @wp.func
-def face_normal(h: int, wv: WorldVerts, o: wp.vec3, he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)):
+def face_normal(h: int, wv: wp.array(dtype=wp.vec3), he_vertex: wp.array(dtype=int), he_next: wp.array(dtype=int)):
     # unit outward normal of the face left of half-edge h (as face_plane_of_he, without the offset)
     h1 = he_next[h]
-    p0 = pair_vertex(wv, o, he_vertex[h])
-    p1 = pair_vertex(wv, o, he_vertex[h1])
-    p2 = pair_vertex(wv, o, he_vertex[he_next[h1]])
+    p0 = wv[he_vertex[h]]
+    p1 = wv[he_vertex[h1]]
+    p2 = wv[he_vertex[he_next[h1]]]
     return wp.normalize(wp.cross(p1 - p0, p2 - p1))
 
 
@@ -486,8 +490,9 @@ def fcp_candidates(
     cA: int,
     sB: int,
     cB: int,
-    wv: WorldVerts,
-    o: wp.vec3,
+    wv: wp.array(dtype=wp.vec3),
+    dA: wp.vec3,
+    dB: wp.vec3,
     vertex_out_he: wp.array(dtype=int),
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
@@ -496,31 +501,31 @@ def fcp_candidates(
 ):
     # FCP candidate planes of the vertex pair (A, B): (a) PB of AB, (b) faces at A or B,
     # (c) edge at A x edge at B, (d) one edge at A or B and AB
-    xa = pair_vertex(wv, o, a)
-    xb = pair_vertex(wv, o, b)
+    xa = pair_vertex(wv, dA, a)
+    xb = pair_vertex(wv, dB, b)
     dab = xb - xa
     # (a) perpendicular bisector of AB
-    best_n, best_gap = try_plane(dab, best_n, best_gap, sA, cA, sB, cB, wv, o)
+    best_n, best_gap = try_plane(dab, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB)
     # walk the half-edges leaving A: h -> twin(prev(h))
     h0 = vertex_out_he[a]
     h = h0
     for ka in range(MAX_VALENCE):
-        nf, df = face_plane_of_he(h, wv, o, he_vertex, he_next)
-        best_n, best_gap = try_plane(nf, best_n, best_gap, sA, cA, sB, cB, wv, o)  # (b)
-        ea = pair_vertex(wv, o, he_dest(h, he_vertex, he_next)) - xa
+        nf, df = face_plane_of_he(h, wv, dA, he_vertex, he_next)
+        best_n, best_gap = try_plane(nf, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB)  # (b)
+        ea = wv[he_dest(h, he_vertex, he_next)] - wv[a]
         # (d) plane containing edge ea, as close to the PB as possible: n = AB - (AB.e)e
         le = wp.length(ea)
         if le > 0.0:
             eh = ea / le
-            best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, o)
+            best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB)
         # (c) edge at A x edge at B
         g0 = vertex_out_he[b]
         g = g0
         for kb in range(MAX_VALENCE):
-            eb = pair_vertex(wv, o, he_dest(g, he_vertex, he_next)) - xb
+            eb = wv[he_dest(g, he_vertex, he_next)] - wv[b]
             c = wp.cross(ea, eb)
             if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
-                best_n, best_gap = try_plane(c, best_n, best_gap, sA, cA, sB, cB, wv, o)
+                best_n, best_gap = try_plane(c, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB)
             g = he_twin[he_prev[g]]
             if g == g0:
                 break
@@ -531,13 +536,13 @@ def fcp_candidates(
     g0 = vertex_out_he[b]
     g = g0
     for kb in range(MAX_VALENCE):
-        nf, df = face_plane_of_he(g, wv, o, he_vertex, he_next)
-        best_n, best_gap = try_plane(-nf, best_n, best_gap, sA, cA, sB, cB, wv, o)
-        eb = pair_vertex(wv, o, he_dest(g, he_vertex, he_next)) - xb
+        nf, df = face_plane_of_he(g, wv, dB, he_vertex, he_next)
+        best_n, best_gap = try_plane(-nf, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB)
+        eb = wv[he_dest(g, he_vertex, he_next)] - wv[b]
         le = wp.length(eb)
         if le > 0.0:
             eh = eb / le
-            best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, o)
+            best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB)
         g = he_twin[he_prev[g]]
         if g == g0:
             break
@@ -551,19 +556,20 @@ def column_through(
     fstart: int,
     fcount: int,
     face_he: wp.array(dtype=int),
-    wv: WorldVerts,
-    o: wp.vec3,
+    wv: wp.array(dtype=wp.vec3),
+    d: wp.vec3,
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
     tol: float,
 ):
-    # interval [t_lo, t_hi] of the line p + t n inside a convex block (all faces n_f.x <= d_f);
+    # interval [t_lo, t_hi] of the line p + t n inside a convex block (all faces n_f.x <= d_f; pair frame,
+    # d: the block's centroid there);
     # hit = False when the line misses it (a lateral face excludes p)
     t_lo = float(-1.0e30)
     t_hi = float(1.0e30)
     hit = int(1)
     for k in range(fcount):
-        nf, df = face_plane_of_he(face_he[fstart + k], wv, o, he_vertex, he_next)
+        nf, df = face_plane_of_he(face_he[fstart + k], wv, d, he_vertex, he_next)
         c = wp.dot(nf, n)
         s = df - wp.dot(nf, p)
         if c > 1.0e-4:
@@ -594,23 +600,24 @@ def fcp_touching(
     fsB: int,
     fcB: int,
     face_he: wp.array(dtype=int),
-    wv: WorldVerts,
-    o: wp.vec3,
+    wv: wp.array(dtype=wp.vec3),
+    dA: wp.vec3,
+    dB: wp.vec3,
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
 ):
     # certificate that no plane separates better than (n, gap): a closest vertex p of one block whose
     # line along n meets the other block at q = p +- gap n (within tie); any plane's gap is <= |q - p|
     for k in range(cA):
-        p = pair_vertex(wv, o, sA + k)
+        p = pair_vertex(wv, dA, sA + k)
         if wp.dot(n, p) >= hiA - tie:
-            t_lo, t_hi, hit = column_through(p, n, fsB, fcB, face_he, wv, o, he_vertex, he_next, tie)
+            t_lo, t_hi, hit = column_through(p, n, fsB, fcB, face_he, wv, dB, he_vertex, he_next, tie)
             if hit == 1 and t_lo <= gap + tie:
                 return int(1)
     for k in range(cB):
-        p = pair_vertex(wv, o, sB + k)
+        p = pair_vertex(wv, dB, sB + k)
         if wp.dot(n, p) <= loB + tie:
-            t_lo, t_hi, hit = column_through(p, n, fsA, fcA, face_he, wv, o, he_vertex, he_next, tie)
+            t_lo, t_hi, hit = column_through(p, n, fsA, fcA, face_he, wv, dA, he_vertex, he_next, tie)
             if hit == 1 and t_hi >= -gap - tie:
                 return int(1)
     return int(0)
@@ -629,8 +636,9 @@ def fcp_plane(
     fsB: int,
     fcB: int,
     face_he: wp.array(dtype=int),
-    wv: WorldVerts,
-    o: wp.vec3,
+    wv: wp.array(dtype=wp.vec3),
+    dA: wp.vec3,
+    dB: wp.vec3,
     vertex_out_he: wp.array(dtype=int),
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
@@ -646,35 +654,35 @@ def fcp_plane(
     # better. gap(n) = min_B n.x - max_A n.x is concave in n, so for separated blocks the final fixed
     # point is the exact gap. Overlaps stop at the first fixed point: narrow_phase's SAT fallback
     # checks them (and resting face contacts would pay |face|^2 pairs every step).
-    best_n, best_gap = signed_gap(n0, sA, cA, sB, cB, wv, o)
+    best_n, best_gap = signed_gap(n0, sA, cA, sB, cB, wv, dA, dB)
     a = int(-1)
     b = int(-1)
     for it in range(FCP_MAX_ITER):
         n = best_n
         gap0 = best_gap
-        loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv, o)
-        loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv, o)
+        loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv, dA)
+        loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv, dB)
         if ihA != a or ilB != b:
             a = ihA
             b = ilB
             best_n, best_gap = fcp_candidates(
-                a, b, best_n, best_gap, sA, cA, sB, cB, wv, o, vertex_out_he, he_vertex, he_next, he_prev, he_twin
+                a, b, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, vertex_out_he, he_vertex, he_next, he_prev, he_twin
             )
         else:
             if gap0 <= 0.0:
                 break
-            touching = fcp_touching(n, gap0, tie, hiA, loB, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, o,
+            touching = fcp_touching(n, gap0, tie, hiA, loB, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, dA, dB,
                                     he_vertex, he_next)
             if touching == 1:
                 break
             for ka in range(cA):
                 va = sA + ka
-                if wp.dot(n, pair_vertex(wv, o, va)) >= hiA - tie:
+                if wp.dot(n, pair_vertex(wv, dA, va)) >= hiA - tie:
                     for kb in range(cB):
                         vb = sB + kb
-                        if wp.dot(n, pair_vertex(wv, o, vb)) <= loB + tie:
+                        if wp.dot(n, pair_vertex(wv, dB, vb)) <= loB + tie:
                             best_n, best_gap = fcp_candidates(
-                                va, vb, best_n, best_gap, sA, cA, sB, cB, wv, o,
+                                va, vb, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB,
                                 vertex_out_he, he_vertex, he_next, he_prev, he_twin,
                             )
             if best_gap <= gap0:
@@ -761,16 +769,16 @@ def block_world_vertices(
     kinds: wp.array(dtype=int),
     out: WorldVerts,
 ):
-    """The block solver's world vertices x_world = (x + x_lo) + R (X + E X), as the float32 pair
-    hi + lo (WorldVerts; the arm x_lo + R (X + E X) rounded once, then added to x exactly by two_sum)."""
+    """The block solver's world vertices x_world = (x + x_lo) + R (X + E X) (WorldVerts): the arm
+    x_lo + R (X + E X) from the float32 centroid x, and hi = x + arm in float32."""
     v = wp.tid()
     b = vert_block[v]
     X = body_verts[v]
     if kinds[b] == KIND_DEFORMABLE:
         X = X + strain_matrix(bodies.strain[b]) * X
-    hi, lo = two_sum(bodies.x[b], bodies.x_lo[b] + wp.quat_rotate(bodies.q[b], X))
-    out.hi[v] = hi
-    out.lo[v] = lo
+    arm = bodies.x_lo[b] + wp.quat_rotate(bodies.q[b], X)
+    out.arm[v] = arm
+    out.hi[v] = bodies.x[b] + arm
 
 
 @wp.kernel
@@ -1037,7 +1045,7 @@ def narrow_screen(
     nblocks: int,
     screen: int,
     coop_min: int,
-    wv: WorldVerts,
+    verts: WorldVerts,
     topo: BlockTopology,
     bodies: BlockBodies,
     dx: wp.array(dtype=wp.vec3),
@@ -1060,7 +1068,10 @@ def narrow_screen(
         return
     A = pairs[tid][0]
     B = pairs[tid][1]
-    o = pair_origin(A, B, x, topo.block_size)  # the pair frame (pair_vertex)
+    o = pair_origin(A, B, x, topo.block_size)  # the pair frame (pair_vertex): the centroids there
+    dA = x[A] - o
+    dB = x[B] - o
+    wv = verts.arm  # each vertex relative to its block's float32 centroid
     key = wp.int64(A) * wp.int64(nblocks) + wp.int64(B)
     slot = table_insert(key, cur.keys, cur.keys.shape[0])
     pl.slot[tid] = slot
@@ -1088,7 +1099,7 @@ def narrow_screen(
             n0 = prev.normal[oslot]
         if wp.length(n0) < 1.0e-12:
             n0 = wp.vec3(0.0, 0.0, 1.0)
-        n, gap = signed_gap(wp.normalize(n0), topo.vert_start[A], topo.vert_count[A], topo.vert_start[B], topo.vert_count[B], wv, o)
+        n, gap = signed_gap(wp.normalize(n0), topo.vert_start[A], topo.vert_count[A], topo.vert_start[B], topo.vert_count[B], wv, dA, dB)
         if gap > 0.0:
             cur.normal[slot] = n
             cur.gapb[slot] = gap
@@ -1107,14 +1118,14 @@ def narrow_screen(
 def narrow_phase(
     pl: PairList,
     coop_min: int,
-    wv: WorldVerts,
+    verts: WorldVerts,
     topo: BlockTopology,
     bodies: BlockBodies,
     prev: ContactTable,
     cur: ContactTable,
 ):
     """FCP narrow phase of the pairs of small blocks (vert_count[A] + vert_count[B] <= coop_min; the
-    others: narrow_phase_coop, the same algorithm): world vertices wv, o, previous contact history `prev`
+    others: narrow_phase_coop, the same algorithm): world vertices wv, previous contact history `prev`
     (read), this step's `cur` (written: plane, gap, contact points); contact_forces then acts on them."""
     # local names for the grouped arrays (the arithmetic below reads them as before)
     vert_start = topo.vert_start
@@ -1139,7 +1150,10 @@ def narrow_phase(
     tid = pl.active[li]
     A = pl.pairs[tid][0]
     B = pl.pairs[tid][1]
-    o = pair_origin(A, B, x, block_size)  # the pair frame (pair_vertex)
+    o = pair_origin(A, B, x, block_size)  # the pair frame (pair_vertex): the centroids there
+    dA = x[A] - o
+    dB = x[B] - o
+    wv = verts.arm  # each vertex relative to its block's float32 centroid
     slot = pl.slot[tid]
     oslot = pl.oslot[tid]
     sA = vert_start[A]
@@ -1155,12 +1169,12 @@ def narrow_phase(
     if wp.length(n0) < 1.0e-12:
         n0 = wp.vec3(0.0, 0.0, 1.0)
     # FCP's tie tolerance for closest vertices: float32 rounding of n.x (~1e-7 (|x| + size)) well inside
-    tie = 1.0e-6 * (block_size[A] + block_size[B] + wp.length(x[A] - o) + wp.length(x[B] - o))
+    tie = 1.0e-6 * (block_size[A] + block_size[B] + wp.length(dA) + wp.length(dB))
     fsA = face_start[A]
     fcA = face_count[A]
     fsB = face_start[B]
     fcB = face_count[B]
-    n, gap = fcp_plane(wp.normalize(n0), tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, o,
+    n, gap = fcp_plane(wp.normalize(n0), tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, dA, dB,
                        vertex_out_he, he_vertex, he_next, he_prev, he_twin)
     if gap < 0.0:
         # FCP is a local search: before accepting an overlap, also try every face normal of both
@@ -1168,11 +1182,11 @@ def narrow_phase(
         n1 = n
         g1 = gap
         for k in range(face_count[A]):
-            nf, df = face_plane_of_he(face_he[face_start[A] + k], wv, o, he_vertex, he_next)
-            n1, g1 = try_plane(nf, n1, g1, sA, cA, sB, cB, wv, o)
+            nf, df = face_plane_of_he(face_he[face_start[A] + k], wv, dA, he_vertex, he_next)
+            n1, g1 = try_plane(nf, n1, g1, sA, cA, sB, cB, wv, dA, dB)
         for k in range(face_count[B]):
-            nf, df = face_plane_of_he(face_he[face_start[B] + k], wv, o, he_vertex, he_next)
-            n1, g1 = try_plane(nf, n1, g1, sA, cA, sB, cB, wv, o)
+            nf, df = face_plane_of_he(face_he[face_start[B] + k], wv, dB, he_vertex, he_next)
+            n1, g1 = try_plane(nf, n1, g1, sA, cA, sB, cB, wv, dA, dB)
         # and every edge-pair axis (exact SAT) when the blocks are small enough (E_A E_B <= 2048)
         if (cA + face_count[A] - 2) * (cB + face_count[B] - 2) <= SAT_EDGE_PAIRS:
             for ka in range(cA):
@@ -1182,10 +1196,10 @@ def narrow_phase(
                 for ia in range(MAX_VALENCE):
                     ua = he_dest(h, he_vertex, he_next)
                     if va < ua:
-                        ea = pair_vertex(wv, o, ua) - pair_vertex(wv, o, va)
+                        ea = wv[ua] - wv[va]
                         # normals of the two faces at edge (va, ua): its arc on A's Gauss map
-                        fa1 = face_normal(h, wv, o, he_vertex, he_next)
-                        fa2 = face_normal(he_twin[h], wv, o, he_vertex, he_next)
+                        fa1 = face_normal(h, wv, he_vertex, he_next)
+                        fa2 = face_normal(he_twin[h], wv, he_vertex, he_next)
                         for kb in range(cB):
                             vb = sB + kb
                             g0 = vertex_out_he[vb]
@@ -1193,12 +1207,12 @@ def narrow_phase(
                             for ib in range(MAX_VALENCE):
                                 ub = he_dest(gg, he_vertex, he_next)
                                 if vb < ub:
-                                    ax = wp.cross(ea, pair_vertex(wv, o, ub) - pair_vertex(wv, o, vb))
-                                    if wp.length(ax) > 1.0e-6 * wp.length(ea) * wp.length(pair_vertex(wv, o, ub) - pair_vertex(wv, o, vb)):
-                                        fb1 = face_normal(gg, wv, o, he_vertex, he_next)
-                                        fb2 = face_normal(he_twin[gg], wv, o, he_vertex, he_next)
+                                    ax = wp.cross(ea, wv[ub] - wv[vb])
+                                    if wp.length(ax) > 1.0e-6 * wp.length(ea) * wp.length(wv[ub] - wv[vb]):
+                                        fb1 = face_normal(gg, wv, he_vertex, he_next)
+                                        fb2 = face_normal(he_twin[gg], wv, he_vertex, he_next)
                                         if minkowski_edge_face(fa1, fa2, -fb1, -fb2):
-                                            n1, g1 = try_plane(ax, n1, g1, sA, cA, sB, cB, wv, o)
+                                            n1, g1 = try_plane(ax, n1, g1, sA, cA, sB, cB, wv, dA, dB)
                                 gg = he_twin[he_prev[gg]]
                                 if gg == g0:
                                     break
@@ -1206,7 +1220,7 @@ def narrow_phase(
                     if h == h0:
                         break
         if g1 > gap + 1.0e-7:
-            n, gap = fcp_plane(n1, tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, o,
+            n, gap = fcp_plane(n1, tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, dA, dB,
                                vertex_out_he, he_vertex, he_next, he_prev, he_twin)
     cur.normal[slot] = n
     cur.gapb[slot] = gap
@@ -1219,8 +1233,8 @@ def narrow_phase(
     tol = 1.0e-6 * size
     dup_tol = 1.0e-4 * size
     over = -gap  # total overlap along n: max_A n.x - min_B n.x
-    loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv, o)
-    loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv, o)
+    loA, ilA, hiA, ihA = extent_along(n, sA, cA, wv, dA)
+    loB, ilB, hiB, ihB = extent_along(n, sB, cB, wv, dB)
     nc = int(0)
     px = PointCoord()
     py = PointCoord()
@@ -1231,18 +1245,18 @@ def narrow_phase(
     # vertices of A that may lie inside B: column through the vertex along n meets B's bottom
     for k in range(cA):
         va = sA + k
-        pa = pair_vertex(wv, o, va)
+        pa = pair_vertex(wv, dA, va)
         if wp.dot(n, pa) >= loB - tol:
-            t_lo, t_hi, hit = column_through(pa, n, face_start[B], face_count[B], face_he, wv, o, he_vertex, he_next, tol)
+            t_lo, t_hi, hit = column_through(pa, n, face_start[B], face_count[B], face_he, wv, dB, he_vertex, he_next, tol)
             d = wp.min(-t_lo, over)
             if hit == 1 and d > 0.0:
                 nc, px, py, pz, pd, pka, pkb = add_contact(nc, pa + (0.5 * t_lo) * n, d, va, -1, dup_tol, px, py, pz, pd, pka, pkb)
     # vertices of B that may lie inside A
     for k in range(cB):
         vb = sB + k
-        pb = pair_vertex(wv, o, vb)
+        pb = pair_vertex(wv, dB, vb)
         if wp.dot(n, pb) <= hiA + tol:
-            t_lo, t_hi, hit = column_through(pb, n, face_start[A], face_count[A], face_he, wv, o, he_vertex, he_next, tol)
+            t_lo, t_hi, hit = column_through(pb, n, face_start[A], face_count[A], face_he, wv, dA, he_vertex, he_next, tol)
             d = wp.min(t_hi, over)
             if hit == 1 and d > 0.0:
                 nc, px, py, pz, pd, pka, pkb = add_contact(nc, pb + (0.5 * t_hi) * n, d, -1, vb, dup_tol, px, py, pz, pd, pka, pkb)
@@ -1251,27 +1265,27 @@ def narrow_phase(
     t2 = wp.cross(n, t1)
     for k in range(cA):
         va = sA + k
-        pa = pair_vertex(wv, o, va)
+        pa = pair_vertex(wv, dA, va)
         if wp.dot(n, pa) < loB - tol:
             continue
         h0 = vertex_out_he[va]
         h = h0
         for ka in range(MAX_VALENCE):
             ua = he_dest(h, he_vertex, he_next)
-            qa = pair_vertex(wv, o, ua)
+            qa = pair_vertex(wv, dA, ua)
             if wp.dot(n, qa) < loB - tol or va < ua:
                 # edge (va, ua) once: from its lower end if both ends are in the patch
                 ea = qa - pa
                 for kk in range(cB):
                     vb = sB + kk
-                    pb = pair_vertex(wv, o, vb)
+                    pb = pair_vertex(wv, dB, vb)
                     if wp.dot(n, pb) > hiA + tol:
                         continue
                     g0 = vertex_out_he[vb]
                     g = g0
                     for kb in range(MAX_VALENCE):
                         ub = he_dest(g, he_vertex, he_next)
-                        qb = pair_vertex(wv, o, ub)
+                        qb = pair_vertex(wv, dB, ub)
                         if wp.dot(n, qb) > hiA + tol or vb < ub:
                             eb = qb - pb
                             # solve pa + s ea = pb + u eb in the plane (2D)
@@ -1306,7 +1320,7 @@ def narrow_phase(
     base = wp.atomic_add(cur.pcount, 0, nc)
     if base + nc > new_pos.shape[0]:
         return
-    oA = (x[A] - o) + bodies.x_lo[A]  # A's centroid in the pair frame
+    oA = dA + bodies.x_lo[A]  # A's centroid x + x_lo in the pair frame
     for k in range(nc):
         new_pos[base + k] = wp.vec3(px[k], py[k], pz[k]) - oA  # relative to A's centroid (contact_forces)
         new_depth[base + k] = pd[k]

@@ -43,7 +43,7 @@ BIG_INDEX = wp.constant(2147483647)
 
 @wp.func
 def coop_extents(
-    n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: WorldVerts, o: wp.vec3, lane: int, bd: int, want_index: int
+    n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: wp.array(dtype=wp.vec3), dA: wp.vec3, dB: wp.vec3, lane: int, bd: int, want_index: int
 ):
     # extent_along(n) of both blocks (lo, ilo, hi, ihi of A, then of B), lanes over the vertices;
     # the index reduction (first vertex attaining the extreme, as extent_along) only when want_index
@@ -55,9 +55,11 @@ def coop_extents(
     ihA = BIG_INDEX
     ilB = BIG_INDEX
     ihB = BIG_INDEX
+    ndA = wp.dot(n, dA)
+    ndB = wp.dot(n, dB)
     k = lane
     while k < cA:
-        d = wp.dot(n, pair_vertex(wv, o, sA + k))
+        d = wp.dot(n, wv[sA + k]) + ndA
         if d < lA:
             lA = d
             ilA = sA + k
@@ -67,7 +69,7 @@ def coop_extents(
         k += bd
     k = lane
     while k < cB:
-        d = wp.dot(n, pair_vertex(wv, o, sB + k))
+        d = wp.dot(n, wv[sB + k]) + ndB
         if d < lB:
             lB = d
             ilB = sB + k
@@ -95,9 +97,9 @@ def coop_extents(
 
 
 @wp.func
-def signed_gap_coop(n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: WorldVerts, o: wp.vec3, lane: int, bd: int):
+def signed_gap_coop(n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: wp.array(dtype=wp.vec3), dA: wp.vec3, dB: wp.vec3, lane: int, bd: int):
     # signed_gap, lanes over the vertices
-    loA, ilA, hiA, ihA, loB, ilB, hiB, ihB = coop_extents(n, sA, cA, sB, cB, wv, o, lane, bd, 0)
+    loA, ilA, hiA, ihA, loB, ilB, hiB, ihB = coop_extents(n, sA, cA, sB, cB, wv, dA, dB, lane, bd, 0)
     gp = loB - hiA
     gm = loA - hiB
     if gm > gp:
@@ -108,13 +110,13 @@ def signed_gap_coop(n: wp.vec3, sA: int, cA: int, sB: int, cB: int, wv: WorldVer
 @wp.func
 def try_plane_coop(
     cand: wp.vec3, best_n: wp.vec3, best_gap: float, sA: int, cA: int, sB: int, cB: int,
-    wv: WorldVerts, o: wp.vec3, lane: int, bd: int,
+    wv: wp.array(dtype=wp.vec3), dA: wp.vec3, dB: wp.vec3, lane: int, bd: int,
 ):
     # try_plane, lanes over the vertices
     ln = wp.length(cand)
     if ln < 1.0e-12:
         return best_n, best_gap
-    nn, g = signed_gap_coop(cand / ln, sA, cA, sB, cB, wv, o, lane, bd)
+    nn, g = signed_gap_coop(cand / ln, sA, cA, sB, cB, wv, dA, dB, lane, bd)
     if g > best_gap + 1.0e-9:
         return nn, g
     return best_n, best_gap
@@ -130,8 +132,9 @@ def fcp_candidates_coop(
     cA: int,
     sB: int,
     cB: int,
-    wv: WorldVerts,
-    o: wp.vec3,
+    wv: wp.array(dtype=wp.vec3),
+    dA: wp.vec3,
+    dB: wp.vec3,
     vertex_out_he: wp.array(dtype=int),
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
@@ -141,27 +144,27 @@ def fcp_candidates_coop(
     bd: int,
 ):
     # fcp_candidates (the candidates of the vertex pair in its order), each plane's gap over the lanes
-    xa = pair_vertex(wv, o, a)
-    xb = pair_vertex(wv, o, b)
+    xa = pair_vertex(wv, dA, a)
+    xb = pair_vertex(wv, dB, b)
     dab = xb - xa
-    best_n, best_gap = try_plane_coop(dab, best_n, best_gap, sA, cA, sB, cB, wv, o, lane, bd)
+    best_n, best_gap = try_plane_coop(dab, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, lane, bd)
     h0 = vertex_out_he[a]
     h = h0
     for ka in range(MAX_VALENCE):
-        nf, df = face_plane_of_he(h, wv, o, he_vertex, he_next)
-        best_n, best_gap = try_plane_coop(nf, best_n, best_gap, sA, cA, sB, cB, wv, o, lane, bd)
-        ea = pair_vertex(wv, o, he_dest(h, he_vertex, he_next)) - xa
+        nf, df = face_plane_of_he(h, wv, dA, he_vertex, he_next)
+        best_n, best_gap = try_plane_coop(nf, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, lane, bd)
+        ea = wv[he_dest(h, he_vertex, he_next)] - wv[a]
         le = wp.length(ea)
         if le > 0.0:
             eh = ea / le
-            best_n, best_gap = try_plane_coop(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, o, lane, bd)
+            best_n, best_gap = try_plane_coop(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, lane, bd)
         g0 = vertex_out_he[b]
         g = g0
         for kb in range(MAX_VALENCE):
-            eb = pair_vertex(wv, o, he_dest(g, he_vertex, he_next)) - xb
+            eb = wv[he_dest(g, he_vertex, he_next)] - wv[b]
             c = wp.cross(ea, eb)
             if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
-                best_n, best_gap = try_plane_coop(c, best_n, best_gap, sA, cA, sB, cB, wv, o, lane, bd)
+                best_n, best_gap = try_plane_coop(c, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, lane, bd)
             g = he_twin[he_prev[g]]
             if g == g0:
                 break
@@ -171,13 +174,13 @@ def fcp_candidates_coop(
     g0 = vertex_out_he[b]
     g = g0
     for kb in range(MAX_VALENCE):
-        nf, df = face_plane_of_he(g, wv, o, he_vertex, he_next)
-        best_n, best_gap = try_plane_coop(-nf, best_n, best_gap, sA, cA, sB, cB, wv, o, lane, bd)
-        eb = pair_vertex(wv, o, he_dest(g, he_vertex, he_next)) - xb
+        nf, df = face_plane_of_he(g, wv, dB, he_vertex, he_next)
+        best_n, best_gap = try_plane_coop(-nf, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, lane, bd)
+        eb = wv[he_dest(g, he_vertex, he_next)] - wv[b]
         le = wp.length(eb)
         if le > 0.0:
             eh = eb / le
-            best_n, best_gap = try_plane_coop(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, o, lane, bd)
+            best_n, best_gap = try_plane_coop(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, lane, bd)
         g = he_twin[he_prev[g]]
         if g == g0:
             break
@@ -200,8 +203,9 @@ def fcp_touching_coop(
     fsB: int,
     fcB: int,
     face_he: wp.array(dtype=int),
-    wv: WorldVerts,
-    o: wp.vec3,
+    wv: wp.array(dtype=wp.vec3),
+    dA: wp.vec3,
+    dB: wp.vec3,
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
     lane: int,
@@ -211,17 +215,17 @@ def fcp_touching_coop(
     found = int(0)
     k = lane
     while k < cA:
-        p = pair_vertex(wv, o, sA + k)
+        p = pair_vertex(wv, dA, sA + k)
         if wp.dot(n, p) >= hiA - tie:
-            t_lo, t_hi, hit = column_through(p, n, fsB, fcB, face_he, wv, o, he_vertex, he_next, tie)
+            t_lo, t_hi, hit = column_through(p, n, fsB, fcB, face_he, wv, dB, he_vertex, he_next, tie)
             if hit == 1 and t_lo <= gap + tie:
                 found = 1
         k += bd
     k = lane
     while k < cB:
-        p = pair_vertex(wv, o, sB + k)
+        p = pair_vertex(wv, dB, sB + k)
         if wp.dot(n, p) <= loB + tie:
-            t_lo, t_hi, hit = column_through(p, n, fsA, fcA, face_he, wv, o, he_vertex, he_next, tie)
+            t_lo, t_hi, hit = column_through(p, n, fsA, fcA, face_he, wv, dA, he_vertex, he_next, tie)
             if hit == 1 and t_hi >= -gap - tie:
                 found = 1
         k += bd
@@ -241,8 +245,9 @@ def fcp_plane_coop(
     fsB: int,
     fcB: int,
     face_he: wp.array(dtype=int),
-    wv: WorldVerts,
-    o: wp.vec3,
+    wv: wp.array(dtype=wp.vec3),
+    dA: wp.vec3,
+    dB: wp.vec3,
     vertex_out_he: wp.array(dtype=int),
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
@@ -252,35 +257,35 @@ def fcp_plane_coop(
     bd: int,
 ):
     # fcp_plane, step for step (see there); extents, gaps and certificates over the lanes
-    best_n, best_gap = signed_gap_coop(n0, sA, cA, sB, cB, wv, o, lane, bd)
+    best_n, best_gap = signed_gap_coop(n0, sA, cA, sB, cB, wv, dA, dB, lane, bd)
     a = int(-1)
     b = int(-1)
     for it in range(FCP_MAX_ITER):
         n = best_n
         gap0 = best_gap
-        loA, ilA, hiA, ihA, loB, ilB, hiB, ihB = coop_extents(n, sA, cA, sB, cB, wv, o, lane, bd, 1)
+        loA, ilA, hiA, ihA, loB, ilB, hiB, ihB = coop_extents(n, sA, cA, sB, cB, wv, dA, dB, lane, bd, 1)
         if ihA != a or ilB != b:
             a = ihA
             b = ilB
             best_n, best_gap = fcp_candidates_coop(
-                a, b, best_n, best_gap, sA, cA, sB, cB, wv, o, vertex_out_he, he_vertex, he_next, he_prev, he_twin, lane, bd
+                a, b, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, vertex_out_he, he_vertex, he_next, he_prev, he_twin, lane, bd
             )
         else:
             if gap0 <= 0.0:
                 break
-            touching = fcp_touching_coop(n, gap0, tie, hiA, loB, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, o,
+            touching = fcp_touching_coop(n, gap0, tie, hiA, loB, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, dA, dB,
                                          he_vertex, he_next, lane, bd)
             if touching == 1:
                 break
             # every pair of closest vertices (a separated pair FCP did not certify: rare), in order
             for ka in range(cA):
                 va = sA + ka
-                if wp.dot(n, pair_vertex(wv, o, va)) >= hiA - tie:
+                if wp.dot(n, pair_vertex(wv, dA, va)) >= hiA - tie:
                     for kb in range(cB):
                         vb = sB + kb
-                        if wp.dot(n, pair_vertex(wv, o, vb)) <= loB + tie:
+                        if wp.dot(n, pair_vertex(wv, dB, vb)) <= loB + tie:
                             best_n, best_gap = fcp_candidates_coop(
-                                va, vb, best_n, best_gap, sA, cA, sB, cB, wv, o,
+                                va, vb, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB,
                                 vertex_out_he, he_vertex, he_next, he_prev, he_twin, lane, bd,
                             )
             if best_gap <= gap0:
@@ -291,7 +296,7 @@ def fcp_plane_coop(
 @wp.kernel
 def narrow_phase_coop(
     pl: PairList,
-    wv: WorldVerts,
+    verts: WorldVerts,
     topo: BlockTopology,
     bodies: BlockBodies,
     prev: ContactTable,
@@ -320,7 +325,10 @@ def narrow_phase_coop(
     tid = pl.active_big[bi]
     A = pl.pairs[tid][0]
     B = pl.pairs[tid][1]
-    o = pair_origin(A, B, x, block_size)  # the pair frame (pair_vertex)
+    o = pair_origin(A, B, x, block_size)  # the pair frame (pair_vertex): the centroids there
+    dA = x[A] - o
+    dB = x[B] - o
+    wv = verts.arm  # each vertex relative to its block's float32 centroid
     slot = pl.slot[tid]
     oslot = pl.oslot[tid]
     sA = vert_start[A]
@@ -336,23 +344,23 @@ def narrow_phase_coop(
         n0 = prev.normal[oslot]
     if wp.length(n0) < 1.0e-12:
         n0 = wp.vec3(0.0, 0.0, 1.0)
-    tie = 1.0e-6 * (block_size[A] + block_size[B] + wp.length(x[A] - o) + wp.length(x[B] - o))
+    tie = 1.0e-6 * (block_size[A] + block_size[B] + wp.length(dA) + wp.length(dB))
     fsA = face_start[A]
     fcA = face_count[A]
     fsB = face_start[B]
     fcB = face_count[B]
-    n, gap = fcp_plane_coop(wp.normalize(n0), tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, o,
+    n, gap = fcp_plane_coop(wp.normalize(n0), tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, dA, dB,
                             vertex_out_he, he_vertex, he_next, he_prev, he_twin, lane, bd)
     if gap < 0.0:
         # SAT fallback (narrow_phase): every face normal, then the edge-pair axes
         n1 = n
         g1 = gap
         for k in range(fcA):
-            nf, df = face_plane_of_he(face_he[fsA + k], wv, o, he_vertex, he_next)
-            n1, g1 = try_plane_coop(nf, n1, g1, sA, cA, sB, cB, wv, o, lane, bd)
+            nf, df = face_plane_of_he(face_he[fsA + k], wv, dA, he_vertex, he_next)
+            n1, g1 = try_plane_coop(nf, n1, g1, sA, cA, sB, cB, wv, dA, dB, lane, bd)
         for k in range(fcB):
-            nf, df = face_plane_of_he(face_he[fsB + k], wv, o, he_vertex, he_next)
-            n1, g1 = try_plane_coop(nf, n1, g1, sA, cA, sB, cB, wv, o, lane, bd)
+            nf, df = face_plane_of_he(face_he[fsB + k], wv, dB, he_vertex, he_next)
+            n1, g1 = try_plane_coop(nf, n1, g1, sA, cA, sB, cB, wv, dA, dB, lane, bd)
         if (cA + fcA - 2) * (cB + fcB - 2) <= SAT_EDGE_PAIRS:
             # work items: (half-edge of A, half-edge of B) in walk order; a lane tests its item's
             # Minkowski-face condition, the chunk's axes are then tried in item order
@@ -370,23 +378,23 @@ def narrow_phase_coop(
                     vb = he_vertex[gg]
                     ub = he_dest(gg, he_vertex, he_next)
                     if va < ua and vb < ub:
-                        ea = pair_vertex(wv, o, ua) - pair_vertex(wv, o, va)
-                        ax = wp.cross(ea, pair_vertex(wv, o, ub) - pair_vertex(wv, o, vb))
-                        if wp.length(ax) > 1.0e-6 * wp.length(ea) * wp.length(pair_vertex(wv, o, ub) - pair_vertex(wv, o, vb)):
-                            fa1 = face_normal(h, wv, o, he_vertex, he_next)
-                            fa2 = face_normal(he_twin[h], wv, o, he_vertex, he_next)
-                            fb1 = face_normal(gg, wv, o, he_vertex, he_next)
-                            fb2 = face_normal(he_twin[gg], wv, o, he_vertex, he_next)
+                        ea = wv[ua] - wv[va]
+                        ax = wp.cross(ea, wv[ub] - wv[vb])
+                        if wp.length(ax) > 1.0e-6 * wp.length(ea) * wp.length(wv[ub] - wv[vb]):
+                            fa1 = face_normal(h, wv, he_vertex, he_next)
+                            fa2 = face_normal(he_twin[h], wv, he_vertex, he_next)
+                            fb1 = face_normal(gg, wv, he_vertex, he_next)
+                            fb2 = face_normal(he_twin[gg], wv, he_vertex, he_next)
                             if minkowski_edge_face(fa1, fa2, -fb1, -fb2):
                                 ok = 1
                 t_ok = wp.tile(ok)
                 t_ax = wp.tile(ax, preserve_type=True)
                 for j in range(bd):
                     if t_ok[j] == 1:
-                        n1, g1 = try_plane_coop(t_ax[j], n1, g1, sA, cA, sB, cB, wv, o, lane, bd)
+                        n1, g1 = try_plane_coop(t_ax[j], n1, g1, sA, cA, sB, cB, wv, dA, dB, lane, bd)
                 c0 += bd
         if g1 > gap + 1.0e-7:
-            n, gap = fcp_plane_coop(n1, tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, o,
+            n, gap = fcp_plane_coop(n1, tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, dA, dB,
                                     vertex_out_he, he_vertex, he_next, he_prev, he_twin, lane, bd)
     if lane == 0:
         cur.normal[slot] = n
@@ -400,7 +408,7 @@ def narrow_phase_coop(
     tol = 1.0e-6 * size
     dup_tol = 1.0e-4 * size
     over = -gap
-    loA, ilA, hiA, ihA, loB, ilB, hiB, ihB = coop_extents(n, sA, cA, sB, cB, wv, o, lane, bd, 0)
+    loA, ilA, hiA, ihA, loB, ilB, hiB, ihB = coop_extents(n, sA, cA, sB, cB, wv, dA, dB, lane, bd, 0)
     nc = int(0)
     px = PointCoord()
     py = PointCoord()
@@ -414,11 +422,15 @@ def narrow_phase_coop(
         cnt = cA
         fs = fsB
         fc = fcB
+        dv = dA  # the vertices' block's centroid in the pair frame, and the faces'
+        dfc = dB
         if side == 1:
             s0 = sB
             cnt = cB
             fs = fsA
             fc = fcA
+            dv = dB
+            dfc = dA
         c0 = int(0)
         while c0 < cnt:
             k = c0 + lane
@@ -426,17 +438,17 @@ def narrow_phase_coop(
             p = wp.vec3(0.0, 0.0, 0.0)
             d = float(0.0)
             if k < cnt:
-                pv = pair_vertex(wv, o, s0 + k)
+                pv = pair_vertex(wv, dv, s0 + k)
                 if side == 0:
                     if wp.dot(n, pv) >= loB - tol:
-                        t_lo, t_hi, hit = column_through(pv, n, fs, fc, face_he, wv, o, he_vertex, he_next, tol)
+                        t_lo, t_hi, hit = column_through(pv, n, fs, fc, face_he, wv, dfc, he_vertex, he_next, tol)
                         d = wp.min(-t_lo, over)
                         if hit == 1 and d > 0.0:
                             ok = 1
                             p = pv + (0.5 * t_lo) * n
                 else:
                     if wp.dot(n, pv) <= hiA + tol:
-                        t_lo, t_hi, hit = column_through(pv, n, fs, fc, face_he, wv, o, he_vertex, he_next, tol)
+                        t_lo, t_hi, hit = column_through(pv, n, fs, fc, face_he, wv, dfc, he_vertex, he_next, tol)
                         d = wp.min(t_hi, over)
                         if hit == 1 and d > 0.0:
                             ok = 1
@@ -469,14 +481,14 @@ def narrow_phase_coop(
             h = he_walk[hsA + item // hcB]
             g = he_walk[hsB + item % hcB]
             va = he_vertex[h]
-            pa = pair_vertex(wv, o, va)
+            pa = pair_vertex(wv, dA, va)
             vb = he_vertex[g]
-            pb = pair_vertex(wv, o, vb)
+            pb = pair_vertex(wv, dB, vb)
             if wp.dot(n, pa) >= loB - tol and wp.dot(n, pb) <= hiA + tol:
                 ua = he_dest(h, he_vertex, he_next)
-                qa = pair_vertex(wv, o, ua)
+                qa = pair_vertex(wv, dA, ua)
                 ub = he_dest(g, he_vertex, he_next)
-                qb = pair_vertex(wv, o, ub)
+                qb = pair_vertex(wv, dB, ub)
                 if (wp.dot(n, qa) < loB - tol or va < ua) and (wp.dot(n, qb) > hiA + tol or vb < ub):
                     ea = qa - pa
                     eb = qb - pb
@@ -511,7 +523,7 @@ def narrow_phase_coop(
     if lane == 0 and nc > 0:
         base = wp.atomic_add(cur.pcount, 0, nc)
         if base + nc <= cur.pos.shape[0]:
-            oA = (x[A] - o) + bodies.x_lo[A]  # A's centroid in the pair frame
+            oA = dA + bodies.x_lo[A]  # A's centroid x + x_lo in the pair frame
             for k in range(nc):
                 cur.pos[base + k] = wp.vec3(px[k], py[k], pz[k]) - oA  # relative to A's centroid (contact_forces)
                 cur.depth[base + k] = pd[k]

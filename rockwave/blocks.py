@@ -601,7 +601,8 @@ class BlockState:
         self.damp_c = wp.zeros(n, dtype=wp.spatial_matrix, device=d)  # implicit contact dashpots (kernels/blocks.py)
         self.damp_b = wp.zeros(n, dtype=wp.spatial_vector, device=d)
         self.world_verts = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
-        self.world_verts_lo = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)  # vertex = world_verts + this
+        # each vertex relative to its block's float32 centroid x: x_lo + R (X + E X) (the narrow phase's pair frame)
+        self.world_verts_arm = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
         # poses of the history table's planes (last narrow phase) and the motion since (pose_motion)
         self.wv_ref = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
         self.x_ref = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -615,7 +616,7 @@ class BlockState:
             setattr(self.bodies, name, getattr(self, name))
         self.verts = K.WorldVerts()
         self.verts.hi = self.world_verts
-        self.verts.lo = self.world_verts_lo
+        self.verts.arm = self.world_verts_arm
         self.loads = K.BlockLoads()
         for name in ("force", "torque", "strain_force", "ext_force", "ext_torque", "contact_count", "damp_c", "damp_b"):
             setattr(self.loads, name, getattr(self, name))
@@ -690,7 +691,7 @@ class BlockState:
         m = self.model
         wp.launch(K.block_world_vertices, dim=m.num_vertices,
                   inputs=[m.body_verts, m.vert_block, self.bodies, m.kinds, self.verts], device=m.device)
-        wv = self.world_verts.numpy().astype(np.float64) + self.world_verts_lo.numpy()
+        wv = self.x.numpy().astype(np.float64)[m.vert_block.numpy()] + self.world_verts_arm.numpy()
         s, c = m.np["vert_start"], m.np["vert_count"]
         return [wv[s[b]: s[b] + c[b]] for b in range(m.num_blocks)]
 

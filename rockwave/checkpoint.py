@@ -43,7 +43,7 @@ from typing import Any, Callable
 import numpy as np
 import warp as wp
 
-FORMAT_VERSION = 3  # 3: block centroids carry their float32 compensation (blocks/x_lo, blocks/world_verts_lo)
+FORMAT_VERSION = 3  # 3: block centroids carry their float32 compensation (blocks/x_lo, blocks/world_verts_arm)
 READABLE_FORMATS = (2, 3)  # 2: read with zero compensation (the centroids as saved)
 FILE_NAME = "checkpoint.npz"
 
@@ -362,7 +362,7 @@ def restore(sim, arrays: dict, meta: dict) -> None:
         # before the compensated block positions (issue 20): the centroids and world vertices as saved
         arrays = dict(arrays)
         arrays.setdefault("blocks/x_lo", np.zeros_like(arrays["blocks/x"]))
-        arrays.setdefault("blocks/world_verts_lo", np.zeros_like(arrays["blocks/world_verts"]))
+        arrays.setdefault("blocks/world_verts_arm", np.zeros_like(arrays["blocks/world_verts"]))
     provs = providers(sim)
     for name in meta["groups"]:
         if name not in provs:
