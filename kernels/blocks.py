@@ -259,7 +259,8 @@ def pair_origin(A: int, B: int, x: wp.array(dtype=wp.vec3), block_size: wp.array
 def pair_vertex(wv: wp.array(dtype=wp.vec3), dc: wp.vec3, i: int):
     # vertex i in the pair frame: dc + arm_i, dc = x_b - o its block's float32 centroid there (exact for a
     # centroid near o, pair_origin), so the frame's coordinates have float32's relative precision of the
-    # pair's size, not of the distance to the origin
+    # pair's size, not of the distance to the origin. In the narrow phase's functions `wv` is the arms
+    # array WorldVerts.arm, read with the centroid of the vertex's block (dA, dB, dc)
     return dc + wv[i]
 
 
