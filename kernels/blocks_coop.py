@@ -10,6 +10,7 @@ from rockwave.kernels.blocks import (
     FCP_MAX_ITER,
     MAX_VALENCE,
     SAT_EDGE_PAIRS,
+    sat_recheck,
     BlockBodies,
     BlockTopology,
     ContactTable,
@@ -336,8 +337,8 @@ def narrow_phase_coop(
     fcB = face_count[B]
     n, gap = fcp_plane_coop(wp.normalize(n0), tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv,
                             vertex_out_he, he_vertex, he_next, he_prev, he_twin, lane, bd)
-    if gap < 0.0:
-        # SAT fallback (narrow_phase): every face normal, then the edge-pair axes
+    if gap < 0.0 and sat_recheck(oslot, gap, prev.gapb):
+        # SAT fallback (narrow_phase, new or jumping contacts only): every face normal, then the edge-pair axes
         n1 = n
         g1 = gap
         for k in range(fcA):
