@@ -78,8 +78,10 @@ def blocks(device: str, count: int, steps: int, settle: int = 300) -> dict:
     contacts = float(np.mean(sim.block_state.contact_counts()[1:]))
     t = timed(lambda: [sim.step() for _ in range(steps)], device)
     n = sim.blocks.num_blocks
+    mem = sim.block_solver.device_bytes(sim.block_state)  # the whole block solver's arrays, after the steps
     return {"blocks": n, "contacts_per_block": contacts, "steps": steps, "seconds": t, "steps_per_s": steps / t,
-            "block_steps_per_s": n * steps / t, "dt_s": sim.dt}
+            "block_steps_per_s": n * steps / t, "dt_s": sim.dt, "device_bytes_per_block": mem["per_block"],
+            "history_bytes_per_block": mem["history"] / n}
 
 
 def coupled(scene_name: str, device: str, steps: int, scale: float) -> dict:
@@ -124,7 +126,8 @@ def run(dev: str, cfg: dict) -> dict:
     for c in cfg["block_counts"]:
         r = blocks(dev, c, cfg["block_steps"], cfg["block_settle"])
         out["blocks"].append(r)
-        log(f"  blocks {r['blocks']}: {r['contacts_per_block']:.2f} contacts/block, {r['block_steps_per_s']:.3g} block-steps/s")
+        log(f"  blocks {r['blocks']}: {r['contacts_per_block']:.2f} contacts/block, {r['block_steps_per_s']:.3g} block-steps/s, "
+            f"{r['device_bytes_per_block']:.0f} B/block")
     for sc in cfg["coupled"]:
         for s in cfg["coupled_scale"]:
             try:
