@@ -107,13 +107,19 @@ def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: f
     return np.concatenate(out) if out else np.zeros((0, 3))
 
 
-def _shell_lattice(verts: np.ndarray, n: np.ndarray, d: np.ndarray, lo, hi, anchor, step: float, depth: float,
-                   dim: int) -> np.ndarray:
-    """Points of the lattice of ``step`` through ``anchor`` inside the convex block {n . x <= d} and within
-    ``depth`` of its surface, in the box [lo, hi] (dim components)."""
-    k0 = np.floor((lo - anchor) / step)
-    k1 = np.ceil((hi - anchor) / step)
-    axes = [anchor[i] + np.arange(k0[i], k1[i] + 1) * step for i in range(dim)]
+def _body_shell(verts: np.ndarray, n: np.ndarray, d: np.ndarray, step: float, depth: float, dim: int) -> np.ndarray:
+    """Body-frame points inside the convex block {n . r <= d} within ``depth`` of its surface, on a lattice
+    fitted to the block's body-frame bounding box as sampling.box_shell fits obstacles: along each axis
+    n = round(L / step) cells of L / n, points at their centres, so that a box's faces lie half a (fitted) step
+    from the nearest layer, as the water's lattice particles lie from the faces of the box they fill: the wall
+    pressure then acts on the block's own faces (a lattice off by a fraction of a step moves the effective face
+    by as much: the 3D floating box read its full weight in buoyancy 0.4 spacing above equilibrium)."""
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    axes = []
+    for i in range(dim):
+        k = max(int(round((hi[i] - lo[i]) / step)), 1)
+        h = (hi[i] - lo[i]) / k
+        axes.append(lo[i] + (np.arange(k) + 0.5) * h)
     g = np.meshgrid(*axes, indexing="ij")
     pts = np.zeros((g[0].size, 3))
     for i in range(dim):
@@ -124,9 +130,10 @@ def _shell_lattice(verts: np.ndarray, n: np.ndarray, d: np.ndarray, lo, hi, anch
 
 def moving_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: float, layers: int):
     """Wall particles of the moving blocks (rigid, deformable, kinematic; the parts of a compound block), for
-    Adami walls on them (rockwave/coupling.py BlockWalls): as :func:`fixed_block_walls`, a lattice of ``step``
-    continuing the water's, inside all of each block's faces (a moving block may turn any face to the water),
-    ``layers * step`` deep, at the blocks' poses at t = 0. Only blocks that start within reach of the water
+    Adami walls on them (rockwave/coupling.py BlockWalls): a lattice of about ``step`` fitted to each block in
+    its body frame (:func:`_body_shell`), inside all of its faces (a moving block may turn any face to the
+    water), ``layers * step`` deep, placed at the blocks' poses at t = 0 (2D: prisms turning about z, the lattice
+    in the x-y plane at z = 0, the caps left out). Only blocks that start within reach of the water
     (its seeded bounding box grown by its own largest extent, as for fixed blocks) get them: a block farther
     away (a rock falling from high above, most of a jointed slope) keeps the penalty coupling alone, which
     bounds the cost for scenes of many blocks; ``coupling.block_walls = false`` turns them off entirely.
@@ -141,7 +148,6 @@ def moving_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: 
     grow = float(np.max(hi_f[:dim] - lo_f[:dim]))
     reach_lo, reach_hi = lo_f - grow, hi_f + grow
     depth = layers * step
-    anchor = np.asarray(fluid_x[0], float)[:dim]
     xs = parts.block_state.x.numpy().astype(np.float64)
     qs = parts.block_state.q.numpy().astype(np.float64)
     pts_all, idx = [], []
@@ -149,15 +155,18 @@ def moving_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: 
         if spec.kind == "fixed":
             continue
         R = quat_to_matrix(qs[b])
-        n = np.asarray(spec.geometry.face_normals, float) @ R.T
-        d = np.asarray(spec.geometry.face_offsets, float) + n @ xs[b]
-        verts = np.asarray(spec.geometry.vertices, float) @ R.T + xs[b]
+        bv = np.asarray(spec.geometry.vertices, float)  # body frame
+        verts = bv @ R.T + xs[b]
         if np.any(verts.max(axis=0)[:dim] < reach_lo[:dim]) or np.any(verts.min(axis=0)[:dim] > reach_hi[:dim]):
             continue
+        n = np.asarray(spec.geometry.face_normals, float)
+        d = np.asarray(spec.geometry.face_offsets, float)
         if dim == 2:  # the extrusion's caps are not walls in 2D
             side = np.abs(n[:, 2]) < 0.5
             n, d = n[side], d[side]
-        pts = _shell_lattice(verts, n, d, verts.min(axis=0)[:dim], verts.max(axis=0)[:dim], anchor, step, depth, dim)
+        pts = _body_shell(bv, n, d, step, depth, dim) @ R.T + xs[b]
+        if dim == 2:
+            pts[:, 2] = 0.0
         pts_all.append(pts)
         idx.append(np.full(len(pts), b, np.int64))
     if not pts_all:
@@ -167,13 +176,10 @@ def moving_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: 
 
 def block_walls_on(scene: Scene, options=None) -> bool:
     """Do the moving blocks get Adami wall particles? coupling.block_walls (or CouplingOptions.block_walls);
-    unset: where the water has Adami walls and the basic method (Ghost SPH keeps its own boundary copies)."""
+    off unless asked for (the scene's validation refuses it without Adami walls or with Ghost SPH)."""
     if scene.fluid is None:
         return False
-    flag = coupling_options(scene, options).block_walls
-    if flag is None:
-        return scene.fluid.boundary == "adami" and scene.fluid.method == "basic"
-    return bool(flag)
+    return bool(coupling_options(scene, options).block_walls)
 
 
 def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

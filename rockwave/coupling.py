@@ -161,10 +161,9 @@ class CouplingOptions:
     """Sum the forces of fixed and kinematic blocks on the water into Coupling.wall_impulse [N s]
     (diagnostics: one host read per step)."""
 
-    block_walls: bool | None = None
+    block_walls: bool = False
     """Adami wall particles on the moving blocks within reach of the water (BlockWalls; scene:
-    coupling.block_walls). None: on where the water has Adami walls (fluid.boundary = 'adami') and the basic
-    method; False: the penalty alone."""
+    coupling.block_walls; needs fluid.boundary = 'adami' and the basic method). False: the penalty alone."""
 
     @classmethod
     def from_scene(cls, scene) -> "CouplingOptions":
@@ -181,7 +180,7 @@ class CouplingOptions:
                    stiffness_factor=float(pick("stiffness_factor", DEFAULT_STIFFNESS_FACTOR)),
                    damping_ratio=float(pick("damping_ratio", DEFAULT_DAMPING_RATIO)),
                    stiffness_n_m=c.get("stiffness_n_m"), damping_n_s_m=c.get("damping_n_s_m"),
-                   squeeze_out=c.get("squeeze_out") is not False, block_walls=c.get("block_walls"))
+                   squeeze_out=c.get("squeeze_out") is not False, block_walls=bool(c.get("block_walls")))
 
 
 class Coupling:
