@@ -82,6 +82,12 @@ so the block receives f times its z-extent.
 
 Deformable blocks are coupled through their rigid motion (faces moved rigidly; their strains,
 ~1e-5 for rock, are neglected here). Strain rates are not included in v_rel.
+
+Wall particles on moving blocks (``coupling.block_walls``, :class:`BlockWalls`): with Adami walls the
+moving blocks near the water also carry wall particles that move with them, so the water pushes them with
+its extrapolated pressure (Adami et al. 2012, eq. 27, with the wall's acceleration) and the penalty above is
+only the guard against penetration, as on fixed blocks. Their reactions go to the same ext_force /
+ext_torque, after the fluid's force pass and before the block step.
 """
 
 from __future__ import annotations

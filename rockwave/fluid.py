@@ -266,7 +266,7 @@ class FluidSolver:
     r >= H. Each step kernels compare every fluid position with the one stored at the build and set a
     device flag when two particles that may have become neighbours moved s H or more relative to each
     other (``skin_check`` "relative": displacement boxes per 2H cell of build position, adjacent cells
-    compared, boundary particles at rest; also when one moved H/2) or, with "absolute", when any moved
+    compared, static boundary particles at rest, the wall particles of moving blocks checked as the fluid's; also when one moved H/2) or, with "absolute", when any moved
     s H / 2 (either way every pair now closer than H was closer than R at the build). The cell-grid kernels and the list build run every step and return at once while the
     flag is clear, so no host read is needed (CUDA graphs); on the CPU the host reads the flag and skips
     the launches (and the radix sort). The check compares positions slot by slot, so it covers every
