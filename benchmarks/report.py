@@ -95,9 +95,9 @@ def _scaling(sc: dict) -> list[str]:
                      for r in sc["fluid"]]) + [""]
     if sc.get("blocks"):
         L += ["### Block step throughput (jointed rock slope)", ""]
-        L += _table(["blocks", "contacts/block", "steps/s", "block-steps/s"],
+        L += _table(["blocks", "contacts/block", "steps/s", "block-steps/s", "solver bytes/block"],
                     [[r["blocks"], _f(r["contacts_per_block"], ".2f"), _f(r["steps_per_s"], ".1f"),
-                      _f(r["block_steps_per_s"], ".3g")] for r in sc["blocks"]]) + [""]
+                      _f(r["block_steps_per_s"], ".3g"), _f(r.get("device_bytes_per_block"), ".0f")] for r in sc["blocks"]]) + [""]
     if sc.get("coupled"):
         L += ["### Coupled SPH-DDA throughput", ""]
         L += _table(["scene", "scale", "fluid particles", "blocks", "ms/step", "particle-steps/s", "coupling share"],

@@ -27,10 +27,10 @@ from benchmarks.common import ROOT, log, timed
 CONFIG = {
     "quick": dict(fluid_spacings=[0.06, 0.045], fluid_steps=20, block_counts=[100, 400], block_steps=20, block_settle=100,
                   coupled=["wave_maker_small.toml", "sliding_wedge_small.toml"], coupled_steps=5, coupled_scale=[1.0],
-                  mem_fluid=[0.06, 0.045], mem_blocks=[100, 400]),
+                  mem_fluid=[0.06, 0.045], mem_blocks=[100, 400], block_cost=[]),
     "full": dict(fluid_spacings=[0.04, 0.02, 0.015, 0.01], fluid_steps=100, block_counts=[1000, 10000, 100000],
                  block_steps=100, block_settle=300, coupled=["wave_maker.toml", "sliding_wedge.toml"], coupled_steps=50,
-                 coupled_scale=[1.0, 2.0], mem_fluid=[0.02, 0.01], mem_blocks=[1000, 10000]),
+                 coupled_scale=[1.0, 2.0], mem_fluid=[0.02, 0.01], mem_blocks=[1000, 10000], block_cost=[]),
 }
 
 
@@ -78,8 +78,10 @@ def blocks(device: str, count: int, steps: int, settle: int = 300) -> dict:
     contacts = float(np.mean(sim.block_state.contact_counts()[1:]))
     t = timed(lambda: [sim.step() for _ in range(steps)], device)
     n = sim.blocks.num_blocks
+    mem = sim.block_solver.device_bytes(sim.block_state)  # the whole block solver's arrays, after the steps
     return {"blocks": n, "contacts_per_block": contacts, "steps": steps, "seconds": t, "steps_per_s": steps / t,
-            "block_steps_per_s": n * steps / t, "dt_s": sim.dt}
+            "block_steps_per_s": n * steps / t, "dt_s": sim.dt, "device_bytes_per_block": mem["per_block"],
+            "history_bytes_per_block": mem["history"] / n}
 
 
 def coupled(scene_name: str, device: str, steps: int, scale: float) -> dict:
@@ -114,6 +116,40 @@ def coupled(scene_name: str, device: str, steps: int, scale: float) -> dict:
             "removed_inside_blocks": sim.removed_inside_blocks}
 
 
+def block_cost(device: str, scene_name: str, block: str, spacing: float, steps: int) -> list[dict]:
+    """What one block costs a coupled scene: the scene at ``spacing`` timed over ``steps`` steps (after 5) in the
+    order with ``block``, without it, with it (one process), e.g. ``--set 'block_cost=[["sliding_wedge.toml",
+    "wedge", 0.01]]'`` (issue 20: the wedge costs <= 5% at >= 1 M particles)."""
+    import copy
+
+    import warp as wp
+
+    import rockwave
+
+    path = ROOT / "scenes" / scene_name
+    rows = []
+    for keep in (True, False, True):
+        d = copy.deepcopy(rockwave.load_scene(path).raw)
+        d["fluid"]["spacing_m"] = spacing
+        if not keep:
+            d["blocks"] = [b for b in d["blocks"] if b["name"] != block]
+        sim = rockwave.Simulation(rockwave.parse_scene(d, path, path.parent), device=device)
+        for _ in range(5):
+            sim.step()
+        wp.synchronize_device(device)
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            sim.step()
+        wp.synchronize_device(device)
+        w = time.perf_counter() - t0
+        rows.append({"scene": scene_name + ("" if keep else f" ({block} removed)"), "scale": 1.0, "spacing_m": spacing,
+                     "fluid_particles": sim.n_fluid, "blocks": sim.blocks.num_blocks, "steps": steps, "s_per_step": w / steps,
+                     "particle_steps_per_s": sim.n_fluid * steps / w, "dt_s": sim.clock.dt, "limited_by": sim.clock.limiting})
+    with_block = 0.5 * (rows[0]["s_per_step"] + rows[2]["s_per_step"])
+    rows[0]["block_cost"] = rows[2]["block_cost"] = with_block / rows[1]["s_per_step"] - 1.0
+    return rows
+
+
 def run(dev: str, cfg: dict) -> dict:
     out = {"fluid": [], "blocks": [], "coupled": [], "memory": []}
     for s in cfg["fluid_spacings"]:
@@ -124,7 +160,8 @@ def run(dev: str, cfg: dict) -> dict:
     for c in cfg["block_counts"]:
         r = blocks(dev, c, cfg["block_steps"], cfg["block_settle"])
         out["blocks"].append(r)
-        log(f"  blocks {r['blocks']}: {r['contacts_per_block']:.2f} contacts/block, {r['block_steps_per_s']:.3g} block-steps/s")
+        log(f"  blocks {r['blocks']}: {r['contacts_per_block']:.2f} contacts/block, {r['block_steps_per_s']:.3g} block-steps/s, "
+            f"{r['device_bytes_per_block']:.0f} B/block")
     for sc in cfg["coupled"]:
         for s in cfg["coupled_scale"]:
             try:
@@ -134,6 +171,10 @@ def run(dev: str, cfg: dict) -> dict:
             out["coupled"].append(r)
             log(f"  coupled {sc} x{s:g}: {r.get('fluid_particles')} particles, "
                 f"{r.get('particle_steps_per_s', math.nan):.3g} particle-steps/s")
+    for scene_name, block, spacing in cfg.get("block_cost", []):
+        rows = block_cost(dev, scene_name, block, spacing, cfg["coupled_steps"])
+        out["coupled"] += rows
+        log(f"  {scene_name} at {spacing:g} m: {rows[0]['fluid_particles']} particles, {block} costs {rows[0]['block_cost']:+.1%}")
     for kind, sizes in (("fluid", cfg["mem_fluid"]), ("blocks", cfg["mem_blocks"])):
         rows = [mem_probe(kind, s, dev) for s in sizes]
         ok = [r for r in rows if "bytes" in r]

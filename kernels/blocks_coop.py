@@ -26,6 +26,7 @@ from rockwave.kernels.blocks import (
     minkowski_edge_face,
     pair_origin,
     pair_vertex,
+    sat_recheck,
 )
 
 # ----------------------------------------------------------------------------------------------
@@ -351,8 +352,8 @@ def narrow_phase_coop(
     fcB = face_count[B]
     n, gap = fcp_plane_coop(wp.normalize(n0), tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, dA, dB,
                             vertex_out_he, he_vertex, he_next, he_prev, he_twin, lane, bd)
-    if gap < 0.0:
-        # SAT fallback (narrow_phase): every face normal, then the edge-pair axes
+    if gap < 0.0 and sat_recheck(oslot, gap, prev.gapb):
+        # SAT fallback (narrow_phase, new or jumping contacts only): every face normal, then the edge-pair axes
         n1 = n
         g1 = gap
         for k in range(fcA):

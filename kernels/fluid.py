@@ -472,21 +472,27 @@ def wall_pressure_adami(
     v: wp.array(dtype=wp.vec3),
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
+    xq: wp.array(dtype=wp.vec3),
+    q_off: int,
+    wall_accel: wp.array(dtype=wp.vec3),
     p: SPHParams,
     wall_pressure: wp.array(dtype=float),
     wall_pr2: wp.array(dtype=float),
     wall_v: wp.array(dtype=wp.vec3),
 ):
-    """Generalized wall boundary condition (Adami, Hu & Adams 2012, eqs. 22 and 27), launched over the
-    boundary particles b (static walls, a_b = 0), from the fluid particles f within H on the cell grid:
+    """Generalized wall boundary condition (Adami, Hu & Adams 2012, eqs. 22, 23 and 27), launched over the
+    boundary particles b, from the fluid particles f within H on the cell grid:
 
-        p_b = (sum_f p_f W_bf + g . sum_f rho_f (x_b - x_f) W_bf) / sum_f W_bf,
-        rho_b = EOS^-1(p_b),   v~_b = -sum_f v_f W_bf / sum_f W_bf  (2 v_b - the fluid's, v_b = 0)
+        p_b = (sum_f p_f W_bf + (g - a_b) . sum_f rho_f (x_b - x_f) W_bf) / sum_f W_bf,
+        rho_b = EOS^-1(p_b),   v~_b = 2 v_b - sum_f v_f W_bf / sum_f W_bf
 
-    so that the pressure gradient across the wall balances gravity: a hydrostatic tank has the hydrostatic
-    pressure on its walls and corners. A wall particle with no fluid within H gets p_b = 0, v~_b = 0.
+    so that the pressure gradient across the wall balances gravity and the wall's own acceleration a_b: a
+    hydrostatic tank has the hydrostatic pressure on its walls and corners. Static walls have v_b = a_b = 0;
+    the wall particles of moving blocks (rockwave/coupling.py BlockWalls) carry the block's rigid velocity in
+    v and its acceleration in wall_accel. A wall particle with no fluid within H gets p_b = 0, v~_b = 2 v_b.
     wall_pr2[b] = p_b / rho_b^2 is what the force pass reads. R: the radius of the cell-grid query (the
-    list radius: the grid may be the one of the last list build, see particle_density_overflow)."""
+    list radius: the grid may be the one of the last list build, see particle_density_overflow), centred at
+    xq[q_off + t], the particle's position at that build (a moving wall particle has moved since)."""
     t = wp.tid()
     b = t + p.n_fluid
     xb = x[b]
@@ -495,9 +501,10 @@ def wall_pressure_adami(
     srx = wp.vec3(0.0)
     sv = wp.vec3(0.0)
     H2 = p.H * p.H
-    ix, iy, iz = cell_of(g, xb)
+    xc = xq[q_off + t]
+    ix, iy, iz = cell_of(g, xc)
     for r in range(r_lo, r_hi):
-        s0, e0 = slot_range(g, xb, R, iy, iz, r)
+        s0, e0 = slot_range(g, xc, R, iy, iz, r)
         for k in range(s0, e0):
             f = g.order[k]
             if f < p.n_fluid:
@@ -510,10 +517,11 @@ def wall_pressure_adami(
                     srx += (rho[f] * w) * d
                     sv += w * v[f]
     pb = float(0.0)
-    vb = wp.vec3(0.0)
+    vw = v[b]
+    vb = 2.0 * vw
     if sw > 0.0:
-        pb = (sp + wp.dot(p.gravity, srx)) / sw
-        vb = -sv / sw
+        pb = (sp + wp.dot(p.gravity - wall_accel[t], srx)) / sw
+        vb = 2.0 * vw - sv / sw
     if p.clamp_negative != 0:
         pb = wp.max(pb, 0.0)
     # rho_b from the inverse EOS: Tait rho0 (p/B + 1)^(1/gamma); linear rho0 + p/k
@@ -564,14 +572,14 @@ def build_neighbour_list_cells(
 
 
 @wp.kernel
-def list_displacement_check(x: wp.array(dtype=wp.vec3), x_build: wp.array(dtype=wp.vec3), limit2: float,
-                            rebuild: wp.array(dtype=int)):
-    """Verlet-list check: rebuild[0] = 1 when a fluid particle has moved limit = skin/2 or more since the
-    list was built (or its position is not finite). A pair closer than H now was then closer than
-    H + skin at the build, so the list (radius H + skin) still holds every neighbour. Boundary
-    particles never move."""
+def list_displacement_check(x: wp.array(dtype=wp.vec3), x_off: int, x_build: wp.array(dtype=wp.vec3), b_off: int,
+                            limit2: float, rebuild: wp.array(dtype=int)):
+    """Verlet-list check: rebuild[0] = 1 when particle x_off + i has moved limit = skin/2 or more since the
+    list was built (x_build[b_off + i]; or its position is not finite). A pair closer than H now was then
+    closer than H + skin at the build, so the list (radius H + skin) still holds every neighbour. Launched
+    over the fluid (offsets 0) and over the wall particles of moving blocks; static walls never move."""
     i = wp.tid()
-    if not (wp.length_sq(x[i] - x_build[i]) < limit2):
+    if not (wp.length_sq(x[x_off + i] - x_build[b_off + i]) < limit2):
         rebuild[0] = 1
 
 
@@ -600,7 +608,9 @@ def check_cell(g: CheckGrid, x: wp.vec3) -> wp.vec3i:
 def displacement_bounds(
     g: CheckGrid,
     x: wp.array(dtype=wp.vec3),
+    x_off: int,
     x_build: wp.array(dtype=wp.vec3),
+    b_off: int,
     absolute2: float,
     overflowed: wp.array(dtype=int),
     moved: wp.array(dtype=int),
@@ -612,12 +622,13 @@ def displacement_bounds(
     (d_lo/d_hi pre-filled with +-BIG). A position that is not finite, or a particle moved sqrt(absolute2)
     while some list overflowed (the overflow passes query the kept cell grid, which holds the build
     positions, out to the list radius only), sets rebuild[0]. moved[0] == 0 (no particle moved
-    sqrt(absolute2): then no pair moved twice that relative to each other either): nothing to do."""
+    sqrt(absolute2): then no pair moved twice that relative to each other either): nothing to do.
+    Particle x_off + i, build position x_build[b_off + i] (as list_displacement_check)."""
     i = wp.tid()
     if moved[0] == 0:
         return
-    xb = x_build[i]
-    d = x[i] - xb
+    xb = x_build[b_off + i]
+    d = x[x_off + i] - xb
     r2 = wp.length_sq(d)
     if not (r2 < 1.0e30):
         rebuild[0] = 1
@@ -646,7 +657,7 @@ def displacement_check_cells(
     sqrt(skin2) = s H or more relative to each other (bound from their cells' displacement boxes).
     Why it suffices: a pair now closer than H that is not in the list (built out to (1 + s) H) has moved
     more than s H relative to each other, and was closer than H + 2 max|d| < c at the build, so it
-    sits in the same or adjacent cells. Boundary particles never move: a cell holding some (wall[c] = 1)
+    sits in the same or adjacent cells. Static wall particles never move: a cell holding some (wall[c] = 1)
     has d = 0 in its box. moved[0] == 0: as in displacement_bounds."""
     t = wp.tid()
     if moved[0] == 0:
@@ -744,7 +755,8 @@ def particle_density_summation_list(
 @wp.func
 def pair_density_rate(xi: wp.vec3, vi: wp.vec3, j: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
                       particle_mass: wp.array(dtype=float), p: SPHParams):
-    # continuity: d rho_i/dt = sum_j m_j (v_i - v_j) . grad W_ij  (boundary particles at rest)
+    # continuity: d rho_i/dt = sum_j m_j (v_i - v_j) . grad W_ij  (wall particles: v_j their wall's velocity,
+    # 0 for static walls)
     rij = xi - x[j]
     r2 = wp.length_sq(rij)
     if r2 >= p.H * p.H:  # a list built with a skin also holds pairs out to H + skin
@@ -752,7 +764,7 @@ def pair_density_rate(xi: wp.vec3, vi: wp.vec3, j: int, x: wp.array(dtype=wp.vec
     g = kernel_grad(rij, wp.sqrt(r2), p)
     if j < p.n_fluid:
         return p.fluid_mass * wp.dot(vi - v[j], g)
-    return particle_mass[j] * wp.dot(vi, g)
+    return particle_mass[j] * wp.dot(vi - v[j], g)
 
 
 @wp.func
@@ -1167,3 +1179,13 @@ del _permute_kernel, _dtype
 def iota(a: wp.array(dtype=int)):
     i = wp.tid()
     a[i] = i
+
+
+@wp.kernel
+def store_build_positions(x: wp.array(dtype=wp.vec3), x_off: int, rebuild: wp.array(dtype=int),
+                          x_build: wp.array(dtype=wp.vec3), b_off: int):
+    """x_build[b_off + i] = x[x_off + i] at a list build (rebuild[0] != 0): the build positions of the wall
+    particles of moving blocks, for the displacement checks and the wall pressure's cell query."""
+    i = wp.tid()
+    if rebuild[0] != 0:
+        x_build[b_off + i] = x[x_off + i]

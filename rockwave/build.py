@@ -62,8 +62,7 @@ def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: f
     pressure (Adami et al. 2012) as it does at the [tank] walls; the penalty force of the coupling stays as the
     guard against penetration. Only where the water can reach: within its seeded bounding box grown by its own
     largest extent (farther faces keep the penalty alone). A point inside an earlier fixed block is left out
-    (no double walls where blocks overlap). Moving blocks keep the penalty coupling only (their wall particles
-    would move: not built yet)."""
+    (no double walls where blocks overlap). Moving blocks get theirs from :func:`moving_block_walls`."""
     dim = scene.dim
     if parts.blocks is None or len(fluid_x) == 0:
         return np.zeros((0, 3))
@@ -106,6 +105,81 @@ def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: f
         planes.append((n, d))
         out.append(pts)
     return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def _body_shell(verts: np.ndarray, n: np.ndarray, d: np.ndarray, step: float, depth: float, dim: int) -> np.ndarray:
+    """Body-frame points inside the convex block {n . r <= d} within ``depth`` of its surface, on a lattice
+    fitted to the block's body-frame bounding box as sampling.box_shell fits obstacles: along each axis
+    n = round(L / step) cells of L / n, points at their centres, so that a box's faces lie half a (fitted) step
+    from the nearest layer, as the water's lattice particles lie from the faces of the box they fill: the wall
+    pressure then acts on the block's own faces (a lattice off by a fraction of a step moves the effective face
+    by as much: the 3D floating box read its full weight in buoyancy 0.4 spacing above equilibrium)."""
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    axes = []
+    for i in range(dim):
+        k = max(int(round((hi[i] - lo[i]) / step)), 1)
+        h = (hi[i] - lo[i]) / k
+        axes.append(lo[i] + (np.arange(k) + 0.5) * h)
+    g = np.meshgrid(*axes, indexing="ij")
+    pts = np.zeros((g[0].size, 3))
+    for i in range(dim):
+        pts[:, i] = g[i].ravel()
+    sd = (pts @ n.T - d).max(axis=1)
+    return pts[(sd < 0.0) & (sd > -depth)]
+
+
+def moving_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: float, layers: int):
+    """Wall particles of the moving blocks (rigid, deformable, kinematic; the parts of a compound block), for
+    Adami walls on them (rockwave/coupling.py BlockWalls): a lattice of about ``step`` fitted to each block in
+    its body frame (:func:`_body_shell`), inside all of its faces (a moving block may turn any face to the
+    water), ``layers * step`` deep, placed at the blocks' poses at t = 0 (2D: prisms turning about z, the lattice
+    in the x-y plane at z = 0, the caps left out). Only blocks that start within reach of the water
+    (its seeded bounding box grown by its own largest extent, as for fixed blocks) get them: a block farther
+    away (a rock falling from high above, most of a jointed slope) keeps the penalty coupling alone, which
+    bounds the cost for scenes of many blocks; ``coupling.block_walls = false`` turns them off entirely.
+    Returns (world positions (n, 3), block index (n,))."""
+    dim = scene.dim
+    empty = (np.zeros((0, 3)), np.zeros(0, np.int64))
+    if parts.blocks is None or len(fluid_x) == 0:
+        return empty
+    from rockwave.geometry import quat_to_matrix
+
+    lo_f, hi_f = fluid_x.min(axis=0), fluid_x.max(axis=0)
+    grow = float(np.max(hi_f[:dim] - lo_f[:dim]))
+    reach_lo, reach_hi = lo_f - grow, hi_f + grow
+    depth = layers * step
+    xs = parts.block_state.x.numpy().astype(np.float64)
+    qs = parts.block_state.q.numpy().astype(np.float64)
+    pts_all, idx = [], []
+    for b, spec in enumerate(parts.blocks.specs):
+        if spec.kind == "fixed":
+            continue
+        R = quat_to_matrix(qs[b])
+        bv = np.asarray(spec.geometry.vertices, float)  # body frame
+        verts = bv @ R.T + xs[b]
+        if np.any(verts.max(axis=0)[:dim] < reach_lo[:dim]) or np.any(verts.min(axis=0)[:dim] > reach_hi[:dim]):
+            continue
+        n = np.asarray(spec.geometry.face_normals, float)
+        d = np.asarray(spec.geometry.face_offsets, float)
+        if dim == 2:  # the extrusion's caps are not walls in 2D
+            side = np.abs(n[:, 2]) < 0.5
+            n, d = n[side], d[side]
+        pts = _body_shell(bv, n, d, step, depth, dim) @ R.T + xs[b]
+        if dim == 2:
+            pts[:, 2] = 0.0
+        pts_all.append(pts)
+        idx.append(np.full(len(pts), b, np.int64))
+    if not pts_all:
+        return empty
+    return np.concatenate(pts_all), np.concatenate(idx)
+
+
+def block_walls_on(scene: Scene, options=None) -> bool:
+    """Do the moving blocks get Adami wall particles? coupling.block_walls (or CouplingOptions.block_walls);
+    off unless asked for (the scene's validation refuses it without Adami walls or with Ghost SPH)."""
+    if scene.fluid is None:
+        return False
+    return bool(coupling_options(scene, options).block_walls)
 
 
 def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -174,6 +248,7 @@ class Parts:
     block_solver: object = None
     coupling: object = None
     removed_inside_blocks: int = 0
+    moving_wall_blocks: object = None  # block index of each wall particle of a moving block (BlockWalls)
 
 
 def build(scene: Scene, device: str, options=None) -> Parts:
@@ -200,7 +275,14 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
         xw = fixed_block_walls(scene, parts, xf, bstep, layers)
         if len(xw):
             xb = np.concatenate([xb, xw]) if len(xb) else xw
-    fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, device, bstep, layers)
+    xm = None
+    if parts.blocks is not None and block_walls_on(scene, options):
+        xm, parts.moving_wall_blocks = moving_block_walls(scene, parts, xf, bstep, layers)
+        if len(xm):
+            print(f"moving blocks: {len(xm)} Adami wall particles on "
+                  f"{len(np.unique(parts.moving_wall_blocks))} blocks", flush=True)
+    fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, device, bstep, layers,
+                              moving_wall_positions=xm)
     fopts = getattr(options, "fluid", None) or FluidOptions()
     if fopts.cfl_number is None:  # the adaptive step's Courant number comes from the scene
         fopts = replace(fopts, cfl_number=scene.simulation.cfl_number)
@@ -264,7 +346,14 @@ def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options=None
 def build_coupling(scene: Scene, parts: Parts, options=None) -> None:
     from rockwave.coupling import Coupling
 
-    parts.coupling = Coupling(parts.fluid, parts.blocks, scene.dim, options=coupling_options(scene, options))
+    parts.coupling = c = Coupling(parts.fluid, parts.blocks, scene.dim, options=coupling_options(scene, options))
+    f = parts.fluid
+    if f.n_moving_walls:
+        from rockwave.coupling import BlockWalls
+
+        xm = np.asarray(f.initial_positions, float)[f.n_fluid + f.n_static_boundary: f.n_total]
+        c.walls = BlockWalls(parts.fluid_solver, parts.blocks, parts.block_state, xm, parts.moving_wall_blocks,
+                             c.depth_scale, scene.dim)
 
 
 def coupling_options(scene: Scene, options=None):

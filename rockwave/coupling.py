@@ -82,6 +82,12 @@ so the block receives f times its z-extent.
 
 Deformable blocks are coupled through their rigid motion (faces moved rigidly; their strains,
 ~1e-5 for rock, are neglected here). Strain rates are not included in v_rel.
+
+Wall particles on moving blocks (``coupling.block_walls``, :class:`BlockWalls`): with Adami walls the
+moving blocks near the water also carry wall particles that move with them, so the water pushes them with
+its extrapolated pressure (Adami et al. 2012, eq. 27, with the wall's acceleration) and the penalty above is
+only the guard against penetration, as on fixed blocks. Their reactions go to the same ext_force /
+ext_torque, after the fluid's force pass and before the block step.
 """
 
 from __future__ import annotations
@@ -161,6 +167,10 @@ class CouplingOptions:
     """Sum the forces of fixed and kinematic blocks on the water into Coupling.wall_impulse [N s]
     (diagnostics: one host read per step)."""
 
+    block_walls: bool = False
+    """Adami wall particles on the moving blocks within reach of the water (BlockWalls; scene:
+    coupling.block_walls; needs fluid.boundary = 'adami' and the basic method). False: the penalty alone."""
+
     @classmethod
     def from_scene(cls, scene) -> "CouplingOptions":
         """The options of the scene's ``[coupling]`` section (defaults where it gives none)."""
@@ -176,7 +186,7 @@ class CouplingOptions:
                    stiffness_factor=float(pick("stiffness_factor", DEFAULT_STIFFNESS_FACTOR)),
                    damping_ratio=float(pick("damping_ratio", DEFAULT_DAMPING_RATIO)),
                    stiffness_n_m=c.get("stiffness_n_m"), damping_n_s_m=c.get("damping_n_s_m"),
-                   squeeze_out=c.get("squeeze_out") is not False)
+                   squeeze_out=c.get("squeeze_out") is not False, block_walls=bool(c.get("block_walls")))
 
 
 class Coupling:
@@ -263,6 +273,7 @@ class Coupling:
         self.wall_force = wp.zeros(1, dtype=wp.vec3, device=d)
         self.wall_impulse = np.zeros(3)  # sum of dt x (force of fixed/kinematic blocks on the water), when tracked
         self.active_blocks = 0  # blocks near water in the last step (host copy, diagnostics)
+        self.walls = None  # BlockWalls: Adami wall particles of the moving blocks (rockwave/build.py sets it)
         self._n_large = 0
         self._total = 0
 
@@ -357,10 +368,13 @@ class Coupling:
 
     def compute(self, fluid_state, block_state, ts: TimeStep) -> None:
         """Penalty forces from the state at ts.time: particle impulses ts.dt f/m (dt read on the device
-        from ts.dt_array) into self.dv, reactions into block_state.ext_force / ext_torque."""
+        from ts.dt_array) into self.dv, reactions into block_state.ext_force / ext_torque. With wall particles
+        on moving blocks (self.walls) they are placed first, at the blocks' poses of ts.time."""
         nf = self.fluid.n_fluid
         if nf == 0:
             return
+        if self.walls is not None:
+            self.walls.place(fluid_state, block_state, ts)
         self._broad_phase(fluid_state, block_state)
         if self._nothing_near():
             self.dv.zero_()
@@ -418,3 +432,91 @@ def block_signed_distance(blocks, block_state, points: np.ndarray) -> tuple[np.n
     wp.launch(CK.signed_distance_to_blocks, dim=len(points),
               inputs=[pts, blocks.num_blocks, blocks.face_start, blocks.face_count, pn, pd], outputs=[out, which], device=d)
     return out.numpy().astype(np.float64), which.numpy()
+
+
+class BlockWalls:
+    """Adami et al. (2012) wall particles on the moving blocks (rigid, deformable, kinematic, compound parts),
+    so that the water pushes a block with its extrapolated pressure, not only through the penalty.
+
+    A lattice of the boundary spacing inside each block's faces, ``layers * step`` deep (the kernel support;
+    rockwave/build.py moving_block_walls), kept in the body frame (``body_r``, one block index each in
+    ``wall_block``). They are the last boundary particles of the fluid (FluidModel.n_moving_walls). Each
+    step, before the fluid step (Coupling.compute -> place), every particle is put at x = c + R r with the
+    block's rigid velocity v = v_c + w x R r and acceleration a = a_c + alpha x R r + w x (w x R r), a_c and
+    alpha from the block's velocities at the last two steps (block_wall_motion). The fluid step then
+    extrapolates their pressure (Adami's eq. 27 with the wall acceleration term,
+    p_w = (sum_f p_f W_wf + (g - a_w) . sum_f rho_f r_wf W_wf) / sum_f W_wf) and no-slip velocity
+    (2 v_w - the fluid's, eq. 23), the fluid feels them in its force pass, and after it (the solver's
+    ``wall_reactions`` hook, before the integration) block_wall_reactions sums the same pair forces, with the
+    opposite sign, onto the blocks: into ``water_force`` / ``water_torque`` (N, N m about the centroid, per
+    block, every moving block: diagnostics) and, for rigid and deformable blocks, into the loads the penalty
+    uses (ext_force / ext_torque), so multi-rate stepping holds them over the block sub-steps as it does the
+    penalty's. The penalty force stays as the guard against penetration (as on fixed blocks): the water sits
+    half a spacing from a face, where the penalty (contact distance d0 = s/2) is just reached.
+
+    They move, so they are re-binned in the fluid's cell grid at every list build like the fluid particles, and
+    the Verlet lists' displacement checks cover them (FluidSolver._list_guard); the wall pressure's cell query
+    starts at their positions of the last build (kernels/fluid.py wall_pressure_adami).
+    """
+
+    def __init__(self, solver, blocks, block_state, world_positions: np.ndarray, wall_block: np.ndarray,
+                 depth_scale: wp.array, dim: int):
+        m = solver.model
+        self.solver, self.blocks, self.dim = solver, blocks, dim
+        self.device = d = m.device
+        self.n = n = int(len(wall_block))
+        assert n == m.n_moving_walls, (n, m.n_moving_walls)
+        x = block_state.x.numpy().astype(np.float64)
+        q = block_state.q.numpy().astype(np.float64)
+        wb = np.asarray(wall_block, np.int64)
+        body = np.zeros((n, 3))
+        for b in np.unique(wb):
+            sel = wb == b
+            body[sel] = (np.asarray(world_positions, float)[sel] - x[b]) @ quat_to_matrix(q[b])  # R^T (p - c)
+        self.body_r = wp.array(body.astype(np.float32), dtype=wp.vec3, device=d)
+        self.wall_block = wp.array(wb.astype(np.int32), dtype=int, device=d)
+        self.depth_scale = depth_scale
+        nb = blocks.num_blocks
+        self.count_per_block = np.bincount(wb, minlength=nb)
+        self.v_prev = wp.clone(block_state.v)
+        self.w_prev = wp.clone(block_state.w)
+        self.dt_prev = wp.zeros(1, dtype=float, device=d)  # 0: no step yet (no acceleration)
+        self.acc = wp.zeros(nb, dtype=wp.vec3, device=d)
+        self.ang_acc = wp.zeros(nb, dtype=wp.vec3, device=d)
+        self.water_force = wp.zeros(nb, dtype=wp.vec3, device=d)
+        self.water_torque = wp.zeros(nb, dtype=wp.vec3, device=d)
+        self.x_off = m.n_fluid + m.n_static_boundary  # first wall particle in the fluid arrays
+        self.b_off = m.n_static_boundary  # ... among the boundary particles
+        solver.wall_reactions.append(self.react)
+
+    def place(self, fluid_state, block_state, ts: TimeStep) -> None:
+        """Put the wall particles at the blocks' poses (positions, velocities, accelerations) for this step."""
+        d, m = self.device, self.solver.model
+        wp.launch(CK.block_wall_motion, dim=self.blocks.num_blocks,
+                  inputs=[block_state.bodies, self.dt_prev], outputs=[self.v_prev, self.w_prev, self.acc, self.ang_acc],
+                  device=d)
+        wp.copy(self.dt_prev, ts.dt_array)
+        wp.launch(CK.place_block_walls, dim=self.n,
+                  inputs=[self.body_r, self.wall_block, block_state.bodies, self.acc, self.ang_acc, int(m.dim == 2),
+                          self.x_off, self.b_off],
+                  outputs=[fluid_state.x, fluid_state.v, self.solver.wall_accel], device=d)
+        self.water_force.zero_()
+        self.water_torque.zero_()
+        self._block_state = block_state
+
+    def react(self, solver, state) -> None:
+        """After the fluid's force pass: the water's force on the wall particles, onto their blocks."""
+        m = solver.model
+        if m.n_fluid == 0:
+            return
+        bs = self._block_state
+        wp.launch(CK.block_wall_reactions, dim=self.n,
+                  inputs=[solver.cells, *solver._slot_ranges, solver.list_radius, state.x, state.v, state.rho, solver._pr2,
+                          m.particle_mass, solver._wall_pr2, state.wall_velocity, solver._xq, self.b_off, self.wall_block,
+                          m.params, bs.bodies, self.blocks.kinds, self.depth_scale, bs.loads],
+                  outputs=[self.water_force, self.water_torque], device=self.device)
+
+    def checkpoint_arrays(self) -> dict:
+        """What the walls keep between steps: the blocks' velocities of the last step and its length (the
+        acceleration estimate); the positions are in the fluid state."""
+        return {"v_prev": self.v_prev, "w_prev": self.w_prev, "dt_prev": self.dt_prev}

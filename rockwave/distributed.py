@@ -399,6 +399,9 @@ class DistributedSimulation(Simulation):
             raise ValueError("--ranks decomposes the water: this scene has none (run it on one rank)")
         if type(self.fluid_solver) is not FluidSolver:
             raise ValueError("--ranks: Ghost SPH (fluid.method = 'ghost') is not decomposed yet; run it on one rank")
+        if self.fluid.n_moving_walls:
+            raise ValueError("--ranks: the wall particles of moving blocks are not decomposed yet; set "
+                             "coupling.block_walls = false or run on one rank")
         self.dfluid = DistributedFluid(self, self.comm)
         self.dfluid.partition()
         self._synced_time = self.clock.time

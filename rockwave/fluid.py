@@ -100,6 +100,8 @@ class FluidModel:
         dim: 2 or 3.
         up: index of the vertical axis (1 in 2D, 2 in 3D).
         n_fluid, n_boundary: particle counts (fluid first in every particle array).
+        n_moving_walls: the last n_moving_walls boundary particles are the wall particles of moving blocks
+            (rockwave/coupling.py BlockWalls places them each step); the others are static.
         spacing: initial particle spacing [m].
         support_radius: kernel support H [m].
         particle_mass: wp.array(float, n_fluid + n_boundary): fluid mass [kg], or boundary Psi_b [kg].
@@ -127,6 +129,12 @@ class FluidModel:
     device: wp.context.Device
     density_diffusion: float = 0.0  # delta of the delta-SPH density diffusion (kernels/diffusion.py); 0: off
     boundary_spacing: float = 0.0  # boundary particle lattice spacing [m]; 0: the fluid spacing
+    n_moving_walls: int = 0  # wall particles of moving blocks, the last of the boundary particles
+
+    @property
+    def n_static_boundary(self) -> int:
+        """Boundary particles that never move (tank, obstacles, fixed blocks)."""
+        return self.n_boundary - self.n_moving_walls
 
     @property
     def density_mode(self) -> str:
@@ -258,7 +266,7 @@ class FluidSolver:
     r >= H. Each step kernels compare every fluid position with the one stored at the build and set a
     device flag when two particles that may have become neighbours moved s H or more relative to each
     other (``skin_check`` "relative": displacement boxes per 2H cell of build position, adjacent cells
-    compared, boundary particles at rest; also when one moved H/2) or, with "absolute", when any moved
+    compared, static boundary particles at rest, the wall particles of moving blocks checked as the fluid's; also when one moved H/2) or, with "absolute", when any moved
     s H / 2 (either way every pair now closer than H was closer than R at the build). The cell-grid kernels and the list build run every step and return at once while the
     flag is clear, so no host read is needed (CUDA graphs); on the CPU the host reads the flag and skips
     the launches (and the radix sort). The check compares positions slot by slot, so it covers every
@@ -298,6 +306,15 @@ class FluidSolver:
         self._pr2 = wp.zeros(nf, dtype=float, device=d)  # p / rho^2 of this step (kernels/fluid.py pair_acceleration_fluid)
         self._wall_pr2 = wp.zeros(max(model.n_boundary, 1), dtype=float, device=d)  # p_b / rho_b^2 (Adami walls)
         self._zero_dt = wp.zeros(1, dtype=float, device=d)
+        # wall particles of moving blocks (rockwave/coupling.py BlockWalls): their acceleration a_b (Adami 2012
+        # eq. 27, written by the coupling each step; zero for static walls) and their positions at the last list
+        # build (_xq: the cell queries of the wall pressure start there; static walls: their own positions)
+        self.wall_accel = wp.zeros(max(model.n_boundary, 1), dtype=wp.vec3, device=d)
+        self._xq = None
+        if model.n_moving_walls:
+            xb = np.asarray(model.initial_positions, float)[model.n_fluid: model.n_total]
+            self._xq = wp.array(xb.astype(np.float32), dtype=wp.vec3, device=d)
+        self.wall_reactions = []  # f(solver, state): after the pair forces, before the integration (BlockWalls)
         self._block_dim = 128 if is_cuda else 256  # force pass: 0.84 vs 0.91 ms at 256 (H100, 2.16 M)
         self._init_lists()
 
@@ -364,8 +381,8 @@ class FluidSolver:
         self._moved = wp.zeros(1, dtype=int, device=d)  # a particle moved s H / 2 since the build
         # cells holding boundary particles (static): their displacement boxes include d = 0
         wall = np.zeros(n_cells, np.int32)
-        if m.n_boundary:
-            xb = np.asarray(m.initial_positions, float)[m.n_fluid: m.n_total].reshape(-1, 3)
+        if m.n_static_boundary:  # (the wall particles of moving blocks enter the boxes as the fluid does)
+            xb = np.asarray(m.initial_positions, float)[m.n_fluid: m.n_fluid + m.n_static_boundary].reshape(-1, 3)
             idx = np.clip(np.floor((xb - lo) / c).astype(np.int64), 0, dims - 1)
             wall[idx[:, 0] + dims[0] * (idx[:, 1] + dims[1] * idx[:, 2])] = 1
         self._wall_cells = wp.array(wall, dtype=int, device=d)
@@ -519,7 +536,15 @@ class FluidSolver:
         self._launch(sph.build_neighbour_list_cells, m.n_fluid,
                      [self.cells, state.x, self.list_radius, *self._slot_ranges, f],
                      [self._nbr_count, self._nbr, self._x_build])
+        self._store_wall_build(state, f)
         self._flag_overflow(f)
+
+    def _store_wall_build(self, state: FluidState, rebuild: wp.array) -> None:
+        """At a list build: the positions of the moving blocks' wall particles (their displacement checks)."""
+        m = self.model
+        if m.n_moving_walls:
+            self._launch(sph.store_build_positions, m.n_moving_walls,
+                         [state.x, m.n_fluid + m.n_static_boundary, rebuild, self._xq, m.n_static_boundary])
 
     def _flag_overflow(self, rebuild: wp.array) -> None:
         """After a list build: does a list of this build overflow? (the relative skin check needs to know)"""
@@ -536,19 +561,28 @@ class FluidSolver:
             self.list_builds += 1
             return self._always
         half = 0.5 * self.neighbour_skin * m.support_radius
+        nw, w_off, wb_off = m.n_moving_walls, m.n_fluid + m.n_static_boundary, m.n_static_boundary
         if self._check is None:
-            self._launch(sph.list_displacement_check, m.n_fluid, [state.x, self._x_build, half * half, self._rebuild])
+            self._launch(sph.list_displacement_check, m.n_fluid, [state.x, 0, self._x_build, 0, half * half, self._rebuild])
+            if nw:  # the moving walls' particles, as the fluid's
+                self._launch(sph.list_displacement_check, nw, [state.x, w_off, self._xq, wb_off, half * half, self._rebuild])
         else:
             # first the absolute test into `moved`: while no particle moved s H / 2 (early in a flow, at rest)
             # the relative kernels return at once (0.2 ms of the relative test saved on an H100 at 2.16 M)
             g = self._check
             self._moved.zero_()
-            self._launch(sph.list_displacement_check, m.n_fluid, [state.x, self._x_build, half * half, self._moved])
+            self._launch(sph.list_displacement_check, m.n_fluid, [state.x, 0, self._x_build, 0, half * half, self._moved])
+            if nw:
+                self._launch(sph.list_displacement_check, nw, [state.x, w_off, self._xq, wb_off, half * half, self._moved])
             self._d_lo.fill_(wp.vec3(1.0e30))
             self._d_hi.fill_(wp.vec3(-1.0e30))
             self._launch(sph.displacement_bounds, m.n_fluid,
-                         [g, state.x, self._x_build, half * half, self._overflowed, self._moved, self._d_lo, self._d_hi,
+                         [g, state.x, 0, self._x_build, 0, half * half, self._overflowed, self._moved, self._d_lo, self._d_hi,
                           self._rebuild])
+            if nw:
+                self._launch(sph.displacement_bounds, nw,
+                             [g, state.x, w_off, self._xq, wb_off, half * half, self._overflowed, self._moved, self._d_lo,
+                              self._d_hi, self._rebuild])
             skin = self.neighbour_skin * m.support_radius
             reach = 0.5 * (self._check_width - m.support_radius)
             self._launch(sph.displacement_check_cells, self._d_lo.shape[0],
@@ -618,6 +652,8 @@ class FluidSolver:
                       state.v, state.rho, state.pressure, m.particle_mass, self._wall_pr2, state.wall_velocity, m.params],
                      [state.accel, state.xsph_dv])
         self._extra_forces(state)
+        for reaction in self.wall_reactions:  # the moving walls' share goes to their blocks (rockwave/coupling.py)
+            reaction(self, state)
         self._launch(sph.integrate_particles, m.n_fluid, [state.accel, state.xsph_dv, dt], [state.x, state.v])
 
     def wall_pressure(self, state: FluidState) -> None:
@@ -627,9 +663,10 @@ class FluidSolver:
         m = self.model
         if m.params.boundary != sph.BOUNDARY_ADAMI or m.n_boundary == 0 or m.n_fluid == 0:
             return
+        xq, q_off = (state.x, m.n_fluid) if self._xq is None else (self._xq, 0)
         self._launch(sph.wall_pressure_adami, m.n_boundary,
                      [self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, state.rho, state.pressure,
-                      m.params],
+                      xq, q_off, self.wall_accel, m.params],
                      [state.wall_pressure, self._wall_pr2, state.wall_velocity])
 
     def _neighbour_lists(self, state: FluidState, dt: wp.array) -> bool:
@@ -657,6 +694,7 @@ class FluidSolver:
                               m.params, int(m.density)],
                              [self._nbr_count, self._nbr, state.drho_dt, state.rho, state.pressure, self._pr2,
                               self._x_build])
+                self._store_wall_build(state, guard)
                 self._flag_overflow(guard)
             else:
                 self.build_neighbour_lists(state, guard)
@@ -696,7 +734,10 @@ class FluidSolver:
     def checkpoint_arrays(self) -> dict[str, wp.array]:
         """What the solver keeps between steps beyond the state: the positions of the last list build and the
         rebuild flag (the lists themselves are rebuilt from them on restore, in the same order)."""
-        return {"x_build": self._x_build, "rebuild": self._rebuild}
+        out = {"x_build": self._x_build, "rebuild": self._rebuild}
+        if self._xq is not None:  # the moving walls' build positions
+            out["wall_build"] = self._xq
+        return out
 
     def checkpoint_meta(self) -> dict:
         """Host values the solver keeps between steps (none here)."""
@@ -713,6 +754,9 @@ class FluidSolver:
             return
         x = wp.clone(state.x)
         wp.copy(x, wp.array(np.asarray(arrays["x_build"], np.float32), dtype=wp.vec3, device=m.device), 0, 0, nf)
+        if self._xq is not None:
+            self._xq.assign(np.asarray(arrays["wall_build"], np.float32))
+            wp.copy(x, self._xq, nf, 0, m.n_boundary)
         at_build = SimpleNamespace(x=x)  # the list builds read positions only
         self.build_cells(at_build)
         self.build_neighbour_lists(at_build)
@@ -778,8 +822,11 @@ def calibrate_lattice(params: sph.SPHParams, spacing: float, dim: int, device) -
 
 def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray, boundary_positions: np.ndarray,
                       scene_fluid, dim: int, gravity, device, boundary_spacing: float | None = None,
-                      boundary_layers: int | None = None) -> FluidModel:
+                      boundary_layers: int | None = None, moving_wall_positions: np.ndarray | None = None) -> FluidModel:
     """Assemble the model: calibrated particle mass and boundary masses Psi_b.
+
+    ``moving_wall_positions``: the wall particles of moving blocks at the start (rockwave/coupling.py BlockWalls),
+    appended after the static boundary particles in the order given (their blocks place them each step).
 
     Boundary walls whose layers cover the kernel support act as frozen fluid: Psi_b is the
     lattice-calibrated mass at the boundary spacing. Thinner walls use Akinci et al. (2012):
@@ -792,6 +839,11 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
         bp = np.asarray(boundary_positions, dtype=np.float64)
         c = np.floor((bp - bp.min(axis=0)) / params.H).astype(np.int64)
         boundary_positions = bp[np.lexsort((c[:, 0], c[:, 1], c[:, 2]))]
+    n_moving = 0 if moving_wall_positions is None else len(moving_wall_positions)
+    if n_moving:
+        boundary_positions = np.concatenate([np.asarray(boundary_positions, float).reshape(-1, 3),
+                                             np.asarray(moving_wall_positions, float)])
+        nb += n_moving
     spacing = scene_fluid["spacing_m"]
     bstep = boundary_spacing or spacing
     full_support = boundary_layers is None or boundary_layers * bstep >= 0.999 * params.H
@@ -810,7 +862,7 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
         density=Density.SUMMATION if scene_fluid["density"] == "summation" else Density.CONTINUITY,
         domain_lo=lo, domain_hi=hi, initial_positions=x, initial_velocities=v, device=wp.get_device(device),
         density_diffusion=float(scene_fluid.get("density_diffusion", 0.0) or 0.0),
-        boundary_spacing=float(bstep) if nb else 0.0,
+        boundary_spacing=float(bstep) if nb else 0.0, n_moving_walls=n_moving,
     )
     if nb and full_support:
         mb = calibrate_lattice(params, bstep, dim, device)[0]

@@ -76,8 +76,8 @@ class Gauges:
         rows = max(n, 1)
         self.phi_f = wp.zeros((rows, self.n_samples), dtype=float, device=device)
         self.phi_s = wp.zeros((rows, self.n_samples), dtype=float, device=device)
-        nf, nb = fluid.n_fluid, fluid.n_boundary
-        if any(heights) and nb:  # the walls are static: their fraction along the lines once
+        nf, nb = fluid.n_fluid, fluid.n_boundary - getattr(fluid, "n_moving_walls", 0)
+        if any(heights) and nb:  # the static walls: their fraction along the lines once (not the moving blocks')
             xb = wp.array(np.asarray(fluid.initial_positions[nf:nf + nb], dtype=np.float32), dtype=wp.vec3, device=device)
             wp.launch(gk.gauge_solid_profile, dim=(nb, n), inputs=[xb, fluid.particle_mass, nf, self.pos, self.is_height,
                                                                    up, self.z0, self.dz, fluid.params],

@@ -212,6 +212,7 @@ SCHEMA: dict[str, Key] = {
         stiffness_n_m=Key("float", "explicit K_s (N/m per particle; per metre of depth in 2D), overrides stiffness_factor", min=0, min_open=True),
         damping_n_s_m=Key("float", "explicit K_d (N s/m), overrides damping_ratio", min=0.0),
         squeeze_out=Key("bool", "water pinched between a moving block and an opposing solid face closer than 2 d0 + H is pushed out along the gap, so a block can settle onto another (rockwave/coupling.py)", default=True),
+        block_walls=Key("bool", "Adami wall particles on the moving (rigid, deformable, kinematic) blocks that start within reach of the water (its bounding box grown by its largest extent), so the water pushes them with its extrapolated pressure, wall acceleration included, and the penalty is only the guard against penetration (rockwave/coupling.py BlockWalls); needs fluid.boundary = 'adami' and fluid.method = 'basic'; false: the penalty alone (with the standard level a floating box then sinks 9% (2D) to 28% (3D) deeper than Archimedes' draft, docs/notes.md)", default=False),
     ),
     "hazard": _sec(
         "hazard summary reduced on the device during a run (rockwave/hazard.py), written to hazard.json and run.json", optional=True,
@@ -470,6 +471,14 @@ def _cross_checks(v: _Validator, s: Node) -> None:
     if gh.get("sampler") == "tile" and gh.get("persistent"):
         v.err("fluid.ghost.sampler", "the tile sampler does not keep ghosts: persistent = true needs sampler = 'darts'")
     _check_method_options(v, fl)
+    cp = s["coupling"] or {}
+    if cp.get("block_walls"):
+        if fl.get("boundary") != "adami":
+            v.err("coupling.block_walls", "wall particles on moving blocks are Adami walls: they need fluid.boundary = "
+                                          f"'adami' (it is {fl.get('boundary')!r}); remove the key or change the boundary")
+        if fl.get("method") != "basic":
+            v.err("coupling.block_walls", "wall particles on moving blocks need fluid.method = 'basic' (Ghost SPH keeps "
+                                          "its own copies of the boundary); remove the key or set it false")
     if s["tank"] is None and not any(b["kind"] in ("fixed", "kinematic") for b in s["blocks"]):
         v.err("tank", "the water has no walls: add a [tank] (box_min_m/box_max_m or mesh) or fixed [[blocks]] around it")
     eos = fl["eos"]

@@ -77,6 +77,11 @@ class Simulation:
         self.gravity = np.asarray(builder.pad3(scene.gravity.acceleration_m_s2))
         self.clock = Clock(scene, self.device, self._limits(), self._stability_bounds(), self._block_substep())
         self.gauge_names = [g.name for g in scene.output.gauges]
+        if self.coupling is not None and self.coupling.walls is not None:  # the walls' acceleration estimate
+            from rockwave import checkpoint
+
+            walls = self.coupling.walls
+            checkpoint.register(self, "block_walls", checkpoint.ArrayGroup(lambda: walls, ["v_prev", "w_prev", "dt_prev"]))
         self._readers = None
         self._graph = None
 
