@@ -35,7 +35,8 @@ Hydrodynamics simulations", IEEE TPDS 25(1)):
   replicated.
 * Blocks are replicated: each rank computes the water's force on every block from its owned particles
   only (the coupling kernel launched over them), the per-rank loads are summed (reduce on rank 0 + bcast,
-  so all ranks hold bit-identical loads) and every rank integrates the blocks identically.
+  so all ranks hold bit-identical loads) and every rank integrates the blocks identically. The walls' impulse
+  on the water (CouplingOptions.track_walls, Coupling.wall_impulse) is summed over the ranks the same way.
 * Rank 0 drives: ``advance`` and ``step`` on rank 0 broadcast a command that the other ranks follow
   (``serve``); after each advance the owned particles are gathered into rank 0's full FluidState, so
   readers, gauges, recorders, run.json and checkpoints on rank 0 are those of a one-rank run. A checkpoint
@@ -470,11 +471,16 @@ class DistributedSimulation(Simulation):
         MPI = require_mpi()
         bs = self.block_state
         before = [bs.ext_force.numpy().astype(np.float64), bs.ext_torque.numpy().astype(np.float64)]
+        impulse0 = self.coupling.wall_impulse.copy()
         self.coupling.fluid, keep = replace(local, n_fluid=len(self.dfluid.rows)), self.coupling.fluid
         try:
             self.coupling.compute(state, bs, ts)
         finally:
             self.coupling.fluid = keep
+        if self.coupling.track_walls:  # the walls' impulse on the water: this rank's particles, summed over ranks
+            mine, total_impulse = self.coupling.wall_impulse - impulse0, np.zeros(3)
+            self.comm.Allreduce(mine, total_impulse, op=MPI.SUM)
+            self.coupling.wall_impulse = impulse0 + total_impulse
         delta = np.concatenate([bs.ext_force.numpy() - before[0], bs.ext_torque.numpy() - before[1]]).astype(np.float64)
         total = np.zeros_like(delta)
         self.comm.Reduce(delta, total, op=MPI.SUM, root=0)  # then bcast: every rank holds the same sum
@@ -601,10 +607,18 @@ def _main(argv=None) -> int:
     ap.add_argument("--plain", action="store_true", help="the one-process Simulation, no MPI")
     ap.add_argument("--balance", type=float, default=0.1, help="move the slab faces when a rank owns more than "
                     "(1 + BALANCE) x the mean (default 0.1)")
+    ap.add_argument("--track-walls", action="store_true", help="sum the fixed and kinematic blocks' force on the "
+                    "water (CouplingOptions.track_walls) and save it as wall_impulse")
     a = ap.parse_args(argv)
     wp.config.quiet = True
-    sim = Simulation(a.scene, device="cpu") if a.plain else DistributedSimulation(a.scene, device="cpu",
-                                                                                   balance_tolerance=a.balance)
+    options = None
+    if a.track_walls:
+        from rockwave.coupling import CouplingOptions
+        from rockwave.scene import load_scene
+
+        options = SimulationOptions(coupling=replace(CouplingOptions.from_scene(load_scene(a.scene)), track_walls=True))
+    sim = (Simulation(a.scene, device="cpu", options=options) if a.plain else
+           DistributedSimulation(a.scene, device="cpu", options=options, balance_tolerance=a.balance))
     if not a.plain and sim.rank != 0:
         sim.serve()
         return 0
@@ -613,7 +627,8 @@ def _main(argv=None) -> int:
     save = dict(x=sim.positions(), v=sim.velocities(), rho=sim.densities(), time=sim.time, steps=sim.steps,
                 dt=sim.dt, blocks=sim.block_positions(), block_v=sim.block_velocities(),
                 ranks=getattr(sim, "size", 1), migrated=sim.dfluid.migrated_total if not a.plain else 0,
-                axis=sim.dfluid.dec.axis if not a.plain else -1, rebalances=sim.dfluid.rebalances if not a.plain else 0, faces=sim.dfluid.dec.faces if not a.plain else [])
+                axis=sim.dfluid.dec.axis if not a.plain else -1, rebalances=sim.dfluid.rebalances if not a.plain else 0, faces=sim.dfluid.dec.faces if not a.plain else [],
+                wall_impulse=sim.coupling.wall_impulse if sim.coupling is not None else np.zeros(3))
     if not a.plain:
         sim.close()
     np.savez(a.out, **save)

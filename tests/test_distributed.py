@@ -215,3 +215,39 @@ def test_cli_checkpoint_resumes_on_other_rank_count(tmp_path):
             a[:, 8:11] *= 0.05  # edge, 0.05 m from its centre (the spin is round-off alone in this symmetric case)
             b[:, 8:11] *= 0.05
         assert np.abs(a - b).max() <= 1e-4  # m (gauge heights, block positions), m/s
+
+
+# water resting on a fixed block shelf that spans both slabs (draft level: the shelf pushes with the penalty, which
+# CouplingOptions.track_walls sums as the walls' impulse on the water)
+SHELF = BASE.replace("spacing_m = 0.01\n", 'spacing_m = 0.01\nfidelity = "draft"\n') + """
+[[fluid.regions]]
+box_min_m = [0.0, 0.04]
+box_max_m = [0.3, 0.1]
+[tank]
+box_min_m = [0.0, 0.0]
+box_max_m = [0.3, 0.2]
+[[blocks]]
+name = "shelf"
+shape = "box"
+size_m = [0.3, 0.04, 0.1]
+position_m = [0.15, 0.02, 0.0]
+kind = "fixed"
+"""
+
+
+def test_wall_impulse_is_summed_over_ranks(tmp_path):
+    """CouplingOptions.track_walls: the fixed shelf's impulse on the water is each rank's particles' share,
+    summed over the ranks (was rank 0's share alone), so it equals the one-process figure within round-off."""
+    scene = _scene(tmp_path, "shelf", SHELF)
+    t = 0.05
+    one = tmp_path / "shelf_plain.npz"
+    r = subprocess.run([sys.executable, "-m", "rockwave.distributed", str(scene), "--duration", str(t), "--out", str(one),
+                        "--plain", "--track-walls"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = tmp_path / "shelf_2.npz"
+    _mpi(["-m", "rockwave.distributed", str(scene), "--duration", str(t), "--out", str(out), "--track-walls"], tmp_path)
+    a, b = np.load(one), np.load(out)
+    up = float(a["wall_impulse"][1])
+    weight_impulse = len(a["x"]) * 0.01 * 0.01 * 1000.0 * 9.81 * t  # the water's weight x t (2D: per metre)
+    assert up > 0.2 * weight_impulse, (up, weight_impulse)  # the shelf carries the water
+    assert abs(float(b["wall_impulse"][1]) - up) <= 1e-3 * up, (b["wall_impulse"], a["wall_impulse"])
