@@ -17,6 +17,8 @@ BlockProps, BlockMaterial, BlockMotion (BlockModel), BlockBodies, BlockLoads, Co
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
+
 KIND_RIGID = wp.constant(0)
 KIND_DEFORMABLE = wp.constant(1)
 KIND_FIXED = wp.constant(2)

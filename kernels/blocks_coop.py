@@ -29,6 +29,8 @@ from rockwave.kernels.blocks import (
     sat_recheck,
 )
 
+wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
+
 # ----------------------------------------------------------------------------------------------
 # narrow phase of big blocks: one thread block per pair (narrow_phase_coop). The same algorithm as
 # narrow_phase, step for step: every loop over a block's vertices, faces or half-edge pairs is cut into

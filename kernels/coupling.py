@@ -27,6 +27,8 @@ import warp as wp
 from rockwave.kernels import fluid as sph
 from rockwave.kernels.blocks import BlockBodies, BlockLoads
 
+wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
+
 KIND_RIGID = wp.constant(0)
 KIND_DEFORMABLE = wp.constant(1)
 KIND_FIXED = wp.constant(2)

@@ -23,6 +23,8 @@ import warp as wp
 
 from rockwave.kernels.fluid import SPHParams, kernel_grad, store_density
 
+wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
+
 
 @wp.kernel
 def density_diffusion_rate(

@@ -15,6 +15,8 @@ from typing import Any
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
+
 KERNEL_MULLER = wp.constant(0)
 KERNEL_CUBIC = wp.constant(1)
 KERNEL_WENDLAND = wp.constant(2)

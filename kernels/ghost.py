@@ -45,6 +45,8 @@ import warp as wp
 
 from rockwave.kernels.fluid import SPHParams, kernel_grad, kernel_w, store_density
 
+wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
+
 
 @wp.struct
 class GhostGrid:

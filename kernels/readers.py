@@ -5,6 +5,8 @@ import warp as wp
 
 from rockwave.kernels.fluid import SPHParams, kernel_w
 
+wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
+
 # A sample whose open (non-solid) fraction 1 - phi_s is below this is inside a wall: not water.
 SOLID_CUTOFF = wp.constant(0.2)
 

@@ -2,6 +2,8 @@
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
+
 
 @wp.kernel
 def mesh_signed_distance(

@@ -24,6 +24,8 @@ import warp as wp
 
 from rockwave.kernels.fluid import cubic_w, lower_bound
 
+wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
+
 
 @wp.struct
 class ParticleCells:
