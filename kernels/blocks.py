@@ -68,7 +68,6 @@ class BlockTopology:
     vertex_out_he: wp.array(dtype=int)
     he_vertex: wp.array(dtype=int)
     he_next: wp.array(dtype=int)
-    he_prev: wp.array(dtype=int)
     he_twin: wp.array(dtype=int)
     block_size: wp.array(dtype=float)
     he_start: wp.array(dtype=int)
@@ -135,11 +134,41 @@ class BlockBodies:
     x_lo: wp.array(dtype=wp.vec3)
 
 
+# a symmetric 6x6 matrix as its upper triangle, row by row (21 entries: 84 B, not the full matrix's 144)
+sym6 = wp.types.vector(length=21, dtype=wp.float32)
+
+
+@wp.func
+def sym6_outer(c: float, j: wp.spatial_vector):
+    # c j j^T as sym6 (entries c (j_r j_q), as c * outer(j, j) rounds them)
+    s = sym6()
+    k = int(0)
+    for r in range(6):
+        for q in range(r, 6):
+            s[k] = c * (j[r] * j[q])
+            k += 1
+    return s
+
+
+@wp.func
+def sym6_matrix(s: sym6):
+    # the full 6x6 of a sym6
+    C = wp.spatial_matrix()
+    k = int(0)
+    for r in range(6):
+        for q in range(r, 6):
+            C[r, q] = s[k]
+            C[q, r] = s[k]
+            k += 1
+    return C
+
+
 @wp.struct
 class BlockLoads:
     """Force accumulators of every block (BlockState): contact force, torque and generalised strain
     force, external force and torque (added by other modules), contact points of the step, and the
-    contact dashpots implicit in the block update: damp_c (6x6 over [v, w]) and damp_b (generalised force
+    contact dashpots implicit in the block update: damp_c (6x6 over [v, w], symmetric: its upper
+    triangle, sym6) and damp_b (generalised force
     from the other block's velocity; add_damper)."""
 
     force: wp.array(dtype=wp.vec3)
@@ -148,7 +177,7 @@ class BlockLoads:
     ext_force: wp.array(dtype=wp.vec3)
     ext_torque: wp.array(dtype=wp.vec3)
     contact_count: wp.array(dtype=int)
-    damp_c: wp.array(dtype=wp.spatial_matrix)
+    damp_c: wp.array(dtype=sym6)
     damp_b: wp.array(dtype=wp.spatial_vector)
 
 
@@ -179,20 +208,20 @@ class ContactTable:
 
 @wp.struct
 class WorldVerts:
-    """World vertices of every block (BlockState): hi, the float32 world position (what the AABBs, the
-    broad phase and the readers use), and arm, the vertex relative to its block's float32 centroid x,
-    x_lo + R (X + E X) (~ the block's size, so float32 keeps its bits there): vertex = x + arm. The narrow
-    phase reads them in a frame of its pair (pair_vertex), where contact depths keep their bits however
-    far the pair is from the world origin."""
+    """World vertices of every block (BlockState) as arms: each vertex relative to its block's float32
+    centroid x, x_lo + R (X + E X) (~ the block's size, so float32 keeps its bits there). The float32
+    world position is x + arm, formed where it is needed (block_aabbs, pose_motion; not stored: 12 B per
+    vertex). The narrow phase reads them in a frame of its pair (pair_vertex), where contact depths keep
+    their bits however far the pair is from the world origin."""
 
-    hi: wp.array(dtype=wp.vec3)
     arm: wp.array(dtype=wp.vec3)
 
 
 @wp.struct
 class BroadPhaseGrid:
     """Uniform-grid broad phase (BlockSolver): each block's AABB (lo, hi, grown by the margin), 1 / cell
-    size [1/m], the hashed buckets of (block, cell) entries (counting sort: count, start, fill), the
+    size [1/m], the hashed buckets of (block, cell) entries (counting sort: count; start, advanced to each
+    bucket's end as bp_fill places the entries), the
     entries, the large blocks (over large_cells cells) tested against every block, and each block's
     body (body[b] = b, or the first part of b's compound block: parts of one body are never paired)."""
 
@@ -203,7 +232,6 @@ class BroadPhaseGrid:
     nbuckets: int
     bucket_count: wp.array(dtype=int)
     bucket_start: wp.array(dtype=int)
-    bucket_fill: wp.array(dtype=int)
     entry_block: wp.array(dtype=int)
     entry_cell: wp.array(dtype=wp.vec3i)
     is_large: wp.array(dtype=int)
@@ -328,11 +356,11 @@ def add_damper(
     # start: the generalised force -C_B V_B + b_B, C_B += c J^T J, b_B += c (e.v_A(p)) J^T, J = [e, r x e]
     if movable(kinds[B]):
         jb = wp.spatial_vector(e, wp.cross(p - xB, e))
-        wp.atomic_add(loads.damp_c, B, c * wp.outer(jb, jb))
+        wp.atomic_add(loads.damp_c, B, sym6_outer(c, jb))
         wp.atomic_add(loads.damp_b, B, (c * wp.dot(e, vA)) * jb)
     if movable(kinds[A]):
         ja = wp.spatial_vector(e, wp.cross(p - xA, e))
-        wp.atomic_add(loads.damp_c, A, c * wp.outer(ja, ja))
+        wp.atomic_add(loads.damp_c, A, sym6_outer(c, ja))
         wp.atomic_add(loads.damp_b, A, (c * wp.dot(e, vB)) * ja)
 
 
@@ -364,10 +392,10 @@ def add_rocking_damper(
     # torque -c e e.(w_B - w_A) with w_B at the end of the step, J = [0, e]
     j = wp.spatial_vector(wp.vec3(0.0, 0.0, 0.0), e)
     if movable(kinds[B]):
-        wp.atomic_add(loads.damp_c, B, c * wp.outer(j, j))
+        wp.atomic_add(loads.damp_c, B, sym6_outer(c, j))
         wp.atomic_add(loads.damp_b, B, (c * wp.dot(e, wA)) * j)
     if movable(kinds[A]):
-        wp.atomic_add(loads.damp_c, A, c * wp.outer(j, j))
+        wp.atomic_add(loads.damp_c, A, sym6_outer(c, j))
         wp.atomic_add(loads.damp_b, A, (c * wp.dot(e, wB)) * j)
 
 
@@ -516,7 +544,6 @@ def fcp_candidates(
     vertex_out_he: wp.array(dtype=int),
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
-    he_prev: wp.array(dtype=int),
     he_twin: wp.array(dtype=int),
 ):
     # FCP candidate planes of the vertex pair (A, B): (a) PB of AB, (b) faces at A or B,
@@ -546,10 +573,10 @@ def fcp_candidates(
             c = wp.cross(ea, eb)
             if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
                 best_n, best_gap = try_plane(c, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB)
-            g = he_twin[he_prev[g]]
+            g = he_next[he_twin[g]]
             if g == g0:
                 break
-        h = he_twin[he_prev[h]]
+        h = he_next[he_twin[h]]
         if h == h0:
             break
     # faces and edges at B: (b), (d)
@@ -563,7 +590,7 @@ def fcp_candidates(
         if le > 0.0:
             eh = eb / le
             best_n, best_gap = try_plane(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB)
-        g = he_twin[he_prev[g]]
+        g = he_next[he_twin[g]]
         if g == g0:
             break
     return best_n, best_gap
@@ -662,7 +689,6 @@ def fcp_plane(
     vertex_out_he: wp.array(dtype=int),
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
-    he_prev: wp.array(dtype=int),
     he_twin: wp.array(dtype=int),
 ):
     # Fast Common Plane (Nezami et al. 2004): iterate closest vertices A, B and their candidate planes
@@ -686,7 +712,7 @@ def fcp_plane(
             a = ihA
             b = ilB
             best_n, best_gap = fcp_candidates(
-                a, b, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, vertex_out_he, he_vertex, he_next, he_prev, he_twin
+                a, b, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, vertex_out_he, he_vertex, he_next, he_twin
             )
         else:
             if gap0 <= 0.0:
@@ -703,7 +729,7 @@ def fcp_plane(
                         if wp.dot(n, pair_vertex(wv, dB, vb)) <= loB + tie:
                             best_n, best_gap = fcp_candidates(
                                 va, vb, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB,
-                                vertex_out_he, he_vertex, he_next, he_prev, he_twin,
+                                vertex_out_he, he_vertex, he_next, he_twin,
                             )
             if best_gap <= gap0:
                 break
@@ -790,7 +816,7 @@ def block_world_vertices(
     out: WorldVerts,
 ):
     """The block solver's world vertices x_world = (x + x_lo) + R (X + E X) (WorldVerts): the arm
-    x_lo + R (X + E X) from the float32 centroid x, and hi = x + arm in float32."""
+    x_lo + R (X + E X) from the float32 centroid x."""
     v = wp.tid()
     b = vert_block[v]
     X = body_verts[v]
@@ -798,41 +824,64 @@ def block_world_vertices(
         X = X + strain_matrix(bodies.strain[b]) * X
     arm = bodies.x_lo[b] + wp.quat_rotate(bodies.q[b], X)
     out.arm[v] = arm
-    out.hi[v] = bodies.x[b] + arm
 
 
 @wp.kernel
 def pose_motion(
-    wv: wp.array(dtype=wp.vec3),
+    body_verts: wp.array(dtype=wp.vec3),
+    kinds: wp.array(dtype=int),
     vert_start: wp.array(dtype=int),
     vert_count: wp.array(dtype=int),
-    x: wp.array(dtype=wp.vec3),
-    wv_ref: wp.array(dtype=wp.vec3),
+    bodies: BlockBodies,
+    arm: wp.array(dtype=wp.vec3),
     x_ref: wp.array(dtype=wp.vec3),
+    q_ref: wp.array(dtype=wp.quat),
+    x_lo_ref: wp.array(dtype=wp.vec3),
+    strain_ref: wp.array(dtype=wp.spatial_vector),
     dx: wp.array(dtype=wp.vec3),
     rho: wp.array(dtype=float),
 ):
     # motion of each block since the last narrow phase (the poses of the history table's planes):
     # every world vertex moved by dx[b] + dev with |dev| <= rho[b] (rotation, strain, and 2 ulps of
-    # the coordinates for float32 round-off); then the reference becomes the current pose
+    # the coordinates for float32 round-off); then the reference becomes the current pose. The reference
+    # vertices are not stored: they are rebuilt from the reference pose (x, q, x_lo, strain) by the same
+    # float32 operations as block_world_vertices, so they equal the world vertices of that step bit for bit.
+    # A zero q_ref (no reference yet: the first step, or a checkpoint from before format 4) takes the
+    # reference vertices at the origin, which certifies nothing.
     b = wp.tid()
     s = vert_start[b]
-    d = x[b] - x_ref[b]
+    xb = bodies.x[b]
+    xr = x_ref[b]
+    d = xb - xr
+    qr = q_ref[b]
+    have_ref = qr[0] != 0.0 or qr[1] != 0.0 or qr[2] != 0.0 or qr[3] != 0.0
+    deformable = kinds[b] == KIND_DEFORMABLE
+    lr = x_lo_ref[b]
     r = float(0.0)
     amax = float(0.0)
     for k in range(vert_count[b]):
-        p = wv[s + k]
-        r = wp.max(r, wp.length(p - wv_ref[s + k] - d))
+        p = xb + arm[s + k]  # the float32 world vertex
+        pr = wp.vec3(0.0, 0.0, 0.0)
+        if have_ref:
+            X = body_verts[s + k]
+            if deformable:
+                X = X + strain_matrix(strain_ref[b]) * X
+            pr = xr + (lr + wp.quat_rotate(qr, X))
+        r = wp.max(r, wp.length(p - pr - d))
         amax = wp.max(amax, wp.max(wp.abs(p[0]), wp.max(wp.abs(p[1]), wp.abs(p[2]))))
-        wv_ref[s + k] = p
     dx[b] = d
     rho[b] = r + 2.4e-7 * amax
-    x_ref[b] = x[b]
+    x_ref[b] = xb
+    q_ref[b] = bodies.q[b]
+    x_lo_ref[b] = bodies.x_lo[b]
+    if deformable:
+        strain_ref[b] = bodies.strain[b]
 
 
 @wp.kernel
 def block_aabbs(
-    wv: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    arm: wp.array(dtype=wp.vec3),
     vert_start: wp.array(dtype=int),
     vert_count: wp.array(dtype=int),
     margin: float,
@@ -840,12 +889,14 @@ def block_aabbs(
     hi: wp.array(dtype=wp.vec3),
     contact_count: wp.array(dtype=int),
 ):
+    # each block's AABB over its float32 world vertices x + arm, grown by the margin
     b = wp.tid()
     s = vert_start[b]
-    l = wv[s]
-    h = wv[s]
+    xb = x[b]
+    l = xb + arm[s]
+    h = l
     for k in range(1, vert_count[b]):
-        p = wv[s + k]
+        p = xb + arm[s + k]
         l = wp.min(l, p)
         h = wp.max(h, p)
     m = wp.vec3(margin, margin, margin)
@@ -926,7 +977,7 @@ def bp_fill(grid: BroadPhaseGrid, counters: wp.array(dtype=int)):
             for k in range(c1[2] - c0[2] + 1):
                 c = wp.vec3i(c0[0] + i, c0[1] + j, c0[2] + k)
                 hb = hash_cell(c[0], c[1], c[2], grid.nbuckets)
-                e = grid.bucket_start[hb] + wp.atomic_add(grid.bucket_fill, hb, 1)
+                e = wp.atomic_add(grid.bucket_start, hb, 1)  # start -> end of the bucket once filled
                 if e < entry_block.shape[0]:
                     entry_block[e] = b
                     grid.entry_cell[e] = c
@@ -959,16 +1010,15 @@ def bp_pairs(grid: BroadPhaseGrid, kinds: wp.array(dtype=int), pl: PairList):
     inv_s = grid.inv_s
     nbuckets = grid.nbuckets
     bucket_start = grid.bucket_start
-    bucket_count = grid.bucket_count
     entry_block = grid.entry_block
     entry_cell = grid.entry_cell
     e1 = wp.tid()
-    ntot = bucket_start[nbuckets - 1] + bucket_count[nbuckets - 1]
+    ntot = bucket_start[nbuckets - 1]  # bp_fill left each bucket's end in bucket_start
     if e1 >= wp.min(ntot, entry_block.shape[0]):
         return
     ci = entry_cell[e1]
     hb = hash_cell(ci[0], ci[1], ci[2], nbuckets)
-    end = bucket_start[hb] + bucket_count[hb]
+    end = bucket_start[hb]
     if end > entry_block.shape[0]:
         return
     i = entry_block[e1]
@@ -1156,7 +1206,6 @@ def narrow_phase(
     vertex_out_he = topo.vertex_out_he
     he_vertex = topo.he_vertex
     he_next = topo.he_next
-    he_prev = topo.he_prev
     he_twin = topo.he_twin
     block_size = topo.block_size
     x = bodies.x
@@ -1195,7 +1244,7 @@ def narrow_phase(
     fsB = face_start[B]
     fcB = face_count[B]
     n, gap = fcp_plane(wp.normalize(n0), tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, dA, dB,
-                       vertex_out_he, he_vertex, he_next, he_prev, he_twin)
+                       vertex_out_he, he_vertex, he_next, he_twin)
     if gap < 0.0 and sat_recheck(oslot, gap, prev.gapb):
         # FCP is a local search: before accepting an overlap, also try every face normal of both
         # blocks (separating-axis faces); if one separates better, iterate FCP again from it
@@ -1233,15 +1282,15 @@ def narrow_phase(
                                         fb2 = face_normal(he_twin[gg], wv, he_vertex, he_next)
                                         if minkowski_edge_face(fa1, fa2, -fb1, -fb2):
                                             n1, g1 = try_plane(ax, n1, g1, sA, cA, sB, cB, wv, dA, dB)
-                                gg = he_twin[he_prev[gg]]
+                                gg = he_next[he_twin[gg]]
                                 if gg == g0:
                                     break
-                    h = he_twin[he_prev[h]]
+                    h = he_next[he_twin[h]]
                     if h == h0:
                         break
         if g1 > gap + 1.0e-7:
             n, gap = fcp_plane(n1, tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, dA, dB,
-                               vertex_out_he, he_vertex, he_next, he_prev, he_twin)
+                               vertex_out_he, he_vertex, he_next, he_twin)
     cur.normal[slot] = n
     cur.gapb[slot] = gap
     pl.gap[tid] = gap
@@ -1328,10 +1377,10 @@ def narrow_phase(
                                         hb2 = wp.min(g, he_twin[g])
                                         nc, px, py, pz, pd, pka, pkb = add_contact(
                                             nc, 0.5 * (xa_ + xb_), d, ha, hb2, dup_tol, px, py, pz, pd, pka, pkb)
-                        g = he_twin[he_prev[g]]
+                        g = he_next[he_twin[g]]
                         if g == g0:
                             break
-            h = he_twin[he_prev[h]]
+            h = he_next[he_twin[h]]
             if h == h0:
                 break
     if nc == 0:
@@ -1727,7 +1776,7 @@ def integrate_blocks(
         om = w[b]
         ftot = force[b] + ext_force[b]
         tau = torque[b] + ext_torque[b] - wp.cross(om, Iw * om)
-        C = loads.damp_c[b]
+        C = sym6_matrix(loads.damp_c[b])
         vn = v[b]
         if C[0, 0] + C[1, 1] + C[2, 2] + C[3, 3] + C[4, 4] + C[5, 5] > 0.0:
             # contact dashpots implicit: (M + dt C) V' = M V + dt (F + M g + b), M = diag(m, I_w)
@@ -1776,7 +1825,7 @@ def integrate_blocks(
     strain_force[b] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     ext_force[b] = wp.vec3(0.0, 0.0, 0.0)
     ext_torque[b] = wp.vec3(0.0, 0.0, 0.0)
-    loads.damp_c[b] = wp.spatial_matrix()
+    loads.damp_c[b] = sym6()
     loads.damp_b[b] = wp.spatial_vector()
 
 
@@ -1793,7 +1842,7 @@ def compound_loads(start: wp.array(dtype=int), count: wp.array(dtype=int), loads
     t = wp.vec3(0.0, 0.0, 0.0)
     fe = wp.vec3(0.0, 0.0, 0.0)
     te = wp.vec3(0.0, 0.0, 0.0)
-    C = wp.spatial_matrix()
+    C = sym6()
     bb = wp.spatial_vector()
     for k in range(count[c]):
         f = f + loads.force[s + k]
@@ -1840,12 +1889,12 @@ def clear_forces(loads: BlockLoads):
     loads.force[b] = wp.vec3(0.0, 0.0, 0.0)
     loads.torque[b] = wp.vec3(0.0, 0.0, 0.0)
     loads.strain_force[b] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    loads.damp_c[b] = wp.spatial_matrix()
+    loads.damp_c[b] = sym6()
     loads.damp_b[b] = wp.spatial_vector()
 
 
 @wp.kernel
-def vertex_walk_count(vertex_out_he: wp.array(dtype=int), he_prev: wp.array(dtype=int), he_twin: wp.array(dtype=int),
+def vertex_walk_count(vertex_out_he: wp.array(dtype=int), he_next: wp.array(dtype=int), he_twin: wp.array(dtype=int),
                       count: wp.array(dtype=int)):
     # half-edges leaving vertex v, walked around it as narrow_phase does (at most MAX_VALENCE)
     v = wp.tid()
@@ -1854,14 +1903,14 @@ def vertex_walk_count(vertex_out_he: wp.array(dtype=int), he_prev: wp.array(dtyp
     c = int(0)
     for k in range(MAX_VALENCE):
         c += 1
-        h = he_twin[he_prev[h]]
+        h = he_next[he_twin[h]]
         if h == h0:
             break
     count[v] = c
 
 
 @wp.kernel
-def vertex_walk_fill(vertex_out_he: wp.array(dtype=int), he_prev: wp.array(dtype=int), he_twin: wp.array(dtype=int),
+def vertex_walk_fill(vertex_out_he: wp.array(dtype=int), he_next: wp.array(dtype=int), he_twin: wp.array(dtype=int),
                      offset: wp.array(dtype=int), he_walk: wp.array(dtype=int)):
     # BlockTopology.he_walk: vertex v's outgoing half-edges in walk order from offset[v]
     v = wp.tid()
@@ -1870,6 +1919,6 @@ def vertex_walk_fill(vertex_out_he: wp.array(dtype=int), he_prev: wp.array(dtype
     o = offset[v]
     for k in range(MAX_VALENCE):
         he_walk[o + k] = h
-        h = he_twin[he_prev[h]]
+        h = he_next[he_twin[h]]
         if h == h0:
             break

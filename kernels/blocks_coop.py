@@ -141,7 +141,6 @@ def fcp_candidates_coop(
     vertex_out_he: wp.array(dtype=int),
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
-    he_prev: wp.array(dtype=int),
     he_twin: wp.array(dtype=int),
     lane: int,
     bd: int,
@@ -168,10 +167,10 @@ def fcp_candidates_coop(
             c = wp.cross(ea, eb)
             if wp.length(c) > 1.0e-6 * wp.length(ea) * wp.length(eb):
                 best_n, best_gap = try_plane_coop(c, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, lane, bd)
-            g = he_twin[he_prev[g]]
+            g = he_next[he_twin[g]]
             if g == g0:
                 break
-        h = he_twin[he_prev[h]]
+        h = he_next[he_twin[h]]
         if h == h0:
             break
     g0 = vertex_out_he[b]
@@ -184,7 +183,7 @@ def fcp_candidates_coop(
         if le > 0.0:
             eh = eb / le
             best_n, best_gap = try_plane_coop(dab - wp.dot(dab, eh) * eh, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, lane, bd)
-        g = he_twin[he_prev[g]]
+        g = he_next[he_twin[g]]
         if g == g0:
             break
     return best_n, best_gap
@@ -254,7 +253,6 @@ def fcp_plane_coop(
     vertex_out_he: wp.array(dtype=int),
     he_vertex: wp.array(dtype=int),
     he_next: wp.array(dtype=int),
-    he_prev: wp.array(dtype=int),
     he_twin: wp.array(dtype=int),
     lane: int,
     bd: int,
@@ -271,7 +269,7 @@ def fcp_plane_coop(
             a = ihA
             b = ilB
             best_n, best_gap = fcp_candidates_coop(
-                a, b, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, vertex_out_he, he_vertex, he_next, he_prev, he_twin, lane, bd
+                a, b, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB, vertex_out_he, he_vertex, he_next, he_twin, lane, bd
             )
         else:
             if gap0 <= 0.0:
@@ -289,7 +287,7 @@ def fcp_plane_coop(
                         if wp.dot(n, pair_vertex(wv, dB, vb)) <= loB + tie:
                             best_n, best_gap = fcp_candidates_coop(
                                 va, vb, best_n, best_gap, sA, cA, sB, cB, wv, dA, dB,
-                                vertex_out_he, he_vertex, he_next, he_prev, he_twin, lane, bd,
+                                vertex_out_he, he_vertex, he_next, he_twin, lane, bd,
                             )
             if best_gap <= gap0:
                 break
@@ -316,7 +314,6 @@ def narrow_phase_coop(
     vertex_out_he = topo.vertex_out_he
     he_vertex = topo.he_vertex
     he_next = topo.he_next
-    he_prev = topo.he_prev
     he_twin = topo.he_twin
     he_walk = topo.he_walk
     block_size = topo.block_size
@@ -353,7 +350,7 @@ def narrow_phase_coop(
     fsB = face_start[B]
     fcB = face_count[B]
     n, gap = fcp_plane_coop(wp.normalize(n0), tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, dA, dB,
-                            vertex_out_he, he_vertex, he_next, he_prev, he_twin, lane, bd)
+                            vertex_out_he, he_vertex, he_next, he_twin, lane, bd)
     if gap < 0.0 and sat_recheck(oslot, gap, prev.gapb):
         # SAT fallback (narrow_phase, new or jumping contacts only): every face normal, then the edge-pair axes
         n1 = n
@@ -398,7 +395,7 @@ def narrow_phase_coop(
                 c0 += bd
         if g1 > gap + 1.0e-7:
             n, gap = fcp_plane_coop(n1, tie, sA, cA, sB, cB, fsA, fcA, fsB, fcB, face_he, wv, dA, dB,
-                                    vertex_out_he, he_vertex, he_next, he_prev, he_twin, lane, bd)
+                                    vertex_out_he, he_vertex, he_next, he_twin, lane, bd)
     if lane == 0:
         cur.normal[slot] = n
         cur.gapb[slot] = gap

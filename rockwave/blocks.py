@@ -285,7 +285,8 @@ class BlockModel:
 
     Geometry (global indices into the concatenated arrays): body_verts (V, vec3, body frame m),
     vert_block (V,), vert_start/vert_count (N,), face_start/face_count (N,), face_he (F,),
-    vertex_out_he (V,), he_vertex/he_next/he_prev/he_twin (H,).
+    vertex_out_he (V,), he_vertex/he_next/he_twin (H,) (no he_prev on the device: the walk around a vertex
+    is h -> he_next[he_twin[h]]).
     Per block: kinds (N, int: 0 rigid, 1 deformable, 2 fixed, 3 kinematic), mass (kg), inv_mass (0 for
     fixed/kinematic), inertia_body / inv_inertia_body (mat33, kg m^2, body frame), block_size (bounding
     diameter m), materials k_n, k_s (N/m per point), tan_phi, cohesion (Pa), tensile (Pa), zeta;
@@ -313,7 +314,7 @@ class BlockModel:
         self.names = []
         verts, vblock, vstart, vcount = [], [], [], []
         fstart, fcount, face_he, vout = [], [], [], []
-        hv, hn, hp, ht = [], [], [], []
+        hv, hn, ht = [], [], []
         kinds = np.zeros(n, np.int32)
         mass = np.zeros(n)
         inertia = np.zeros((n, 3, 3))
@@ -360,7 +361,6 @@ class BlockModel:
             vout.append(g.vertex_out_he + nh)
             hv.append(g.he_vertex + nv)
             hn.append(g.he_next + nh)
-            hp.append(g.he_prev + nh)
             ht.append(g.he_twin + nh)
             nv += g.num_vertices
             nf += g.num_faces
@@ -448,7 +448,6 @@ class BlockModel:
         self.vertex_out_he = arr(np.concatenate(vout).astype(np.int32), int)
         self.he_vertex = arr(np.concatenate(hv).astype(np.int32), int)
         self.he_next = arr(np.concatenate(hn).astype(np.int32), int)
-        self.he_prev = arr(np.concatenate(hp).astype(np.int32), int)
         self.he_twin = arr(np.concatenate(ht).astype(np.int32), int)
         self.num_vertices = nv
         self.num_half_edges = nh
@@ -496,7 +495,7 @@ class BlockModel:
         # kernel argument groups (kernels/blocks.py), built once
         self.topology = K.BlockTopology()
         for name in ("vert_start", "vert_count", "face_start", "face_count", "face_he", "vertex_out_he", "he_vertex",
-                     "he_next", "he_prev", "he_twin", "block_size", "he_start", "he_count", "he_walk"):
+                     "he_next", "he_twin", "block_size", "he_start", "he_count", "he_walk"):
             setattr(self.topology, name, getattr(self, name))
         self.props = K.BlockProps()
         for name in ("kinds", "inv_mass", "inertia_body", "inv_inertia_body", "strain_minv", "strain_k", "strain_damp"):
@@ -519,7 +518,7 @@ class BlockModel:
             return
         d = self.device
         walk_count = wp.zeros(self.num_vertices, dtype=int, device=d)
-        wp.launch(K.vertex_walk_count, dim=self.num_vertices, inputs=[self.vertex_out_he, self.he_prev, self.he_twin, walk_count],
+        wp.launch(K.vertex_walk_count, dim=self.num_vertices, inputs=[self.vertex_out_he, self.he_next, self.he_twin, walk_count],
                   device=d)
         off = np.concatenate([[0], np.cumsum(walk_count.numpy().astype(np.int64))])
         vs = self.np["vert_start"].astype(np.int64)
@@ -528,7 +527,7 @@ class BlockModel:
         self.he_count = wp.array((off[ve] - off[vs]).astype(np.int32), dtype=int, device=d)
         self.he_walk = wp.zeros(int(off[-1]), dtype=int, device=d)
         wp.launch(K.vertex_walk_fill, dim=self.num_vertices,
-                  inputs=[self.vertex_out_he, self.he_prev, self.he_twin, wp.array(off[:-1].astype(np.int32), dtype=int, device=d),
+                  inputs=[self.vertex_out_he, self.he_next, self.he_twin, wp.array(off[:-1].astype(np.int32), dtype=int, device=d),
                           self.he_walk], device=d)
         self.topology.he_start, self.topology.he_count, self.topology.he_walk = self.he_start, self.he_count, self.he_walk
 
@@ -562,7 +561,7 @@ class BlockState:
     gamma_xy, body frame; zero for non-deformable), ext_force / ext_torque (N, vec3 N, N m about the
     centroid, world; other modules atomically add here before step, the solver zeroes them after use),
     force / torque / strain_force (contact accumulators), contact_count (N, int: contact points of the
-    last step), world_verts (V, vec3), time (s), contact history tables (two dicts of arrays, swapped
+    last step), world_verts_arm (V, vec3: each vertex from x; WorldVerts), time (s), contact history tables (two dicts of arrays, swapped
     each step by swap_tables). Kernel views (kernels/blocks.py structs): bodies (x, q, v, w, strain,
     strain_rate), loads (force ... contact_count), table_views (one per table, swapped with them).
     """
@@ -603,14 +602,17 @@ class BlockState:
         self.ext_force = wp.zeros(n, dtype=wp.vec3, device=d)
         self.ext_torque = wp.zeros(n, dtype=wp.vec3, device=d)
         self.contact_count = wp.zeros(n, dtype=int, device=d)
-        self.damp_c = wp.zeros(n, dtype=wp.spatial_matrix, device=d)  # implicit contact dashpots (kernels/blocks.py)
+        self.damp_c = wp.zeros(n, dtype=K.sym6, device=d)  # implicit contact dashpots (kernels/blocks.py; upper triangle)
         self.damp_b = wp.zeros(n, dtype=wp.spatial_vector, device=d)
-        self.world_verts = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
         # each vertex relative to its block's float32 centroid x: x_lo + R (X + E X) (the narrow phase's pair frame)
         self.world_verts_arm = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
-        # poses of the history table's planes (last narrow phase) and the motion since (pose_motion)
-        self.wv_ref = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
+        # poses of the history table's planes (last narrow phase: x, q, x_lo and, of deformable blocks, strain;
+        # q_ref = 0: none yet) and the motion since (pose_motion)
         self.x_ref = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.q_ref = wp.zeros(n, dtype=wp.quat, device=d)
+        self.x_lo_ref = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.strain_ref = wp.zeros(n if np.any(model.np["kinds"] == int(K.KIND_DEFORMABLE)) else 1, dtype=wp.spatial_vector,
+                                   device=d)
         self.motion_dx = wp.zeros(n, dtype=wp.vec3, device=d)
         self.motion_rho = wp.zeros(n, dtype=wp.float32, device=d)
         self.time = 0.0
@@ -620,7 +622,6 @@ class BlockState:
         for name in ("x", "q", "v", "w", "strain", "strain_rate", "x_lo"):
             setattr(self.bodies, name, getattr(self, name))
         self.verts = K.WorldVerts()
-        self.verts.hi = self.world_verts
         self.verts.arm = self.world_verts_arm
         self.loads = K.BlockLoads()
         for name in ("force", "torque", "strain_force", "ext_force", "ext_torque", "contact_count", "damp_c", "damp_b"):
@@ -993,16 +994,16 @@ class BlockSolver:
     def _alloc_entries(self, cap):
         d = self.device
         self.entry_cap = cap
-        self.nbuckets = _next_pow2(2 * cap)
+        # buckets >= entries (load <= 1; a shared bucket only costs the cell test in bp_pairs)
+        self.nbuckets = _next_pow2(cap)
         self.entry_block = wp.zeros(cap, dtype=int, device=d)
         self.entry_cell = wp.zeros(cap, dtype=wp.vec3i, device=d)
         self.bucket_count = wp.zeros(self.nbuckets, dtype=int, device=d)
         self.bucket_start = wp.zeros(self.nbuckets, dtype=int, device=d)
-        self.bucket_fill = wp.zeros(self.nbuckets, dtype=int, device=d)
         g = self.grid
         g.nbuckets = self.nbuckets
         g.entry_block, g.entry_cell = self.entry_block, self.entry_cell
-        g.bucket_count, g.bucket_start, g.bucket_fill = self.bucket_count, self.bucket_start, self.bucket_fill
+        g.bucket_count, g.bucket_start = self.bucket_count, self.bucket_start
 
     def _alloc_pairs(self, cap):
         d = self.device
@@ -1065,7 +1066,7 @@ class BlockSolver:
         wp.launch(K.block_world_vertices, dim=m.num_vertices,
                   inputs=[m.body_verts, m.vert_block, state.bodies, m.kinds, state.verts], device=d)
         wp.launch(K.block_aabbs, dim=m.num_blocks,
-                  inputs=[state.world_verts, m.vert_start, m.vert_count, self.margin, self.lo, self.hi,
+                  inputs=[state.x, state.world_verts_arm, m.vert_start, m.vert_count, self.margin, self.lo, self.hi,
                           state.contact_count], device=d)
 
     def _broad_phase(self, force: bool = False):
@@ -1093,7 +1094,6 @@ class BlockSolver:
         m, d = self.model, self.device
         self.counters.zero_()
         self.bucket_count.zero_()
-        self.bucket_fill.zero_()
         wp.launch(K.bp_count, dim=m.num_blocks, inputs=[self.grid, self.counters], device=d)
         wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
         wp.launch(K.bp_fill, dim=m.num_blocks, inputs=[self.grid, self.counters], device=d)
@@ -1143,8 +1143,8 @@ class BlockSolver:
         if (cap, pcap) != (state.table_cap, state.point_cap):
             state.alloc_tables(cap, pcap)
         wp.launch(K.pose_motion, dim=m.num_blocks,
-                  inputs=[state.world_verts, m.vert_start, m.vert_count, state.x, state.wv_ref, state.x_ref,
-                          state.motion_dx, state.motion_rho], device=d)
+                  inputs=[m.body_verts, m.kinds, m.vert_start, m.vert_count, state.bodies, state.world_verts_arm, state.x_ref,
+                          state.q_ref, state.x_lo_ref, state.strain_ref, state.motion_dx, state.motion_rho], device=d)
         while True:
             old, new = state.table_views
             new.keys.fill_(-1)

@@ -43,8 +43,11 @@ from typing import Any, Callable
 import numpy as np
 import warp as wp
 
-FORMAT_VERSION = 3  # 3: block centroids carry their float32 compensation (blocks/x_lo, blocks/world_verts_arm)
-READABLE_FORMATS = (2, 3)  # 2: read with zero compensation (the centroids as saved)
+# 3: block centroids carry their float32 compensation (blocks/x_lo, blocks/world_verts_arm); 4: no
+# blocks/world_verts (the world vertices are x + arm, not stored) and the narrow phase's reference as a pose
+# (blocks/q_ref, x_lo_ref, strain_ref), not as vertices (blocks/wv_ref)
+FORMAT_VERSION = 4
+READABLE_FORMATS = (2, 3, 4)  # 2: read with zero compensation (the centroids as saved); 2, 3: world_verts dropped
 FILE_NAME = "checkpoint.npz"
 
 
@@ -358,11 +361,22 @@ def restore(sim, arrays: dict, meta: dict) -> None:
 
             print("resuming with changed settings: " + "; ".join(f"{k}: {a!r} -> {b!r}" for k, a, b in changes),
                   file=sys.stderr)
-    if meta.get("format") == 2 and "blocks/x" in arrays:
-        # before the compensated block positions (issue 20): the centroids and world vertices as saved
+    if meta.get("format") in (2, 3) and "blocks/world_verts" in arrays:
         arrays = dict(arrays)
-        arrays.setdefault("blocks/x_lo", np.zeros_like(arrays["blocks/x"]))
-        arrays.setdefault("blocks/world_verts_arm", np.zeros_like(arrays["blocks/world_verts"]))
+        wv = arrays.pop("blocks/world_verts")  # format 4 forms x + arm where needed
+        # format 4 keeps the last narrow phase's pose, not its vertices (wv_ref): restored as "no reference"
+        # (pose_motion then certifies no pair separated for one step; the run goes on, not bit for bit)
+        arrays.pop("blocks/wv_ref", None)
+        st = sim.block_state
+        for k in ("x_ref", "q_ref", "x_lo_ref", "strain_ref"):
+            a = getattr(st, k)
+            arrays[f"blocks/{k}"] = np.zeros((a.shape[0],) + tuple(a.dtype._shape_), np.float32)
+        if meta.get("format") == 2:
+            # before the compensated block positions (issue 20): the centroids as saved, the arms from the
+            # saved world vertices (each step recomputes both from the pose before use)
+            arrays.setdefault("blocks/x_lo", np.zeros_like(arrays["blocks/x"]))
+            arm = wv - arrays["blocks/x"][sim.blocks.vert_block.numpy()]
+            arrays.setdefault("blocks/world_verts_arm", arm.astype(np.float32))
     provs = providers(sim)
     for name in meta["groups"]:
         if name not in provs:

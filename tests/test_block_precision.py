@@ -145,8 +145,8 @@ friction_angle_deg = 10.0
 
 
 def test_compensation_travels_in_checkpoints_and_format_2_reads_as_zero():
-    # checkpoint format 3 carries x_lo (a resumed run continues bit for bit); a format-2 checkpoint (before x_lo)
-    # still resumes, its centroids taken as saved (x_lo = 0)
+    # checkpoint format 3 and 4 carry x_lo (a resumed run continues bit for bit); a format-2 checkpoint (before
+    # x_lo) still resumes, its centroids taken as saved (x_lo = 0)
     scene = parse_scene(tomllib.loads(FAR_SCENE), "far.toml")
     sim = rockwave.Simulation(scene, device=DEVICE)
     sim.step_many(20)
@@ -160,9 +160,18 @@ def test_compensation_travels_in_checkpoints_and_format_2_reads_as_zero():
     sim.step_many(20)
     resumed.step_many(20)
     assert np.array_equal(resumed.block_positions(), sim.block_positions())
+    assert "blocks/world_verts" not in arrays  # format 4: the world vertices are x + arm, not stored
+    # format 3 stored the float32 world vertices too: read, they are dropped and the run continues bit for bit
+    vb = sim.blocks.vert_block.numpy()
+    wv = arrays["blocks/x"][vb] + arrays["blocks/world_verts_arm"]
+    v3 = rockwave.Simulation(scene, device=DEVICE)
+    checkpoint.restore(v3, dict(arrays, **{"blocks/world_verts": wv}), dict(meta, format=3))
+    v3.step_many(20)
+    assert np.array_equal(v3.block_positions(), sim.block_positions())
     old = {k: v for k, v in arrays.items() if k not in ("blocks/x_lo", "blocks/world_verts_arm")}
+    old["blocks/world_verts"] = wv
     v2 = rockwave.Simulation(scene, device=DEVICE)
     checkpoint.restore(v2, old, dict(meta, format=2))
     assert not np.any(v2.block_state.x_lo.numpy()) and np.array_equal(v2.block_state.x.numpy(), arrays["blocks/x"])
     with pytest.raises(checkpoint.CheckpointError, match="lacks"):
-        checkpoint.restore(rockwave.Simulation(scene, device=DEVICE), old, meta)  # format 3 must have it
+        checkpoint.restore(rockwave.Simulation(scene, device=DEVICE), old, meta)  # format 4 must have it

@@ -359,8 +359,9 @@ def test_separation_screen_agrees_with_full_narrow_phase():
         assert {p for p, c in step_cs.items() if len(c["points"])} == {p for p, c in full_cs.items() if len(c["points"])}
         for p, c in step_cs.items():
             if not len(c["points"]):
-                # (a gap of exactly 0: touching without overlap, no point, in both passes)
-                assert 0.0 <= c["gap"] <= full_cs[p]["gap"] + 1e-6
+                # (a gap of 0 to float32 round-off at these ~1 m coordinates: touching without overlap, no
+                # point, in both passes)
+                assert -2.4e-7 <= c["gap"] <= full_cs[p]["gap"] + 1e-6
                 checked += 1
     assert checked > 0, checked
 
