@@ -1675,6 +1675,66 @@ def contact_forces(
 
 
 @wp.kernel
+def carry_contacts(
+    pl: PairList,
+    clock: wp.array(dtype=float),
+    kinds: wp.array(dtype=int),
+    bodies: BlockBodies,
+    prev: ContactTable,
+    cur: ContactTable,
+):
+    """Held contacts (BlockSolver.substeps, hold_contacts): a block sub-step after the first of a fluid step keeps
+    the pairs, planes and contact points of that step's narrow phase, moved by the sub-step just taken, instead of
+    finding them again. One thread per candidate pair; its slot (the same in both tables while held) is copied
+    from prev to cur. Each contact point p moves with the mean motion of the two blocks at p, dp = h (v_A(p) +
+    v_B(p)) / 2, in the frame of A's centroid (which moved by h v_A); its depth by the approach along the normal,
+    d' = d - h n.(v_B(p) - v_A(p)); the normal turns with the blocks' mean spin. A point whose depth is no longer
+    positive is dropped, as the narrow phase would not find it. h = clock[1]: the sub-step over which the
+    velocities (after integration) just moved the blocks (semi-implicit Euler, x' = x + h v'). Points that
+    appear inside a held step are found at the next fluid step's narrow phase."""
+    tid = wp.tid()
+    if tid >= wp.min(pl.counters[0], pl.pairs.shape[0]):
+        return
+    slot = pl.slot[tid]
+    if slot < 0:
+        return
+    pl.oslot[tid] = slot
+    cur.keys[slot] = prev.keys[slot]
+    cur.gapb[slot] = prev.gapb[slot]
+    nc = prev.nc[slot]
+    base = prev.pstart[slot]
+    cur.pstart[slot] = base
+    n = prev.normal[slot]
+    if nc == 0:
+        cur.normal[slot] = n
+        cur.nc[slot] = 0
+        return
+    h = clock[1]
+    A = pl.pairs[tid][0]
+    B = pl.pairs[tid][1]
+    x = bodies.x
+    xA = wp.vec3(0.0, 0.0, 0.0)
+    xB = (x[B] - x[A]) + (bodies.x_lo[B] - bodies.x_lo[A])
+    vcA = bodies.v[A]
+    kept = int(0)
+    for k in range(nc):
+        c = base + k
+        p = cur.pos[c]  # (one position array serves both tables)
+        vA = point_velocity(A, p, xA, bodies.q, bodies.v, bodies.w, bodies.strain_rate, kinds)
+        vB = point_velocity(B, p, xB, bodies.q, bodies.v, bodies.w, bodies.strain_rate, kinds)
+        d = prev.depth[c] - h * wp.dot(n, vB - vA)
+        if d > 0.0:
+            o = base + kept
+            cur.pos[o] = p + h * (0.5 * (vA + vB) - vcA)
+            cur.depth[o] = d
+            cur.ckey[o] = prev.ckey[c]
+            kept += 1
+    cur.nc[slot] = kept
+    spin = 0.5 * (bodies.w[A] + bodies.w[B])
+    cur.normal[slot] = wp.normalize(n + h * wp.cross(spin, n))
+
+
+@wp.kernel
 def rehash_table(prev: ContactTable, cur: ContactTable):
     # move the contact history into a larger table (capacity growth)
     s = wp.tid()

@@ -865,15 +865,28 @@ class BlockOptions:
     a GPU for models of at most sync_free_max_blocks blocks, else off (Warp's CPU backend runs one lane per
     block, where the cooperative kernel is the serial loop plus overhead)."""
 
+    hold_contacts: bool = True
+    """Multi-rate sub-steps (substeps() with the pair list kept): sub-steps 1..n-1 of a fluid step carry the
+    first sub-step's contacts (kernels/blocks.py carry_contacts: points moved with the blocks, depths advanced
+    by their approach) instead of running the narrow phase, while holds_contacts() finds every candidate pair
+    out of contact farther apart than it can close before the next check (scene: ``simulation.block_contacts =
+    "held"``, the default; "found": a narrow phase every sub-step)."""
+
     narrow_block_dim: int = 32
     """Threads per pair in the cooperative narrow phase (a GPU warp; Warp's CPU backend runs 1 unless
     warp.config.enable_cpu_blocks) [-]."""
 
     @classmethod
     def from_scene(cls, scene) -> "BlockOptions":
-        """The options a scene sets (``simulation.block_dt_safety``), defaults for the rest."""
+        """The options a scene sets (``simulation.block_dt_safety``, ``simulation.block_contacts``), defaults for
+        the rest."""
+        kw = {}
         safety = scene.simulation.get("block_dt_safety")
-        return cls() if safety is None else cls(dt_safety=float(safety))
+        if safety is not None:
+            kw["dt_safety"] = float(safety)
+        if scene.simulation.get("block_contacts", "held") == "found":
+            kw["hold_contacts"] = False
+        return cls(**kw)
 
 
 class BlockSolver:
@@ -961,6 +974,8 @@ class BlockSolver:
         self._substep_graphs: dict | None = {} if (wp.get_device(d).is_cuda and opt.substep_graphs) else None
         self.graph_substeps = 0  # sub-steps replayed from a CUDA graph (diagnostics)
         self.broad_phases = 0  # broad phases run (diagnostics)
+        self.narrow_phases = 0  # narrow phases launched from the host (diagnostics; a graph replay is not counted)
+        self.carried_substeps = 0  # sub-steps that carried their contacts (hold_contacts; launched or captured)
         self.point_regrows = 0  # narrow phases redone after the contact-point pool grew (diagnostics)
         self.contact_points = 0  # contact points of the last step (counter-read path; diagnostics)
         # the paths, chosen once
@@ -1181,6 +1196,51 @@ class BlockSolver:
                 a.zero_()
             self.point_regrows += 1
         state.swap_tables()  # tables[0] now holds this step's history
+        self.narrow_phases += 1
+
+    def _carry_contacts(self, state: BlockState):
+        """A held sub-step's contacts: the last narrow phase's pairs, planes and points carried over the sub-step
+        just taken (kernels/blocks.py carry_contacts), then the contact forces on them; the tables swap as
+        after a narrow phase."""
+        m, d = self.model, self.device
+        old, new = state.table_views
+        new.keys.fill_(-1)
+        wp.copy(new.pcount, old.pcount)
+        state.contact_count.zero_()  # (block_aabbs zeroes it on a narrow-phase sub-step)
+        self.carried_substeps += 1
+        n = self.pair_cap if self.sync_free else self._pair_count
+        if n > 0:
+            wp.launch(K.carry_contacts, dim=n, inputs=[self.pair_list, self.block_clock, m.kinds, state.bodies, old, new],
+                      device=d)
+            wp.launch(K.contact_forces, dim=n,
+                      inputs=[self.pair_list, self.block_clock, self.g_mag, m.props, m.material, state.bodies, old, new,
+                              state.loads], device=d)
+        state.swap_tables()
+
+    def holds_contacts(self, state: BlockState, dt: float, steps: int, headroom: float = 2.0) -> bool:
+        """Whether the sub-steps of the next ``steps`` fluid steps of length dt may carry their contacts
+        (options.hold_contacts): every candidate pair without contact points at the last narrow phase is
+        farther apart than the two blocks can close over them, gap > headroom (reach_A + reach_B) dt steps,
+        reach = |v| + |w| r (so no new contact appears inside a held sub-step); a pair in contact keeps its
+        points and gains none until the next fluid step's narrow phase. Few pairs only (at most 4096: a host
+        read of the pair list). A host read."""
+        if not (self.options.hold_contacts and self.narrow_phases):
+            return False  # (nothing known before the first narrow phase)
+        n = self.pair_count
+        if n == 0:
+            return True
+        if n > 4096:
+            return False
+        pairs = self.pairs.numpy()[:n]
+        gaps = self.pair_gap.numpy()[:n]
+        slots = self.pair_slot.numpy()[:n]
+        nc = state.tables[0]["nc"].numpy()
+        touching = np.where(slots >= 0, nc[np.maximum(slots, 0)], 0) > 0
+        v = np.linalg.norm(state.v.numpy(), axis=1)
+        w = np.linalg.norm(state.w.numpy(), axis=1)
+        reach = v + w * self.model.np["radius"]
+        close = headroom * (reach[pairs[:, 0]] + reach[pairs[:, 1]]) * dt * steps
+        return bool(np.all(touching | (gaps > close)))
 
     def _contact_forces_all(self, state: BlockState, dt: float):
         self._prepare(state)
@@ -1228,12 +1288,14 @@ class BlockSolver:
         self._integrate(state)
         state.time = t + dt
 
-    def substeps(self, state: BlockState, ts: TimeStep, n: int, keep_pairs: bool = False):
+    def substeps(self, state: BlockState, ts: TimeStep, n: int, keep_pairs: bool = False, hold_contacts: bool = False):
         """Multi-rate stepping (rockwave/clock.py): n steps of ts.dt / n from ts.time with the external
         load (ext_force / ext_torque: the water's reaction, written once per fluid step by the coupling)
         held over all of them, so the blocks receive exactly the impulse ts.dt x load. n = 1 is step().
         ``keep_pairs``: the first sub-step's broad phase serves all n (the caller checked with
-        pairs_hold() that no block moves margin/2 over ts.dt, so the pair list stays complete)."""
+        pairs_hold() that no block moves margin/2 over ts.dt, so the pair list stays complete). ``hold_contacts``
+        (with keep_pairs; the caller checked holds_contacts()): sub-steps 1..n-1 carry the first one's contacts
+        (_carry_contacts) instead of running the narrow phase."""
         if n == 1:
             return self.step(state, ts)
         h = ts.dt / n
@@ -1247,12 +1309,13 @@ class BlockSolver:
         wp.copy(held[0], state.ext_force)  # integrate_blocks zeroes the load after each sub-step
         wp.copy(held[1], state.ext_torque)
         contacts_only = keep_pairs and self.has_free_blocks
+        hold = contacts_only and hold_contacts
         graphs = self._substep_graphs if (contacts_only and self.sync_free) else None
         for i in range(n):
             if i and graphs is not None:  # sub-steps 1..n-1 replayed from a CUDA graph (the clock advances on the device)
                 if i == 1:
                     self._set_clock(ts.time + h + h, h)
-                wp.capture_launch(self._substep_graph(state, held, h))
+                wp.capture_launch(self._substep_graph(state, held, h, hold))
                 state.swap_tables()  # the graph's narrow phase wrote the other table
                 self.graph_substeps += 1
                 continue
@@ -1260,7 +1323,9 @@ class BlockSolver:
                 wp.copy(state.ext_force, held[0])
                 wp.copy(state.ext_torque, held[1])
             self._set_clock(ts.time + i * h + h, h)
-            if i and contacts_only:
+            if i and hold:
+                self._carry_contacts(state)
+            elif i and contacts_only:
                 self._prepare(state)
                 self._narrow_phase(state, h)
             else:
@@ -1268,29 +1333,32 @@ class BlockSolver:
             self._integrate(state)
         state.time = ts.time + ts.dt
 
-    def _substep_one(self, state: BlockState, held, h: float):
+    def _substep_one(self, state: BlockState, held, h: float, hold: bool = False):
         """One kept-pairs sub-step at the device clock, then the clock advances (the captured body)."""
         wp.copy(state.ext_force, held[0])
         wp.copy(state.ext_torque, held[1])
-        self._prepare(state)
-        self._narrow_phase(state, h)
+        if hold:
+            self._carry_contacts(state)
+        else:
+            self._prepare(state)
+            self._narrow_phase(state, h)
         self._integrate(state)
         wp.launch(K.advance_block_clock, dim=1, inputs=[self.block_clock], device=self.device)
 
-    def _substep_graph(self, state: BlockState, held, h: float):
+    def _substep_graph(self, state: BlockState, held, h: float, hold: bool = False):
         """The CUDA graph of one kept-pairs sub-step for the tables' current parity, captured on first use
         (sync-free path: no host read, no allocation inside). Its key holds every address it baked in
         (state arrays, both contact tables, the pair list), so a reallocation captures a new one."""
         t0, t1 = state.tables
         key = (id(t0), id(t1), state.table_cap, state.point_cap, self.pair_cap, state.x.ptr, state.ext_force.ptr,
-               held[0].ptr, self.pair_list.active.ptr if hasattr(self.pair_list, "active") else 0)
+               held[0].ptr, self.pair_list.active.ptr if hasattr(self.pair_list, "active") else 0, hold)
         g = self._substep_graphs.get(key)
         if g is None:
             if len(self._substep_graphs) > 8:  # stale keys after reallocations
                 self._substep_graphs.clear()
             tables, views = list(state.tables), list(state.table_views)
             with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
-                self._substep_one(state, held, h)
+                self._substep_one(state, held, h, hold)
             state.tables, state.table_views = tables, views  # capture ran no kernel: the parity is unchanged
             g = self._substep_graphs[key] = cap.graph
         return g

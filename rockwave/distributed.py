@@ -464,7 +464,10 @@ class DistributedSimulation(Simulation):
             n = self.clock.substeps
             if n > 1 and (self.clock.steps % self.clock.update_interval == 0 or not hasattr(self, "_pairs_hold")):
                 self._pairs_hold = self.block_solver.pairs_hold(self.block_state, ts.dt)
-            self.block_solver.substeps(self.block_state, ts, n, keep_pairs=n > 1 and self._pairs_hold)
+                self._contacts_hold = self._pairs_hold and self.block_solver.holds_contacts(
+                    self.block_state, ts.dt, self.clock.update_interval + 1)
+            self.block_solver.substeps(self.block_state, ts, n, keep_pairs=n > 1 and self._pairs_hold,
+                                       hold_contacts=n > 1 and self._contacts_hold)
 
     def _coupled_compute(self, state, local, ts) -> None:
         """The coupling over the owned particles only (they come first); the block loads summed over ranks."""

@@ -104,6 +104,7 @@ SCHEMA: dict[str, Key] = {
         dt_s=Key("float", "fixed time step (time_step = 'fixed'); refused if above the stability limit", min=0, min_open=True),
         block_dt_safety=Key("float", "block step = this fraction of the critical DDA step 2/omega_max", default=0.5, min=0.0, max=1.0, min_open=True),
         dt_update_interval=Key("int", "steps between adaptive time-step updates (one host read each)", default=10, min=1, max=10000),
+        block_contacts=Key("str", "multi-rate block sub-steps: 'held': a fluid step's first sub-step finds the contacts, the others carry them (points moved, depths advanced by the blocks' motion; while every pair out of contact stays farther apart than it can close in the step); 'found': every sub-step runs the narrow phase (README 'Multi-rate stepping')", default="held", choices=("held", "found")),
         block_stepping=Key("str", "with water and blocks: 'multirate': the water's limits set the step and the blocks sub-step inside it at their own (the water's load held over the step; at most 1000 sub-steps); 'single': one step for both at the smallest limit (README 'Multi-rate stepping')", default="multirate", choices=("multirate", "single")),
         device=Key("str", "'auto' (first GPU if any, else CPU), 'cpu', 'cuda' or 'cuda:N'; the CLI --device overrides", default="auto"),
     ),

@@ -184,7 +184,12 @@ class Simulation:
                 # one broad phase per fluid step while the blocks move < margin/2 in it (a host read, at the
                 # clock's update rhythm)
                 self._pairs_hold = self.block_solver.pairs_hold(self.block_state, ts.dt)
-            self.block_solver.substeps(self.block_state, ts, n, keep_pairs=n > 1 and self._pairs_hold)  # water's load held
+                # and the contacts of each fluid step's first sub-step carried through the others while no pair out
+                # of contact can close before the next check (BlockOptions.hold_contacts)
+                self._contacts_hold = self._pairs_hold and self.block_solver.holds_contacts(
+                    self.block_state, ts.dt, self.clock.update_interval + 1)
+            self.block_solver.substeps(self.block_state, ts, n, keep_pairs=n > 1 and self._pairs_hold,
+                                       hold_contacts=n > 1 and self._contacts_hold)  # water's load held
 
     # Chunks (step_many; advance on a GPU): a reorder of the fluid by cell, then reorder_interval
     # steps. A fluid-only scene on a GPU replays a chunk as one CUDA graph (dt is read from the device

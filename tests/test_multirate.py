@@ -158,8 +158,10 @@ def test_substep_graphs_replay_the_launched_substeps():
             sim.block_solver._substep_graphs = None
         sim.advance(0.05)
         assert sim.clock.substeps > 1
-        runs.append((sim.block_positions(), sim.block_velocities(), sim.block_solver.graph_substeps))
-    (x1, v1, g1), (x0, v0, g0) = runs
+        runs.append((sim.block_positions(), sim.block_velocities(), sim.block_solver.graph_substeps,
+                     sim.block_solver.carried_substeps))
+    (x1, v1, g1, c1), (x0, v0, g0, c0) = runs
     assert g1 > 0 and g0 == 0
+    assert c1 > 0 and c0 > 0  # the held contacts were carried in both (BlockOptions.hold_contacts)
     assert np.abs(x1 - x0).max() < 1e-5
     assert np.abs(v1 - v0).max() < 1e-3
