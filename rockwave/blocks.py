@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -849,6 +850,11 @@ class BlockOptions:
     graph per sub-step instead of ~12 launches from Python (each costs ~30-50 us of host time against a few
     us of GPU work for a coupled scene's few blocks). Same kernels, same order; ignored on the CPU."""
 
+    fluid_step_graphs: bool = True
+    """CUDA, with substep_graphs: all n sub-steps of a fluid step, the first one's broad and narrow phases
+    included, replay one captured graph (sync-free path, the pair list not kept across fluid steps): one
+    launch per fluid step. Same kernels, same order; ignored on the CPU."""
+
     sync_check_interval_steps: int = 200
     """Sync-free path: the overflow flags (a bug if set) are read back every this many steps [steps]."""
 
@@ -973,9 +979,11 @@ class BlockSolver:
         # addresses the graph baked in; None: not on this device (CPU, or graphs switched off)
         self._substep_graphs: dict | None = {} if (wp.get_device(d).is_cuda and opt.substep_graphs) else None
         self.graph_substeps = 0  # sub-steps replayed from a CUDA graph (diagnostics)
+        self._step_graphs_ok = opt.fluid_step_graphs  # whole fluid steps of sub-steps as one graph (_fluid_step_graph)
         self.broad_phases = 0  # broad phases run (diagnostics)
         self.narrow_phases = 0  # narrow phases launched from the host (diagnostics; a graph replay is not counted)
-        self.carried_substeps = 0  # sub-steps that carried their contacts (hold_contacts; launched or captured)
+        self.carried_substeps = 0  # sub-steps that carried their contacts (hold_contacts; launched or replayed)
+        self.fluid_step_graphs = 0  # fluid steps whose sub-steps replayed one graph (_fluid_step_graph; diagnostics)
         self.point_regrows = 0  # narrow phases redone after the contact-point pool grew (diagnostics)
         self.contact_points = 0  # contact points of the last step (counter-read path; diagnostics)
         # the paths, chosen once
@@ -1311,6 +1319,26 @@ class BlockSolver:
         contacts_only = keep_pairs and self.has_free_blocks
         hold = contacts_only and hold_contacts
         graphs = self._substep_graphs if (contacts_only and self.sync_free) else None
+        if graphs is not None and self._step_graphs_ok and not self._keep_pairs and self.narrow_phases > 0:
+            # the whole fluid step's n sub-steps replayed from one CUDA graph (the first one's broad and narrow
+            # phases included: the sync-free path reads nothing back), one launch instead of ~25 from Python
+            g = self._fluid_step_graph(state, held, h, n, hold)
+            if g is not None:
+                self._set_clock(ts.time + h, h)
+                wp.capture_launch(g)
+                if n % 2:
+                    state.swap_tables()  # each sub-step wrote the other table
+                self.graph_substeps += n
+                self.fluid_step_graphs += 1
+                if hold:
+                    self.carried_substeps += n - 1
+                self.broad_phases += 1
+                self._unchecked_steps += 1
+                if self._unchecked_steps >= self.sync_check_interval:
+                    self._unchecked_steps = 0
+                    self._check_capacity_flags()
+                state.time = ts.time + ts.dt
+                return
         for i in range(n):
             if i and graphs is not None:  # sub-steps 1..n-1 replayed from a CUDA graph (the clock advances on the device)
                 if i == 1:
@@ -1332,6 +1360,53 @@ class BlockSolver:
                 self._contact_forces(state, h)
             self._integrate(state)
         state.time = ts.time + ts.dt
+
+    def _fluid_step_body(self, state: BlockState, held, h: float, n: int, hold: bool):
+        """The n sub-steps of one fluid step at the device clock (set_block_clock before it; the clock advances
+        after each): the captured body of _fluid_step_graph. Sync-free path only (no host read)."""
+        wp.copy(held[0], state.ext_force)
+        wp.copy(held[1], state.ext_torque)
+        for i in range(n):
+            if i:
+                wp.copy(state.ext_force, held[0])
+                wp.copy(state.ext_torque, held[1])
+            if i and hold:
+                self._carry_contacts(state)
+            else:
+                self._prepare(state)
+                if i == 0:
+                    wp.copy(self.lo_bp, self.lo)
+                    wp.copy(self.hi_bp, self.hi)
+                    self._grid_launches()
+                self._narrow_phase(state, h)
+            self._integrate(state)
+            wp.launch(K.advance_block_clock, dim=1, inputs=[self.block_clock], device=self.device)
+
+    def _fluid_step_graph(self, state: BlockState, held, h: float, n: int, hold: bool):
+        """The CUDA graph of one fluid step's n block sub-steps for the tables' current parity, captured on first
+        use and keyed by every address it baked in (None, and no more tries, if the capture fails: the
+        sub-steps are then launched as before)."""
+        t0, t1 = state.tables
+        key = ("step", n, hold, id(t0), id(t1), state.table_cap, state.point_cap, self.pair_cap, state.x.ptr,
+               state.ext_force.ptr, held[0].ptr, self.pair_list.active.ptr, self.entry_cap, self.large_list.ptr)
+        g = self._substep_graphs.get(key)
+        if g is None:
+            if len(self._substep_graphs) > 8:  # stale keys after reallocations
+                self._substep_graphs.clear()
+            tables, views = list(state.tables), list(state.table_views)
+            counts = (self.narrow_phases, self.carried_substeps)
+            try:
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                    self._fluid_step_body(state, held, h, n, hold)
+            except Exception as e:  # e.g. a Warp utility that cannot be captured: launch as before
+                self._step_graphs_ok = False
+                warnings.warn(f"block sub-steps: one graph per fluid step could not be captured ({e}); launching them")
+                return None
+            finally:
+                state.tables, state.table_views = tables, views  # capture ran no kernel: the parity is unchanged
+                self.narrow_phases, self.carried_substeps = counts
+            g = self._substep_graphs[key] = cap.graph
+        return g
 
     def _substep_one(self, state: BlockState, held, h: float, hold: bool = False):
         """One kept-pairs sub-step at the device clock, then the clock advances (the captured body)."""
