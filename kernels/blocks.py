@@ -1735,6 +1735,84 @@ def carry_contacts(
 
 
 @wp.kernel
+def hold_check_blocks(
+    kinds: wp.array(dtype=int),
+    block_size: wp.array(dtype=float),
+    v: wp.array(dtype=wp.vec3),
+    w: wp.array(dtype=wp.vec3),
+    reach_dt: float,
+    half_margin: float,
+    flags: wp.array(dtype=int),
+):
+    """BlockSolver.hold_checks, per block: flags[0] = 0 when a block that moves reaches beyond margin/2 over the
+    step, headroom (|v| + |w| r) dt > margin / 2 (reach_dt = headroom dt; r = block_size / 2): the pair
+    list may not be kept."""
+    b = wp.tid()
+    if kinds[b] == KIND_FIXED:
+        return
+    if reach_dt * (wp.length(v[b]) + wp.length(w[b]) * 0.5 * block_size[b]) > half_margin:
+        flags[0] = 0
+
+
+@wp.kernel
+def hold_check_pairs(
+    pl: PairList,
+    props: BlockProps,
+    mat: BlockMaterial,
+    block_size: wp.array(dtype=float),
+    bodies: BlockBodies,
+    g_mag: float,
+    close_dt: float,
+    table: ContactTable,
+    flags: wp.array(dtype=int),
+):
+    """BlockSolver.hold_checks, per candidate pair: flags[1] = 0 when contacts may not be carried through a fluid
+    step's sub-steps:
+    - a pair without contact points at the last narrow phase could close its gap before the next check,
+      gap <= close_dt (reach_A + reach_B) (close_dt = headroom dt steps, reach = |v| + |w| r);
+    - a pair in contact is not at rest: its points approach or part faster than the resting-contact speed
+      v_rest = |g| / sqrt(n k_n / m_eff) that contact_forces uses to tell impacts apart, or the blocks turn
+      against each other faster than v_rest over the smaller one's radius. An impact, a bounce or a block
+      rocking onto a new corner is found again every sub-step; a resting or sliding contact (its points move
+      along the plane) is carried."""
+    tid = wp.tid()
+    if tid >= wp.min(pl.counters[0], pl.pairs.shape[0]):
+        return
+    A = pl.pairs[tid][0]
+    B = pl.pairs[tid][1]
+    x = bodies.x
+    v = bodies.v
+    w = bodies.w
+    slot = pl.slot[tid]
+    nc = int(0)
+    if slot >= 0:
+        nc = table.nc[slot]
+    if nc == 0:
+        reach = wp.length(v[A]) + wp.length(w[A]) * 0.5 * block_size[A] + wp.length(v[B]) + wp.length(w[B]) * 0.5 * block_size[B]
+        if pl.gap[tid] <= close_dt * reach:
+            flags[1] = 0
+        return
+    im = props.inv_mass[A] + props.inv_mass[B]
+    if im <= 0.0:
+        return
+    kn = wp.min(mat.k_n[A], mat.k_n[B])
+    v_rest = g_mag / wp.sqrt(float(nc) * kn * im)
+    n = table.normal[slot]
+    xA = wp.vec3(0.0, 0.0, 0.0)
+    xB = (x[B] - x[A]) + (bodies.x_lo[B] - bodies.x_lo[A])
+    base = table.pstart[slot]
+    approach = wp.length(w[B] - w[A]) * 0.5 * wp.min(block_size[A], block_size[B])
+    vmax = float(0.0)
+    for k in range(nc):
+        p = table.pos[base + k]
+        vr = point_velocity(B, p, xB, bodies.q, v, w, bodies.strain_rate, props.kinds) - point_velocity(
+            A, p, xA, bodies.q, v, w, bodies.strain_rate, props.kinds)
+        vmax = wp.max(vmax, wp.abs(wp.dot(n, vr)))
+    if approach + vmax > v_rest:
+        flags[1] = 0
+
+
+@wp.kernel
 def rehash_table(prev: ContactTable, cur: ContactTable):
     # move the contact history into a larger table (capacity growth)
     s = wp.tid()

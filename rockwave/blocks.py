@@ -983,6 +983,7 @@ class BlockSolver:
         self.broad_phases = 0  # broad phases run (diagnostics)
         self.narrow_phases = 0  # narrow phases launched from the host (diagnostics; a graph replay is not counted)
         self.carried_substeps = 0  # sub-steps that carried their contacts (hold_contacts; launched or replayed)
+        self.graph_captures = 0  # CUDA graphs captured (diagnostics)
         self.fluid_step_graphs = 0  # fluid steps whose sub-steps replayed one graph (_fluid_step_graph; diagnostics)
         self.point_regrows = 0  # narrow phases redone after the contact-point pool grew (diagnostics)
         self.contact_points = 0  # contact points of the last step (counter-read path; diagnostics)
@@ -1229,26 +1230,11 @@ class BlockSolver:
         """Whether the sub-steps of the next ``steps`` fluid steps of length dt may carry their contacts
         (options.hold_contacts): every candidate pair without contact points at the last narrow phase is
         farther apart than the two blocks can close over them, gap > headroom (reach_A + reach_B) dt steps,
-        reach = |v| + |w| r (so no new contact appears inside a held sub-step); a pair in contact keeps its
-        points and gains none until the next fluid step's narrow phase. Few pairs only (at most 4096: a host
-        read of the pair list). A host read."""
-        if not (self.options.hold_contacts and self.narrow_phases):
-            return False  # (nothing known before the first narrow phase)
-        n = self.pair_count
-        if n == 0:
-            return True
-        if n > 4096:
-            return False
-        pairs = self.pairs.numpy()[:n]
-        gaps = self.pair_gap.numpy()[:n]
-        slots = self.pair_slot.numpy()[:n]
-        nc = state.tables[0]["nc"].numpy()
-        touching = np.where(slots >= 0, nc[np.maximum(slots, 0)], 0) > 0
-        v = np.linalg.norm(state.v.numpy(), axis=1)
-        w = np.linalg.norm(state.w.numpy(), axis=1)
-        reach = v + w * self.model.np["radius"]
-        close = headroom * (reach[pairs[:, 0]] + reach[pairs[:, 1]]) * dt * steps
-        return bool(np.all(touching | (gaps > close)))
+        reach = |v| + |w| r (so no new contact appears inside a held sub-step), and every pair in contact is at
+        rest or sliding: its points approach or part, and the blocks turn against each other, slower than the
+        resting-contact speed v_rest = |g| / sqrt(n k_n / m_eff) (kernels/blocks.py hold_check_pairs). A carried
+        pair keeps its points and gains none until the next fluid step's narrow phase. A host read (hold_checks)."""
+        return self.hold_checks(state, dt, steps, headroom)[1]
 
     def _contact_forces_all(self, state: BlockState, dt: float):
         self._prepare(state)
@@ -1406,6 +1392,7 @@ class BlockSolver:
                 state.tables, state.table_views = tables, views  # capture ran no kernel: the parity is unchanged
                 self.narrow_phases, self.carried_substeps = counts
             g = self._substep_graphs[key] = cap.graph
+            self.graph_captures += 1
         return g
 
     def _substep_one(self, state: BlockState, held, h: float, hold: bool = False):
@@ -1436,20 +1423,41 @@ class BlockSolver:
                 self._substep_one(state, held, h, hold)
             state.tables, state.table_views = tables, views  # capture ran no kernel: the parity is unchanged
             g = self._substep_graphs[key] = cap.graph
+            self.graph_captures += 1
         return g
 
     def pairs_hold(self, state: BlockState, dt: float, headroom: float = 2.0) -> bool:
         """Whether one broad phase can serve a whole step dt of sub-steps: max over the blocks that move
         (rigid, deformable, kinematic) of (|v| + |w| r) dt, times ``headroom`` for the speed growing before
         the next check, is within margin/2 (the distance the kept pair list tolerates,
-        aabbs_left_pair_boxes). A host read."""
-        mov = self.model.np["kinds"] != KINDS["fixed"]
-        if not np.any(mov):
-            return True
-        v = np.linalg.norm(state.v.numpy()[mov], axis=1)
-        w = np.linalg.norm(state.w.numpy()[mov], axis=1)
-        reach = float(np.max(v + w * self.model.np["radius"][mov]))
-        return headroom * reach * dt <= 0.5 * self.margin
+        aabbs_left_pair_boxes). A host read (hold_checks)."""
+        return self.hold_checks(state, dt, 1, headroom)[0]
+
+    def hold_checks(self, state: BlockState, dt: float, steps: int, headroom: float = 2.0) -> tuple[bool, bool]:
+        """(pairs_hold, holds_contacts) from two small kernels (kernels/blocks.py hold_check_blocks,
+        hold_check_pairs) and one read of two ints through a pinned host buffer (array reads of v, w and the pair
+        list cost milliseconds on a GPU host). Contacts are held only when the pair list is, and after a
+        narrow phase (before it nothing is known)."""
+        m, d = self.model, self.device
+        flags = getattr(self, "_hold_flags", None)
+        if flags is None:
+            flags = self._hold_flags = (wp.zeros(2, dtype=int, device=d),
+                                        wp.zeros(2, dtype=int, device="cpu", pinned=wp.get_device(d).is_cuda))
+        flags[0].fill_(1)
+        wp.launch(K.hold_check_blocks, dim=m.num_blocks,
+                  inputs=[m.kinds, m.block_size, state.v, state.w, float(headroom * dt), 0.5 * self.margin, flags[0]],
+                  device=d)
+        check_contacts = bool(self.options.hold_contacts and self.narrow_phases)
+        n = self.pair_cap if self.sync_free else self._pair_count
+        if check_contacts and n > 0:
+            wp.launch(K.hold_check_pairs, dim=n,
+                      inputs=[self.pair_list, m.props, m.material, m.block_size, state.bodies, self.g_mag,
+                              float(headroom * dt * steps), state.table_views[0], flags[0]], device=d)
+        wp.copy(flags[1], flags[0])
+        wp.synchronize_device(d)
+        f = flags[1].numpy()
+        pairs_ok = bool(f[0])
+        return pairs_ok, bool(pairs_ok and check_contacts and f[1])
 
     # ---- diagnostics ----
     def contacts(self, state: BlockState) -> list:

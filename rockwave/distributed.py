@@ -463,8 +463,7 @@ class DistributedSimulation(Simulation):
         if self.block_solver is not None:  # replicated: identical loads, identical steps on every rank
             n = self.clock.substeps
             if n > 1 and (self.clock.steps % self.clock.update_interval == 0 or not hasattr(self, "_pairs_hold")):
-                self._pairs_hold = self.block_solver.pairs_hold(self.block_state, ts.dt)
-                self._contacts_hold = self._pairs_hold and self.block_solver.holds_contacts(
+                self._pairs_hold, self._contacts_hold = self.block_solver.hold_checks(
                     self.block_state, ts.dt, self.clock.update_interval + 1)
             self.block_solver.substeps(self.block_state, ts, n, keep_pairs=n > 1 and self._pairs_hold,
                                        hold_contacts=n > 1 and self._contacts_hold)

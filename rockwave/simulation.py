@@ -181,12 +181,10 @@ class Simulation:
         if self.block_solver is not None:  # 2D: with the planar constraint
             n = self.clock.substeps
             if n > 1 and (self.clock.steps % self.clock.update_interval == 0 or not hasattr(self, "_pairs_hold")):
-                # one broad phase per fluid step while the blocks move < margin/2 in it (a host read, at the
-                # clock's update rhythm)
-                self._pairs_hold = self.block_solver.pairs_hold(self.block_state, ts.dt)
-                # and the contacts of each fluid step's first sub-step carried through the others while no pair out
-                # of contact can close before the next check (BlockOptions.hold_contacts)
-                self._contacts_hold = self._pairs_hold and self.block_solver.holds_contacts(
+                # one broad phase per fluid step while the blocks move < margin/2 in it, and the first sub-step's
+                # contacts carried through the others while no pair out of contact can close before the next
+                # check (BlockOptions.hold_contacts): one host read, at the clock's update rhythm
+                self._pairs_hold, self._contacts_hold = self.block_solver.hold_checks(
                     self.block_state, ts.dt, self.clock.update_interval + 1)
             self.block_solver.substeps(self.block_state, ts, n, keep_pairs=n > 1 and self._pairs_hold,
                                        hold_contacts=n > 1 and self._contacts_hold)  # water's load held

@@ -207,8 +207,8 @@ def test_held_contacts_slide_exactly_and_hold_a_stable_block():
 
 
 def test_held_contacts_only_while_no_pair_can_close():
-    """holds_contacts(): a pair in contact may carry its points; a pair out of contact only while its gap
-    exceeds what the two blocks can close before the next check (2 (reach_A + reach_B) dt steps)."""
+    """holds_contacts(): a pair out of contact only while its gap exceeds what the two blocks can close before the
+    next check (2 (reach_A + reach_B) dt steps); a pair in contact while it rests or slides."""
     sim = _sim(_slide_dict(lift=0.002))  # the slide 2 mm above the slope: no contact
     sim.step()
     bs, st, dt = sim.block_solver, sim.block_state, sim.dt
@@ -223,10 +223,20 @@ def test_held_contacts_only_while_no_pair_can_close():
     v[b] = [0.0, -gap / (2.0 * dt * 11) * 1.05, 0.0]  # closing the gap within the 11 steps (headroom 2)
     st.v.assign(v)
     assert not bs.holds_contacts(st, dt, 11)
-    resting = _sim(_slide_dict())  # on the slope: in contact, carried
-    resting.step()
-    assert any(len(c["points"]) for c in resting.block_solver.contacts(resting.block_state))
-    assert resting.block_solver.holds_contacts(resting.block_state, resting.dt, 11)
+    # on the slope, in contact: found every sub-step while it settles onto it (its points closing faster than the
+    # resting-contact speed v_rest = |g| / sqrt(n k_n / m_eff), as at an impact), carried once it slides
+    sliding = _sim(_slide_dict())
+    sliding.step()
+    bs, st = sliding.block_solver, sliding.block_state
+    assert any(len(c["points"]) for c in bs.contacts(st))
+    assert not bs.holds_contacts(st, sliding.dt, 11)
+    sliding.advance(0.05)
+    assert any(len(c["points"]) for c in bs.contacts(st)) and np.linalg.norm(sliding.block_velocities()[1]) > 0.05
+    assert bs.holds_contacts(st, sliding.dt, 11)
+    v = st.v.numpy()
+    v[1] += 0.05 * bs.contacts(st)[0]["normal"]  # the slide parting from the slope at 5 cm/s: not at rest
+    st.v.assign(v)
+    assert not bs.holds_contacts(st, sliding.dt, 11)
 
 
 def test_held_contacts_move_the_slide_as_found_ones():
