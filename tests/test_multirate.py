@@ -175,9 +175,10 @@ def _incline_substeps(alpha: float, phi: float, hold: bool, t_end: float = 0.5, 
     (displacement down the slope [m], the exact one for friction phi, the solver)."""
     import math
 
+    from test_dda import g, incline_specs
+
     from rockwave.blocks import BlockModel, BlockSolver
     from rockwave.solver import TimeStep
-    from test_dda import g, incline_specs
 
     specs, d, _ = incline_specs(alpha, [((0.5, 0.5, 0.5), phi, -2.0, 0.0, "rigid", {})], kn=1e8, slope_phi=phi)
     model = BlockModel(specs, device=DEVICE)
