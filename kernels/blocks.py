@@ -1734,6 +1734,12 @@ def carry_contacts(
     cur.normal[slot] = wp.normalize(n + h * wp.cross(spin, n))
 
 
+@wp.func
+def block_reach(b: int, v: wp.array(dtype=wp.vec3), w: wp.array(dtype=wp.vec3), block_size: wp.array(dtype=float)):
+    # the fastest any point of block b moves: |v| + |w| r, r = block_size / 2 [m/s]
+    return wp.length(v[b]) + wp.length(w[b]) * 0.5 * block_size[b]
+
+
 @wp.kernel
 def hold_check_blocks(
     kinds: wp.array(dtype=int),
@@ -1750,7 +1756,7 @@ def hold_check_blocks(
     b = wp.tid()
     if kinds[b] == KIND_FIXED:
         return
-    if reach_dt * (wp.length(v[b]) + wp.length(w[b]) * 0.5 * block_size[b]) > half_margin:
+    if reach_dt * block_reach(b, v, w, block_size) > half_margin:
         flags[0] = 0
 
 
@@ -1788,7 +1794,7 @@ def hold_check_pairs(
     if slot >= 0:
         nc = table.nc[slot]
     if nc == 0:
-        reach = wp.length(v[A]) + wp.length(w[A]) * 0.5 * block_size[A] + wp.length(v[B]) + wp.length(w[B]) * 0.5 * block_size[B]
+        reach = block_reach(A, v, w, block_size) + block_reach(B, v, w, block_size)
         if pl.gap[tid] <= close_dt * reach:
             flags[1] = 0
         return
