@@ -164,8 +164,7 @@ def _dam(dev, n, ch, t_end):
 
 
 def _spheric(dev, s, ch, t_end):
-    r = H.run_spheric(dev, s, ch, t_end, strip=H.FORMULATION_KEYS)
-    r.pop("series", None)
+    r = H.run_spheric(dev, s, ch, t_end, strip=H.FORMULATION_KEYS)  # keeps the gauge series (10 ms) and P1's 1 ms reads
     r["error"], r["error_hp"] = r.get("h_rms", math.nan), r.get("error", math.nan)
     return r
 

@@ -53,6 +53,23 @@ def test_spheric_errors_of_the_measurement_itself():
     assert abs(H.spheric_errors(t, g)["p_rms"] - 0.2) < 1e-9
 
 
+def test_p1_peak_from_fine_samples_is_a_window_mean_as_the_measurement():
+    """P1 read every 1 ms around the impact: the peak compared is the +-5 ms mean at the 10 ms sample times, as
+    the measurement's; a reading of the measurement itself scores zero, and a 0.3 ms spike of 10x the peak at one
+    1 ms reading (an acoustic ring) moves the mean peak by at most a tenth of itself, not tenfold."""
+    wl, pr = H.load_spheric()
+    t = np.arange(0.01, 1.0, 0.01)
+    ft = np.round(np.arange(0.3, 0.6 + 1e-9, 0.001), 6)
+    fp = np.interp(ft, pr[:, 0], pr[:, 1])
+    e = H.p1_impact(t, H._window_mean(pr, 1, t), pr, (ft, fp))
+    assert abs(e["p1_peak_error"]) < 0.02 and abs(e["p1_impact_error"]) < 0.01, e
+    spiked = fp.copy()
+    spiked[np.argmax(fp)] *= 10.0
+    e2 = H.p1_impact(t, H._window_mean(pr, 1, t), pr, (ft, spiked))
+    assert e2["p1_peak_instant_pa"] > 5 * e["p1_peak_pa"]
+    assert e2["p1_peak_pa"] < e["p1_peak_pa"] + 0.1 * e2["p1_peak_instant_pa"], (e, e2)
+
+
 # ------------------------------------------------------------- result files: incremental writes, merge ----
 def _acc_rows():
     rows = [{"variant": v, "resolution": f"a/{n}", "particles": n * n * 2, "error": e, "wall_per_sim_s": w, "class": "stable",
