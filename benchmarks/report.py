@@ -243,8 +243,9 @@ def _chart(ch: dict) -> list[str]:
     sw = ch.get("standing_wave", {})
     L = ["### Accuracy against cost of the formulations (part `chart`)", "",
          "error: standing wave |amplitude decay per period| (first sloshing mode, k d = "
-         f"{sw.get('kh', '?')}, a = {sw.get('a', '?')} m in {sw.get('depth', '?')} m); wave maker |H/H_linear - 1| "
-         "at gauge_1; dam break |mean front bias| over T >= 1.5; SPHERIC Test 2 water-level RMS / 0.55 m, H1-H4 "
+         f"{sw.get('kh', '?')}, a = {sw.get('a', '?')} m in {sw.get('depth', '?')} m); wave maker |H/H_linear - 1|, "
+         "the larger of gauge_1 and gauge_2 against the flume's linear solution (records before 2026-11-25: gauge_1 "
+         "against the steady formula); dam break |mean front bias| over T >= 1.5; SPHERIC Test 2 water-level RMS / 0.55 m, H1-H4 "
          "mean (benchmarks/chart.py, benchmarks/harness.py); class: the run's health (harness classifier; blown-up "
          "runs are left out of the chart). Formulations:", ""]
     L += [f"- `{n}`: {', '.join(f'{k} = {v!r}' for k, v in c.items()) or 'the scenes as they are'}"
