@@ -40,6 +40,7 @@ class SPHParams:
     eos_b: float  # Tait B (Pa) or linear k (m^2/s^2)
     eos_gamma: float
     clamp_negative: int
+    density_floor: int  # continuity density kept >= rho0 (fluid.density_floor; continuity_floor below)
     pressure_form: int
     sound_speed: float
     mu: float  # Mueller Laplacian viscosity (Pa s)
@@ -770,9 +771,22 @@ def pair_density_rate(xi: wp.vec3, vi: wp.vec3, j: int, x: wp.array(dtype=wp.vec
 
 
 @wp.func
-def store_density(i: int, rr: float, p: SPHParams, rho: wp.array(dtype=float), pressure: wp.array(dtype=float),
+def continuity_floor(rr: float, p: SPHParams) -> float:
+    """The continuity density with fluid.density_floor: max(rr, rho0). With negative pressure clipped, a
+    density below rho0 holds no pressure and no internal energy (int p/rho^2 d rho = 0 there), only a memory of
+    expansion: a splash particle whose neighbours left it kept 250-300 kg/m^3 in SPHERIC Test 2 and, landing,
+    was compressed back that far before it pushed at all (and crossed walls with density diffusion). Flooring
+    it changes no energy; water that separates stays at rho0. Opt-in (docs/notes.md 'Density floor')."""
+    if p.density_floor != 0:
+        return wp.max(rr, p.rest_density)
+    return rr
+
+
+@wp.func
+def store_density(i: int, rr_in: float, p: SPHParams, rho: wp.array(dtype=float), pressure: wp.array(dtype=float),
                   pr2: wp.array(dtype=float)):
-    """rho_i = rr, p_i = EOS(rr), pr2_i = p_i / rr^2 (the force pass reads pr2)."""
+    """rho_i = rr (continuity_floor applied), p_i = EOS(rr), pr2_i = p_i / rr^2 (the force pass reads pr2)."""
+    rr = continuity_floor(rr_in, p)
     rho[i] = rr
     pr = equation_of_state(rr, p)
     pressure[i] = pr
@@ -855,7 +869,7 @@ def particle_density_overflow(
                     s += pair_density_rate(xi, vi, j, x, v, particle_mass, p)
     if summation == 0:
         drho_dt[i] = s
-        s = rho[i] + dt[0] * s
+        s = continuity_floor(rho[i] + dt[0] * s, p)
     rho[i] = s
     pr = equation_of_state(s, p)
     pressure[i] = pr
@@ -920,7 +934,7 @@ def neighbour_list_density(
     count[i] = c
     if mode == DENSITY_CONTINUITY:
         drho_dt[i] = s
-        s = rho[i] + dt[0] * s
+        s = continuity_floor(rho[i] + dt[0] * s, p)
     if mode != DENSITY_NONE:
         rho[i] = s
         pr = equation_of_state(s, p)

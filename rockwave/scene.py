@@ -86,12 +86,17 @@ _REGION_KEYS = dict(
 
 # fluid.fidelity -> the defaults it gives (a key the scene sets wins). Chosen from the accuracy-against-cost
 # measurements in docs/notes.md ('Accuracy against cost'); 'draft' is the formulation that was the default before.
-# No level turns on density diffusion: with it SPHERIC Test 2 at 0.012 m blew up after the impact on the H100
-# (its step fell from 1e-4 to 1e-6 s by t = 0.85 s) and it changed the standing wave's decay by 0.2 points only.
+# No level turns on density diffusion: alone it blew up in SPHERIC Test 2 at 0.012 m on the H100 (splash water at a
+# third of rho0 crossed the back wall; density_floor makes it stable) and it changed the standing wave's decay by 0.2
+# points only. No level sets density_floor: it reads worse on the wave maker, the dam-break front and the P1 peak
+# (docs/notes.md 'Time step, wave-maker reference, ...').
 FIDELITY = {
-    "draft": dict(kernel="muller", support_radius_ratio=2.0, density_diffusion=0.0, boundary="akinci", artificial_alpha=0.0),
-    "standard": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01),
-    "high": dict(kernel="wendland", support_radius_ratio=4.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01),
+    "draft": dict(kernel="muller", support_radius_ratio=2.0, density_diffusion=0.0, boundary="akinci", artificial_alpha=0.0,
+                  density_floor=False),
+    "standard": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
+                     density_floor=False),
+    "high": dict(kernel="wendland", support_radius_ratio=4.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
+                 density_floor=False),
 }
 
 SCHEMA: dict[str, Key] = {
@@ -124,6 +129,7 @@ SCHEMA: dict[str, Key] = {
         pressure_force=Key("str", "'momentum': -m_i sum m_j (p_i/rho_i^2 + p_j/rho_j^2) gradW; 'muller': -m_i/rho_i sum m_j (p_i+p_j)/(2 rho_j) gradW", default="momentum", choices=("momentum", "muller")),
         density=Key("str", "'continuity': d rho_i/dt = sum m_j (v_i - v_j).gradW_ij (keeps rho0 at a free surface); 'summation': rho_i = sum m_j W_ij", default="continuity", choices=("continuity", "summation")),
         clamp_negative_pressure=Key("bool", "clip p < 0 to 0 (prevents tensile clumping at a free surface with summation density)", default=True),
+        density_floor=Key("bool", "continuity density kept at rho0 or above: with negative pressure clipped a lower density holds no pressure and no energy, only a memory of expansion, and a splash particle whose neighbours left it (250-300 kg/m^3 in SPHERIC Test 2) is compressed back that far before it pushes (kernels/fluid.py continuity_floor). Makes density_diffusion stable in SPHERIC Test 2 (without it low-density splash crossed the back wall) and its mean density error 5.4% -> 0.5%, but reads worse on the wave maker, the dam-break front and the P1 peak (docs/notes.md 'Density floor'), so no level sets it; basic method, continuity density and clamp_negative_pressure only (default: from fidelity, false)"),
         density_diffusion=Key("float", "delta of the delta-SPH density diffusion with continuity density (Molteni & Colagrossi 2009, hydrostatic part removed as Fourtakas et al. 2019): d rho_i/dt += delta (H/2) c0 sum_j 2 (rho_j - rho_i - rho0 g.x_ji/c0^2) x_ji.grad_i W_ij/r^2 V_j; 0.1 typical, 0 = off; continuity density only (kernels/diffusion.py; default: from fidelity, 0 with summation density)", min=0.0, max=1.0),
         method=Key("str", "'basic': WCSPH as above; 'ghost': Ghost SPH free surface (Schechter & Bridson 2012), ghost air particles seeded each step around the free surface ([fluid.ghost])", default="basic", choices=("basic", "ghost")),
         ghost=_sec(
@@ -636,7 +642,7 @@ def apply_fidelity(v: _Validator, fl: Node, tank: Node | None) -> None:
     """Fill the formulation keys the scene leaves out from fluid.fidelity (FIDELITY), then check what the chosen
     formulation cannot do: Adami walls need boundary layers as thick as the kernel support."""
     level = FIDELITY.get(fl.get("fidelity")) or FIDELITY["standard"]
-    for k in ("kernel", "support_radius_ratio", "boundary"):
+    for k in ("kernel", "support_radius_ratio", "boundary", "density_floor"):
         if fl.get(k) is None:
             fl[k] = level[k]
     if fl.get("density_diffusion") is None:
