@@ -210,10 +210,9 @@ def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
     p.eos_b = eos_constant(eos, rho0)
     p.eos_gamma = eos["gamma"]
     p.clamp_negative = 1 if scene_fluid["clamp_negative_pressure"] else 0
-    # the continuity density's floor at rho0 (kernels/fluid.py continuity_floor): basic WCSPH only (Ghost SPH keeps
-    # its own density treatment), and only where negative pressure is clipped (else a density below rho0 pulls)
-    p.density_floor = 1 if (scene_fluid.get("density_floor") and scene_fluid["clamp_negative_pressure"]
-                            and scene_fluid.get("method", "basic") == "basic" and scene_fluid["density"] == "continuity") else 0
+    # the continuity density's floor at rho0 (kernels/fluid.py continuity_floor); the loader refuses it with Ghost SPH,
+    # summation density or unclipped pressure (rockwave/scene.py _check_method_options)
+    p.density_floor = 1 if scene_fluid.get("density_floor") else 0
     p.pressure_form = 0 if scene_fluid["pressure_force"] == "momentum" else 1
     p.sound_speed = sound_speed_from_eos(eos, rho0)
     p.mu = visc["laplacian_pa_s"]

@@ -670,6 +670,14 @@ DART_ONLY_KEYS = ("attempts", "rounds")
 def _check_method_options(v: _Validator, fl: Node) -> None:
     """An option that the chosen method cannot honour is an error naming the key, never ignored."""
     raw = getattr(v, "raw_fluid", {}) or {}
+    if fl.get("density_floor"):
+        why = [w for w, bad in (("fluid.method = 'ghost'", fl.get("method") == "ghost"),
+                                ("fluid.density = 'summation'", fl.get("density") == "summation"),
+                                ("fluid.clamp_negative_pressure = false", not fl.get("clamp_negative_pressure")))
+               if bad]
+        if why:
+            v.err("fluid.density_floor", f"= true needs basic WCSPH with continuity density and clipped negative pressure, "
+                                         f"but the scene has {', '.join(why)} (remove the key or change those)")
     raw_ghost = raw.get("ghost") if isinstance(raw.get("ghost"), dict) else {}
     if fl.get("method") != "ghost" and raw_ghost:
         v.err("fluid.ghost", f"sets {sorted(raw_ghost)} but fluid.method = {fl.get('method')!r}: the ghost settings apply "

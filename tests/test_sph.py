@@ -333,3 +333,17 @@ def test_density_floor_forgets_expansion_and_changes_no_energy():
     assert rmin_f >= 1000.0 and rmin_n < 990.0, out
     assert abs(ke_f / ke_n - 1.0) < 1e-4, out
     assert pmax_f > 100.0 and pmax_n == 0.0, out
+
+
+def test_density_floor_refused_where_it_cannot_act():
+    """fluid.density_floor with Ghost SPH, summation density or unclipped pressure is a SceneError naming the key."""
+    base = {"simulation": {"dimension": 2, "duration_s": 1.0},
+            "fluid": {"spacing_m": 0.02, "density_floor": True, "eos": {"speed_of_sound_m_s": 10.0}, "regions": [{"box_min_m": [0, 0], "box_max_m": [0.2, 0.1]}]},
+            "tank": {"box_min_m": [0, 0], "box_max_m": [0.2, 0.2]}}
+    assert rockwave.parse_scene(base).fluid["density_floor"] is True
+    for key, value, text in (("method", "ghost", "fluid.method = 'ghost'"), ("density", "summation", "summation"),
+                             ("clamp_negative_pressure", False, "clamp_negative_pressure = false")):
+        bad = {**base, "fluid": {**base["fluid"], key: value}}
+        with pytest.raises(rockwave.SceneError, match=r"fluid\.density_floor") as e:
+            rockwave.parse_scene(bad)
+        assert text in str(e.value)
