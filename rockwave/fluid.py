@@ -348,6 +348,7 @@ class FluidSolver:
         self._nbr = wp.zeros(nf * self.neighbour_cap, dtype=int, device=d)
         self._x_build = wp.zeros(nf, dtype=wp.vec3, device=d)
         self._rebuild.fill_(1)
+        self.arrays_version = getattr(self, "arrays_version", 0) + 1  # captured graphs of older arrays are stale
         self._init_cells()
         self._init_check_grid()
 

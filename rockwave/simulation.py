@@ -43,7 +43,8 @@ class SimulationOptions:
 
     fluid: rockwave.fluid.FluidOptions. ghost: rockwave.ghost.GhostOptions. blocks: rockwave.blocks.BlockOptions
     (None: BlockOptions.from_scene). coupling: rockwave.coupling.CouplingOptions (None: from the scene's [coupling]).
-    cuda_graphs: replay a chunk of fluid-only steps as one CUDA graph on a GPU."""
+    cuda_graphs: replay a chunk of fluid-only steps, and each single step outside the chunks, as a captured CUDA
+        graph on a GPU."""
 
     fluid: object = None
     ghost: object = None
@@ -83,7 +84,9 @@ class Simulation:
             walls = self.coupling.walls
             checkpoint.register(self, "block_walls", checkpoint.ArrayGroup(lambda: walls, ["v_prev", "w_prev", "dt_prev"]))
         self._readers = None
-        self._graph = None
+        self._graphs: dict = {}  # captured CUDA graphs of chunks and single steps (_replay)
+        self._graphs_failed = False
+        self._plain_runs: set = set()  # kinds of launches run plainly once (their kernels are loaded)
 
     # ---------------------------------------------------------------- the clock's questions ----
     @property
@@ -165,7 +168,12 @@ class Simulation:
         if dt is not None:
             self.clock.set_dt(dt)
         with wp.ScopedDevice(self.device):
-            self._launch_step(self.clock.time_step())
+            # a fluid-only scene on a GPU replays one captured step: plain launches would sort the particles
+            # by cell every step (the skipped list build's radix sort) and wait on the host's launches
+            ts = self.clock.time_step()
+            if not self._replay(("step",), lambda: self._launch_step(ts)):
+                self._launch_step(ts)
+                self._plain_runs.add(("step",))
         self.clock.tick()
 
     def _launch_step(self, ts: TimeStep, reorder: bool = False) -> None:
@@ -201,33 +209,45 @@ class Simulation:
         return fs.reorder_interval
 
     def _graph_usable(self) -> bool:
-        return (self.options.cuda_graphs and self._graph != "failed" and self.coupling is None
-                and self.block_solver is None and wp.get_device(self.device).is_cuda and self.fluid_solver.capturable)
+        return (self.options.cuda_graphs and not self._graphs_failed and self.coupling is None
+                and self.block_solver is None and self.fluid_solver is not None
+                and wp.get_device(self.device).is_cuda and self.fluid_solver.capturable)
+
+    def _replay(self, key: tuple, launches) -> bool:
+        """Launch the CUDA graph of ``launches`` (a function that makes the launches) under ``key``, captured on
+        its first use, once a plain run of the same launches has loaded their kernels. False where graphs are not
+        usable or not yet: the caller launches plainly and adds the key to _plain_runs. The graphs read dt from
+        the device array and rebuild the neighbour lists as a conditional node (rockwave/fluid.py), so one graph
+        serves every step of its kind; reallocated lists (FluidSolver.arrays_version) get a new capture."""
+        if not (self._graph_usable() and key in self._plain_runs):
+            return False
+        full = (id(self.state), id(self.fluid_solver), self.fluid_solver.arrays_version) + key
+        g = self._graphs.get(full)
+        if g is None:
+            try:
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                    launches()
+            except Exception:  # capture unsupported here: plain launches from now on
+                self._graphs_failed = True
+                self._graphs.clear()
+                return False
+            g = self._graphs[full] = cap.graph
+        wp.capture_launch(g)
+        return True
 
     def _run_chunk(self, k: int) -> None:
-        """k steps at the current dt after a reorder: one graph launch (captured on the second use,
-        after a plain chunk has loaded the kernels) or plain launches."""
+        """k steps at the current dt after a reorder: one graph launch (_replay) or plain launches."""
         clock = self.clock
         with wp.ScopedDevice(self.device):
-            key = (id(self.state), id(self.fluid_solver), k)
-            done = False
-            if self._graph_usable() and getattr(self, "_chunks_plain", 0) > 0:
-                if self._graph is None or self._graph[0] != key:
-                    try:
-                        with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
-                            for j in range(k):
-                                self._launch_step(clock.time_step(), reorder=j == 0)
-                        self._graph = (key, cap.graph)
-                    except Exception:  # capture unsupported here: plain launches from now on
-                        self._graph = "failed"
-                if self._graph not in (None, "failed") and self._graph[0] == key:
-                    wp.capture_launch(self._graph[1])
-                    done = True
-            if not done:
+            def launches():
+                for j in range(k):
+                    self._launch_step(clock.time_step(), reorder=j == 0)
+
+            if not self._replay(("chunk", k), launches):
                 t0 = clock.time
                 for j in range(k):  # each step at its own start time (kinematic blocks read it)
                     self._launch_step(TimeStep(clock.dt, t0 + j * clock.dt, clock.dt_array), reorder=j == 0)
-                self._chunks_plain = getattr(self, "_chunks_plain", 0) + 1
+                self._plain_runs.add(("chunk", k))
         clock.tick(k)
 
     def step_many(self, n: int) -> None:

@@ -383,3 +383,19 @@ def test_relative_skin_check_keeps_every_neighbour_and_rebuilds_less():
         builds[mode] = count.builds
         assert np.abs(sim.velocities()).max() > 1.0  # the water flows
     assert builds["relative"] < 0.8 * builds["absolute"], builds
+
+
+@pytest.mark.skipif(not wp.get_device(DEVICE).is_cuda, reason="CUDA graphs: GPU only")
+def test_single_steps_replay_a_captured_step_on_a_gpu():
+    """Single steps (sim.step, and advance's steps outside the reorder chunks, e.g. between gauge reads a few
+    steps apart) replay one captured step on a GPU: the same trajectory as plain launches, and the list
+    rebuild a conditional node (plain launches would sort by cell every step)."""
+    a = _sim(continuity=True)
+    b = rockwave.Simulation(a.scene, device=DEVICE, options=SimulationOptions(fluid=FluidOptions(), cuda_graphs=False))
+    for sim in (a, b):
+        for _ in range(3):
+            sim.advance(3.5 * sim.dt)  # 3 or 4 steps per call: no chunk of 10 fits
+        sim.step_many(12)  # one chunk, two steps
+    assert ("step",) in a._plain_runs and any(k[-1:] == ("step",) for k in a._graphs)
+    assert not b._graphs and b.steps == a.steps and b.time == pytest.approx(a.time)
+    assert np.abs(b.positions() - a.positions()).max() < 1e-3 * a.fluid.spacing
