@@ -47,6 +47,9 @@ FORMULATIONS: dict[str, dict] = {
     "wendland-3-akinci": {"fluid.kernel": "wendland", "fluid.support_radius_ratio": 3.0, "fluid.boundary": "akinci"},
     "cubic-3": {"fluid.fidelity": "standard", "fluid.kernel": "cubic_spline"},
     "standard+diffusion": {"fluid.fidelity": "standard", "fluid.density_diffusion": 0.1},
+    # fidelity 'waves': standard with the kernel-gradient correction and the density floor (docs/notes.md
+    # 'Kernel-gradient correction'); the 2026-11-28 H200 record calls it standard+kgc
+    "waves": {"fluid.fidelity": "waves"},
 }
 CASES = ("standing_wave", "wave_maker", "dam_break", "spheric")
 STANDING = dict(depth=0.2, kh=0.9, mode=1, a=0.02, c0=12.0, signal="projection")  # first sloshing mode

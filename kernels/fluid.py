@@ -52,6 +52,7 @@ class SPHParams:
     fluid_mass: float  # mass of every fluid particle (boundary masses vary: particle_mass array)
     boundary: int  # BOUNDARY_AKINCI or BOUNDARY_ADAMI
     no_slip: int  # Adami walls: 1 = no-slip (viscous terms with the extrapolated wall velocity), 0 = free slip
+    gradient_correction: int  # 1: corrected kernel gradients in the continuity and pressure terms (corrected_grad)
     # Mueller kernel constants for H and dim (rockwave.fluid.set_kernel_constants; pow() per
     # neighbour was a large share of the neighbour loops on a GPU)
     w_coef: float  # poly6: 315/(64 pi H^9) (3D), 4/(pi H^8) (2D)
@@ -243,6 +244,86 @@ def equation_of_state_pass(rho: wp.array(dtype=float), p: SPHParams, pressure: w
 
 
 @wp.func
+def corrected_grad(gw: wp.vec3, li: wp.mat33, j: int, kgc: wp.array(dtype=wp.mat33), p: SPHParams) -> wp.vec3:
+    """The kernel gradient of the continuity and pressure terms between fluid particles i and j. With
+    fluid.gradient_correction, G_ij = (L_i + L_j)/2 grad W_ij, L the renormalisation matrices of
+    gradient_correction_matrix (Bonet & Lok 1999; symmetrised as Oger et al. 2007 so that G_ji = -G_ij: momentum is
+    kept, and with the same G in both terms the pressure's work equals the internal energy's change); grad W_ij
+    itself without it. Pairs with wall particles keep grad W_ib (the callers do not correct them): a wall's
+    velocity in the continuity sum is the wall's, not the water's, and L_i would mix the water's sliding velocity
+    into the wall-normal rate (measured: water sank through the floor of a 2D dam break)."""
+    if p.gradient_correction == 0:
+        return gw
+    return 0.5 * ((li + kgc[j]) * gw)
+
+
+@wp.func
+def own_correction(kgc: wp.array(dtype=wp.mat33), i: int, p: SPHParams) -> wp.mat33:
+    """L_i (the identity without fluid.gradient_correction: kgc is then a one-entry placeholder)."""
+    if p.gradient_correction == 0:
+        return wp.identity(n=3, dtype=float)
+    return kgc[i]
+
+
+# gradient_correction_matrix: the inverse is blended towards the identity where the kernel support is short of
+# fluid neighbours, by the smallest eigenvalue lambda of M_i (Marrone et al. 2010's free-surface indicator: ~1 in
+# the bulk, 0.5 on a flat free surface or a wall, 0.84-0.86 one layer below it at 3 spacings; 0.75 is their
+# interior bound). The smallest eigenvalue, not det M_i: a thin tongue of water on a floor or a line of splash
+# has one short direction that a determinant averages with the full ones.
+KGC_LAMBDA_FULL = wp.constant(0.75)
+KGC_LAMBDA_NONE = wp.constant(0.6)
+
+
+@wp.kernel
+def gradient_correction_matrix(
+    count: wp.array(dtype=int),
+    nbr: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    p: SPHParams,
+    kgc: wp.array(dtype=wp.mat33),
+):
+    """L_i = M_i^-1, M_i = sum_j V_j grad W_ij (x) (x_j - x_i) over the fluid neighbours (V_j = m/rho_j): the
+    matrix that makes the SPH gradient of a linear field over them exact (Bonet & Lok 1999). M_i is
+    symmetric (grad W_ij lies along x_ij); in 2D its z row is the identity's. With lambda the smallest eigenvalue of
+    M_i, L_i = w M_i^-1 + (1 - w) I, w = (lambda - KGC_LAMBDA_NONE)/(KGC_LAMBDA_FULL - KGC_LAMBDA_NONE) clipped to
+    [0, 1]: the full correction inside the water, none at the free surface, next to walls (whose pairs keep the
+    plain gradient, corrected_grad) and in splash. A particle whose list overflowed keeps the identity."""
+    i = wp.tid()
+    n = count.shape[0]
+    c = count[i]
+    ident = wp.identity(n=3, dtype=float)
+    if c > nbr.shape[0] // n:
+        kgc[i] = ident
+        return
+    xi = x[i]
+    H2 = p.H * p.H
+    m = wp.mat33(0.0)
+    for k in range(c):
+        j = nbr[k * n + i]
+        rij = xi - x[j]
+        r2 = wp.length_sq(rij)
+        if r2 < H2:
+            vol = float(0.0)
+            if j < p.n_fluid:
+                vol = p.fluid_mass / rho[j]
+            else:
+                vol = particle_mass[j] / p.rest_density
+            m += vol * wp.outer(kernel_grad(rij, wp.sqrt(r2), p), -rij)
+    if p.dim == 2:
+        m[2, 2] = 1.0
+    m = 0.5 * (m + wp.transpose(m))
+    q, d = wp.eig3(m)
+    lam = wp.min(wp.min(d[0], d[1]), d[2])
+    w = wp.clamp((lam - KGC_LAMBDA_NONE) / (KGC_LAMBDA_FULL - KGC_LAMBDA_NONE), 0.0, 1.0)
+    if w > 0.0:
+        kgc[i] = w * wp.inverse(m) + (1.0 - w) * ident
+    else:
+        kgc[i] = ident
+
+
+@wp.func
 def wall_pair_acceleration(b: int, rij: wp.vec3, r2: float, gw: wp.vec3, vi: wp.vec3, rhoi: float, pi_r2: float,
                            mb: float, wall_pr2: wp.array(dtype=float), wall_v: wp.array(dtype=wp.vec3), p: SPHParams):
     """Acceleration of fluid particle i from wall particle b (Adami et al. 2012): the momentum-conserving
@@ -278,9 +359,13 @@ def pair_acceleration(
     particle_mass: wp.array(dtype=float),
     wall_pr2: wp.array(dtype=float),
     wall_v: wp.array(dtype=wp.vec3),
+    li: wp.mat33,
+    kgc: wp.array(dtype=wp.mat33),
     p: SPHParams,
 ):
-    """Contributions of neighbour j (0 < r_ij < H) to particle i: (acceleration without gravity, XSPH sum)."""
+    """Contributions of neighbour j (0 < r_ij < H) to particle i: (acceleration without gravity, XSPH sum).
+    The fluid pairs' pressure terms use the corrected gradient (corrected_grad; li = L_i), the viscous and wall
+    terms grad W_ij."""
     rij = xi - x[j]
     r2 = wp.length_sq(rij)
     r = wp.sqrt(r2)
@@ -293,14 +378,15 @@ def pair_acceleration(
             # Akinci et al. 2012 boundary pressure: a_i -= Psi_b p_i/rho_i^2 grad W_ib (walls at rest)
             return -(mj * pi / (rhoi * rhoi)) * gw, dv
         return wall_pair_acceleration(j - p.n_fluid, rij, r2, gw, vi, rhoi, pi / (rhoi * rhoi), mj, wall_pr2, wall_v, p), dv
+    gc = corrected_grad(gw, li, j, kgc, p)
     rhoj = rho[j]
     pj = pressure[j]
     if p.pressure_form == FORCE_MOMENTUM:
         # a_i -= sum_j m_j (p_i/rho_i^2 + p_j/rho_j^2) grad W_ij  (Monaghan 1992)
-        a = -(mj * (pi / (rhoi * rhoi) + pj / (rhoj * rhoj))) * gw
+        a = -(mj * (pi / (rhoi * rhoi) + pj / (rhoj * rhoj))) * gc
     else:
         # Mueller 2003 symmetric: a_i -= 1/rho_i sum_j m_j (p_i + p_j)/(2 rho_j) grad W_ij
-        a = -(mj * (pi + pj) / (2.0 * rhoj * rhoi)) * gw
+        a = -(mj * (pi + pj) / (2.0 * rhoj * rhoi)) * gc
     vj = v[j]
     vij = vi - vj
     if p.mu > 0.0:
@@ -328,12 +414,14 @@ def particle_acceleration(
     particle_mass: wp.array(dtype=float),
     wall_pr2: wp.array(dtype=float),
     wall_v: wp.array(dtype=wp.vec3),
+    kgc: wp.array(dtype=wp.mat33),
     p: SPHParams,
     accel: wp.array(dtype=wp.vec3),
     xsph_dv: wp.array(dtype=wp.vec3),
 ):
     """a_i = pressure + viscosity + gravity; also the XSPH correction dv_i = eps sum m_j/rho_ij (v_j - v_i) W_ij
-    (neighbours from a hash-grid query; the fluid solver's own step uses particle_acceleration_list)."""
+    (neighbours from a hash-grid query; the fluid solver's own step uses particle_acceleration_list; kgc: the
+    gradient-correction matrices, or a one-entry placeholder without the correction)."""
     i = wp.tid()
     xi = x[i]
     vi = v[i]
@@ -345,7 +433,8 @@ def particle_acceleration(
     j = int(0)
     while wp.hash_grid_query_next(q, j):
         if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
-            da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, wall_pr2, wall_v, p)
+            da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, wall_pr2, wall_v,
+                                        own_correction(kgc, i, p), kgc, p)
             a += da
             dv += ddv
     accel[i] = a + p.gravity
@@ -757,16 +846,16 @@ def particle_density_summation_list(
 
 @wp.func
 def pair_density_rate(xi: wp.vec3, vi: wp.vec3, j: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-                      particle_mass: wp.array(dtype=float), p: SPHParams):
+                      particle_mass: wp.array(dtype=float), li: wp.mat33, kgc: wp.array(dtype=wp.mat33), p: SPHParams):
     # continuity: d rho_i/dt = sum_j m_j (v_i - v_j) . grad W_ij  (wall particles: v_j their wall's velocity,
-    # 0 for static walls)
+    # 0 for static walls; between fluid particles the corrected gradient with fluid.gradient_correction)
     rij = xi - x[j]
     r2 = wp.length_sq(rij)
     if r2 >= p.H * p.H:  # a list built with a skin also holds pairs out to H + skin
         return 0.0
     g = kernel_grad(rij, wp.sqrt(r2), p)
     if j < p.n_fluid:
-        return p.fluid_mass * wp.dot(vi - v[j], g)
+        return p.fluid_mass * wp.dot(vi - v[j], corrected_grad(g, li, j, kgc, p))
     return particle_mass[j] * wp.dot(vi - v[j], g)
 
 
@@ -801,6 +890,7 @@ def particle_density_continuity_list(
     v: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     dt: wp.array(dtype=float),
+    kgc: wp.array(dtype=wp.mat33),
     p: SPHParams,
     drho_dt: wp.array(dtype=float),
     rho: wp.array(dtype=float),
@@ -820,8 +910,9 @@ def particle_density_continuity_list(
     xi = x[i]
     vi = v[i]
     s = float(0.0)
+    li = own_correction(kgc, i, p)
     for k in range(c):
-        s += pair_density_rate(xi, vi, nbr[k * n + i], x, v, particle_mass, p)
+        s += pair_density_rate(xi, vi, nbr[k * n + i], x, v, particle_mass, li, kgc, p)
     drho_dt[i] = s
     store_density(i, rho[i] + dt[0] * s, p, rho, pressure, pr2)
 
@@ -838,6 +929,7 @@ def particle_density_overflow(
     v: wp.array(dtype=wp.vec3),
     particle_mass: wp.array(dtype=float),
     dt: wp.array(dtype=float),
+    kgc: wp.array(dtype=wp.mat33),
     p: SPHParams,
     summation: int,
     drho_dt: wp.array(dtype=float),
@@ -866,7 +958,7 @@ def particle_density_overflow(
                 if summation != 0:
                     s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
                 else:
-                    s += pair_density_rate(xi, vi, j, x, v, particle_mass, p)
+                    s += pair_density_rate(xi, vi, j, x, v, particle_mass, own_correction(kgc, i, p), kgc, p)
     if summation == 0:
         drho_dt[i] = s
         s = continuity_floor(rho[i] + dt[0] * s, p)
@@ -893,6 +985,7 @@ def neighbour_list_density(
     dt: wp.array(dtype=float),
     p: SPHParams,
     mode: int,
+    kgc: wp.array(dtype=wp.mat33),
     count: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
     drho_dt: wp.array(dtype=float),
@@ -928,7 +1021,7 @@ def neighbour_list_density(
                 c += 1
                 if r2 < H2:
                     if mode == DENSITY_CONTINUITY:
-                        s += pair_density_rate(xi, vi, j, x, v, particle_mass, p)
+                        s += pair_density_rate(xi, vi, j, x, v, particle_mass, own_correction(kgc, i, p), kgc, p)
                     elif mode == DENSITY_SUMMATION:
                         s += particle_mass[j] * kernel_w(r2, p)
     count[i] = c
@@ -958,6 +1051,8 @@ def pair_acceleration_fluid(
     particle_mass: wp.array(dtype=float),
     wall_pr2: wp.array(dtype=float),
     wall_v: wp.array(dtype=wp.vec3),
+    li: wp.mat33,
+    kgc: wp.array(dtype=wp.mat33),
     p: SPHParams,
 ):
     """pair_acceleration with the fluid mass from p.fluid_mass (no mass read for fluid neighbours) and
@@ -975,15 +1070,16 @@ def pair_acceleration_fluid(
             # Akinci et al. 2012 boundary pressure: a_i -= Psi_b p_i/rho_i^2 grad W_ib (walls at rest)
             return -(particle_mass[j] * pi_r2) * gw, dv
         return wall_pair_acceleration(j - p.n_fluid, rij, r2, gw, vi, rhoi, pi_r2, particle_mass[j], wall_pr2, wall_v, p), dv
+    gc = corrected_grad(gw, li, j, kgc, p)
     mj = p.fluid_mass
     rhoj = rho[j]
     a = wp.vec3(0.0)
     if p.pressure_form == FORCE_MOMENTUM:
-        # a_i -= sum_j m_j (p_i/rho_i^2 + p_j/rho_j^2) grad W_ij  (Monaghan 1992)
-        a = -(mj * (pi_r2 + pr2[j])) * gw
+        # a_i -= sum_j m_j (p_i/rho_i^2 + p_j/rho_j^2) G_ij  (Monaghan 1992; G_ij: corrected_grad)
+        a = -(mj * (pi_r2 + pr2[j])) * gc
     else:
-        # Mueller 2003 symmetric: a_i -= 1/rho_i sum_j m_j (p_i + p_j)/(2 rho_j) grad W_ij
-        a = -(mj * (pi + pressure[j]) / (2.0 * rhoj * rhoi)) * gw
+        # Mueller 2003 symmetric: a_i -= 1/rho_i sum_j m_j (p_i + p_j)/(2 rho_j) G_ij
+        a = -(mj * (pi + pressure[j]) / (2.0 * rhoj * rhoi)) * gc
     vij = vi - v[j]
     if p.mu > 0.0:
         # Mueller 2003: a_i += mu/rho_i sum_j m_j (v_j - v_i)/rho_j lap W_ij
@@ -1019,6 +1115,7 @@ def particle_acceleration_list(
     particle_mass: wp.array(dtype=float),
     wall_pr2: wp.array(dtype=float),
     wall_v: wp.array(dtype=wp.vec3),
+    kgc: wp.array(dtype=wp.mat33),
     p: SPHParams,
     accel: wp.array(dtype=wp.vec3),
     xsph_dv: wp.array(dtype=wp.vec3),
@@ -1036,9 +1133,10 @@ def particle_acceleration_list(
     pi_r2 = pr2[i]
     a = wp.vec3(0.0)
     dv = wp.vec3(0.0)
+    li = own_correction(kgc, i, p)
     for k in range(c):
         da, ddv = pair_acceleration_fluid(nbr[k * n + i], xi, vi, rhoi, pi, pi_r2, x, v, rho, pressure, pr2,
-                                          particle_mass, wall_pr2, wall_v, p)
+                                          particle_mass, wall_pr2, wall_v, li, kgc, p)
         a += da
         dv += ddv
     accel[i] = a + p.gravity
@@ -1060,6 +1158,7 @@ def particle_acceleration_overflow(
     particle_mass: wp.array(dtype=float),
     wall_pr2: wp.array(dtype=float),
     wall_v: wp.array(dtype=wp.vec3),
+    kgc: wp.array(dtype=wp.mat33),
     p: SPHParams,
     accel: wp.array(dtype=wp.vec3),
     xsph_dv: wp.array(dtype=wp.vec3),
@@ -1081,7 +1180,8 @@ def particle_acceleration_overflow(
         for k in range(s0, e0):
             j = g.order[k]
             if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
-                da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, wall_pr2, wall_v, p)
+                da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, wall_pr2, wall_v,
+                                            own_correction(kgc, i, p), kgc, p)
                 a += da
                 dv += ddv
     accel[i] = a + p.gravity

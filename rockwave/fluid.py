@@ -223,6 +223,7 @@ def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
     p.n_fluid = n_fluid
     p.boundary = sph.BOUNDARY_ADAMI if scene_fluid.get("boundary") == "adami" else sph.BOUNDARY_AKINCI
     p.no_slip = 1 if scene_fluid.get("wall_slip") == "no_slip" else 0
+    p.gradient_correction = 1 if scene_fluid.get("gradient_correction") else 0
     p.grad_scale = 1.0
     p.fluid_mass = 0.0  # set by build_fluid_model (calibrated)
     set_kernel_constants(p)
@@ -309,6 +310,9 @@ class FluidSolver:
         self._pr2 = wp.zeros(nf, dtype=float, device=d)  # p / rho^2 of this step (kernels/fluid.py pair_acceleration_fluid)
         self._wall_pr2 = wp.zeros(max(model.n_boundary, 1), dtype=float, device=d)  # p_b / rho_b^2 (Adami walls)
         self._zero_dt = wp.zeros(1, dtype=float, device=d)
+        # fluid.gradient_correction: L_i of every fluid particle, computed each step after the lists
+        # (kernels/fluid.py gradient_correction_matrix); a one-entry placeholder without it
+        self.kgc = wp.zeros(nf if model.params.gradient_correction else 1, dtype=wp.mat33, device=d)
         # wall particles of moving blocks (rockwave/coupling.py BlockWalls): their acceleration a_b (Adami 2012
         # eq. 27, written by the coupling each step; zero for static walls) and their positions at the last list
         # build (_xq: the cell queries of the wall pressure start there; static walls: their own positions)
@@ -624,7 +628,7 @@ class FluidSolver:
         m = self.model
         self._launch(sph.particle_density_overflow, m.n_fluid,
                      [self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
-                      state.v, m.particle_mass, dt if dt is not None else self._zero_dt, m.params, 1 if summation else 0],
+                      state.v, m.particle_mass, dt if dt is not None else self._zero_dt, self.kgc, m.params, 1 if summation else 0],
                      [state.drho_dt, state.rho, state.pressure, self._pr2])
 
     def set_density(self, state: FluidState, rho: np.ndarray) -> None:
@@ -643,17 +647,21 @@ class FluidSolver:
             return
         dt = ts.dt_array
         density_done = self._neighbour_lists(state, dt)
+        if m.params.gradient_correction:
+            self._launch(sph.gradient_correction_matrix, m.n_fluid,
+                         [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, m.params], [self.kgc])
         self._density(state, dt, density_done)
         if m.density_diffusion > 0.0 and m.density is Density.CONTINUITY:
             self._density_diffusion(state, dt)
         self.wall_pressure(state)
         self._launch(sph.particle_acceleration_list, m.n_fluid,
                      [self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
-                      m.particle_mass, self._wall_pr2, state.wall_velocity, m.params],
+                      m.particle_mass, self._wall_pr2, state.wall_velocity, self.kgc, m.params],
                      [state.accel, state.xsph_dv], block_dim=self._block_dim)
         self._launch(sph.particle_acceleration_overflow, m.n_fluid,
                      [self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
-                      state.v, state.rho, state.pressure, m.particle_mass, self._wall_pr2, state.wall_velocity, m.params],
+                      state.v, state.rho, state.pressure, m.particle_mass, self._wall_pr2, state.wall_velocity, self.kgc,
+                      m.params],
                      [state.accel, state.xsph_dv])
         self._extra_forces(state)
         for reaction in self.wall_reactions:  # the moving walls' share goes to their blocks (rockwave/coupling.py)
@@ -679,7 +687,7 @@ class FluidSolver:
         m = self.model
         guard = self._list_guard(state)
         # the fused list build + density needs the host to know that the list is rebuilt this step
-        fused = self.fused_density and guard is self._always
+        fused = self.fused_density and guard is self._always and not m.params.gradient_correction  # L_i first
         if guard is self._rebuild and self.conditional_rebuild and m.device.is_capturing:
             # in a CUDA graph the rebuild is a conditional node on the device flag: the steps that keep
             # the list skip the radix sort and the cell/list launches instead of running them to no effect
@@ -695,7 +703,7 @@ class FluidSolver:
             if fused:
                 self._launch(sph.neighbour_list_density, m.n_fluid,
                              [self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, m.particle_mass, dt,
-                              m.params, int(m.density)],
+                              m.params, int(m.density), self.kgc],
                              [self._nbr_count, self._nbr, state.drho_dt, state.rho, state.pressure, self._pr2,
                               self._x_build])
                 self._store_wall_build(state, guard)
@@ -714,7 +722,7 @@ class FluidSolver:
             self.compute_density(state, lists=True)
         else:
             self._launch(sph.particle_density_continuity_list, m.n_fluid,
-                         [self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, m.params],
+                         [self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, self.kgc, m.params],
                          [state.drho_dt, state.rho, state.pressure, self._pr2])
             self._density_overflow(state, dt, summation=False)
 

@@ -85,18 +85,24 @@ _REGION_KEYS = dict(
 
 
 # fluid.fidelity -> the defaults it gives (a key the scene sets wins). Chosen from the accuracy-against-cost
-# measurements in docs/notes.md ('Accuracy against cost'); 'draft' is the formulation that was the default before.
-# No level turns on density diffusion: alone it blew up in SPHERIC Test 2 at 0.012 m on the H100 (splash water at a
-# third of rho0 crossed the back wall; density_floor makes it stable) and it changed the standing wave's decay by 0.2
-# points only. No level sets density_floor: it reads worse on the wave maker, the dam-break front and the P1 peak
-# (docs/notes.md 'Time step, wave-maker reference, ...').
+# measurements in docs/notes.md ('Accuracy against cost', 'Kernel-gradient correction'); 'draft' is the formulation
+# that was the default before. No level turns on density diffusion: alone it blew up in SPHERIC Test 2 at 0.012 m on
+# the H100 (splash water at a third of rho0 crossed the back wall; density_floor makes it stable) and it changed the
+# standing wave's decay by 0.2 points only. 'waves' is 'standard' with the kernel-gradient correction and the
+# density floor it needs in violent flows: on the H200 the standing wave decays 0.84% per period at 50 per depth
+# (standard 2.3%, high 1.2%) with its period within 0.1%, the wave maker reads -6.8% / -2.6% at 32 layers (standard
+# -6.7% / -7.0%), at 1.3x standard's cost in 2D and 1.44x in SPHERIC Test 2 (high: 2.3x); but water at rest reads
+# 2-4% high at the walls (standard 1-2%) and the dam-break front runs 0.8 points farther ahead, so it is not the
+# default. Ghost SPH takes a level without the correction and the floor (basic WCSPH only; apply_fidelity).
 FIDELITY = {
     "draft": dict(kernel="muller", support_radius_ratio=2.0, density_diffusion=0.0, boundary="akinci", artificial_alpha=0.0,
-                  density_floor=False),
+                  density_floor=False, gradient_correction=False),
     "standard": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
-                     density_floor=False),
+                     density_floor=False, gradient_correction=False),
     "high": dict(kernel="wendland", support_radius_ratio=4.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
-                 density_floor=False),
+                 density_floor=False, gradient_correction=False),
+    "waves": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
+                  density_floor=True, gradient_correction=True),
 }
 
 SCHEMA: dict[str, Key] = {
@@ -121,7 +127,7 @@ SCHEMA: dict[str, Key] = {
         "weakly compressible SPH water (leave the section out for a scene of blocks alone)", optional=True,
         spacing_m=Key("float", "initial particle spacing", required=True, min=0, min_open=True),
         rest_density_kg_m3=Key("float", "rest density rho0", default=1000.0, min=0, min_open=True),
-        fidelity=Key("str", "speed against accuracy without SPH internals: sets the defaults of kernel, support_radius_ratio, density_diffusion, boundary and viscosity.artificial_alpha (any of them given in the scene wins); 'draft': the old fast formulation (Mueller kernels at 2 spacings, frozen Akinci walls, no diffusion); 'standard': Wendland C2 at 3 spacings, Adami walls, alpha 0.01; 'high': as standard at 4 spacings (docs/notes.md 'Accuracy against cost' has the measurements)", default="standard", choices=tuple(FIDELITY)),
+        fidelity=Key("str", "speed against accuracy without SPH internals: sets the defaults of kernel, support_radius_ratio, density_diffusion, boundary and viscosity.artificial_alpha (any of them given in the scene wins); 'draft': the old fast formulation (Mueller kernels at 2 spacings, frozen Akinci walls, no diffusion); 'standard': Wendland C2 at 3 spacings, Adami walls, alpha 0.01; 'high': as standard at 4 spacings; 'waves': standard with gradient_correction and density_floor, for wave propagation (0.84% decay per period of a standing wave at 50 particles per depth against standard's 2.3%, at 1.3-1.4x standard's cost; water at rest reads 2-4% high at the walls; Ghost SPH takes it without the two); docs/notes.md 'Accuracy against cost' and 'Kernel-gradient correction' have the measurements", default="standard", choices=tuple(FIDELITY)),
         kernel=Key("str", "'muller': poly6 density, spiky pressure gradient, viscosity Laplacian (Mueller 2003); 'cubic_spline': Monaghan cubic spline for all; 'wendland': Wendland C2 (no pairing instability at large support_radius_ratio) for all; h = H/2 for the last two (default: from fidelity)", choices=("muller", "cubic_spline", "wendland")),
         support_radius_ratio=Key("float", "kernel support radius / spacing (2.0 gives ~30 neighbours in 3D, ~12 in 2D; 3.0 ~113 and ~28; above 1: at 1 the nearest neighbours sit on the support's edge; default: from fidelity)", min=1.0, max=5.0, min_open=True),
         boundary=Key("str", "wall treatment of the tank and obstacle particles: 'adami': generalized wall boundary (Adami, Hu & Adams 2012), each wall particle carries the pressure extrapolated from the fluid plus the hydrostatic part, so walls and corners get the fluid's pressure (needs walls as thick as the kernel support); 'akinci': frozen particles pushing with -Psi_b p_i/rho_i^2 grad W (Akinci et al. 2012; cheaper, wall pressure ~30-70% off); default: from fidelity", choices=("adami", "akinci")),
@@ -129,7 +135,8 @@ SCHEMA: dict[str, Key] = {
         pressure_force=Key("str", "'momentum': -m_i sum m_j (p_i/rho_i^2 + p_j/rho_j^2) gradW; 'muller': -m_i/rho_i sum m_j (p_i+p_j)/(2 rho_j) gradW", default="momentum", choices=("momentum", "muller")),
         density=Key("str", "'continuity': d rho_i/dt = sum m_j (v_i - v_j).gradW_ij (keeps rho0 at a free surface); 'summation': rho_i = sum m_j W_ij", default="continuity", choices=("continuity", "summation")),
         clamp_negative_pressure=Key("bool", "clip p < 0 to 0 (prevents tensile clumping at a free surface with summation density)", default=True),
-        density_floor=Key("bool", "continuity density kept at rho0 or above: with negative pressure clipped a lower density holds no pressure and no energy, only a memory of expansion, and a splash particle whose neighbours left it (250-300 kg/m^3 in SPHERIC Test 2) is compressed back that far before it pushes (kernels/fluid.py continuity_floor). Makes density_diffusion stable in SPHERIC Test 2 (without it low-density splash crossed the back wall) and its mean density error 5.4% -> 0.5%, but reads worse on the wave maker, the dam-break front and the P1 peak (docs/notes.md 'Density floor'), so no level sets it; basic method, continuity density and clamp_negative_pressure only (default: from fidelity, false)"),
+        density_floor=Key("bool", "continuity density kept at rho0 or above: with negative pressure clipped a lower density holds no pressure and no energy, only a memory of expansion, and a splash particle whose neighbours left it (250-300 kg/m^3 in SPHERIC Test 2) is compressed back that far before it pushes (kernels/fluid.py continuity_floor). Makes density_diffusion stable in SPHERIC Test 2 (without it low-density splash crossed the back wall) and its mean density error 5.4% -> 0.5%, but reads worse on the wave maker, the dam-break front and the P1 peak (docs/notes.md 'Density floor'), so only 'waves' (with gradient_correction, which needs it) sets it; basic method, continuity density and clamp_negative_pressure only (default: from fidelity, false)"),
+        gradient_correction=Key("bool", "kernel-gradient correction in the continuity and pressure terms: G_ij = (L_i + L_j)/2 grad W_ij, L_i the inverse of sum_j V_j grad W_ij (x) (x_j - x_i) (Bonet & Lok 1999; symmetrised, so momentum and the pressure's energy exchange are kept), blended to the plain gradient where the support is short of neighbours (smallest eigenvalue of the matrix below 0.75: the free surface and splash, Marrone et al. 2010; kernels/fluid.py gradient_correction_matrix); pairs with wall particles keep the plain gradient. Standing wave at 50 per depth 0.84% decay per period (standard 2.3%); use with density_floor in violent flows (without it water sank through a dam break's floor); basic method only (default: from fidelity, true for 'waves')"),
         density_diffusion=Key("float", "delta of the delta-SPH density diffusion with continuity density (Molteni & Colagrossi 2009, hydrostatic part removed as Fourtakas et al. 2019): d rho_i/dt += delta (H/2) c0 sum_j 2 (rho_j - rho_i - rho0 g.x_ji/c0^2) x_ji.grad_i W_ij/r^2 V_j; 0.1 typical, 0 = off; continuity density only (kernels/diffusion.py; default: from fidelity, 0 with summation density)", min=0.0, max=1.0),
         method=Key("str", "'basic': WCSPH as above; 'ghost': Ghost SPH free surface (Schechter & Bridson 2012), ghost air particles seeded each step around the free surface ([fluid.ghost])", default="basic", choices=("basic", "ghost")),
         ghost=_sec(
@@ -642,9 +649,17 @@ def apply_fidelity(v: _Validator, fl: Node, tank: Node | None) -> None:
     """Fill the formulation keys the scene leaves out from fluid.fidelity (FIDELITY), then check what the chosen
     formulation cannot do: Adami walls need boundary layers as thick as the kernel support."""
     level = FIDELITY.get(fl.get("fidelity")) or FIDELITY["standard"]
-    for k in ("kernel", "support_radius_ratio", "boundary", "density_floor"):
+    for k in ("kernel", "support_radius_ratio", "boundary", "density_floor", "gradient_correction"):
         if fl.get(k) is None:
             fl[k] = level[k]
+            # a level's density floor and gradient correction are for basic WCSPH with continuity density and
+            # clipped pressure: where the scene chose otherwise the level gives them off (set by hand they are errors,
+            # _check_method_options)
+            if k == "density_floor" and (fl.get("method") == "ghost" or fl.get("density") == "summation"
+                                         or not fl.get("clamp_negative_pressure")):
+                fl[k] = False
+            if k == "gradient_correction" and fl.get("method") == "ghost":
+                fl[k] = False
     if fl.get("density_diffusion") is None:
         fl["density_diffusion"] = level["density_diffusion"] if fl.get("density") == "continuity" else 0.0
     visc = fl.get("viscosity")
@@ -678,6 +693,9 @@ def _check_method_options(v: _Validator, fl: Node) -> None:
         if why:
             v.err("fluid.density_floor", f"= true needs basic WCSPH with continuity density and clipped negative pressure, "
                                          f"but the scene has {', '.join(why)} (remove the key or change those)")
+    if fl.get("gradient_correction") and fl.get("method") == "ghost":
+        v.err("fluid.gradient_correction", "= true needs fluid.method = 'basic': the Ghost SPH passes use the plain "
+                                           "kernel gradient (remove the key or the ghost method)")
     raw_ghost = raw.get("ghost") if isinstance(raw.get("ghost"), dict) else {}
     if fl.get("method") != "ghost" and raw_ghost:
         v.err("fluid.ghost", f"sets {sorted(raw_ghost)} but fluid.method = {fl.get('method')!r}: the ghost settings apply "

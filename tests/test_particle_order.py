@@ -141,11 +141,12 @@ def test_neighbour_list_overflow_falls_back_to_cell_query():
             solver.compute_density(s)
             wp.launch(sph.particle_acceleration_list, dim=n,
                       inputs=[solver._nbr_count, solver._nbr, s.x, s.v, s.rho, s.pressure, solver._pr2,
-                              model.particle_mass, solver._wall_pr2, s.wall_velocity, model.params],
+                              model.particle_mass, solver._wall_pr2, s.wall_velocity, solver.kgc, model.params],
                       outputs=[s.accel, s.xsph_dv], device=DEVICE)
             wp.launch(sph.particle_acceleration_overflow, dim=n,
                       inputs=[solver.cells, *solver._slot_ranges, solver.list_radius, solver._nbr_count, solver.neighbour_cap, s.x, s.v,
-                              s.rho, s.pressure, model.particle_mass, solver._wall_pr2, s.wall_velocity, model.params],
+                              s.rho, s.pressure, model.particle_mass, solver._wall_pr2, s.wall_velocity, solver.kgc,
+                              model.params],
                       outputs=[s.accel, s.xsph_dv],
                       device=DEVICE)
         return s.rho.numpy().copy(), s.accel.numpy().copy(), s.xsph_dv.numpy().copy()

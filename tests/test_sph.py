@@ -105,7 +105,7 @@ def test_pair_forces_conserve_momentum_and_match_reference(form, kernel):
     solver.compute_density(s)
     wp.launch(sph.particle_acceleration, dim=model.n_fluid,
               inputs=[solver.grid.id, s.x, s.v, s.rho, s.pressure, model.particle_mass, solver._wall_pr2, s.wall_velocity,
-                      model.params],
+                      solver.kgc, model.params],
               outputs=[s.accel, s.xsph_dv], device=DEVICE)
     a = s.accel.numpy().astype(np.float64)
     m = model.fluid_mass
@@ -203,7 +203,7 @@ def test_xsph_matches_reference():
     solver.compute_density(s)
     wp.launch(sph.particle_acceleration, dim=model.n_fluid,
               inputs=[solver.grid.id, s.x, s.v, s.rho, s.pressure, model.particle_mass, solver._wall_pr2, s.wall_velocity,
-                      model.params],
+                      solver.kgc, model.params],
               outputs=[s.accel, s.xsph_dv], device=DEVICE)
     X = s.x.numpy().astype(np.float64)
     rho = s.rho.numpy().astype(np.float64)
