@@ -49,7 +49,7 @@ class FluidOptions:
     check_cells_per_particle: the relative check falls back to "absolute" past this many cells a particle.
     relative_min_particles_cuda: on a GPU the relative check starts at this many particles (below, its 5 extra
         launches cost more than the builds they save: H100, 3,600 particles, 0.46 -> 0.69 ms/step).
-    cfl_number: Courant number of the adaptive step (``simulation.cfl_number``; None: 0.4, the scene default)."""
+    cfl_number: Courant number of the adaptive step (``simulation.cfl_number``; None: 0.6, the scene default)."""
 
     neighbour_skin: float = 0.05
     skin_check: str = "relative"
@@ -292,7 +292,7 @@ class FluidSolver:
         self.reorder_interval = self.default_reorder_interval if o.reorder_interval is None else int(o.reorder_interval)
         self.recorded_launches = self.default_recorded_launches if o.recorded_launches is None else bool(o.recorded_launches)
         self.fused_density = (not is_cuda) if o.fused_density is None else bool(o.fused_density)
-        self.cfl_number = 0.4 if o.cfl_number is None else float(o.cfl_number)
+        self.cfl_number = 0.6 if o.cfl_number is None else float(o.cfl_number)
         self.skin_check = o.skin_check
         self.conditional_rebuild = o.conditional_rebuild
         self.cell = model.support_radius * o.cell_ratio

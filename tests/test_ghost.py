@@ -474,13 +474,13 @@ def test_ghost_scene_above_the_stable_courant_number_warns():
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             rockwave.Simulation(_scene(f"ghost_dam_break_case{case}.toml", **{"fluid.spacing_m": 0.05}), device=DEVICE)
-    # a ghost scene that gives no Courant number gets GHOST_CFL_MAX, not the basic method's default 0.4
+    # a ghost scene that gives no Courant number gets GHOST_CFL_MAX, not the basic method's default 0.6
     d = rockwave.load_scene(ROOT / "scenes" / "ghost_dam_break_case1.toml").raw
     d["simulation"].pop("cfl_number")
     assert rockwave.parse_scene(d).simulation.cfl_number == GHOST_CFL_MAX
     d["fluid"]["method"] = "basic"
     d["fluid"].pop("ghost", None)
-    assert rockwave.parse_scene(d).simulation.cfl_number == 0.4
+    assert rockwave.parse_scene(d).simulation.cfl_number == 0.6
 
 
 def test_tile_sampler_with_persistent_ghosts_is_a_scene_error():

@@ -14,4 +14,10 @@ RECORDED = json.loads(FILE.read_text())
 
 @pytest.mark.parametrize("name", sorted(RECORDED))
 def test_scene_trajectory_is_bit_identical(name):
-    assert scene_hashes(ROOT / "scenes" / f"{name}.toml") == RECORDED[name]
+    """A scene's entry is one set of hashes, or a list of them where another machine gives other last bits with
+    the same code (seen 2026-11-28 for the two large jointed rock masses, fjord and rock_slope_10k: block hashes
+    only, the water's identical; their blocks are cut on the host with numpy and scipy, whose results can depend
+    on the machine and the library versions; the cause was not isolated): each set in the list is one machine's
+    exact trajectory, and the scene must reproduce one of them bit for bit."""
+    rec = RECORDED[name]
+    assert scene_hashes(ROOT / "scenes" / f"{name}.toml") in (rec if isinstance(rec, list) else [rec])

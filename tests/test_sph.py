@@ -270,8 +270,9 @@ def test_step_stability_limit_of_the_lattice_analysis_and_the_default_courant_nu
     """benchmarks/courant.py: the semi-implicit Euler step is linearly stable on the lattice below C_max =
     2 / (h max|G(k)|) (dt = C h / c0); for Wendland C2 at 3 spacings in 2D C_max = 1.76. A tank at rest (walls,
     gravity, a 1e-4 m/s velocity noise) stepped at a fixed C = 1.4 stays quiet for 400 steps; at C = 2.0 it
-    blows up. The default Courant number (simulation.cfl_number) is at most a quarter of C_max for every kernel
-    and support the schema offers."""
+    blows up. The default Courant number (simulation.cfl_number, 0.6) is at most 0.35 C_max for every kernel and
+    support the schema offers (a margin of 2.9 on the lattice, ~2.5 against the tank's 1.5-1.7; at 0.6 and 0.8 the
+    chart's cases read as at 0.4: docs/notes.md 'Courant number 0.6')."""
     from benchmarks.courant import lattice_acoustic_limit
     from rockwave.scene import SCHEMA
 
@@ -295,7 +296,7 @@ def test_step_stability_limit_of_the_lattice_analysis_and_the_default_courant_nu
     assert speeds[1.4] < 0.05 and speeds[2.0] > 1.0, speeds
     default = SCHEMA["simulation"].children["cfl_number"].default
     for kernel, ratio in (("muller", 2.0), ("cubic_spline", 3.0), ("wendland", 2.5), ("wendland", 3.0), ("wendland", 4.0)):
-        assert default <= 0.25 * lattice_acoustic_limit(kernel, ratio, 2), (kernel, ratio)
+        assert default <= 0.35 * lattice_acoustic_limit(kernel, ratio, 2), (kernel, ratio)
 
 
 def test_density_floor_forgets_expansion_and_changes_no_energy():
