@@ -429,12 +429,13 @@ def particle_acceleration(
     pi = pressure[i]
     a = wp.vec3(0.0)
     dv = wp.vec3(0.0)
+    li = own_correction(kgc, i, p)
     q = wp.hash_grid_query(grid, xi, p.H)
     j = int(0)
     while wp.hash_grid_query_next(q, j):
         if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
             da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, wall_pr2, wall_v,
-                                        own_correction(kgc, i, p), kgc, p)
+                                        li, kgc, p)
             a += da
             dv += ddv
     accel[i] = a + p.gravity
@@ -949,6 +950,7 @@ def particle_density_overflow(
     s = float(0.0)
     if summation != 0:
         s = particle_mass[i] * kernel_w(0.0, p)
+    li = own_correction(kgc, i, p)
     ix, iy, iz = cell_of(g, xi)
     for r in range(r_lo, r_hi):
         s0, e0 = slot_range(g, xi, R, iy, iz, r)
@@ -958,7 +960,7 @@ def particle_density_overflow(
                 if summation != 0:
                     s += particle_mass[j] * kernel_w(wp.length_sq(xi - x[j]), p)
                 else:
-                    s += pair_density_rate(xi, vi, j, x, v, particle_mass, own_correction(kgc, i, p), kgc, p)
+                    s += pair_density_rate(xi, vi, j, x, v, particle_mass, li, kgc, p)
     if summation == 0:
         drho_dt[i] = s
         s = continuity_floor(rho[i] + dt[0] * s, p)
@@ -1009,6 +1011,7 @@ def neighbour_list_density(
         s = particle_mass[i] * kernel_w(0.0, p)
     c = int(0)
     H2 = p.H * p.H
+    li = own_correction(kgc, i, p)
     ix, iy, iz = cell_of(g, xi)
     for r in range(r_lo, r_hi):
         s0, e0 = slot_range(g, xi, R, iy, iz, r)
@@ -1021,7 +1024,7 @@ def neighbour_list_density(
                 c += 1
                 if r2 < H2:
                     if mode == DENSITY_CONTINUITY:
-                        s += pair_density_rate(xi, vi, j, x, v, particle_mass, own_correction(kgc, i, p), kgc, p)
+                        s += pair_density_rate(xi, vi, j, x, v, particle_mass, li, kgc, p)
                     elif mode == DENSITY_SUMMATION:
                         s += particle_mass[j] * kernel_w(r2, p)
     count[i] = c
@@ -1174,6 +1177,7 @@ def particle_acceleration_overflow(
     pi = pressure[i]
     a = wp.vec3(0.0)
     dv = wp.vec3(0.0)
+    li = own_correction(kgc, i, p)
     ix, iy, iz = cell_of(g, xi)
     for r in range(r_lo, r_hi):
         s0, e0 = slot_range(g, xi, R, iy, iz, r)
@@ -1181,7 +1185,7 @@ def particle_acceleration_overflow(
             j = g.order[k]
             if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
                 da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, wall_pr2, wall_v,
-                                            own_correction(kgc, i, p), kgc, p)
+                                            li, kgc, p)
                 a += da
                 dv += ddv
     accel[i] = a + p.gravity

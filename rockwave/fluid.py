@@ -611,6 +611,14 @@ class FluidSolver:
         if self.neighbour_skin > 0:
             self._rebuild.zero_()
 
+    def gradient_correction(self, state: FluidState) -> None:
+        """fluid.gradient_correction: the matrices L_i of this step into self.kgc (kernels/fluid.py
+        gradient_correction_matrix), after the lists and before the density; nothing without the correction."""
+        m = self.model
+        if m.params.gradient_correction:
+            self._launch(sph.gradient_correction_matrix, m.n_fluid,
+                         [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, m.params], [self.kgc])
+
     def compute_density(self, state: FluidState, lists: bool = False) -> None:
         """Summation density and pressure (before the first step, and each step in summation mode;
         ``lists``: the cell grid and neighbour lists are current)."""
@@ -647,9 +655,7 @@ class FluidSolver:
             return
         dt = ts.dt_array
         density_done = self._neighbour_lists(state, dt)
-        if m.params.gradient_correction:
-            self._launch(sph.gradient_correction_matrix, m.n_fluid,
-                         [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, m.params], [self.kgc])
+        self.gradient_correction(state)
         self._density(state, dt, density_done)
         if m.density_diffusion > 0.0 and m.density is Density.CONTINUITY:
             self._density_diffusion(state, dt)

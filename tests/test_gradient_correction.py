@@ -55,20 +55,24 @@ def _disordered_model(dim: int, correction: bool):
     return model, s, n
 
 
-@pytest.mark.parametrize("dim", [2, 3])
-def test_corrected_gradient_of_a_linear_field_is_exact_inside_disordered_water(dim):
-    """f = c . x sampled on jittered particles: sum_j V_j (f_j - f_i) L_i grad W_ij = c for every particle whose
-    correction is full (Bonet & Lok 1999), to float32 precision; the plain gradient is off by several percent there."""
-    model, s, n = _disordered_model(dim, True)
+def _prepared(model):
+    """State and solver with the lists, the summation density and (with the correction) the matrices L_i."""
     st = model.state()
     solver = FluidSolver(model)
     with wp.ScopedDevice(DEVICE):
         solver.build_cells(st)
         solver.build_neighbour_lists(st)
         solver.compute_density(st)
-        wp.launch(sph.gradient_correction_matrix, dim=model.n_fluid,
-                  inputs=[solver._nbr_count, solver._nbr, st.x, st.rho, model.particle_mass, model.params],
-                  outputs=[solver.kgc], device=DEVICE)
+        solver.gradient_correction(st)
+    return st, solver
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_corrected_gradient_of_a_linear_field_is_exact_inside_disordered_water(dim):
+    """f = c . x sampled on jittered particles: sum_j V_j (f_j - f_i) L_i grad W_ij = c for every particle whose
+    correction is full (Bonet & Lok 1999), to float32 precision; the plain gradient is off by several percent there."""
+    model, s, n = _disordered_model(dim, True)
+    st, solver = _prepared(model)
     X = st.x.numpy().astype(np.float64)
     rho = st.rho.numpy().astype(np.float64)
     L = solver.kgc.numpy().astype(np.float64)
@@ -98,16 +102,8 @@ def test_corrected_pair_forces_conserve_momentum():
     totals, accels = {}, {}
     for corr in (False, True):
         model, s, n = _disordered_model(3, corr)
-        st = model.state()
-        solver = FluidSolver(model)
+        st, solver = _prepared(model)
         with wp.ScopedDevice(DEVICE):
-            solver.build_cells(st)
-            solver.build_neighbour_lists(st)
-            solver.compute_density(st)
-            if corr:
-                wp.launch(sph.gradient_correction_matrix, dim=model.n_fluid,
-                          inputs=[solver._nbr_count, solver._nbr, st.x, st.rho, model.particle_mass, model.params],
-                          outputs=[solver.kgc], device=DEVICE)
             wp.launch(sph.particle_acceleration_list, dim=model.n_fluid,
                       inputs=[solver._nbr_count, solver._nbr, st.x, st.v, st.rho, st.pressure, solver._pr2,
                               model.particle_mass, solver._wall_pr2, st.wall_velocity, solver.kgc, model.params],
