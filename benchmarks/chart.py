@@ -253,7 +253,8 @@ def line(r: dict) -> str:
 
     extra = {"standing_wave": f"decay/period {f('decay_per_period', '+.4f')} period error {f('period_error', '+.4f')}",
              "wave_maker": f"gauge_1 {f('error_flume_gauge1', '+.3f')} gauge_2 {f('error_flume_gauge2', '+.3f')} (flume's linear solution)",
-             "dam_break": f"front bias T>=1.5 {f('front_bias_late', '+.3f')} rms {f('error_rms', '.3f')}",
+             "dam_break": f"front bias T>=1.5 {f('front_bias_late', '+.3f')} rms {f('error_rms', '.3f')} "
+                          f"speed x{f('front_speed_ratio', '.3f')} delay {f('front_delay_s', '.4f')} s",
              "spheric": f"H mean {f('h_rms', '.3f')} max {f('h_max', '.3f')} P1 t {f('p1_impact_error', '+.3f')} "
                         f"peak {f('p1_peak_error', '+.3f')}"}[r["case"]]
     ex = f" {r['exception']}" if r.get("exception") else ""
@@ -366,6 +367,10 @@ def table_rows(part: dict) -> list[list]:
         elif c == "dam_break":
             err = (f"front bias T>=1.5 {_f(r.get('front_bias_late'), '+.1%')}, front+height RMS "
                    f"{_f(r.get('error_rms'), '.3f')}")
+            if r.get("front_speed_ratio") is not None and math.isfinite(r["front_speed_ratio"]):
+                err += (f"; front speed x{r['front_speed_ratio']:.3f}, start {1e3 * r['front_delay_s']:.1f} ms early "
+                        f"(then bias {_f(r.get('front_bias_late_delayed'), '+.1%')}, "
+                        f"RMS {_f(r.get('front_rms_late_delayed'), '.1%')})")
         else:
             err = (f"H1-H4 mean {_f(r.get('h_rms'))}, max {_f(r.get('h_max'))}; P1 impact t "
                    f"{_f(r.get('p1_impact_error'), '+.1%')}, peak {_f(r.get('p1_peak_error'), '+.0%')}")

@@ -46,6 +46,7 @@ PARTS = {
     "chart": "benchmarks.chart",
     "block_contacts": "benchmarks.block_contacts",
     "nonconvex": "benchmarks.nonconvex",
+    "at_rest": "benchmarks.at_rest",
 }
 SUITES = ("quick", "full")
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")

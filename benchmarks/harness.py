@@ -9,7 +9,14 @@ Error metrics (also defined in the README, "Benchmarks"):
   H = h / (2 a) at tau = t sqrt(g / a) (h: the water height at the back wall, gauge ``column_height``),
   points with tau <= the simulated time; ``error`` = (front_rms + height_rms) / 2. ``front_bias`` = mean
   signed relative front error (SPH runs ahead: no gate, no floor friction); ``front_bias_late`` and
-  ``front_rms_late``: the same over the points at T >= 1.5 only.
+  ``front_rms_late``: the same over the points at T >= 1.5 only. From the front read every sample
+  (``front_series``): ``front_speed_ratio`` = the least-squares slope dZ/dT of the simulated front over
+  1.5 <= T <= the last measured T, over the slope of the measured points there (the surge's speed, free of
+  where it started); ``front_delay_T`` = the start delay Delta T >= 0 that best fits Z_sim(T - Delta T) to the
+  measured points at T >= 1.5 (least squares of the relative error; ``front_delay_s`` the same in seconds),
+  ``front_bias_late_delayed`` / ``front_rms_late_delayed`` the bias and RMS left after it. A front that runs
+  at the measured speed but started early (the experiment's gate lift, Martin & Moyce 1952) shows a speed
+  ratio near 1 and a small residual after the delay.
 - SPHERIC Test 2 (Kleefsman et al. 2005): ``h_rms`` = mean over H1..H4 of RMS(h_sim - h_exp) / 0.55 m
   (a dry gauge reads 0), ``p_rms`` = RMS(p_sim - p_exp) / (rho0 g 0.55 m) at P1, both over the
   simulated window sampled every 10 ms, the measurement averaged over +-5 ms; ``error`` = (h_rms + p_rms) / 2.
@@ -70,9 +77,37 @@ def dam_break_times(a: float = A_MM, t_end: float | None = None) -> tuple[np.nda
     return tf, th
 
 
-def dam_break_errors(front: dict[float, float], height: dict[float, float], a: float = A_MM) -> dict:
+def front_speed_and_delay(times: np.ndarray, fronts: np.ndarray, a: float = A_MM, t_late: float = FRONT_LATE_T,
+                          max_delay_T: float = 1.0) -> dict:
+    """The surge's speed against the measured one and the start delay that best explains the rest (module
+    docstring): ``times`` [s] and ``fronts`` x [m] read through the run (every few ms)."""
+    ef = martin_moyce("front_n2_2")
+    late = ef[ef[:, 0] >= t_late]
+    T = np.asarray(times, float) * math.sqrt(2 * G / a)
+    Z = np.asarray(fronts, float) / a
+    out = {"front_speed_ratio": math.nan, "front_delay_T": math.nan, "front_delay_s": math.nan,
+           "front_bias_late_delayed": math.nan, "front_rms_late_delayed": math.nan}
+    ok = np.isfinite(Z)
+    T, Z = T[ok], Z[ok]
+    span = (T >= t_late) & (T <= late[-1, 0] + 1e-9)
+    if len(late) < 2 or span.sum() < 3 or T[-1] < late[-1, 0] - 1e-9:
+        return out
+    out["front_speed_ratio"] = float(np.polyfit(T[span], Z[span], 1)[0] / np.polyfit(late[:, 0], late[:, 1], 1)[0])
+    # Delta T on a grid of 0.001 (about 0.05 ms of the experiment's time), the sampled front interpolated
+    shifts = np.arange(0.0, max_delay_T + 1e-12, 0.001)
+    shifts = shifts[late[0, 0] - shifts >= T[0]]
+    rel = np.array([(np.interp(late[:, 0] - d, T, Z) - late[:, 1]) / late[:, 1] for d in shifts])
+    k = int(np.argmin(np.sqrt(np.mean(rel * rel, axis=1))))
+    out.update(front_delay_T=float(shifts[k]), front_delay_s=float(shifts[k] / math.sqrt(2 * G / a)),
+               front_bias_late_delayed=float(rel[k].mean()), front_rms_late_delayed=_rms(rel[k]))
+    return out
+
+
+def dam_break_errors(front: dict[float, float], height: dict[float, float], a: float = A_MM,
+                     front_series: tuple | None = None) -> dict:
     """Errors of a 2D dam break against Martin & Moyce (n^2 = 2). ``front``/``height``: time [s] ->
-    front position x [m] / water height at the back wall h [m] at the measured times."""
+    front position x [m] / water height at the back wall h [m] at the measured times; ``front_series``:
+    (times [s], front x [m]) read through the run, for the speed and the start delay."""
     ef = martin_moyce("front_n2_2")
     eh = martin_moyce("height_n2_2")
     rf, rh = [], []
@@ -96,6 +131,8 @@ def dam_break_errors(front: dict[float, float], height: dict[float, float], a: f
            "front_points": int(len(rf)), "height_points": int(len(rh))}
     parts = [v for v in (out["front_rms"], out["height_rms"]) if math.isfinite(v)]
     out["error"] = float(np.mean(parts)) if parts else math.nan
+    if front_series is not None:
+        out.update(front_speed_and_delay(*front_series, a=a))
     return out
 
 
@@ -374,7 +411,7 @@ def _advance_to(sim, t: float, dt: float | None) -> None:
 
 
 def run_dam_break(device: str, spacing: float, variant: dict, t_end: float, dt: float | None = None,
-                  dt_multiple: float | None = None, c0: float | None = None, sample_dt: float = 0.005,
+                  dt_multiple: float | None = None, c0: float | None = None, sample_dt: float = 0.0025,
                   strip: tuple = ()) -> dict:
     """One 2D dam break: errors against Martin & Moyce, wall time per simulated second, health record.
     ``dt_multiple``: step = this x the scene's initial CFL step (forced; the stability sweep)."""
@@ -396,7 +433,7 @@ def run_dam_break(device: str, spacing: float, variant: dict, t_end: float, dt: 
     health.check(sim)
     tf, th = dam_break_times(t_end=t_end)
     ts = np.unique(np.round(np.concatenate([tf, th, np.arange(sample_dt, t_end + 1e-12, sample_dt)]), 12))
-    front, height = {}, {}
+    front, height, series = {}, {}, []
     clock = Clock(sim.device)
     steps0 = sim.steps
     try:
@@ -404,8 +441,10 @@ def run_dam_break(device: str, spacing: float, variant: dict, t_end: float, dt: 
             clock.run(lambda: _advance_to(sim, float(t), dt))
             if not health.check(sim):
                 break
+            x_front = float(sim.positions()[:, 0].max())
+            series.append((float(t), x_front))
             if np.any(np.isclose(t, tf, rtol=0, atol=1e-12)):
-                front[float(tf[np.argmin(np.abs(tf - t))])] = float(sim.positions()[:, 0].max())
+                front[float(tf[np.argmin(np.abs(tf - t))])] = x_front
             if np.any(np.isclose(t, th, rtol=0, atol=1e-12)):
                 height[float(th[np.argmin(np.abs(th - t))])] = sim.gauges().get("column_height", math.nan)
     except (SimulationError, ValueError, FloatingPointError) as e:
@@ -416,7 +455,8 @@ def run_dam_break(device: str, spacing: float, variant: dict, t_end: float, dt: 
     rec["wall_s"] = clock.seconds
     rec["wall_per_sim_s"] = clock.seconds / sim.time if sim.time > 0 else math.nan
     if health.finite and not rec.get("exception") and sim.time >= t_end - 1e-9:
-        rec.update(dam_break_errors(front, height))
+        ts_, xs_ = np.array(series).T
+        rec.update(dam_break_errors(front, height, front_series=(ts_, xs_)))
     else:
         rec["error"] = math.nan
     return rec

@@ -16,7 +16,7 @@ from pathlib import Path
 from benchmarks.common import RESULTS, ROOT, rel
 
 PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface",
-              "multirate", "chart", "block_contacts", "nonconvex")
+              "multirate", "chart", "block_contacts", "nonconvex", "at_rest")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -237,6 +237,20 @@ def _surface(su: dict) -> list[str]:
                         _f(r.get("field_in_steps"), ".2f"), _f(r.get("mesh_in_steps"), ".2f")] for r in su["cases"]]) + [""]
 
 
+def _at_rest(ar: dict) -> list[str]:
+    L = ["Water at rest in a tank (benchmarks/at_rest.py; 2D 0.3 m deep, 0.6 m wide; 3D a 0.3 m cube; c0 20 m/s): pressure "
+         "gauges over rho0 g (level - z) at the end (1 is exact; the target: within 2%), the largest error of the first layer "
+         "of wall particles below one support from the surface (/ rho0 g d, Adami walls only), RMS speed / c0 (target "
+         "< 1e-3), the surface's drift:", ""]
+    return L + _table(["level", "dim", "layers", "particles", "simulated s", "corner", "mid-floor", "mid-wall", "walls (largest, at)",
+                       "speed RMS / c0", "drift (spacings)", "s / sim s"],
+                      [[r["level"], r["dim"], r["layers"], r["particles"], _f(r["simulated_s"], ".2f"), _f(r["corner"], ".4f"),
+                        _f(r["floor_mid"], ".4f"), _f(r["side_mid"], ".4f"),
+                        (f"{_f(r.get('wall_error_max'), '.2%')} at {r['wall_error_at']}" if r.get("wall_error_at") else "-"),
+                        _f(r["speed_rms_c0"], ".2e"), _f(r["drift_spacings"], "+.3f"), _f(r["wall_per_sim_s"], ".3g")]
+                       for r in ar["rows"]]) + [""]
+
+
 def _chart(ch: dict) -> list[str]:
     from benchmarks.chart import table_rows
 
@@ -290,7 +304,8 @@ def _block_contacts(bc: dict) -> list[str]:
 
 TABLES = {"multirate": _multirate, "accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
           "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface,
-          "chart": _chart, "block_contacts": _block_contacts, "nonconvex": _nonconvex}
+          "chart": _chart, "block_contacts": _block_contacts, "nonconvex": _nonconvex,
+          "at_rest": _at_rest}
 
 
 def title(res: dict) -> str:

@@ -42,6 +42,26 @@ def test_dam_break_errors_exact_and_offset():
     assert abs(H.dam_break_errors(front, dry)["height_rms"] - 1.0) < 1e-12
 
 
+def test_front_speed_and_start_delay_are_told_apart():
+    """A front that is the measurement moved earlier by a known delay reads speed ratio 1 and that delay; a
+    front that runs 10% faster reads speed ratio 1.1 and leaves a residual no delay removes."""
+    a, s = H.A_MM, math.sqrt(2 * H.G / H.A_MM)
+    ef = H.martin_moyce("front_n2_2")
+    late = ef[ef[:, 0] >= 1.5]
+    fit = np.polyfit(late[:, 0], late[:, 1], 1)  # the measured surge after T = 1.5, a straight line
+    T = np.arange(0.0, 3.6, 0.02)
+    for delay in (0.0, 0.2):
+        e = H.front_speed_and_delay(T / s, np.polyval(fit, T + delay) * a)
+        assert abs(e["front_speed_ratio"] - 1) < 1e-9 and abs(e["front_delay_T"] - delay) < 1.5e-3, e
+        assert abs(e["front_delay_s"] - e["front_delay_T"] / s) < 1e-12
+        assert e["front_rms_late_delayed"] < 0.02 and abs(e["front_bias_late_delayed"]) < 0.01, e
+    fast = H.front_speed_and_delay(T / s, (fit[0] * 1.1 * T + fit[1]) * a)
+    assert abs(fast["front_speed_ratio"] - 1.1) < 1e-9, fast
+    assert fast["front_rms_late_delayed"] > 0.02  # a wrong speed is not a start delay
+    # a run that stopped before the last measured point gives no figures
+    assert math.isnan(H.front_speed_and_delay(T[:100] / s, np.polyval(fit, T[:100]) * a)["front_speed_ratio"])
+
+
 def test_spheric_errors_of_the_measurement_itself():
     wl, pr = H.load_spheric()
     t = np.arange(0.01, 1.0, 0.01)
@@ -361,3 +381,19 @@ def test_flume_linear_solution_of_the_piston_wave_maker():
     assert abs(ref[0.35] / H_steady - 1 - 0.0107) < 0.002 and abs(ref[0.7] / H_steady - 1 + 0.0403) < 0.002, ref
     # modes enough: doubling them moves nothing
     assert abs(flume_reference(modes=1200)[0.7] / ref[0.7] - 1) < 1e-4
+
+
+def test_at_rest_part_reads_hydrostatics_on_a_small_tank():
+    """The `at_rest` part on a coarse 2D tank (20 layers, 0.2 s, CPU): its gauges read rho0 g (level - z) within
+    3% and its wall particles within 3% of rho0 g d (the physics is tests/test_walls.py's; here the part's
+    reading of it), the water stays still, and the report prints the row."""
+    from benchmarks import at_rest
+    from benchmarks.report import markdown
+
+    part = at_rest.run("cpu", dict(at_rest_cases=[[2, 20, 0.2]], at_rest_levels=["standard"]))
+    (r,) = part["rows"]
+    assert r["finite"] and r["fluid"]["boundary"] == "adami" and r["wall_particles"] > 10, r
+    assert max(abs(r[n] - 1) for n in ("corner", "floor_mid", "side_mid")) == r["gauge_error_max"] < 0.03, r
+    assert r["wall_error_max"] < 0.03 and r["speed_rms_c0"] < 1e-3 and abs(r["drift_spacings"]) < 0.1, r
+    md = markdown({"suite": "quick", "device": "cpu", "device_name": "a CPU", "date": "d", "commit": "c", "at_rest": part})
+    assert f"| standard | 2 | 20 | {r['particles']} | 0.20 | {r['corner']:.4f} |" in md, md
