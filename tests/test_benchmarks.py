@@ -390,10 +390,11 @@ def test_at_rest_part_reads_hydrostatics_on_a_small_tank():
     from benchmarks import at_rest
     from benchmarks.report import markdown
 
-    part = at_rest.run("cpu", dict(at_rest_cases=[[2, 20, 0.2]], at_rest_levels=["standard"]))
+    part = at_rest.run("cpu", dict(at_rest_cases=[[2, 20, 0.2]], at_rest_levels=[["standard", None]]))
     (r,) = part["rows"]
     assert r["finite"] and r["fluid"]["boundary"] == "adami" and r["wall_particles"] > 10, r
     assert max(abs(r[n] - 1) for n in ("corner", "floor_mid", "side_mid")) == r["gauge_error_max"] < 0.03, r
     assert r["wall_error_max"] < 0.03 and r["speed_rms_c0"] < 1e-3 and abs(r["drift_spacings"]) < 0.1, r
     md = markdown({"suite": "quick", "device": "cpu", "device_name": "a CPU", "date": "d", "commit": "c", "at_rest": part})
-    assert f"| standard | 2 | 20 | {r['particles']} | 0.20 | {r['corner']:.4f} |" in md, md
+    assert f"| standard | default | 2 | 20 | {r['particles']} | 0.20 | {r['corner']:.4f} |" in md, md
+    assert r["reads"] == 20 and r["gauge_error_max_last"] < 0.05, r
