@@ -239,8 +239,8 @@ def _surface(su: dict) -> list[str]:
 
 def _at_rest(ar: dict) -> list[str]:
     L = ["Water at rest in a tank (benchmarks/at_rest.py; 2D 0.3 m deep, 0.6 m wide; 3D a 0.3 m cube; c0 20 m/s): pressure "
-         "gauges over rho0 g (level - z), averaged over the run's last tenth (1 is exact; the target: within 2%; in brackets "
-         "the largest error of the last single read), the largest error of the first layer of wall particles below one "
+         "gauges over rho0 g (level - z), averaged over the run's last tenth (1 is exact; the target: within 2%; "
+         "the largest error of the last single read in its own column), the largest error of the first layer of wall particles below one "
          "support from the surface (/ rho0 g d, averaged the same way; Adami walls only), RMS speed / c0 (target < 1e-3), "
          "the surface's drift:", ""]
     return L + _table(["level", "C", "dim", "layers", "particles", "simulated s", "corner", "mid-floor", "mid-wall", "gauges, last read",
