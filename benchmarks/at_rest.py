@@ -26,17 +26,19 @@ import time
 import numpy as np
 
 # cases: [dimension, layers over the depth, simulated seconds]; levels: [fluid.fidelity, Courant number or None
-# for the default]
+# for the default, optionally {other [fluid] keys}]
+BALANCED = {"packed_start": True, "wall_volume": "geometric"}
 CONFIG = {
     "quick": dict(at_rest_cases=[[2, 20, 0.2], [3, 8, 0.1]], at_rest_levels=[["standard", None]]),
     "full": dict(at_rest_cases=[[2, 100, 2.0], [3, 30, 2.0]],
-                 at_rest_levels=[["standard", None], ["standard", 0.4], ["waves", None], ["draft", None]]),
+                 at_rest_levels=[["standard", None], ["standard", None, BALANCED], ["standard", 0.4], ["waves", None],
+                                 ["draft", None]]),
 }
 READS = 20  # gauge reads over the last tenth of the run
 DEPTH, C0, RHO0, G = 0.3, 20.0, 1000.0, 9.81
 
 
-def tank_scene(dim: int, layers: int, t_end: float, level: str, cfl: float | None = None) -> dict:
+def tank_scene(dim: int, layers: int, t_end: float, level: str, cfl: float | None = None, keys: dict | None = None) -> dict:
     """The scene of one case: water filling the lower 0.3 m of a tank (2D 0.6 m wide, 3D 0.3 m square)."""
     width = 2 * DEPTH if dim == 2 else DEPTH
     lo, hi = [0.0] * dim, [width] * (dim - 1) + [DEPTH]
@@ -46,7 +48,7 @@ def tank_scene(dim: int, layers: int, t_end: float, level: str, cfl: float | Non
     sim = {"dimension": dim, "duration_s": t_end} | ({"cfl_number": cfl} if cfl else {})
     return {"simulation": sim,
             "fluid": {"spacing_m": DEPTH / layers, "fidelity": level, "rest_density_kg_m3": RHO0,
-                      "eos": {"speed_of_sound_m_s": C0}, "regions": [{"box_min_m": lo, "box_max_m": hi}]},
+                      "eos": {"speed_of_sound_m_s": C0}, "regions": [{"box_min_m": lo, "box_max_m": hi}], **(keys or {})},
             "tank": {"box_min_m": lo, "box_max_m": [width] * (dim - 1) + [DEPTH + 0.1]},
             "output": {"gauges": gauges}}
 
@@ -56,12 +58,13 @@ def surface_level(positions: np.ndarray, dim: int, spacing: float) -> float:
     return float(z[z > z.max() - 0.5 * spacing].mean()) + 0.5 * spacing
 
 
-def measure(device: str, dim: int, layers: int, t_end: float, level: str, cfl: float | None = None) -> dict:
+def measure(device: str, dim: int, layers: int, t_end: float, level: str, cfl: float | None = None,
+            keys: dict | None = None) -> dict:
     import warp as wp
 
     import rockwave
 
-    sim = rockwave.Simulation(rockwave.parse_scene(tank_scene(dim, layers, t_end, level, cfl)), device=device)
+    sim = rockwave.Simulation(rockwave.parse_scene(tank_scene(dim, layers, t_end, level, cfl, keys)), device=device)
     s = sim.fluid.spacing
     level0 = surface_level(sim.positions(), dim, s)
     steps0 = sim.steps
@@ -87,7 +90,7 @@ def measure(device: str, dim: int, layers: int, t_end: float, level: str, cfl: f
     x = sim.positions()
     top = surface_level(x, dim, s)
     speed = np.linalg.norm(sim.velocities(), axis=1)
-    rec = dict(dim=dim, layers=layers, spacing_m=s, level=level, cfl=cfl, particles=int(sim.n_fluid), simulated_s=float(sim.time),
+    rec = dict(dim=dim, layers=layers, spacing_m=s, level=level, cfl=cfl, keys=dict(keys or {}), particles=int(sim.n_fluid), simulated_s=float(sim.time),
                steps=int(sim.steps - steps0), wall_s=wall, wall_per_sim_s=wall / max(sim.time, 1e-12),
                finite=bool(np.all(np.isfinite(x))), speed_rms_c0=float(np.sqrt(np.mean(speed ** 2)) / C0),
                drift_spacings=(top - level0) / s, reads=READS, read_window_s=0.1 * t_end)
@@ -120,10 +123,10 @@ def run(dev: str, cfg: dict) -> dict:
     from benchmarks.common import log
 
     rows = []
-    for level, cfl in cfg["at_rest_levels"]:
+    for level, cfl, *keys in cfg["at_rest_levels"]:
         for dim, layers, t_end in cfg["at_rest_cases"]:
-            r = measure(dev, int(dim), int(layers), float(t_end), level, cfl)
-            log(f"  {level:9s} C {cfl or 'default'} {dim}D {layers:4d} layers {r['particles']:7d} particles {t_end:g} s: corner {r['corner']:.4f} "
+            r = measure(dev, int(dim), int(layers), float(t_end), level, cfl, keys[0] if keys else None)
+            log(f"  {level:9s} C {cfl or 'default'} {keys[0] if keys else ''} {dim}D {layers:4d} layers {r['particles']:7d} particles {t_end:g} s: corner {r['corner']:.4f} "
                 f"floor {r['floor_mid']:.4f} side {r['side_mid']:.4f} (rho0 g d); walls {r.get('wall_error_max', math.nan):.4f}; "
                 f"last read {r['gauge_error_max_last']:.4f}; speed RMS {r['speed_rms_c0']:.2e} c0; drift {r['drift_spacings']:+.3f} spacing; {r['wall_per_sim_s']:.2f} s/s")
             rows.append(r)

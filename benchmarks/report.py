@@ -245,7 +245,8 @@ def _at_rest(ar: dict) -> list[str]:
          "the surface's drift:", ""]
     return L + _table(["level", "C", "dim", "layers", "particles", "simulated s", "corner", "mid-floor", "mid-wall", "gauges, last read",
                        "walls (largest, at)", "speed RMS / c0", "drift (spacings)", "s / sim s"],
-                      [[r["level"], _f(r.get("cfl"), "g", "default"), r["dim"], r["layers"], r["particles"], _f(r["simulated_s"], ".2f"),
+                      [[r["level"] + "".join(f", {k} = {v}" for k, v in (r.get("keys") or {}).items()),
+                        _f(r.get("cfl"), "g", "default"), r["dim"], r["layers"], r["particles"], _f(r["simulated_s"], ".2f"),
                         _f(r["corner"], ".4f"), _f(r["floor_mid"], ".4f"), _f(r["side_mid"], ".4f"),
                         _f(r.get("gauge_error_max_last"), ".2%"),
                         (f"{_f(r.get('wall_error_max'), '.2%')} at {r['wall_error_at']}" if r.get("wall_error_at") else "-"),

@@ -556,7 +556,7 @@ def block_wall_reactions(
     rho: wp.array(dtype=float),
     pr2: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
-    wall_pr2: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=wp.vec2),
     wall_v: wp.array(dtype=wp.vec3),
     xq: wp.array(dtype=wp.vec3),
     b_off: int,

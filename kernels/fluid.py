@@ -53,6 +53,7 @@ class SPHParams:
     boundary: int  # BOUNDARY_AKINCI or BOUNDARY_ADAMI
     no_slip: int  # Adami walls: 1 = no-slip (viscous terms with the extrapolated wall velocity), 0 = free slip
     gradient_correction: int  # 1: corrected kernel gradients in the continuity and pressure terms (corrected_grad)
+    wall_volume: int  # Adami walls: 0 = the wall's mass m_b in the force, 1 = its geometric volume (m_b rho_b/rho0)
     # Mueller kernel constants for H and dim (rockwave.fluid.set_kernel_constants; pow() per
     # neighbour was a large share of the neighbour loops on a GPU)
     w_coef: float  # poly6: 315/(64 pi H^9) (3D), 4/(pi H^8) (2D)
@@ -325,11 +326,17 @@ def gradient_correction_matrix(
 
 @wp.func
 def wall_pair_acceleration(b: int, rij: wp.vec3, r2: float, gw: wp.vec3, vi: wp.vec3, rhoi: float, pi_r2: float,
-                           mb: float, wall_pr2: wp.array(dtype=float), wall_v: wp.array(dtype=wp.vec3), p: SPHParams):
+                           mb: float, wall_pr2: wp.array(dtype=wp.vec2), wall_v: wp.array(dtype=wp.vec3), p: SPHParams):
     """Acceleration of fluid particle i from wall particle b (Adami et al. 2012): the momentum-conserving
     pressure term with the wall's extrapolated pressure, a_i -= m_b (p_i/rho_i^2 + p_b/rho_b^2) grad W_ib;
-    with no-slip walls also the viscous terms against the extrapolated wall velocity v~_b (wall_pressure_adami)."""
-    a = -(mb * (pi_r2 + wall_pr2[b])) * gw
+    with fluid.wall_volume = 'geometric' the wall keeps its volume V_b = m_b/rho0 at every pressure, so its mass
+    in the term is rho_b V_b = m_b rho_b/rho0 (wall_pr2[b] = (p_b/rho_b^2, rho_b/rho0), wall_pressure_adami);
+    with no-slip walls also the viscous terms against the extrapolated wall velocity v~_b (with m_b)."""
+    wb = wall_pr2[b]
+    mp = mb
+    if p.wall_volume != 0:
+        mp = mb * wb[1]
+    a = -(mp * (pi_r2 + wb[0])) * gw
     if p.no_slip != 0:
         vij = vi - wall_v[b]
         r = wp.sqrt(r2)
@@ -357,7 +364,7 @@ def pair_acceleration(
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
-    wall_pr2: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=wp.vec2),
     wall_v: wp.array(dtype=wp.vec3),
     li: wp.mat33,
     kgc: wp.array(dtype=wp.mat33),
@@ -412,7 +419,7 @@ def particle_acceleration(
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
-    wall_pr2: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=wp.vec2),
     wall_v: wp.array(dtype=wp.vec3),
     kgc: wp.array(dtype=wp.mat33),
     p: SPHParams,
@@ -570,7 +577,7 @@ def wall_pressure_adami(
     wall_accel: wp.array(dtype=wp.vec3),
     p: SPHParams,
     wall_pressure: wp.array(dtype=float),
-    wall_pr2: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=wp.vec2),
     wall_v: wp.array(dtype=wp.vec3),
 ):
     """Generalized wall boundary condition (Adami, Hu & Adams 2012, eqs. 22, 23 and 27), launched over the
@@ -583,7 +590,7 @@ def wall_pressure_adami(
     hydrostatic tank has the hydrostatic pressure on its walls and corners. Static walls have v_b = a_b = 0;
     the wall particles of moving blocks (rockwave/coupling.py BlockWalls) carry the block's rigid velocity in
     v and its acceleration in wall_accel. A wall particle with no fluid within H gets p_b = 0, v~_b = 2 v_b.
-    wall_pr2[b] = p_b / rho_b^2 is what the force pass reads. R: the radius of the cell-grid query (the
+    wall_pr2[b] = (p_b / rho_b^2, rho_b / rho0) is what the force pass reads (wall_pair_acceleration). R: the radius of the cell-grid query (the
     list radius: the grid may be the one of the last list build, see particle_density_overflow), centred at
     xq[q_off + t], the particle's position at that build (a moving wall particle has moved since)."""
     t = wp.tid()
@@ -624,7 +631,7 @@ def wall_pressure_adami(
     else:
         rb = wp.max(p.rest_density + pb / p.eos_b, 1.0e-3 * p.rest_density)
     wall_pressure[t] = pb
-    wall_pr2[t] = pb / (rb * rb)
+    wall_pr2[t] = wp.vec2(pb / (rb * rb), rb / p.rest_density)
     wall_v[t] = vb
 
 
@@ -1052,7 +1059,7 @@ def pair_acceleration_fluid(
     pressure: wp.array(dtype=float),
     pr2: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
-    wall_pr2: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=wp.vec2),
     wall_v: wp.array(dtype=wp.vec3),
     li: wp.mat33,
     kgc: wp.array(dtype=wp.mat33),
@@ -1116,7 +1123,7 @@ def particle_acceleration_list(
     pressure: wp.array(dtype=float),
     pr2: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
-    wall_pr2: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=wp.vec2),
     wall_v: wp.array(dtype=wp.vec3),
     kgc: wp.array(dtype=wp.mat33),
     p: SPHParams,
@@ -1159,7 +1166,7 @@ def particle_acceleration_overflow(
     rho: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
     particle_mass: wp.array(dtype=float),
-    wall_pr2: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=wp.vec2),
     wall_v: wp.array(dtype=wp.vec3),
     kgc: wp.array(dtype=wp.mat33),
     p: SPHParams,

@@ -224,6 +224,7 @@ def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
     p.boundary = sph.BOUNDARY_ADAMI if scene_fluid.get("boundary") == "adami" else sph.BOUNDARY_AKINCI
     p.no_slip = 1 if scene_fluid.get("wall_slip") == "no_slip" else 0
     p.gradient_correction = 1 if scene_fluid.get("gradient_correction") else 0
+    p.wall_volume = 1 if scene_fluid.get("wall_volume") == "geometric" else 0
     p.grad_scale = 1.0
     p.fluid_mass = 0.0  # set by build_fluid_model (calibrated)
     set_kernel_constants(p)
@@ -308,7 +309,7 @@ class FluidSolver:
         self.list_builds = 0  # host-decided builds (CPU), for tests and measurements
         nf = max(model.n_fluid, 1)
         self._pr2 = wp.zeros(nf, dtype=float, device=d)  # p / rho^2 of this step (kernels/fluid.py pair_acceleration_fluid)
-        self._wall_pr2 = wp.zeros(max(model.n_boundary, 1), dtype=float, device=d)  # p_b / rho_b^2 (Adami walls)
+        self._wall_pr2 = wp.zeros(max(model.n_boundary, 1), dtype=wp.vec2, device=d)  # (p_b / rho_b^2, rho_b / rho0) (Adami walls)
         self._zero_dt = wp.zeros(1, dtype=float, device=d)
         # fluid.gradient_correction: L_i of every fluid particle, computed each step after the lists
         # (kernels/fluid.py gradient_correction_matrix); a one-entry placeholder without it

@@ -131,6 +131,8 @@ SCHEMA: dict[str, Key] = {
         kernel=Key("str", "'muller': poly6 density, spiky pressure gradient, viscosity Laplacian (Mueller 2003); 'cubic_spline': Monaghan cubic spline for all; 'wendland': Wendland C2 (no pairing instability at large support_radius_ratio) for all; h = H/2 for the last two (default: from fidelity)", choices=("muller", "cubic_spline", "wendland")),
         support_radius_ratio=Key("float", "kernel support radius / spacing (2.0 gives ~30 neighbours in 3D, ~12 in 2D; 3.0 ~113 and ~28; above 1: at 1 the nearest neighbours sit on the support's edge; default: from fidelity)", min=1.0, max=5.0, min_open=True),
         boundary=Key("str", "wall treatment of the tank and obstacle particles: 'adami': generalized wall boundary (Adami, Hu & Adams 2012), each wall particle carries the pressure extrapolated from the fluid plus the hydrostatic part, so walls and corners get the fluid's pressure (needs walls as thick as the kernel support); 'akinci': frozen particles pushing with -Psi_b p_i/rho_i^2 grad W (Akinci et al. 2012; cheaper, wall pressure ~30-70% off); default: from fidelity", choices=("adami", "akinci")),
+        wall_volume=Key("str", "Adami walls: 'mass': a wall particle pushes with its mass m_b = rho0 V_b, so its volume m_b/rho_b shrinks as its pressure rises; 'geometric': it keeps its volume V_b, mass rho_b V_b in the pressure term (Adami et al. 2012 work with volumes). Water at rest reads 1-3% above hydrostatic at the floor and corners with 'mass' (docs/notes.md 'Water at rest on the H200'); use 'geometric' with packed_start = true (alone it starts the tank out of balance)", default="mass", choices=("mass", "geometric")),
+        packed_start=Key("bool", "continuity density: each vertical run of fluid particles starts packed at its hydrostatic density (layer spacing dx rho0/rho(d), the run's lowest particle fixed), not on the uniform lattice, so the start is in the discrete balance the uniform lattice misses by 2 g d/c0^2 at depth d (docs/notes.md 'Water at rest on the H200'); the surface settles g d^2/(2 c0^2) lower, as the compressed water does", default=False),
         wall_slip=Key("str", "Adami walls: 'free' (no viscous force from walls) or 'no_slip' (viscous terms against the extrapolated wall velocity, Adami et al. 2012 eq. 23)", default="free", choices=("free", "no_slip")),
         pressure_force=Key("str", "'momentum': -m_i sum m_j (p_i/rho_i^2 + p_j/rho_j^2) gradW; 'muller': -m_i/rho_i sum m_j (p_i+p_j)/(2 rho_j) gradW", default="momentum", choices=("momentum", "muller")),
         density=Key("str", "'continuity': d rho_i/dt = sum m_j (v_i - v_j).gradW_ij (keeps rho0 at a free surface); 'summation': rho_i = sum m_j W_ij", default="continuity", choices=("continuity", "summation")),
@@ -674,6 +676,10 @@ def apply_fidelity(v: _Validator, fl: Node, tank: Node | None) -> None:
             v.err("tank.layers", f"= {tank['layers']} layers of {bratio:g} spacing are thinner than the kernel support "
                                  f"({ratio:g} spacings); Adami walls ({origin}) need the support covered: remove tank.layers "
                                  "(the default covers it) or set fluid.boundary = 'akinci'")
+    if fl.get("packed_start") and fl.get("density") == "summation":
+        v.err("fluid.packed_start", "needs fluid.density = 'continuity' (summation density is set by the packing itself)")
+    if fl["boundary"] == "akinci" and fl.get("wall_volume") == "geometric":
+        v.err("fluid.wall_volume", "'geometric' needs fluid.boundary = 'adami' (Akinci walls carry no pressure of their own)")
     if fl["boundary"] == "akinci" and fl.get("wall_slip") == "no_slip":
         v.err("fluid.wall_slip", "'no_slip' needs fluid.boundary = 'adami' (Akinci walls exert no viscous force)")
 
