@@ -27,11 +27,12 @@ import numpy as np
 
 # cases: [dimension, layers over the depth, simulated seconds]; levels: [fluid.fidelity, Courant number or None
 # for the default, optionally {other [fluid] keys}]
-BALANCED = {"packed_start": True, "wall_volume": "geometric"}
+# UNIFORM: the standard level's start and walls before they became its defaults (uniform lattice, wall mass)
+UNIFORM = {"packed_start": False, "wall_volume": "mass"}
 CONFIG = {
     "quick": dict(at_rest_cases=[[2, 20, 0.2], [3, 8, 0.1]], at_rest_levels=[["standard", None]]),
     "full": dict(at_rest_cases=[[2, 100, 2.0], [3, 30, 2.0]],
-                 at_rest_levels=[["standard", None], ["standard", None, BALANCED], ["standard", 0.4], ["waves", None],
+                 at_rest_levels=[["standard", None], ["standard", None, UNIFORM], ["standard", 0.4], ["waves", None],
                                  ["draft", None]]),
 }
 READS = 20  # gauge reads over the last tenth of the run

@@ -122,7 +122,8 @@ def test_dry_line_reads_nan_and_a_wet_one_next_to_it_reads_its_level():
     sim = _sim(d, [_height("wet", 0.1, 0.0), _height("dry", 0.27, 0.0), _height("under_blob", 0.35, 0.0)])
     g = sim.gauges()
     assert math.isnan(g["dry"]) and math.isnan(g["under_blob"])
-    assert _column_top_median(sim, "under_blob") == pytest.approx(0.2, abs=1e-6)
+    # the blob's top (0.2 m, lowered 2.4e-5 m by the packed start: each run of water starts at its hydrostatic density)
+    assert _column_top_median(sim, "under_blob") == pytest.approx(0.2, abs=0.01 * S)
     assert g["wet"] == pytest.approx(0.1, abs=0.1 * S)
     d3 = {
         "simulation": {"dimension": 3, "duration_s": 1.0},

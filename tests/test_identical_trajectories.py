@@ -18,6 +18,8 @@ def test_scene_trajectory_is_bit_identical(name):
     the same code (seen 2026-11-28 for the two large jointed rock masses, fjord and rock_slope_10k: block hashes
     only, the water's identical; their blocks are cut on the host with numpy and scipy, whose results can depend
     on the machine and the library versions; the cause was not isolated): each set in the list is one machine's
-    exact trajectory, and the scene must reproduce one of them bit for bit."""
+    exact trajectory, and the scene must reproduce one of them bit for bit. A change to the water alone that leaves
+    this machine's block hashes as they were (as the balanced start did, 2026-11-28: no water reaches a block in
+    these steps) carries the new water hashes into every set."""
     rec = RECORDED[name]
     assert scene_hashes(ROOT / "scenes" / f"{name}.toml") in (rec if isinstance(rec, list) else [rec])

@@ -71,9 +71,15 @@ def test_boundary_particles_are_in_cell_order():
     sim = _sim()
     xb = sim.boundary_positions()
     H = sim.fluid.support_radius
-    c = np.floor((xb - xb.min(axis=0)) / H).astype(int)
-    key = (c[:, 2] * 10000 + c[:, 1]) * 10000 + c[:, 0]
-    assert np.all(np.diff(key) >= 0)
+    u = (xb.astype(np.float64) - xb.min(axis=0)) / H
+
+    def key(c):
+        return (c[:, 2] * 10000 + c[:, 1]) * 10000 + c[:, 0]
+
+    # a particle on a cell border (walls on the water's lattice put whole rows there) may fall on either side once
+    # its position is rounded to float32: each next key at least the last one's with the border taken low
+    lo, hi = key(np.floor(u - 1e-4).astype(int)), key(np.floor(u + 1e-4).astype(int))
+    assert np.all(hi[1:] >= lo[:-1])
 
 
 def _random_model(dim, wrapped, n_side=7):

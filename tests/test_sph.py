@@ -143,9 +143,11 @@ def test_hydrostatic_tank_2d():
     """A 2D tank 0.2 m deep (20 particles) settles to p = rho0 g (H - z): the fitted pressure gradient
     below the surface layer is rho0 g within 7%, the pressure at mid-depth within 10% of rho0 g H/2
     (the column settles by ~1.5% of its depth, included through the measured surface), no particle
-    leaves the tank and the kinetic energy decays. The start excites the first sloshing mode
-    (period 0.5 s), so the profile is averaged over 1.0-2.0 s, two periods. Measured: gradient
-    +4% (muller kernel), the discretisation error of WCSPH at H = 2 dx with 20 particles per depth."""
+    leaves the tank and the water stays at rest: RMS speed over the second second below 0.1% of c0 (the issue's
+    water-at-rest target; the default's start is packed at its hydrostatic density, so there is little to decay:
+    measured 5e-4 m/s, 2.5e-5 c0; the uniform start's energy decayed by 5x). The profile is averaged over
+    1.0-2.0 s, two periods of the first sloshing mode. Measured: gradient +4% (muller kernel, before the standard
+    level), the discretisation error of WCSPH with 20 particles per depth."""
     sim = rockwave.Simulation(rockwave.parse_scene(tank_2d()), device=DEVICE)
     ke0 = []
     xs, ps = [], []
@@ -164,7 +166,9 @@ def test_hydrostatic_tank_2d():
     assert p[mid].mean() == pytest.approx(1000 * 9.81 * surface / 2, rel=0.10)
     final = sim.positions()
     assert np.all((final[:, 0] > 0) & (final[:, 0] < 0.2) & (final[:, 1] > 0)), "a particle left the tank"
-    assert np.mean(ke0[-10:]) < 0.2 * max(ke0[:5]), f"kinetic energy did not decay: {ke0}"
+    mass = sim.fluid.n_fluid * sim.fluid.params.fluid_mass
+    rms = np.sqrt(2.0 * np.asarray(ke0[-20:]) / mass)
+    assert rms.max() < 1e-3 * 20.0, f"the water did not stay at rest: RMS speed {rms}"
 
 
 def test_dam_break_2d_front_against_martin_moyce():
