@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from types import SimpleNamespace
 
 import numpy as np
 import warp as wp
@@ -28,10 +27,9 @@ def pad3(v) -> list[float]:
     return list(v) + [0.0] * (3 - len(v))
 
 
-def hydrostatic_density(model, g_depth: np.ndarray) -> np.ndarray:
-    """Density that makes p = rho0 g d under the EOS (validation/README.md, Hydrostatics):
+def hydrostatic_density(p, g_depth: np.ndarray) -> np.ndarray:
+    """Density that makes p = rho0 g d under the EOS of the SPHParams ``p`` (validation/README.md, Hydrostatics):
     Tait rho = rho0 (1 + rho0 g d / B)^(1/gamma); linear rho = rho0 + rho0 g d / k."""
-    p = model.params
     rho0 = p.rest_density
     if p.eos == 0:
         return rho0 * (1.0 + rho0 * g_depth / p.eos_b) ** (1.0 / p.eos_gamma)
@@ -46,9 +44,10 @@ def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up
     region). Only a run whose top is the free surface (its top particle less than a spacing deep) is packed: one
     under an obstacle or a block would open a gap of ~L g d/c0^2 under it, farther from the wall particles than the
     lattice's spacing, and the water there would hold ~10% more pressure (tests/test_block_walls.py's kinematic box
-    read +11.5%); such runs keep the uniform lattice. On the uniform lattice the continuity density rho(d) > rho0 stays out of step with the packing: the
-    momentum form's balance then needs p = rho0 g d (1 + 2 g d/c0^2), 1.5% too much at the floor of a 0.3 m tank at
-    c0 = 20 m/s (docs/notes.md "Water at rest on the H200")."""
+    read +11.5%); such runs keep the uniform lattice. Why pack: on the uniform lattice the continuity density
+    rho(d) > rho0 is out of step with the spacing, and the momentum form's balance then needs
+    p = rho0 g d (1 + 2 g d/c0^2), 1.5% too much at the floor of a 0.3 m tank at c0 = 20 m/s (docs/notes.md
+    "Water at rest on the H200")."""
     if len(x) < 2:
         return x
     side = [a for a in range(3) if a != up]
@@ -306,9 +305,9 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
         from rockwave.fluid import make_params
 
         rho0 = scene.fluid.rest_density_kg_m3
-        shim = SimpleNamespace(params=make_params(scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, len(xf)))
+        params = make_params(scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, len(xf))
         g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
-        xf = packed_start(xf, depth, lambda d: hydrostatic_density(shim, g * d) / rho0, scene.fluid.spacing_m, scene.dim - 1)
+        xf = packed_start(xf, depth, lambda d: hydrostatic_density(params, g * d) / rho0, scene.fluid.spacing_m, scene.dim - 1)
     bstep, layers = boundary_lattice(scene)
     if scene.fluid.boundary == "adami" and parts.blocks is not None:
         xw = fixed_block_walls(scene, parts, xf, bstep, layers)
@@ -339,7 +338,7 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
             solver.compute_density(state)
         else:
             g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
-            solver.set_density(state, hydrostatic_density(fluid, g * depth))
+            solver.set_density(state, hydrostatic_density(fluid.params, g * depth))
         if scene.fluid.boundary == "adami" and fluid.n_boundary:  # the wall pressures of the initial state (gauges)
             solver.build_cells(state)
             solver.wall_pressure(state)
