@@ -13,7 +13,7 @@ alone.
 
 Big blocks (issue 20): ``contacts_prisms`` rows of 50-vertex prisms (a 25-gon extruded 1 m, radius 0.5 m)
 resting on a side face on one fixed 5 degree slope, ms per step with the cooperative narrow phase (one thread
-block of 32 lanes per pair, kernels/blocks_coop.py narrow_phase_coop) and with every pair on one thread
+block of 32 lanes per pair, kernels/dda/blocks_coop.py narrow_phase_coop) and with every pair on one thread
 (``BlockOptions(coop_min_vertices=10**9)``), same trajectory. On Warp's CPU backend both run one thread per
 pair (the cooperative kernel is then the serial loop plus its tile overhead, which is why the solver's default
 leaves it off there): the rows only mean something on a GPU.
@@ -36,8 +36,8 @@ CONFIG = {
 
 def grid_specs(n: int, layers: int, size: float = 1.0, gap: float = 0.05):
     """The floor, then n cubes in columns of ``layers`` (row by row), each resting on the one below."""
-    from rockwave import geometry as G
-    from rockwave.blocks import BlockSpec
+    from rockwave.dda import geometry as G
+    from rockwave.dda.blocks import BlockSpec
 
     columns = math.ceil(n / layers)
     nx = math.ceil(math.sqrt(columns))
@@ -59,8 +59,8 @@ def prism_specs(count: int, alpha_deg: float = 5.0, sides: int = 25, r: float = 
     a side face on it, 1.5 m apart along the strike and in rows of 20 down the slope."""
     import numpy as np
 
-    from rockwave import geometry as G
-    from rockwave.blocks import BlockSpec
+    from rockwave.dda import geometry as G
+    from rockwave.dda.blocks import BlockSpec
 
     th = -0.5 * math.pi + math.pi / sides + 2 * math.pi * np.arange(sides) / sides
     ring = np.stack([r * np.cos(th), np.zeros(sides), r * np.sin(th)], axis=1)
@@ -85,7 +85,7 @@ def timed_steps(solver, state, device: str, warmup: int, steps: int) -> tuple[fl
     """(wall seconds of ``steps`` block steps after ``warmup`` untimed ones, the step: the stable step at start)."""
     import warp as wp
 
-    from rockwave.solver import TimeStep
+    from rockwave.base.solver import TimeStep
 
     dt = solver.stable_dt(state)
     dt_array = wp.array([dt], dtype=float, device=device)
@@ -102,7 +102,7 @@ def timed_steps(solver, state, device: str, warmup: int, steps: int) -> tuple[fl
 def measure_prisms(device: str, count: int, warmup: int, steps: int) -> dict:
     import numpy as np
 
-    from rockwave.blocks import BlockModel, BlockOptions, BlockSolver
+    from rockwave.dda.blocks import BlockModel, BlockOptions, BlockSolver
 
     out = {"prisms": count, "steps": steps}
     final = {}
@@ -121,7 +121,7 @@ def measure_prisms(device: str, count: int, warmup: int, steps: int) -> dict:
 def measure(device: str, n: int, layers: int, warmup: int, steps: int) -> dict:
     import numpy as np
 
-    from rockwave.blocks import BlockModel, BlockSolver
+    from rockwave.dda.blocks import BlockModel, BlockSolver
 
     t0 = time.perf_counter()
     model = BlockModel(grid_specs(n, layers), device=device, check_overlap=False)

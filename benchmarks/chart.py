@@ -93,7 +93,7 @@ def parse_formulation(text: str) -> tuple[str, dict]:
 
 
 def _schema_has(path: str) -> bool:
-    from rockwave.scene import SCHEMA
+    from rockwave.scene.format import SCHEMA
 
     node = SCHEMA
     for k in path.split("."):

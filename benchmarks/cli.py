@@ -75,7 +75,6 @@ def run(device: str, suite: str, parts: list[str], out: Path | None = None, out_
     wp.config.quiet = True
     wp.init()
     from rockwave import resolve_device
-
     dev = resolve_device(device)
     stamp = datetime.date.today().isoformat()
     stem = f"{stamp}-{dev.replace(':', '')}" + ("" if parts == list(PARTS) else f"-{suite}-{'-'.join(parts)}")

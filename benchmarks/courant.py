@@ -5,7 +5,7 @@ Linearised about water at rest on the initial lattice (spacing dx, V = dx^dim, t
 with its lattice calibration), continuity density and the momentum-conserving pressure force reduce to the
 acoustic system d(rho')/dt = -rho0 D v',  dv'/dt = -(c0^2/rho0) D rho', where D is the SPH gradient / divergence
 with symbol i G(k), G(k) = sum_j V sin(k . r_j) grad W(r_j) (the sum_j V grad W part cancels on the lattice).
-So omega(k) = c0 |G(k)|, and the semi-implicit Euler step of rockwave/fluid.py (density first, then velocity and
+So omega(k) = c0 |G(k)|, and the semi-implicit Euler step of rockwave/sph/fluid.py (density first, then velocity and
 position) is stable while omega dt < 2 for every k: with dt = C h / c0 (h = H/2) that is
 C < C_max = 2 / (h max_k |G(k)|). The default Courant number is a fraction of C_max: what is left covers the
 nonlinear events (impacts, splashes) that the linear analysis does not see.
@@ -21,7 +21,7 @@ import math
 import numpy as np
 import warp as wp
 
-from rockwave.kernels import fluid as sph
+from rockwave.kernels.sph import fluid as sph
 
 
 @wp.kernel
@@ -37,7 +37,7 @@ def lattice_acoustic_limit(kernel: str, support_ratio: float, dim: int, k_points
     dimensions (module docstring); |G(k)| maximised over a k_points^dim grid of the first Brillouin zone's
     positive quadrant (G is odd in each component, so that quadrant holds the maximum)."""
     import rockwave
-    from rockwave.fluid import calibrate_lattice, make_params
+    from rockwave.sph.fluid import calibrate_lattice, make_params
 
     k_points = k_points or (48 if dim == 2 else 20)
     dx = 1.0

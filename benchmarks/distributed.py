@@ -1,4 +1,4 @@
-"""Scaling of one scene over MPI ranks (rockwave/distributed.py; README "Several GPUs (MPI)").
+"""Scaling of one scene over MPI ranks (rockwave/sim/distributed.py; README "Several GPUs (MPI)").
 
 The 3D dam break (scenes/dam_break_3d.toml, gauges off) at the spacing that gives about ``--particles``
 fluid particles in all (strong scaling) or per rank (``--weak``), advanced by ``--steps`` times the initial
@@ -32,7 +32,7 @@ def main(argv=None) -> int:
 
     wp.config.quiet = True
     import rockwave
-    from rockwave.distributed import DistributedSimulation, require_mpi
+    from rockwave.sim.distributed import DistributedSimulation, require_mpi
 
     comm = require_mpi().COMM_WORLD
     size = comm.Get_size()

@@ -289,7 +289,7 @@ def set_path(d: dict, path: str, value) -> dict:
 VARIANTS = {
     "tait": {},
     "linear": {"fluid.eos.type": "linear"},
-    # ghost steps at a Courant number of 0.125 (rockwave.ghost.GHOST_CFL_MAX; at 0.25 the ghost pressure term
+    # ghost steps at a Courant number of 0.125 (rockwave.sph.ghost.GHOST_CFL_MAX; at 0.25 the ghost pressure term
     # pumped energy into a splash on the GPU); the stability sweep's dt multiples are of this step
     "ghost": {"fluid.method": "ghost", "simulation.cfl_number": 0.125},
     "laplacian": {"fluid.viscosity.artificial_alpha": 0.0, "fluid.viscosity.laplacian_pa_s": 1.0e-3},
@@ -415,8 +415,7 @@ def run_dam_break(device: str, spacing: float, variant: dict, t_end: float, dt: 
                   strip: tuple = ()) -> dict:
     """One 2D dam break: errors against Martin & Moyce, wall time per simulated second, health record.
     ``dt_multiple``: step = this x the scene's initial CFL step (forced; the stability sweep)."""
-    from rockwave import SimulationError
-
+    from rockwave.base.errors import SimulationError
     rec: dict = {"case": "dam_break_2d", "spacing_m": spacing}
     try:
         sim = build("dam_break_2d", scene_dict("dam_break_2d", spacing, variant, c0, strip), device)
@@ -465,8 +464,7 @@ def run_dam_break(device: str, spacing: float, variant: dict, t_end: float, dt: 
 def run_spheric(device: str, spacing: float, variant: dict, t_end: float, sample_dt: float = 0.01,
                 strip: tuple = ()) -> dict:
     """One SPHERIC Test 2 run: gauge errors, wall time per simulated second, health record."""
-    from rockwave import SimulationError
-
+    from rockwave.base.errors import SimulationError
     rec: dict = {"case": "spheric", "spacing_m": spacing}
     try:
         sim = build("spheric", scene_dict("spheric", spacing, variant, strip=strip), device)
@@ -666,8 +664,7 @@ def run_block_stack(device: str, k_n: float, dt_multiple: float, t_end: float, n
     error = the largest of sag / (1% of the block size), lateral drift / 1 mm and final kinetic energy /
     (1% of m g size), inaccurate above 1."""
     import rockwave
-    from rockwave import SimulationError
-
+    from rockwave.base.errors import SimulationError
     rec: dict = {"case": "block_stack", "k_n": k_n, "dt_multiple": dt_multiple}
     try:
         sim = rockwave.Simulation(rockwave.parse_scene(block_stack_dict(k_n, n, size), "block_stack.toml", ROOT), device=device)

@@ -7,7 +7,7 @@ gauge and all positions read after each block. Two ways to read: ``copy`` (``pos
 device-to-host copy; and ``gauges()``), and ``async`` (``view_async("x")`` and ``gauges_async()`` queued after
 each block, their results taken after the next block is launched: the state of every block, one block late). ``*_overhead`` = (read loop - step loop) /
 step loop; the target (issue 18) is at most 10% at 1 M particles on a GPU. Reading leaves the particle order, the
-neighbour lists and the captured graph untouched (rockwave/readers.py), so the step loop does not slow down.
+neighbour lists and the captured graph untouched (rockwave/sim/readers.py), so the step loop does not slow down.
 
 Only the public API is used (Simulation, step_many, positions, gauges), so the same file measures an
 older rockwave too: ``python -m benchmarks.readers --device cuda:0 --spacing 0.0087``.

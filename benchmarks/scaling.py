@@ -62,7 +62,7 @@ def rock_slope_sim(device: str, count: int):
     nz = 10
     ny = max(1, int(round(math.sqrt(count / nz / 1.6))))
     nx = max(1, int(round(count / nz / ny)))
-    from rockwave.rockmass import resize_box_region
+    from rockwave.build.rockmass import resize_box_region
 
     rm = scene.rock_mass[0]  # [[rock_mass]] cut into 0.5 m cubes
     resize_box_region(rm, [0.5 * nx, 0.5 * ny, 0.5 * nz])

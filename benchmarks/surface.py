@@ -2,7 +2,7 @@
 
 A scene (default scenes/wave_maker.toml, 3D, ~62,000 particles; ``surface_spacings`` rescales its particle
 spacing) steps ``surface_steps`` steps (``Simulation.step_many``) and its frame surface is extracted
-``surface_frames`` times (rockwave/export/surface.py ``extractor_for``, the extractor a run uses, on the
+``surface_frames`` times (rockwave/output/surface.py ``extractor_for``, the extractor a run uses, on the
 particles as a frame passes them), all in one process on one device, after a warm-up of each (kernel loads).
 ``surface_in_steps`` = surface s / step s is the figure the target is stated in (issue 24: at most a few fluid
 steps). Where the extractor has them, the field (``field``) and the isosurface (``mesh``) are timed apart.
@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import time
 
-# surface_cells: grid cell / particle spacing (None: the default, rockwave/export/surface.py default_cell;
+# surface_cells: grid cell / particle spacing (None: the default, rockwave/output/surface.py default_cell;
 # 0.5: the default before 1aae2a3)
 CONFIG = {
     "quick": dict(surface_spacings=[None], surface_cells=[None, 0.5], surface_steps=10, surface_frames=3),
@@ -41,7 +41,7 @@ def measure(device: str, spacing: float | None = None, steps: int = 10, frames: 
     import numpy as np
 
     import rockwave
-    from rockwave.export import surface as surf
+    from rockwave.output import surface as surf
 
     scene = rockwave.load_scene(scene_path or _scene_path())
     if spacing:
@@ -64,7 +64,7 @@ def measure(device: str, spacing: float | None = None, steps: int = 10, frames: 
     st = sim.state
 
     def one():
-        xs = sim.readers.view("x")[:, :3]  # as a frame (rockwave/export/recorders.py Frame.surface) passes them
+        xs = sim.readers.view("x")[:, :3]  # as a frame (rockwave/output/recorders.py Frame.surface) passes them
         return ex.extract(st.x[:nf], st.rho, xs.min(axis=0), xs.max(axis=0))
 
     mesh = one()  # warm-up
@@ -124,12 +124,11 @@ def main(argv=None) -> None:
     p.add_argument("--frames", type=int, default=3)
     p.add_argument("--resolution", type=float, default=None, help="output.surface.resolution_m")
     a = p.parse_args(argv)
-    from rockwave.cli import quiet_warp
+    from rockwave.base.device import quiet_warp
 
     quiet_warp()
     wp.init()
     from rockwave import resolve_device
-
     print(json.dumps(measure(resolve_device(a.device), a.spacing, a.steps, a.frames, a.scene, a.resolution), indent=1))
 
 

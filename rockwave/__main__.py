@@ -1,5 +1,5 @@
 import sys
 
-from rockwave.cli import main
+from rockwave.app.cli import main
 
 sys.exit(main())

@@ -67,10 +67,10 @@ def to_toml(d: dict) -> str:
 
 
 def kernel_values(sim, r2: np.ndarray) -> np.ndarray:
-    """W(r) of the scene's kernel (kernels/fluid.py kernel_w, through sph.lattice_moments) at squared distances r2."""
+    """W(r) of the scene's kernel (kernels/sph/fluid.py kernel_w, through sph.lattice_moments) at squared distances r2."""
     import warp as wp
 
-    from rockwave.kernels import fluid as sph
+    from rockwave.kernels.sph import fluid as sph
 
     pts = np.zeros((len(r2) + 1, 3), np.float32)
     pts[1:, 0] = np.sqrt(np.asarray(r2, np.float64))
@@ -83,7 +83,7 @@ def kernel_values(sim, r2: np.ndarray) -> np.ndarray:
 
 
 def gauge_level_reference(sim, name: str) -> float:
-    """A height gauge from its definition (rockwave/readers.py Gauges), in numpy: the water fraction
+    """A height gauge from its definition (rockwave/sim/readers.py Gauges), in numpy: the water fraction
     phi_f / (1 - phi_s) (0 where 1 - phi_s < 0.2) on the gauge's samples, the bed where it first reaches 0.5
     going up, the reading where it next drops below 0.5 (linear between samples); NaN when dry."""
     g, m = sim.readers._gauges, sim.fluid

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import rockwave
-from rockwave import checkpoint
-from rockwave.scene import SceneError, load_scene, parse_scene
+from rockwave.scene.format import SceneError, load_scene, parse_scene
+from rockwave.sim import checkpoint
 
 from conftest import DEVICE
 from helpers import ROOT, gauge_level_reference, tank_2d, to_toml, with_changes
@@ -66,7 +66,7 @@ def test_readers_leave_the_state_lists_and_order_untouched():
 
 
 def _gauge_reference(sim) -> dict:
-    """The gauges from their definition (rockwave/readers.py Gauges), in numpy."""
+    """The gauges from their definition (rockwave/sim/readers.py Gauges), in numpy."""
     m = sim.fluid
     H = m.support_radius
     out = {}
@@ -149,8 +149,8 @@ def test_ghost_step_composes_the_fluid_step_and_honours_density_diffusion():
     """Ghost SPH adds its terms through FluidSolver.step's hooks (it has no step of its own), so density
     diffusion, which the copied ghost step used to drop, acts there too: the same scene with and without
     delta = 0.1 ends with other densities, and the added term keeps them bounded."""
-    from rockwave.fluid import FluidSolver
-    from rockwave.ghost import GhostFluidSolver
+    from rockwave.sph.fluid import FluidSolver
+    from rockwave.sph.ghost import GhostFluidSolver
 
     assert GhostFluidSolver.step is FluidSolver.step
     runs = {}
@@ -206,13 +206,13 @@ def test_an_option_the_method_cannot_honour_is_a_scene_error(changes, key):
 
 def test_physics_modules_import_no_writer():
     """Solvers, state and the facade load without the USD library or the writers (recorders live in
-    rockwave/export, the run loop imports them)."""
+    rockwave/output, the run loop imports them)."""
     import subprocess
     import sys
 
-    code = ("import sys, rockwave, rockwave.fluid, rockwave.ghost, rockwave.blocks, rockwave.coupling, rockwave.clock, "
-            "rockwave.readers, rockwave.build; "
-            "bad = [m for m in sys.modules if m == 'pxr' or m.startswith('pxr.') or m.startswith('rockwave.export')]; "
+    code = ("import sys, rockwave, rockwave.sph.fluid, rockwave.sph.ghost, rockwave.dda.blocks, rockwave.coupling.penalty, rockwave.sim.clock, "
+            "rockwave.sim.readers, rockwave.build.builder; "
+            "bad = [m for m in sys.modules if m == 'pxr' or m.startswith('pxr.') or m.startswith('rockwave.output')]; "
             "print(bad); sys.exit(1 if bad else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert r.returncode == 0, r.stdout + r.stderr
@@ -230,8 +230,7 @@ def _one_frame_scene(duration=0.03):
 def test_progress_and_health_checks_run_inside_a_frame(tmp_path, monkeypatch, capsys):
     """Whatever the frame rate, the run loop redraws the progress line and runs the blow-up guard every
     WATCH_INTERVAL_S of wall time inside a frame (here 0: after every step)."""
-    from rockwave import run as run_mod
-
+    from rockwave.app import run as run_mod
     monkeypatch.setattr(run_mod, "WATCH_INTERVAL_S", 0.0)
     sim = rockwave.Simulation(_one_frame_scene(), device=DEVICE)
     calls = []
@@ -247,8 +246,7 @@ def test_progress_and_health_checks_run_inside_a_frame(tmp_path, monkeypatch, ca
 def test_measured_cost_of_the_first_steps_stops_a_run_that_would_not_end(tmp_path, monkeypatch):
     """After its first steps the run loop checks the run length with their measured cost: above the wall
     limit it stops with a SceneError naming the key to change; force=True (CLI --yes) runs on."""
-    from rockwave import preflight
-
+    from rockwave.build import preflight
     monkeypatch.setattr(preflight, "MAX_WALL_S", 1e-6)
     sim = rockwave.Simulation(_one_frame_scene(0.05), device=DEVICE)
     with pytest.raises(SceneError) as e:

@@ -181,7 +181,7 @@ def test_splash_scene_matches_rockwave_lattice_and_eos():
     """SPlisHSPlasH's block sampler (round(L / 2r) - 1 per axis from min + 2r) on the padded block gives
     rockwave's cell-centred lattice; stiffness is rockwave's Tait B."""
     from benchmarks.peers import splash as S
-    from rockwave.sampling import box_lattice
+    from rockwave.build.sampling import box_lattice
 
     a = H.A_MM
     sp = a / 10

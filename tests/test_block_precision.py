@@ -1,6 +1,6 @@
 """Block motion far from the world origin (issue 20): block centroids are float32 plus a compensation
 (BlockState.x_lo, a compensated sum in integrate_blocks) and the narrow phase works in a frame of its pair
-(kernels/blocks.py WorldVerts, pair_origin, pair_vertex), so a contact ~1-5 um deep at the default k_n is resolved
+(kernels/dda/blocks.py WorldVerts, pair_origin, pair_vertex), so a contact ~1-5 um deep at the default k_n is resolved
 whatever the distance to the origin. Before, at 100 m the float32 spacing of a world coordinate (7.6e-6 m)
 exceeded the penetration itself. Short runs of one block on a fixed slope (~1000 steps, < 1 s each)."""
 
@@ -12,11 +12,12 @@ import pytest
 import warp as wp
 
 import rockwave
-from rockwave import checkpoint
-from rockwave import geometry as G
-from rockwave.blocks import BlockModel, BlockSolver, BlockSpec, ContactMaterial
-from rockwave.scene import parse_scene
-from rockwave.solver import TimeStep
+from rockwave.base.maths import quat_to_matrix
+from rockwave.base.solver import TimeStep
+from rockwave.dda import geometry as G
+from rockwave.dda.blocks import BlockModel, BlockSolver, BlockSpec, ContactMaterial
+from rockwave.scene.format import parse_scene
+from rockwave.sim import checkpoint
 
 from conftest import DEVICE
 
@@ -63,7 +64,7 @@ def slide(offset_m):
         solver.step(state, TimeStep(dt, state.time, dt_array))
         if k >= steps // 2:
             normal.append(float((centroid(state, 1) - x0) @ n))
-    dR = G.quat_to_matrix(state.orientations_numpy()[1]) @ R.T
+    dR = quat_to_matrix(state.orientations_numpy()[1]) @ R.T
     tilt = 0.5 * float(np.linalg.norm([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]))  # sin
     return float((centroid(state, 1) - x0) @ d), float(np.mean(normal)), float(np.std(normal)), tilt
 

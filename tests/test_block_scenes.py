@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import rockwave
-from rockwave.rockmass import resize_box_region
-from rockwave.scene import SceneError, parse_scene
+from rockwave.build.rockmass import resize_box_region
+from rockwave.scene.format import SceneError, parse_scene
 
 from conftest import DEVICE
 from helpers import ROOT
@@ -139,7 +139,7 @@ def test_kept_pair_list_matches_a_broad_phase_every_step():
     margin/2 stays inside the box of the last broad phase (BlockOptions.keep_pairs); a jointed slope
     sliding for 300 steps moves as with a broad phase every step, with far fewer broad phases (measured:
     1 instead of 300, 596 pairs either way, positions equal)."""
-    from rockwave.blocks import BlockOptions, BlockSolver
+    from rockwave.dda.blocks import BlockOptions, BlockSolver
 
     out = {}
     for keep in (False, None):  # None: the default of the counter-read path, which keeps the list

@@ -1,4 +1,4 @@
-"""Adami wall particles on moving blocks (coupling.block_walls; rockwave/coupling.py BlockWalls): the water
+"""Adami wall particles on moving blocks (coupling.block_walls; rockwave/coupling/walls.py BlockWalls): the water
 pushes a block with its extrapolated wall pressure (Adami, Hu & Adams 2012, eq. 27 with the wall's
 acceleration), the reaction goes onto the block equal and opposite, and a floating box takes Archimedes' draft
 with the standard formulation (with the penalty alone it floats 9% high in 2D)."""
@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import rockwave
-from rockwave.coupling import CouplingOptions
-from rockwave.scene import SceneError
-from rockwave.simulation import SimulationOptions
+from rockwave.coupling.penalty import CouplingOptions
+from rockwave.scene.format import SceneError
+from rockwave.sim.simulation import SimulationOptions
 
 DEVICE = "cpu"
 G = 9.81
@@ -54,7 +54,7 @@ def test_wall_particles_follow_the_block():
     sim.advance(0.05)
     xb, q = sim.block_positions()[0], sim.block_state.orientations_numpy()[0]
     assert np.linalg.norm(xb - x0) > 1e-3  # it fell
-    from rockwave.geometry import quat_to_matrix
+    from rockwave.base.maths import quat_to_matrix
 
     body = sim.coupling.walls.body_r.numpy().astype(float)
     want = body @ quat_to_matrix(q).T + xb
@@ -167,8 +167,7 @@ def test_resume_from_a_checkpoint_is_bit_identical():
     """The walls' state travels in checkpoints (their positions in the fluid state, their list-build positions
     with the fluid solver's, the blocks' last velocities for the acceleration term): a run resumed from a
     checkpoint continues bit for bit (CPU)."""
-    from rockwave import checkpoint
-
+    from rockwave.sim import checkpoint
     scene = rockwave.parse_scene(_scene(lift=S))
     a = rockwave.Simulation(scene, device=DEVICE)
     a.advance(0.06)

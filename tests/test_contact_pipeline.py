@@ -1,5 +1,5 @@
 """The block-contact pipeline at scale (issues 20 and 21): the cooperative narrow phase of big blocks
-(kernels/blocks_coop.py narrow_phase_coop, one thread block per pair) gives the serial narrow phase's
+(kernels/dda/blocks_coop.py narrow_phase_coop, one thread block per pair) gives the serial narrow phase's
 contacts bit for bit, and the block solver's device memory stays within 4 KB per block because the
 contact history is sized from the live pairs and contact points."""
 
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-from rockwave import geometry as G
-from rockwave.blocks import BlockModel, BlockOptions, BlockSolver, BlockSpec, ContactMaterial
-from rockwave.solver import TimeStep
+from rockwave.base.solver import TimeStep
+from rockwave.dda import geometry as G
+from rockwave.dda.blocks import BlockModel, BlockOptions, BlockSolver, BlockSpec, ContactMaterial
 
 DEVICE = "cpu"
 SERIAL = BlockOptions(coop_min_vertices=10**9)  # every pair on the one-thread narrow phase

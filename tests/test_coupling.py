@@ -1,4 +1,4 @@
-"""Two-way SPH-DDA coupling (rockwave/coupling.py): Archimedes in 2D and 3D, a sinking block, a piston
+"""Two-way SPH-DDA coupling (rockwave/coupling/penalty.py): Archimedes in 2D and 3D, a sinking block, a piston
 wave maker against linear theory, a wedge sliding into water, no particle inside a block, momentum
 accounting, scene rules. CPU, small scenes (DESIGN.md §7)."""
 
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import rockwave
-from rockwave.coupling import block_signed_distance
-from rockwave.scene import SceneError, load_scene, parse_scene
+from rockwave.coupling.penalty import block_signed_distance
+from rockwave.scene.format import SceneError, load_scene, parse_scene
 
 from conftest import DEVICE
 
@@ -28,8 +28,8 @@ def _rebuild(sim, blocks=None, coupling=None) -> None:
     solvers then hold nothing but buffers); ``blocks`` / ``coupling``: dicts of option fields."""
     from dataclasses import replace
 
-    from rockwave.blocks import BlockOptions, BlockSolver
-    from rockwave.coupling import Coupling, CouplingOptions
+    from rockwave.coupling.penalty import Coupling, CouplingOptions
+    from rockwave.dda.blocks import BlockOptions, BlockSolver
 
     assert sim.steps == 0
     if blocks:
@@ -78,7 +78,7 @@ def test_floating_box_3d_archimedes():
 
 def test_sinking_block_reaches_floor_and_water_returns_to_hydrostatic():
     """A 0.1 m block of density 2000 sinks through 0.3 m of water and lands on the floor block: the
-    water film under it is squeezed out (rockwave/coupling.py, squeeze-out), so the block's bottom
+    water film under it is squeezed out (rockwave/coupling/penalty.py, squeeze-out), so the block's bottom
     touches the floor (DDA contact, the floor carries the block) with no particle left under or
     inside it, and the water returns to hydrostatic pressure."""
     sim = _sim("sinking_block_small.toml")
@@ -244,7 +244,7 @@ def test_scene_rules_and_broad_phase():
         parse_scene(bad)
     # a block far above the water costs no coupling work: it never becomes a candidate, whether the
     # particles test the few blocks' grown boxes directly or look them up in the (block, cell) hash
-    from rockwave.coupling import CouplingOptions
+    from rockwave.coupling.penalty import CouplingOptions
 
     far = dict(walls, blocks=walls["blocks"] + [{"shape": "box", "size_m": [0.1, 0.1, 0.1], "position_m": [0.05, 2.0, 0],
                                                  "material": {"normal_stiffness_n_m": 1e5}}])
@@ -291,8 +291,8 @@ def test_options_from_scene():
     solvers use them (d0, K_s, K_d, squeeze gap, both step limits); no section: the defaults."""
     import tomllib
 
-    from rockwave.blocks import BlockOptions
-    from rockwave.coupling import CouplingOptions, default_penalty
+    from rockwave.coupling.penalty import CouplingOptions, default_penalty
+    from rockwave.dda.blocks import BlockOptions
 
     data = tomllib.loads((SCENES / "sinking_block_small.toml").read_text())
     data.pop("coupling", None)

@@ -12,8 +12,9 @@ import warp as wp
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from rockwave import geometry as G
-from rockwave.blocks import (
+from rockwave.base.solver import TimeStep
+from rockwave.dda import geometry as G
+from rockwave.dda.blocks import (
     BlockModel,
     BlockOptions,
     BlockOverlapError,
@@ -23,7 +24,6 @@ from rockwave.blocks import (
     KinematicMotion,
     _sat_overlap,
 )
-from rockwave.solver import TimeStep
 
 wp.config.quiet = True
 DEVICE = os.environ.get("ROCKWAVE_TEST_DEVICE", "cpu")
@@ -693,7 +693,7 @@ def test_static_friction_holds_at_a_small_margin(size, kn):
     # deflection + 1 mm in 2 s and is at rest (before: the 8 m cube at the default k_n crept 83 mm and
     # was still moving). Causes: a suddenly loaded stuck shear spring overshoots to 2x its load, and the
     # normal spring, started without penetration and damped for restitution 0.5, dips to ~0.78 m g cos a;
-    # either exceeds a 0.1 deg margin. Fix (kernels/blocks.py narrow_phase): an overdamped stuck shear
+    # either exceeds a 0.1 deg margin. Fix (kernels/dda/blocks.py narrow_phase): an overdamped stuck shear
     # dashpot that only takes the Coulomb capacity its spring leaves, critical damping of resting (not
     # impact) normal contacts, both implicit in the block update, and a Coulomb cap on the normal force
     # the implicit step actually applied.

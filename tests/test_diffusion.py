@@ -1,4 +1,4 @@
-"""Density diffusion (delta-SPH, kernels/diffusion.py, scene key fluid.density_diffusion): it damps
+"""Density diffusion (delta-SPH, kernels/sph/diffusion.py, scene key fluid.density_diffusion): it damps
 particle-scale density noise and leaves the hydrostatic density of water at rest alone. CPU, small 2D tank."""
 
 from __future__ import annotations

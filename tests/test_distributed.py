@@ -1,6 +1,6 @@
-"""One scene on two MPI ranks (rockwave/distributed.py) against the one-process Simulation.
+"""One scene on two MPI ranks (rockwave/sim/distributed.py) against the one-process Simulation.
 
-Each test runs ``mpiexec -n 2 python -m rockwave.distributed`` (or ``python -m rockwave run --ranks``) in a
+Each test runs ``mpiexec -n 2 python -m rockwave.sim.distributed`` (or ``python -m rockwave run --ranks``) in a
 subprocess on the CPU. The ranks hold the same neighbour pairs as one process, but in another order (each
 rank's cell sort sees other slots), so the float32 sums over neighbours round differently: the particle
 sets agree within round-off grown over a few hundred steps, not bit for bit. Tolerances: positions 1e-5 m
@@ -109,13 +109,13 @@ def _mpi(args: list[str], cwd: Path, n: int = 2) -> subprocess.CompletedProcess:
 
 def _two_ranks(scene: Path, duration: float, tmp_path: Path, n: int = 2) -> dict:
     out = tmp_path / f"{scene.stem}_{n}.npz"
-    _mpi(["-m", "rockwave.distributed", str(scene), "--duration", str(duration), "--frames", "2", "--out", str(out)],
+    _mpi(["-m", "rockwave.sim.distributed", str(scene), "--duration", str(duration), "--frames", "2", "--out", str(out)],
          tmp_path, n)
     return dict(np.load(out))
 
 
 def _one_process(scene: Path, duration: float) -> dict:
-    from rockwave.simulation import Simulation
+    from rockwave.sim.simulation import Simulation
 
     sim = Simulation(scene, device="cpu")
     sim.advance(duration / 2)
@@ -241,11 +241,11 @@ def test_wall_impulse_is_summed_over_ranks(tmp_path):
     scene = _scene(tmp_path, "shelf", SHELF)
     t = 0.05
     one = tmp_path / "shelf_plain.npz"
-    r = subprocess.run([sys.executable, "-m", "rockwave.distributed", str(scene), "--duration", str(t), "--out", str(one),
+    r = subprocess.run([sys.executable, "-m", "rockwave.sim.distributed", str(scene), "--duration", str(t), "--out", str(one),
                         "--plain", "--track-walls"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     out = tmp_path / "shelf_2.npz"
-    _mpi(["-m", "rockwave.distributed", str(scene), "--duration", str(t), "--out", str(out), "--track-walls"], tmp_path)
+    _mpi(["-m", "rockwave.sim.distributed", str(scene), "--duration", str(t), "--out", str(out), "--track-walls"], tmp_path)
     a, b = np.load(one), np.load(out)
     up = float(a["wall_impulse"][1])
     weight_impulse = len(a["x"]) * 0.01 * 0.01 * 1000.0 * 9.81 * t  # the water's weight x t (2D: per metre)

@@ -1,4 +1,4 @@
-"""Height gauges read water (rockwave/readers.py Gauges): the top of the continuous water column from the bed,
+"""Height gauges read water (rockwave/sim/readers.py Gauges): the top of the continuous water column from the bed,
 where the kernel-interpolated water fraction along the gauge's vertical line first drops below 0.5. Still water
 reads its level (a lattice whose top particle centres are at z_top: z_top + s/2) within 0.1 spacing, next to walls
 and in corners too; water passing overhead with air between does not move the reading (the old definition, the
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import rockwave
-from rockwave.scene import parse_scene
+from rockwave.scene.format import parse_scene
 
 from conftest import DEVICE
 from helpers import gauge_level_reference, tank_2d

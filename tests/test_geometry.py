@@ -6,7 +6,7 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rockwave import geometry as G
+from rockwave.dda import geometry as G
 
 WEDGE = [[0, 0, 0], [2, 0, 0], [0, 0, 1], [0, 1.5, 0], [2, 1.5, 0], [0, 1.5, 1]]
 

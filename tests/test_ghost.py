@@ -7,9 +7,10 @@ from scipy.spatial import cKDTree
 
 import rockwave
 from benchmarks.ghost_accuracy import elastic_energy
-from rockwave.fluid import FluidOptions
-from rockwave.ghost import GhostFluidSolver, GhostOptions, drop_simulation, ellipse_semi_axes, elliptical_drop_simulation
-from rockwave.simulation import SimulationOptions
+from rockwave.sim.drops import drop_simulation, ellipse_semi_axes, elliptical_drop_simulation
+from rockwave.sim.simulation import SimulationOptions
+from rockwave.sph.fluid import FluidOptions
+from rockwave.sph.ghost import GhostFluidSolver, GhostOptions
 
 from conftest import DEVICE
 from helpers import DATA, ROOT, with_changes
@@ -77,7 +78,7 @@ def test_ghosts_complete_surface_density(dim, sampler):
     """Summation density of the outer layer: without ghosts it lacks ~1/4 (2D) or more of rho0;
     with ghosts the mean is within 6% (darts) or 10% (tile) of rho0. Measured: darts 2D 0.77 rho0 ->
     0.944 rho0, 3D 0.988 rho0; tile 0.920 and 0.917 rho0 (its layer has gaps next to the liquid: tile
-    points within r_liquid of it are dropped, not replaced; see rockwave/ghost.py DEFAULT_RADIUS_RATIO)."""
+    points within r_liquid of it are dropped, not replaced; see rockwave/sph/ghost.py DEFAULT_RADIUS_RATIO)."""
     sim, half = _sampled(dim, sampler)
     x = sim.positions()
     outer = np.min(half - np.abs(x), axis=1) < 0.6 * sim.fluid.spacing
@@ -95,7 +96,7 @@ def test_poisson_disk_tile_is_a_periodic_poisson_disk_set(dim):
     two points closer than r across the periodic boundary, at most one point per cell, and no room left:
     random probes farther than r from every point are rare (Bridson's k = 30 attempts leave a few). Density
     measured: 0.61 / r^2 (2D), 0.57 / r^3 (3D) against ~0.70 / 0.73 for a saturated packing."""
-    from rockwave.ghost import TILE_CELLS, poisson_disk_tile, tile_offsets
+    from rockwave.sph.ghost import TILE_CELLS, poisson_disk_tile, tile_offsets
 
     k = TILE_CELLS[dim]
     pts = poisson_disk_tile(k, dim)
@@ -119,7 +120,7 @@ def test_tile_sampler_places_the_tile_points_of_the_layer(dim):
     """Tile sampler on the lattice block: every ghost is a point of the tile laid over the background
     grid, and every tile point well inside the ghost layer (its nearest liquid particle between 0.75 and
     0.95 layer away, a surface particle within the layer: there the colour field is small) is a ghost."""
-    from rockwave.ghost import TILE_CELLS, poisson_disk_tile
+    from rockwave.sph.ghost import TILE_CELLS, poisson_disk_tile
 
     sim, half = _sampled(dim, "tile")
     s = sim.fluid_solver
@@ -463,7 +464,7 @@ def test_ghost_scene_above_the_stable_courant_number_warns():
     breaks use 0.125 and load without it."""
     import warnings
 
-    from rockwave.ghost import GHOST_CFL_MAX
+    from rockwave.sph.ghost import GHOST_CFL_MAX
 
     with pytest.warns(UserWarning, match=r"ghost_dam_break_case3.toml: simulation.cfl_number = 0.25"):
         rockwave.Simulation(_scene("ghost_dam_break_case3.toml", **{"fluid.spacing_m": 0.05,
@@ -486,7 +487,7 @@ def test_ghost_scene_above_the_stable_courant_number_warns():
 def test_tile_sampler_with_persistent_ghosts_is_a_scene_error():
     """persistent = true keeps last step's ghosts and fills the holes with darts; the tile sampler cannot:
     asking for both is a scene error naming the file and key. Without a sampler persistent scenes get the darts."""
-    from rockwave.scene import SceneError
+    from rockwave.scene.format import SceneError
 
     d = rockwave.load_scene(ROOT / "scenes" / "drop_zero_g_2d.toml").raw
     with pytest.raises(SceneError, match=r"drop_zero_g_2d.toml: fluid.ghost.sampler: .*persistent = true needs sampler = 'darts'"):

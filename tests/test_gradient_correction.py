@@ -14,8 +14,8 @@ import warp as wp
 import rockwave
 from benchmarks import harness as H
 from benchmarks.harness import standing_wave
-from rockwave.fluid import FluidSolver, build_fluid_model
-from rockwave.kernels import fluid as sph
+from rockwave.kernels.sph import fluid as sph
+from rockwave.sph.fluid import FluidSolver, build_fluid_model
 
 from conftest import DEVICE
 

@@ -22,9 +22,10 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import rockwave
-from rockwave import cli, preflight
-from rockwave.progress import Progress
-from rockwave.scene import SceneError, load_scene, parse_scene
+from rockwave.app import cli
+from rockwave.app.progress import Progress
+from rockwave.build import preflight
+from rockwave.scene.format import SceneError, load_scene, parse_scene
 
 from conftest import DEVICE
 from helpers import ROOT, tank_2d, to_toml
@@ -111,7 +112,7 @@ def test_wheel_holds_the_scenes_and_their_data_and_declares_the_mesh_dependencie
     shipped = {f"rockwave/scenes/{p.name}" for p in (ROOT / "scenes").glob("*.toml")}
     assert shipped and shipped <= names
     assert {"rockwave/scenes/data/spheric_test2/water_level.dat", "rockwave/scenes/data/spheric_test2/pressure.dat"} <= names
-    assert "rockwave/device.py" in names and "rockwave/kernels/fluid.py" in names
+    assert "rockwave/base/device.py" in names and "rockwave/kernels/fluid.py" in names
     requires = [l.split(":", 1)[1].strip().lower() for l in meta.splitlines() if l.startswith("Requires-Dist:") and "extra ==" not in l]
     for dep in ("charset-normalizer", "scipy", "trimesh"):
         assert any(q.startswith(dep) for q in requires), (dep, requires)
@@ -415,7 +416,7 @@ def test_blowup_advice_names_the_speed_of_sound_when_it_is_too_low(tmp_path):
 
 
 def test_blowup_advice_never_suggests_an_infinite_step():
-    from rockwave.guard import BlowUpError, HealthGuard
+    from rockwave.sim.guard import BlowUpError, HealthGuard
 
     sim = rockwave.Simulation(parse_scene(small_2d(), "x.toml"), device=DEVICE)
     guard = HealthGuard(sim)
@@ -427,7 +428,7 @@ def test_blowup_advice_never_suggests_an_infinite_step():
 
 
 def test_leaks_counted_exactly_through_walls_or_over_the_top():
-    from rockwave.guard import HealthGuard
+    from rockwave.sim.guard import HealthGuard
 
     sim = rockwave.Simulation(parse_scene(small_2d(), "x.toml"), device=DEVICE)
     g = HealthGuard(sim)
@@ -487,7 +488,7 @@ def test_quiet_prints_no_warp_banner_or_module_lines(tmp_path):
 def test_quiet_run_prints_no_warp_line_at_all(tmp_path):
     """`run --quiet` is fully quiet: not even the "Warp CUDA warning: Could not find or load the NVIDIA CUDA
     driver" note that Warp's native library writes to file descriptor 2 on a machine without a GPU
-    (rockwave.device.init_warp holds it back), and no Warp deprecation note from the surface."""
+    (rockwave.base.device.init_warp holds it back), and no Warp deprecation note from the surface."""
     d = small_2d()
     d["output"]["surface"] = {"enabled": True}
     path = write(tmp_path, d)
@@ -505,7 +506,7 @@ def test_quiet_warp_init_keeps_real_errors_visible(monkeypatch, capfd):
 
     import warp as wp
 
-    from rockwave.device import NO_DRIVER_NOTE, init_warp
+    from rockwave.base.device import NO_DRIVER_NOTE, init_warp
 
     def noisy_init():
         os.write(2, f"Warp CUDA warning: {NO_DRIVER_NOTE}. GPU execution will not be available.\n".encode())

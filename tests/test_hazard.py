@@ -1,4 +1,4 @@
-"""The hazard summary ([hazard], rockwave/hazard.py) against cases with a known answer: a still tank (no crest,
+"""The hazard summary ([hazard], rockwave/output/hazard.py) against cases with a known answer: a still tank (no crest,
 no arrival, nothing crosses), a water column translated at a known speed in zero gravity (arrival time, crest,
 volume across a line, run-up map with an isolated particle that must not count), a block coasting at a known
 speed (peak speed, runout); and the scene checks of the [hazard] keys."""
@@ -7,8 +7,8 @@ import json
 
 import pytest
 
-from rockwave.scene import SceneError, parse_scene
-from rockwave.simulation import Simulation
+from rockwave.scene.format import SceneError, parse_scene
+from rockwave.sim.simulation import Simulation
 
 from conftest import DEVICE
 from helpers import tank_2d

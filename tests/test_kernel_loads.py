@@ -30,7 +30,7 @@ PROBE = textwrap.dedent(
     wp.config.quiet = False
     wp.config.kernel_cache_dir = sys.argv[2]
     import rockwave
-    from rockwave.export.surface import SurfaceExtractor
+    from rockwave.output.surface import SurfaceExtractor
     from tests.helpers import ROOT, tank_2d
 
     device = sys.argv[1]

@@ -1,4 +1,4 @@
-"""Multi-rate stepping (rockwave/clock.py, README "Multi-rate stepping"): in a scene with water and
+"""Multi-rate stepping (rockwave/sim/clock.py, README "Multi-rate stepping"): in a scene with water and
 blocks the fluid's limits set the step and the blocks sub-step inside it with the water's load held.
 All on scenes/submarine_slide_2d.toml at 40 mm spacing (~1,400 particles)."""
 
@@ -14,10 +14,10 @@ import pytest
 import warp as wp
 
 import rockwave
-from rockwave.clock import MAX_BLOCK_SUBSTEPS
-from rockwave.coupling import CouplingOptions
-from rockwave.scene import SceneError, parse_scene
-from rockwave.simulation import SimulationOptions
+from rockwave.coupling.penalty import CouplingOptions
+from rockwave.scene.format import SceneError, parse_scene
+from rockwave.sim.clock import MAX_BLOCK_SUBSTEPS
+from rockwave.sim.simulation import SimulationOptions
 
 from conftest import DEVICE
 
@@ -179,8 +179,8 @@ def _incline_substeps(alpha: float, phi: float, hold: bool, t_end: float = 0.5, 
 
     from test_dda import g, incline_specs
 
-    from rockwave.blocks import BlockModel, BlockSolver
-    from rockwave.solver import TimeStep
+    from rockwave.base.solver import TimeStep
+    from rockwave.dda.blocks import BlockModel, BlockSolver
 
     specs, d, _ = incline_specs(alpha, [((0.5, 0.5, 0.5), phi, -2.0, 0.0, "rigid", {})], kn=1e8, slope_phi=phi)
     model = BlockModel(specs, device=DEVICE)

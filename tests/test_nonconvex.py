@@ -1,16 +1,17 @@
 """Non-convex blocks: a closed non-convex mesh -> one rigid compound block of CoACD convex parts
-(rockwave/geometry.py decompose, rockwave/blocks.py CompoundPart, kernels/blocks.py compound_loads)."""
+(rockwave/dda/geometry.py decompose, rockwave/dda/blocks.py CompoundPart, kernels/dda/blocks.py compound_loads)."""
 
 import numpy as np
 import pytest
 import trimesh
 import warp as wp
 
-from rockwave import geometry as G
-from rockwave.blocks import BlockModel, BlockSolver, BlockSpec, CompoundPart, ContactMaterial
-from rockwave.rocks import block_specs, euler_xyz_deg_to_quat
-from rockwave.scene import SceneError, parse_scene
-from rockwave.solver import TimeStep
+from rockwave.base.maths import euler_xyz_deg_to_quat, quat_to_matrix
+from rockwave.base.solver import TimeStep
+from rockwave.build.rocks import block_specs
+from rockwave.dda import geometry as G
+from rockwave.dda.blocks import BlockModel, BlockSolver, BlockSpec, CompoundPart, ContactMaterial
+from rockwave.scene.format import SceneError, parse_scene
 
 DEVICE = "cpu"
 RHO = 2600.0
@@ -81,7 +82,7 @@ def run(model, seconds, record=None):
 
 
 def lowest_z(c, q, x):
-    return float((c.mesh_vertices @ G.quat_to_matrix(q).T + np.asarray(x))[:, 2].min())
+    return float((c.mesh_vertices @ quat_to_matrix(q).T + np.asarray(x))[:, 2].min())
 
 
 def test_mass_properties_are_the_original_mesh(cache):
@@ -175,7 +176,7 @@ def test_fall_matches_convex_block_with_the_same_mass_properties(cache):
     from scipy.spatial.transform import Rotation
 
     q0 = euler_xyz_deg_to_quat((10.0, 20.0, 30.0))
-    R0 = G.quat_to_matrix(q0)
+    R0 = quat_to_matrix(q0)
     qbox = tuple(Rotation.from_matrix(R0 @ P).as_quat())
     w0, v0 = (1.5, -2.0, 0.7), (0.3, 0.0, 0.0)
     xL, xB = np.array([0.0, -3.0, 1.5]), np.array([0.0, 3.0, 1.5])
@@ -196,7 +197,7 @@ def test_fall_matches_convex_block_with_the_same_mass_properties(cache):
         w = state.angular_velocities_numpy()
         np.testing.assert_allclose(x[2] - xL, x[1] - xB, atol=2e-5)
         np.testing.assert_allclose(w[2], w[1], rtol=1e-4, atol=1e-4)
-        np.testing.assert_allclose(G.quat_to_matrix(q[2]) @ P, G.quat_to_matrix(q[1]), atol=1e-4)
+        np.testing.assert_allclose(quat_to_matrix(q[2]) @ P, G.quat_to_matrix(q[1]), atol=1e-4)
 
     run(model, 1.0, record=compare)
     assert seen["contact"] and seen["steps"] > 100  # the spin changed the axes a lot before the contact ended it
@@ -266,7 +267,7 @@ def test_usd_shows_the_original_mesh_moving(tmp_path, capsys):
     from pxr import Usd, UsdGeom
 
     import rockwave
-    from rockwave.run import run as run_scene
+    from rockwave.app.run import run as run_scene
 
     scene = _scene(tmp_path, l_mesh(), position_m=[0.0, 0.0, 2.0], angular_velocity_rad_s=[0.0, 1.0, 0.0])
     scene.simulation["duration_s"] = 0.1
@@ -308,5 +309,5 @@ def test_water_load_on_one_part_moves_the_body_over_multirate_substeps(cache):
     assert np.all(v == v[0]) and np.all(w == w[0]) and np.all(x == x[0]) and np.all(q == q[0])
     np.testing.assert_allclose(v[0], dt * F / c.mass(RHO), rtol=1e-4)
     # w(t) solves I_w(t) w' = tau - w x I_w w, close to I^-1 tau t for the small spin reached here
-    Iw = G.quat_to_matrix(q[0]) @ c.inertia(RHO) @ G.quat_to_matrix(q[0]).T
+    Iw = quat_to_matrix(q[0]) @ c.inertia(RHO) @ G.quat_to_matrix(q[0]).T
     np.testing.assert_allclose(Iw @ w[0], dt * tau, rtol=2e-3, atol=1e-3 * np.linalg.norm(dt * tau))

@@ -9,11 +9,11 @@ import pytest
 import warp as wp
 
 import rockwave
-from rockwave.cli import main
-from rockwave.export import vtk
-from rockwave.export.surface import SurfaceExtractor
-from rockwave.plot import gauge_series, read_reference
-from rockwave.preview import PreviewError, load_frame
+from rockwave.app.cli import main
+from rockwave.app.plot import gauge_series, read_reference
+from rockwave.app.preview import PreviewError, load_frame
+from rockwave.output import vtk
+from rockwave.output.surface import SurfaceExtractor
 
 from conftest import DEVICE
 from helpers import DATA, tank_2d, with_changes
@@ -60,7 +60,7 @@ def test_lattice_box_surface_is_flat_at_the_top_of_the_water(field, resolution):
 
 @pytest.mark.parametrize("field", ["colour", "metaball"])
 def test_default_grid_of_one_spacing_keeps_a_resting_box_flat_at_its_height(field):
-    """The default 3D cell is one particle spacing (rockwave/export/surface.py default_cell). Whatever the grid's
+    """The default 3D cell is one particle spacing (rockwave/output/surface.py default_cell). Whatever the grid's
     offset against the particles (the box passed in shifted by a fraction of a cell), the top of a resting box of
     water is flat at its height within a tenth of a spacing, as on a grid of half a spacing; the buffers are kept
     from frame to frame and a second frame gives the same mesh."""
@@ -104,7 +104,7 @@ def _field_reference(x, rho, mass, lower, cell, shape, R, kind, dim, metaball_no
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("field", ["colour", "metaball"])
 def test_surface_field_gather_equals_the_sum_over_all_particles(dim, field):
-    """The field gathered from the sorted particle cells (kernels/surface.py fluid_field) equals the plain sum
+    """The field gathered from the sorted particle cells (kernels/output/surface.py fluid_field) equals the plain sum
     over every particle, up to float32 round-off: random particles and densities, a cell size that does not
     divide the spacing, runs of 1, 3 and the default nodes per thread, and a box given smaller than the
     particles' (particles outside the grid join its edge cells)."""

@@ -6,10 +6,10 @@ import pytest
 import warp as wp
 
 import rockwave
-from rockwave.fluid import FluidOptions
-from rockwave.scene import load_scene
-from rockwave.simulation import SimulationOptions
-from rockwave.solver import TimeStep
+from rockwave.base.solver import TimeStep
+from rockwave.scene.format import load_scene
+from rockwave.sim.simulation import SimulationOptions
+from rockwave.sph.fluid import FluidOptions
 
 from conftest import DEVICE
 from helpers import ROOT
@@ -85,8 +85,8 @@ def test_boundary_particles_are_in_cell_order():
 def _random_model(dim, wrapped, n_side=7):
     from test_sph import _fluid_section
 
-    from rockwave.fluid import FluidSolver, build_fluid_model
-    from rockwave.sampling import box_lattice
+    from rockwave.build.sampling import box_lattice
+    from rockwave.sph.fluid import FluidSolver, build_fluid_model
 
     rng = np.random.default_rng(3)
     fl = _fluid_section("muller", dim, density="summation", clamp_negative_pressure=False,
@@ -136,7 +136,7 @@ def test_neighbour_lists_match_brute_force(dim, wrapped, skin):
 def test_neighbour_list_overflow_falls_back_to_cell_query():
     """Particles with more neighbours than the list holds get the same density and acceleration
     from the cell-grid query."""
-    from rockwave.kernels import fluid as sph
+    from rockwave.kernels.sph import fluid as sph
 
     model, solver = _random_model(3, wrapped=False)
     s = model.state()
@@ -302,7 +302,7 @@ def test_neighbour_skin_rebuilds_after_large_displacement(host_decides):
 
 
 def FluidSolver_with_skin(model, skin):
-    from rockwave.fluid import FluidSolver
+    from rockwave.sph.fluid import FluidSolver
 
     return FluidSolver(model, neighbour_skin=skin)
 
@@ -327,7 +327,7 @@ def test_neighbour_skin_overflow_fallback_on_a_kept_grid(host_decides):
     """Overflowed lists are summed by a cell query of radius H + skin on the grid of the last build,
     which is kept with the list: after every particle moved (less than skin/2) without a rebuild, the
     rates equal those of a solver without a skin and with room for every neighbour."""
-    from rockwave.fluid import FluidSolver
+    from rockwave.sph.fluid import FluidSolver
 
     model, solver = _random_model(3, wrapped=False)
     solver.set_neighbour_skin(0.2)

@@ -22,8 +22,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import rockwave
-from rockwave import checkpoint, cli, preflight
-from rockwave.scene import SCHEMA, SceneError, load_scene, parse_scene
+from rockwave.app import cli
+from rockwave.base.files import atomic_write
+from rockwave.build import preflight
+from rockwave.scene.format import SCHEMA, SceneError, load_scene, parse_scene
+from rockwave.sim import checkpoint
 
 from conftest import DEVICE
 from helpers import tank_2d, to_toml
@@ -738,14 +741,14 @@ def test_registered_state_travels_in_checkpoints(tmp_path):
 
 def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
     p = tmp_path / "a.txt"
-    checkpoint.atomic_write(p, b"old")
+    atomic_write(p, b"old")
 
     def bad(f):
         f.write(b"partial")
         raise OSError(28, "No space left on device")
 
     with pytest.raises(OSError):
-        checkpoint.atomic_write(p, bad)
+        atomic_write(p, bad)
     assert p.read_bytes() == b"old" and sorted(x.name for x in tmp_path.iterdir()) == ["a.txt"]
 
 

@@ -1,4 +1,4 @@
-"""[[rock_mass]]: regions cut into convex blocks by joint sets (rockwave/rockmass.py)."""
+"""[[rock_mass]]: regions cut into convex blocks by joint sets (rockwave/build/rockmass.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 import trimesh
 from scipy.spatial import ConvexHull
 
-from rockwave.rockmass import (
+from rockwave.build.rockmass import (
     JointSet,
     box_halfspaces,
     cut_box,
@@ -21,7 +21,7 @@ from rockwave.rockmass import (
     joint_normal,
     merge_slivers,
 )
-from rockwave.scene import SceneError, parse_scene
+from rockwave.scene.format import SceneError, parse_scene
 
 OBLIQUE = [JointSet(60, 30, 0.3, random_offset=True), JointSet(70, 200, 0.4, random_offset=True),
            JointSet(15, 100, 0.25, random_offset=True)]
@@ -120,7 +120,7 @@ def test_seed_reproduces():
 
 
 def test_mesh_regions():
-    from rockwave.rockmass import RockMassError
+    from rockwave.build.rockmass import RockMassError
 
     # a convex slope section: a box with its crest cut at 40 degrees
     slope = trimesh.convex.convex_hull(np.array([[0, 0, 0], [3, 0, 0], [0, 1, 0], [3, 1, 0], [0, 0, 2], [0, 1, 2],
@@ -198,7 +198,7 @@ def scene(**changes):
 
 
 def scene_error(d, what="<test>"):
-    from rockwave.rocks import block_specs
+    from rockwave.build.rocks import block_specs
 
     with pytest.raises(SceneError) as e:
         block_specs(parse_scene(d, what))
@@ -206,7 +206,7 @@ def scene_error(d, what="<test>"):
 
 
 def test_scene_blocks_and_materials():
-    from rockwave.rocks import block_specs
+    from rockwave.build.rocks import block_specs
 
     specs = block_specs(parse_scene(scene()))
     rock = [s for s in specs if s.name.startswith("rock_")]
@@ -242,7 +242,7 @@ def test_bad_input_names_key_and_number():
 
 
 def test_2d_rock_mass():
-    from rockwave.rocks import block_specs
+    from rockwave.build.rocks import block_specs
 
     d = scene()
     d["simulation"]["dimension"] = 2
@@ -269,7 +269,7 @@ def test_cut_rock_mass_settles_under_gravity():
 
 
 def test_mesh_region_in_a_scene(tmp_path):
-    from rockwave.rocks import block_specs
+    from rockwave.build.rocks import block_specs
 
     top = 3 - 2 / math.tan(math.radians(40))
     slope = trimesh.convex.convex_hull(np.array([[0, 0, 0], [3, 0, 0], [0, 1, 0], [3, 1, 0], [0, 0, 2], [0, 1, 2],

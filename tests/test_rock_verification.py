@@ -13,10 +13,10 @@ import pytest
 import warp as wp
 
 import rockwave
-from rockwave import geometry as G
-from rockwave.blocks import BlockModel, BlockSolver, BlockSpec, ContactMaterial, KinematicMotion
-from rockwave.scene import load_scene
-from rockwave.solver import TimeStep
+from rockwave.base.solver import TimeStep
+from rockwave.dda import geometry as G
+from rockwave.dda.blocks import BlockModel, BlockSolver, BlockSpec, ContactMaterial, KinematicMotion
+from rockwave.scene.format import load_scene
 
 wp.config.quiet = True
 DEVICE = os.environ.get("ROCKWAVE_TEST_DEVICE", "cpu")
@@ -130,7 +130,7 @@ def test_static_friction_holds_over_sizes_shapes_and_stiffnesses(width, aspect, 
 def test_static_friction_holds_for_slender_blocks(width, aspect, kn):
     # issue 20, slender blocks up to the toppling limit (h/w 1 / tan 35 = 1.43): their uphill points carry
     # little of the normal force, and gravity from t = 0 pitches them forward. Before the overdamped rocking
-    # dashpot of a resting face (kernels/blocks.py contact_forces) the 10 m block of h/w 1.2 on a soft joint
+    # dashpot of a resting face (kernels/dda/blocks.py contact_forces) the 10 m block of h/w 1.2 on a soft joint
     # slid 31.4 mm against 20.3 mm of spring extension (11.0 mm without slip); now 6.7 mm. Checked against
     # both the springs' extension and the deflection with no slip at all, m g sin a / (4 k_s) (a box face on a
     # larger face touches at its 4 corners)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import rockwave
-from rockwave.scene import SceneError, load_scene, parse_scene
+from rockwave.scene.format import SceneError, load_scene, parse_scene
 
 from conftest import DEVICE
 from helpers import ROOT, tank_2d, with_changes
@@ -156,6 +156,6 @@ def test_python_api_steps_and_reads_arrays():
 def test_scene_format_doc_is_current():
     """docs/scene_format.md is generated from the schema the loader uses: regenerate it with
     `python -m rockwave schema > docs/scene_format.md` after changing a key."""
-    from rockwave.scene import scene_format_doc
+    from rockwave.scene.format import scene_format_doc
 
     assert (ROOT / "docs" / "scene_format.md").read_text() == scene_format_doc()

@@ -9,9 +9,9 @@ import pytest
 import warp as wp
 
 import rockwave
-from rockwave.fluid import FluidSolver, build_fluid_model, calibrate_lattice, make_params
-from rockwave.kernels import fluid as sph
-from rockwave.sampling import box_lattice
+from rockwave.build.sampling import box_lattice
+from rockwave.kernels.sph import fluid as sph
+from rockwave.sph.fluid import FluidSolver, build_fluid_model, calibrate_lattice, make_params
 
 from conftest import DEVICE
 from helpers import ROOT, martin_moyce, tank_2d, with_changes
@@ -278,7 +278,7 @@ def test_step_stability_limit_of_the_lattice_analysis_and_the_default_courant_nu
     support the schema offers (a margin of 2.9 on the lattice, ~2.5 against the tank's 1.5-1.7; at 0.6 and 0.8 the
     chart's cases read as at 0.4: docs/notes.md 'Courant number 0.6')."""
     from benchmarks.courant import lattice_acoustic_limit
-    from rockwave.scene import SCHEMA
+    from rockwave.scene.format import SCHEMA
 
     c_max = lattice_acoustic_limit("wendland", 3.0, 2)
     assert 1.6 < c_max < 1.9, c_max
@@ -304,7 +304,7 @@ def test_step_stability_limit_of_the_lattice_analysis_and_the_default_courant_nu
 
 
 def test_density_floor_forgets_expansion_and_changes_no_energy():
-    """fluid.density_floor (kernels/fluid.py continuity_floor): a 2D block of water spreading in zero gravity
+    """fluid.density_floor (kernels/sph/fluid.py continuity_floor): a 2D block of water spreading in zero gravity
     (u = k x from its centre) keeps rho >= rho0 with the floor and falls below rho0 without; negative pressure
     is clipped either way, so both spread ballistically with the same kinetic energy. Turned back (v -> -v), the
     floored block pushes as soon as it is compressed; without the floor it is compressed back through its whole

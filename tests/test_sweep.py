@@ -1,4 +1,4 @@
-"""Scenario studies (rockwave/sweep.py): a 2x2 sweep of the tiny 2D slide through the local process pool and
+"""Scenario studies (rockwave/app/sweep.py): a 2x2 sweep of the tiny 2D slide through the local process pool and
 through a local Ray instance gives identical tables; a study killed mid-way finishes only what was missing; bad
 values are all reported before anything runs; a failing scenario and a dying worker are recorded while the
 others finish."""
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from rockwave import sweep
+from rockwave.app import sweep
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ROOT / "scenes" / "slide_2d_tiny.toml"

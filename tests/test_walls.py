@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import rockwave
-from rockwave.scene import SceneError
+from rockwave.scene.format import SceneError
 
 from conftest import DEVICE
 
@@ -175,7 +175,7 @@ def test_ghost_sph_runs_on_the_default_formulation():
 @pytest.mark.parametrize("dim", [2, 3])
 def test_fixed_blocks_are_adami_walls(dim):
     """A tank made of fixed blocks (no [tank]) holding water at rest, default formulation: the blocks' faces get
-    wall particles (rockwave/build.py fixed_block_walls) and read the hydrostatic pressure as the [tank] walls do.
+    wall particles (rockwave/build/builder.py fixed_block_walls) and read the hydrostatic pressure as the [tank] walls do.
     2D: 0.3 m deep, 0.6 m wide, 0.015 m, 0.5 s (measured single reads at 0.5 s before the packed start became the
     default: corner +0.8%, floor +1.0%, side +0.5%); 3D: 0.12 m cube at 0.015 m, 0.25 s, whose single reads swing
     +-2.5% with the tank's acoustic period (4 D/c0 = 24 ms): the gauges are averaged over the last 0.1 s (measured
@@ -218,11 +218,11 @@ def test_fixed_blocks_are_adami_walls(dim):
 
 
 def test_packed_start_spaces_each_run_at_its_hydrostatic_density():
-    """rockwave.build.packed_start: along a lattice column, each gap dx becomes dx rho0/rho(mid-depth) from the
+    """rockwave.build.builder.packed_start: along a lattice column, each gap dx becomes dx rho0/rho(mid-depth) from the
     run's lowest particle up; a gap wider than 1.5 spacings (an obstacle) starts a new run anchored at its own lowest
     particle; a run whose top is not the free surface (under the obstacle) stays as it was; other columns and axes
     are untouched."""
-    from rockwave.build import packed_start
+    from rockwave.build.builder import packed_start
 
     dx = 0.01
     z = np.concatenate([(np.arange(10) + 0.5) * dx, (np.arange(14, 20) + 0.5) * dx])  # a run, an obstacle's gap, a run
@@ -293,13 +293,12 @@ def test_packed_start_with_geometric_walls_reads_hydrostatics_closer():
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_open_tank_walls_rise_on_the_waters_lattice(dim):
-    """rockwave.sampling.box_shell: an open tank whose height is not a whole number of spacings (0.4 m at 0.015 m)
+    """rockwave.build.sampling.box_shell: an open tank whose height is not a whole number of spacings (0.4 m at 0.015 m)
     gets side-wall particles on the water's rows (the floor's lattice with the exact step: a lattice stretched to
     end at the top put them between the rows and gave each 0.6% less volume than the wall force assumes, reading
     +0.6% at 40 layers; docs/notes.md 'Water at rest on the H200'), up to the first whole step at or above the
     top; the floor's layers below keep the exact step too."""
-    from rockwave import sampling
-
+    from rockwave.build import sampling
     s, layers, up = 0.015, 3, dim - 1
     lo, hi = [0.0] * dim, [0.3] * (dim - 1) + [0.4]
     b = sampling.box_shell(lo, hi, s, layers, True, True, up)

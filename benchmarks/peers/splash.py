@@ -9,7 +9,7 @@ LD_PRELOAD=/lib/x86_64-linux-gnu/libGLdispatch.so.0 (its wheel's GL library clas
 - Particles: the same lattice. SPlisHSPlasH's FluidBlocks sampler (SimulatorBase::createFluidBlocks, dense
   mode 0) puts round(L / 2r) - 1 particles per axis, the first at min + 2r: a block [0, a] at r = spacing/2
   gets 9 x 19 x 9 = 1539 particles at spacing, 2 spacing, ... where rockwave's cell-centred lattice
-  (rockwave/sampling.py) gets 10 x 20 x 10 = 2000 at spacing/2, 3 spacing/2, .... The block is therefore
+  (rockwave/build/sampling.py) gets 10 x 20 x 10 = 2000 at spacing/2, 3 spacing/2, .... The block is therefore
   given as [-spacing/2, a + spacing/2] (and 2a + spacing/2 in height): round(11) - 1 = 10 particles per a,
   the first at +spacing/2, i.e. exactly rockwave's positions (checked: the worker reports the bounds).
   The wall: rockwave's boundary layers continue the fluid lattice outside the tank face (the first at

@@ -1,0 +1,341 @@
+"""Gauge kernels, launched by rockwave/sim/readers.py (Gauges): water-level and pressure probes evaluated on
+the device from the current state; one host read returns every gauge's value."""
+
+import warp as wp
+
+from rockwave.kernels.sph.fluid import SPHParams, kernel_w
+
+wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
+
+# A sample whose open (non-solid) fraction 1 - phi_s is below this is inside a wall: not water.
+SOLID_CUTOFF = wp.constant(0.2)
+
+
+@wp.func
+def line_add(xj: wp.vec3, vol: float, origin: wp.vec3, up: int, z0: float, dz: float, p: SPHParams,
+             prof: wp.array2d(dtype=float), g: int):
+    """Add V_j W(|x(z_k) - x_j|) to prof[g, k] at the samples z_k = z0 + k dz of the vertical line through
+    origin that lie within the support H of x_j (nothing when x_j is H or more from the line)."""
+    d = xj - origin
+    zj = xj[up]
+    d[up] = 0.0
+    h2 = wp.length_sq(d)
+    hh = p.H * p.H
+    if h2 >= hh:
+        return
+    reach = wp.sqrt(hh - h2)
+    n = prof.shape[1]
+    k0 = wp.max(int(wp.ceil((zj - reach - z0) / dz)), 0)
+    k1 = wp.min(int(wp.floor((zj + reach - z0) / dz)), n - 1)
+    for k in range(k0, k1 + 1):
+        e = z0 + float(k) * dz - zj
+        wp.atomic_add(prof, g, k, vol * kernel_w(h2 + e * e, p))
+
+
+@wp.kernel
+def gauge_fluid_profile(
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    gauge_pos: wp.array(dtype=wp.vec3),
+    is_height: wp.array(dtype=int),
+    up: int,
+    z0: float,
+    dz: float,
+    p: SPHParams,
+    prof: wp.array2d(dtype=float),
+):
+    """The fluid fraction phi_f(z_k) = sum_j V_j W(|x(z_k) - x_j|), V_j = m_j / rho_j, sampled along each
+    height gauge's vertical line (launched over fluid particles x gauges; particles H or more from the
+    line add nothing)."""
+    j, g = wp.tid()
+    if is_height[g] == 0:
+        return
+    line_add(x[j], particle_mass[j] / rho[j], gauge_pos[g], up, z0, dz, p, prof, g)
+
+
+@wp.kernel
+def gauge_solid_profile(
+    x: wp.array(dtype=wp.vec3),
+    particle_mass: wp.array(dtype=float),
+    offset: int,
+    gauge_pos: wp.array(dtype=wp.vec3),
+    is_height: wp.array(dtype=int),
+    up: int,
+    z0: float,
+    dz: float,
+    p: SPHParams,
+    prof: wp.array2d(dtype=float),
+):
+    """The solid fraction phi_s(z_k) = sum_b V_b W of the (static) boundary particles, V_b = Psi_b / rho0,
+    along each height gauge's line (launched once over boundary particles x gauges; x holds the boundary
+    particles, particle_mass the fluid's first: offset = n_fluid)."""
+    b, g = wp.tid()
+    if is_height[g] == 0:
+        return
+    line_add(x[b], particle_mass[offset + b] / p.rest_density, gauge_pos[g], up, z0, dz, p, prof, g)
+
+
+@wp.func
+def water_fraction(fluid: wp.array2d(dtype=float), solid: wp.array2d(dtype=float), g: int, k: int) -> float:
+    """phi_f / (1 - phi_s): the water's share of the space that is not wall (phi_f where there is no wall;
+    next to a wall, whose particles take part of the kernel support, bulk water still reads 1); 0 inside a wall."""
+    open_ = 1.0 - solid[g, k]
+    if open_ < SOLID_CUTOFF:
+        return 0.0
+    return fluid[g, k] / open_
+
+
+@wp.kernel
+def gauge_level(
+    fluid: wp.array2d(dtype=float),
+    solid: wp.array2d(dtype=float),
+    is_height: wp.array(dtype=int),
+    z0: float,
+    dz: float,
+    reach: int,
+    out: wp.array(dtype=float),
+):
+    """The top of the continuous water column of each height gauge (one thread per gauge). Going up the
+    samples from the line's lower end: the bed is the lowest sample not inside a wall; the column starts
+    where the water fraction first reaches 0.5, which must be within `reach` samples of the bed (else the
+    water on the line rests on nothing: a jet or spray over a dry bed); the reading is the first crossing
+    back below 0.5 above it, linearly interpolated between the two samples; water overhead beyond it does
+    not count. A wall within `reach` above that crossing (water under a beach, a shelf) starts a new bed:
+    the column may go on above it. NaN when dry; the line's upper end when the fraction never drops
+    below 0.5 again."""
+    g = wp.tid()
+    if is_height[g] == 0:
+        return
+    n = fluid.shape[1]
+    level = float(wp.nan)
+    bed = int(-1)
+    wet = int(0)
+    top = int(-1)  # the sample of the last crossing (-1: none yet)
+    prev = float(0.0)
+    for k in range(n):
+        f = water_fraction(fluid, solid, g, k)
+        inside = 1.0 - solid[g, k] < SOLID_CUTOFF
+        if inside:
+            bed = -1  # inside a wall: the bed is above
+            wet = 0
+            top = -1  # a wall on top of the column: it may go on above the wall
+        elif bed < 0:
+            bed = k
+        if top >= 0 and k - top > reach:
+            out[g] = level  # air above the column and no wall: done
+            return
+        if not inside:
+            if wet == 0:
+                if f >= 0.5:
+                    if bed >= n or k - bed > reach:
+                        out[g] = level  # water resting on nothing (or overhead, with air between)
+                        return
+                    wet = 1
+                    top = -1
+            elif f < 0.5:
+                level = z0 + (float(k - 1) + (prev - 0.5) / (prev - f)) * dz
+                wet = 0
+                top = k
+                bed = 2 * n  # no new bed in the air: only above a wall
+        prev = f
+    if wet == 1:
+        level = z0 + float(n - 1) * dz
+    out[g] = level
+
+
+@wp.kernel
+def gauge_pressure_sums(
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    gauge_pos: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    sums: wp.array2d(dtype=float),
+):
+    """The Shepard sums of the pressure gauges, launched over fluid particles x gauges (no grid to build):
+    sums[g, 0] += V_j p_j W(x_g - x_j), sums[g, 1] += V_j W(x_g - x_j), V_j = m_j / rho_j, for r < H."""
+    j, g = wp.tid()
+    r2 = wp.length_sq(gauge_pos[g] - x[j])
+    if r2 < p.H * p.H:
+        w = particle_mass[j] / rho[j] * kernel_w(r2, p)
+        wp.atomic_add(sums, g, 0, w * pressure[j])
+        wp.atomic_add(sums, g, 1, w)
+
+
+@wp.kernel
+def gauge_pressure(sums: wp.array2d(dtype=float), out: wp.array(dtype=float)):
+    """Shepard-normalised SPH interpolation p(x_g) = sum V_j p_j W / sum V_j W (0 where no particle is near)."""
+    g = wp.tid()
+    if sums[g, 1] > 0.0:
+        out[g] = sums[g, 0] / sums[g, 1]
+    else:
+        out[g] = 0.0
+
+
+@wp.kernel
+def gauge_median(top: wp.array2d(dtype=float), is_height: wp.array(dtype=int), out: wp.array(dtype=float)):
+    """Median of the wet column tops of each height gauge (top > -1e29; NaN when none is wet), as
+    numpy.median: the mean of the two middle values for an even count. One thread per gauge
+    (a few dozen columns: rank counting, no sort)."""
+    g = wp.tid()
+    if is_height[g] == 0:
+        return
+    n = top.shape[1]
+    k = int(0)
+    for c in range(n):
+        if top[g, c] > -1.0e29:
+            k += 1
+    if k == 0:
+        out[g] = wp.nan
+        return
+    lo_rank = (k - 1) / 2
+    hi_rank = k / 2
+    a = float(0.0)
+    b = float(0.0)
+    for c in range(n):
+        v = top[g, c]
+        if v > -1.0e29:
+            below = int(0)
+            equal = int(0)
+            for e in range(n):
+                u = top[g, e]
+                if u > -1.0e29:
+                    if u < v:
+                        below += 1
+                    elif u == v:
+                        equal += 1
+            # v holds ranks below .. below + equal - 1
+            if lo_rank >= below and lo_rank < below + equal:
+                a = v
+            if hi_rank >= below and hi_rank < below + equal:
+                b = v
+    out[g] = (a + b) * 0.5
+
+
+@wp.kernel
+def gauge_pressure_wall_sums(
+    x: wp.array(dtype=wp.vec3),
+    wall_pressure: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    gauge_pos: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    sums: wp.array2d(dtype=float),
+):
+    """Adami walls (kernels/sph/fluid.py wall_pressure_adami): the wall particles' share of the pressure gauges'
+    Shepard sums, launched over boundary particles x gauges, V_b = m_b / rho0. A sensor on a wall then averages
+    over both sides of the wall surface, as the wall's own pressure field continues the fluid's (a sum over
+    the fluid alone is centred inside the water and reads the pressure of a shallower point)."""
+    t, g = wp.tid()
+    b = t + p.n_fluid
+    r2 = wp.length_sq(gauge_pos[g] - x[b])
+    if r2 < p.H * p.H:
+        w = particle_mass[b] / p.rest_density * kernel_w(r2, p)
+        wp.atomic_add(sums, g, 0, w * wall_pressure[t])
+        wp.atomic_add(sums, g, 1, w)
+
+
+
+
+# ---------------------------------------------------------------------------------------------------
+# Hazard summary (rockwave/output/hazard.py): running extremes reduced on the device, one host read at the end.
+# ---------------------------------------------------------------------------------------------------
+
+# columns of a wave gauge's row in the hazard statistics
+HZ_MAX = wp.constant(0)  # highest eta
+HZ_T_MAX = wp.constant(1)
+HZ_MIN = wp.constant(2)  # lowest eta
+HZ_T_MIN = wp.constant(3)
+HZ_ARRIVAL = wp.constant(4)  # first time |eta| > threshold (NaN: not yet)
+HZ_PREV_ETA = wp.constant(5)  # the previous sample (NaN: dry)
+HZ_PREV_T = wp.constant(6)
+HZ_COLUMNS = 7
+
+
+@wp.kernel
+def hazard_wave_update(
+    level: wp.array(dtype=float),
+    still: wp.array(dtype=float),
+    threshold: wp.array(dtype=float),
+    t: float,
+    stats: wp.array2d(dtype=float),
+):
+    """One sample of each wave gauge (one thread per gauge; level: its height-gauge reading, NaN when dry).
+    eta = level - still. Keeps the highest crest max(eta) and the deepest trough min(eta) with their times,
+    and the first arrival: the first time |eta| exceeds the gauge's threshold, linearly interpolated between
+    the previous sample and this one (|eta| rising through the threshold). A dry sample (NaN) changes nothing
+    but the previous sample."""
+    g = wp.tid()
+    z = level[g]
+    if wp.isnan(z):
+        stats[g, HZ_PREV_ETA] = wp.nan
+        return
+    eta = z - still[g]
+    if eta > stats[g, HZ_MAX]:
+        stats[g, HZ_MAX] = eta
+        stats[g, HZ_T_MAX] = t
+    if eta < stats[g, HZ_MIN]:
+        stats[g, HZ_MIN] = eta
+        stats[g, HZ_T_MIN] = t
+    a = wp.abs(eta)
+    thr = threshold[g]
+    if wp.isnan(stats[g, HZ_ARRIVAL]) and a > thr:
+        t_arr = t
+        a0 = wp.abs(stats[g, HZ_PREV_ETA])
+        if not wp.isnan(a0) and a0 <= thr:
+            t_arr = stats[g, HZ_PREV_T] + (thr - a0) / (a - a0) * (t - stats[g, HZ_PREV_T])
+        stats[g, HZ_ARRIVAL] = t_arr
+    stats[g, HZ_PREV_ETA] = eta
+    stats[g, HZ_PREV_T] = t
+
+
+@wp.kernel
+def hazard_column_update(level: wp.array(dtype=float), offset: int, t: float, stats: wp.array2d(dtype=float)):
+    """Run-up columns (one thread per column; level[offset + c]: the top of the continuous water column on the
+    column's vertical line, NaN when dry): the highest top so far (stats[c, 0], -inf until wet) and its time."""
+    c = wp.tid()
+    z = level[offset + c]
+    if not wp.isnan(z) and z > stats[c, 0]:
+        stats[c, 0] = z
+        stats[c, 1] = t
+
+
+@wp.kernel
+def hazard_block_speed(v: wp.array(dtype=wp.vec3), index: wp.array(dtype=int), t: float, stats: wp.array2d(dtype=float)):
+    """Peak speed |v| of each watched block (one thread per slide; index: its block) and its time."""
+    i = wp.tid()
+    s = wp.length(v[index[i]])
+    if s > stats[i, 0]:
+        stats[i, 0] = s
+        stats[i, 1] = t
+
+
+@wp.kernel
+def hazard_side_volume(
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    point: wp.array(dtype=wp.vec3),
+    normal: wp.array(dtype=wp.vec3),
+    vol: wp.array(dtype=float),
+):
+    """The water volume on the positive side of each crossing line (plane through point, horizontal normal):
+    vol[l] += m_j / rho_j for (x_j - point_l).n_l > 0 (launched over fluid particles x lines)."""
+    j, l = wp.tid()
+    if wp.dot(x[j] - point[l], normal[l]) > 0.0:
+        wp.atomic_add(vol, l, particle_mass[j] / rho[j])
+
+
+@wp.kernel
+def hazard_crossing_update(vol: wp.array(dtype=float), t: float, stats: wp.array2d(dtype=float)):
+    """Crossing lines (one thread per line): stats[l, 0] the volume at the first sample (V0), then the net
+    volume moved across the line V - V0 now (col 1), its largest value (col 2) and that time (col 3)."""
+    l = wp.tid()
+    if wp.isnan(stats[l, 0]):
+        stats[l, 0] = vol[l]
+    dv = vol[l] - stats[l, 0]
+    stats[l, 1] = dv
+    if dv > stats[l, 2]:
+        stats[l, 2] = dv
+        stats[l, 3] = t

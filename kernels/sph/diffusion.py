@@ -1,0 +1,79 @@
+"""Density diffusion (delta-SPH) for continuity density, launched by rockwave/sph/fluid.py
+(FluidSolver._density_diffusion): an opt-in pass after the density pass of FluidSolver.step (scene key
+fluid.density_diffusion), so the default step launches nothing of it.
+
+Molteni & Colagrossi (2009) added to the continuity equation
+
+    d rho_i/dt += delta h c0 sum_j psi_ij . grad_i W_ij V_j,   psi_ij = 2 (rho_j - rho_i) (x_j - x_i)/|x_ij|^2,
+
+V_j = m_j/rho0 (not m_j/rho_j: a splash particle's continuity density falls far below rho0, 300 kg/m^3 in
+SPHERIC Test 2, and with m_j/rho_j its neighbours' diffusion then grew without bound and drove densities
+negative: the coupled run blew up), h = H/2: a Laplacian of the density that damps the particle-scale density (pressure) noise
+of continuity-density WCSPH and leaves the smooth field alone (its size is delta h c0, delta ~ 0.1;
+Antuono et al. 2010). In a column of water at rest this diffuses the hydrostatic density gradient (truncated
+kernels at the free surface and walls turn it into a net flux); so, as Fourtakas et al. (2019, the
+'dynamic density' form of DualSPHysics), the hydrostatic part is taken out of the difference:
+rho_j - rho_i - (rho_j^H - rho_i^H), rho_j^H - rho_i^H = rho0 g . (x_j - x_i)/c0^2 (the linearised EOS;
+g the gravity vector). Fluid neighbours only (boundary particles carry no density).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from rockwave.kernels.sph.fluid import SPHParams, kernel_grad, store_density
+
+wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
+
+
+@wp.kernel
+def density_diffusion_rate(
+    count: wp.array(dtype=int),
+    nbr: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    p: SPHParams,
+    delta: float,
+    out: wp.array(dtype=float),
+):
+    """out_i = delta h c0 sum_j 2 (rho_j - rho_i - rho0 g.(x_j - x_i)/c0^2) ((x_j - x_i) . grad_i W_ij)/|x_ij|^2 m/rho0
+    over the neighbour list (pairs at r >= H skipped; a particle whose list overflowed gets 0)."""
+    i = wp.tid()
+    n = count.shape[0]
+    c = count[i]
+    if c > nbr.shape[0] // n:
+        out[i] = 0.0
+        return
+    xi = x[i]
+    ri = rho[i]
+    H2 = p.H * p.H
+    c2 = p.sound_speed * p.sound_speed
+    s = float(0.0)
+    for k in range(c):
+        j = nbr[k * n + i]
+        if j < p.n_fluid:
+            xji = x[j] - xi
+            r2 = wp.length_sq(xji)
+            if r2 < H2 and r2 > 0.0:
+                g = kernel_grad(-xji, wp.sqrt(r2), p)
+                drho = rho[j] - ri - p.rest_density * wp.dot(p.gravity, xji) / c2
+                s += 2.0 * drho * wp.dot(xji, g) / r2 * (p.fluid_mass / p.rest_density)
+    out[i] = delta * 0.5 * p.H * p.sound_speed * s
+
+
+@wp.kernel
+def apply_density_diffusion(
+    rate: wp.array(dtype=float),
+    dt: wp.array(dtype=float),
+    p: SPHParams,
+    drho_dt: wp.array(dtype=float),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    pr2: wp.array(dtype=float),
+):
+    """rho_i += dt rate_i, then p_i = EOS(rho_i) and pr2_i = p_i/rho_i^2 (drho_dt gains the rate)."""
+    i = wp.tid()
+    r = rho[i] + dt[0] * rate[i]
+    drho_dt[i] = drho_dt[i] + rate[i]
+    store_density(i, r, p, rho, pressure, pr2)
+

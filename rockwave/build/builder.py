@@ -1,0 +1,385 @@
+"""Scene -> models and states: everything a :class:`rockwave.Simulation` is made of, built once.
+
+- :func:`seed_particles`: fluid particles filling the scene's regions, boundary particles of the
+  tank walls and obstacles (host arrays);
+- :func:`build_fluid`: :class:`rockwave.sph.fluid.FluidModel`, its state at the hydrostatic start and
+  the fluid solver the scene asks for (basic or Ghost SPH);
+- :func:`build_blocks`: :class:`rockwave.dda.blocks.BlockModel`, its state and solver;
+- :func:`build_coupling`: the penalty coupling of water and blocks (only when both are present).
+
+Nothing here steps or writes; bad input becomes a :class:`rockwave.scene.format.SceneError` naming the key.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+import warp as wp
+
+from rockwave.base.maths import pad3, quat_to_matrix
+from rockwave.build import sampling
+from rockwave.build.rocks import block_specs, compound_bodies
+from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance
+from rockwave.coupling.walls import BlockWalls
+from rockwave.dda.blocks import BlockModel, BlockOptions, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
+from rockwave.dda.geometry import GeometryError
+from rockwave.scene.format import Scene, SceneError
+from rockwave.sph.fluid import Density, FluidOptions, FluidSolver, build_fluid_model, make_params
+from rockwave.sph.ghost import GhostFluidSolver, GhostOptions, warn_unstable_step
+
+
+def hydrostatic_density(p, g_depth: np.ndarray) -> np.ndarray:
+    """Density that makes p = rho0 g d under the EOS of the SPHParams ``p`` (validation/README.md, Hydrostatics):
+    Tait rho = rho0 (1 + rho0 g d / B)^(1/gamma); linear rho = rho0 + rho0 g d / k."""
+    rho0 = p.rest_density
+    if p.eos == 0:
+        return rho0 * (1.0 + rho0 * g_depth / p.eos_b) ** (1.0 / p.eos_gamma)
+    return rho0 + rho0 * g_depth / p.eos_b
+
+
+def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up: int) -> np.ndarray:
+    """Fluid positions ``x`` (n, 3) with each vertical run of lattice particles packed at its hydrostatic density
+    (fluid.packed_start): along a column of the lattice, from the run's lowest particle up, each gap of dx
+    becomes dx rho0/rho at the gap's mid-depth, ``rho_ratio(depth)`` = rho/rho0 (depth: below the region's top,
+    the weight above it). A run ends where the column has a gap wider than 1.5 spacings (an obstacle, another
+    region). Only a run whose top is the free surface (its top particle less than a spacing deep) is packed: one
+    under an obstacle or a block would open a gap of ~L g d/c0^2 under it, farther from the wall particles than the
+    lattice's spacing, and the water there would hold ~10% more pressure (tests/test_block_walls.py's kinematic box
+    read +11.5%); such runs keep the uniform lattice. Why pack: on the uniform lattice the continuity density
+    rho(d) > rho0 is out of step with the spacing, and the momentum form's balance then needs
+    p = rho0 g d (1 + 2 g d/c0^2), 1.5% too much at the floor of a 0.3 m tank at c0 = 20 m/s (docs/notes.md
+    "Water at rest on the H200")."""
+    if len(x) < 2:
+        return x
+    side = [a for a in range(3) if a != up]
+    col = np.round((x[:, side] - x[:, side].min(axis=0)) / spacing).astype(np.int64)  # whole steps from the lowest
+    order = np.lexsort((x[:, up], col[:, 1], col[:, 0]))
+    z, d, c = x[order, up], depth[order], col[order]
+    gap = np.diff(z)
+    linked = np.all(c[1:] == c[:-1], axis=1) & (gap < 1.5 * spacing)
+    shrink = np.where(linked, gap * (1.0 - 1.0 / rho_ratio(0.5 * (d[1:] + d[:-1]))), 0.0)
+    run = np.concatenate([[0], np.cumsum(~linked)])  # run index of each sorted particle
+    last = np.r_[np.nonzero(~linked)[0], len(z) - 1]  # each run's top particle
+    free = d[last] < spacing  # runs that end at the free surface
+    shrink = np.where(free[run[1:]], shrink, 0.0)
+    total = np.concatenate([[0.0], np.cumsum(shrink)])
+    first = np.searchsorted(run, run)  # each particle's run's first (lowest) particle
+    out = np.array(x, dtype=np.float64, copy=True)
+    out[order, up] = z - (total - total[first])
+    return out
+
+
+def boundary_lattice(scene: Scene) -> tuple[float, int]:
+    """Boundary particle spacing and number of layers for a scene (without a tank: those of the wall
+    particles on fixed blocks, :func:`fixed_block_walls`)."""
+    t, spacing = scene.tank, scene.fluid.spacing_m
+    H = scene.fluid.support_radius_ratio * spacing
+    if t is None:
+        return spacing, max(1, int(math.ceil(H / spacing - 1e-9)))
+    bstep = spacing * t.boundary_spacing_ratio
+    return bstep, (t.layers or max(1, int(math.ceil(H / bstep - 1e-9))))
+
+
+def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: float, layers: int) -> np.ndarray:
+    """Wall particles inside the faces of the fixed blocks, for Adami walls (``fluid.boundary = "adami"``): a
+    lattice of ``step`` over each fixed block, kept within ``layers * step`` under its surface (the kernel
+    support), so that water on a fixed slope, floor or tank wall made of blocks feels the extrapolated wall
+    pressure (Adami et al. 2012) as it does at the [tank] walls; the penalty force of the coupling stays as the
+    guard against penetration. Only where the water can reach: within its seeded bounding box grown by its own
+    largest extent (farther faces keep the penalty alone). A point inside an earlier fixed block is left out
+    (no double walls where blocks overlap). Moving blocks get theirs from :func:`moving_block_walls`."""
+    dim = scene.dim
+    if parts.blocks is None or len(fluid_x) == 0:
+        return np.zeros((0, 3))
+    specs = [s for s in parts.blocks.specs if s.kind == "fixed"]
+    if not specs:
+        return np.zeros((0, 3))
+    lo_f, hi_f = fluid_x.min(axis=0), fluid_x.max(axis=0)
+    grow = float(np.max(hi_f[:dim] - lo_f[:dim]))
+    reach_lo, reach_hi = lo_f - grow, hi_f + grow
+    depth = layers * step
+    anchor = np.asarray(fluid_x[0], float)[:dim]
+    planes, out = [], []
+    for spec in specs:
+        R = quat_to_matrix(spec.orientation)
+        n = np.asarray(spec.geometry.face_normals, float) @ R.T
+        d = np.asarray(spec.geometry.face_offsets, float) + n @ np.asarray(spec.position, float)
+        if dim == 2:  # the extrusion's caps are not walls in 2D
+            side = np.abs(n[:, 2]) < 0.5
+            n, d = n[side], d[side]
+        verts = np.asarray(spec.geometry.vertices, float) @ R.T + np.asarray(spec.position, float)
+        lo = np.maximum(verts.min(axis=0), reach_lo)[:dim]
+        hi = np.minimum(verts.max(axis=0), reach_hi)[:dim]
+        if np.any(hi <= lo):
+            planes.append((n, d))
+            continue
+        # the water's own lattice continued into the block: water filling a box up to a face sits step/2 from it,
+        # and so do the first wall layer's particles on the other side
+        k0 = np.floor((lo - anchor) / step)
+        k1 = np.ceil((hi - anchor) / step)
+        axes = [anchor[i] + np.arange(k0[i], k1[i] + 1) * step for i in range(dim)]
+        g = np.meshgrid(*axes, indexing="ij")
+        pts = np.zeros((g[0].size, 3))
+        for i in range(dim):
+            pts[:, i] = g[i].ravel()
+        sd = (pts @ n.T - d).max(axis=1)
+        pts = pts[(sd < 0.0) & (sd > -depth)]
+        for n2, d2 in planes:  # inside an earlier fixed block: already wall
+            if len(pts) and len(n2):
+                pts = pts[(pts @ n2.T - d2).max(axis=1) >= 0.0]
+        planes.append((n, d))
+        out.append(pts)
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def _body_shell(verts: np.ndarray, n: np.ndarray, d: np.ndarray, step: float, depth: float, dim: int) -> np.ndarray:
+    """Body-frame points inside the convex block {n . r <= d} within ``depth`` of its surface, on a lattice
+    fitted to the block's body-frame bounding box as sampling.box_shell fits obstacles: along each axis
+    n = round(L / step) cells of L / n, points at their centres, so that a box's faces lie half a (fitted) step
+    from the nearest layer, as the water's lattice particles lie from the faces of the box they fill: the wall
+    pressure then acts on the block's own faces (a lattice off by a fraction of a step moves the effective face
+    by as much: the 3D floating box read its full weight in buoyancy 0.4 spacing above equilibrium)."""
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    axes = []
+    for i in range(dim):
+        k = max(int(round((hi[i] - lo[i]) / step)), 1)
+        h = (hi[i] - lo[i]) / k
+        axes.append(lo[i] + (np.arange(k) + 0.5) * h)
+    g = np.meshgrid(*axes, indexing="ij")
+    pts = np.zeros((g[0].size, 3))
+    for i in range(dim):
+        pts[:, i] = g[i].ravel()
+    sd = (pts @ n.T - d).max(axis=1)
+    return pts[(sd < 0.0) & (sd > -depth)]
+
+
+def moving_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: float, layers: int):
+    """Wall particles of the moving blocks (rigid, deformable, kinematic; the parts of a compound block), for
+    Adami walls on them (rockwave/coupling/walls.py BlockWalls): a lattice of about ``step`` fitted to each block in
+    its body frame (:func:`_body_shell`), inside all of its faces (a moving block may turn any face to the
+    water), ``layers * step`` deep, placed at the blocks' poses at t = 0 (2D: prisms turning about z, the lattice
+    in the x-y plane at z = 0, the caps left out). Only blocks that start within reach of the water
+    (its seeded bounding box grown by its own largest extent, as for fixed blocks) get them: a block farther
+    away (a rock falling from high above, most of a jointed slope) keeps the penalty coupling alone, which
+    bounds the cost for scenes of many blocks; ``coupling.block_walls = false`` turns them off entirely.
+    Returns (world positions (n, 3), block index (n,))."""
+    dim = scene.dim
+    empty = (np.zeros((0, 3)), np.zeros(0, np.int64))
+    if parts.blocks is None or len(fluid_x) == 0:
+        return empty
+
+    lo_f, hi_f = fluid_x.min(axis=0), fluid_x.max(axis=0)
+    grow = float(np.max(hi_f[:dim] - lo_f[:dim]))
+    reach_lo, reach_hi = lo_f - grow, hi_f + grow
+    depth = layers * step
+    xs = parts.block_state.x.numpy().astype(np.float64)
+    qs = parts.block_state.q.numpy().astype(np.float64)
+    pts_all, idx = [], []
+    for b, spec in enumerate(parts.blocks.specs):
+        if spec.kind == "fixed":
+            continue
+        R = quat_to_matrix(qs[b])
+        bv = np.asarray(spec.geometry.vertices, float)  # body frame
+        verts = bv @ R.T + xs[b]
+        if np.any(verts.max(axis=0)[:dim] < reach_lo[:dim]) or np.any(verts.min(axis=0)[:dim] > reach_hi[:dim]):
+            continue
+        n = np.asarray(spec.geometry.face_normals, float)
+        d = np.asarray(spec.geometry.face_offsets, float)
+        if dim == 2:  # the extrusion's caps are not walls in 2D
+            side = np.abs(n[:, 2]) < 0.5
+            n, d = n[side], d[side]
+        pts = _body_shell(bv, n, d, step, depth, dim) @ R.T + xs[b]
+        if dim == 2:
+            pts[:, 2] = 0.0
+        pts_all.append(pts)
+        idx.append(np.full(len(pts), b, np.int64))
+    if not pts_all:
+        return empty
+    return np.concatenate(pts_all), np.concatenate(idx)
+
+
+def block_walls_on(scene: Scene, options=None) -> bool:
+    """Do the moving blocks get Adami wall particles? coupling.block_walls (or CouplingOptions.block_walls);
+    off unless asked for (the scene's validation refuses it without Adami walls or with Ghost SPH)."""
+    if scene.fluid is None:
+        return False
+    return bool(coupling_options(scene, options).block_walls)
+
+
+def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Fluid positions, velocities, depths below their region's top (for the hydrostatic start),
+    and boundary positions for a scene (positions (n, 3), z = 0 in 2D)."""
+    fl, dim = scene.fluid, scene.dim
+    up = dim - 1
+    spacing = fl.spacing_m
+    xs, vs, ds = [], [], []
+    for r in fl.regions:
+        try:
+            p = sampling.fill_region(r, spacing, dim, device)
+        except sampling.MeshInputError as e:
+            raise SceneError(scene.path, [("fluid.regions", str(e))]) from None
+        xs.append(p)
+        ds.append(p[:, up].max() + 0.5 * spacing - p[:, up] if len(p) else np.zeros(0))
+        vel = pad3(r.velocity_m_s) if r.velocity_m_s is not None else [0.0, 0.0, 0.0]
+        vs.append(np.tile(np.asarray(vel, float), (len(p), 1)))
+    x = np.concatenate(xs) if xs else np.zeros((0, 3))
+    v = np.concatenate(vs) if vs else np.zeros((0, 3))
+    depth = np.concatenate(ds) if ds else np.zeros(0)
+    # Boundary particles: tank walls and obstacles.
+    t = scene.tank
+    bstep, layers = boundary_lattice(scene)
+    parts = []
+    try:
+        if t is None:  # walls from fixed blocks (rockwave/coupling/penalty.py)
+            keep = np.ones(len(x), bool)
+        elif t.box_min_m is not None:
+            parts.append(sampling.box_shell(t.box_min_m, t.box_max_m, bstep, layers, True, t.open_top, up))
+            keep = np.all((x[:, :dim] > np.asarray(t.box_min_m)) & (x[:, :dim] < np.asarray(t.box_max_m)), axis=1)
+        else:
+            parts.append(sampling.mesh_shell(t.mesh, t.mesh_scale, t.mesh_offset_m, bstep, layers, True, device))
+            tm = sampling.load_trimesh(t.mesh, t.mesh_scale, t.mesh_offset_m)
+            keep = sampling.mesh_signed_distance(tm, x, device) < 0
+    except sampling.MeshInputError as e:
+        raise SceneError(scene.path, [("tank.mesh", str(e))]) from None
+    x, v, depth = x[keep], v[keep], depth[keep]
+    for i, ob in enumerate(scene.obstacles):
+        try:
+            if ob.box_min_m is not None:
+                parts.append(sampling.box_shell(ob.box_min_m, ob.box_max_m, bstep, layers, False, False, up))
+            else:
+                parts.append(sampling.mesh_shell(ob.mesh, ob.mesh_scale, ob.mesh_offset_m, bstep, layers, False, device))
+            inside = sampling.inside_obstacle(x, ob, dim, device)
+        except sampling.MeshInputError as e:
+            raise SceneError(scene.path, [(f"obstacles[{i}].mesh", str(e))]) from None
+        x, v, depth = x[~inside], v[~inside], depth[~inside]
+    b = np.concatenate(parts) if parts else np.zeros((0, 3))
+    return x, v, depth, b
+
+
+@dataclass
+class Parts:
+    """What a scene is made of on the device (None where the scene has none of it).
+
+    fluid (FluidModel), state (FluidState), fluid_solver; blocks (BlockModel), block_state,
+    block_solver; coupling; removed_inside_blocks: fluid particles dropped at seeding because they lay
+    inside a block (or within half the contact distance of its faces)."""
+
+    fluid: object = None
+    state: object = None
+    fluid_solver: object = None
+    blocks: object = None
+    block_state: object = None
+    block_solver: object = None
+    coupling: object = None
+    removed_inside_blocks: int = 0
+    moving_wall_blocks: object = None  # block index of each wall particle of a moving block (BlockWalls)
+
+
+def build(scene: Scene, device: str, options=None) -> Parts:
+    """All parts of ``scene`` on ``device`` (``options``: rockwave.sim.simulation.SimulationOptions)."""
+    parts = Parts()
+    with wp.ScopedDevice(device):
+        if scene.blocks or scene.rock_mass:
+            build_blocks(scene, device, parts, options)
+        if scene.fluid is not None:
+            build_fluid(scene, device, parts, options)
+        if parts.blocks is not None and parts.fluid is not None and parts.fluid.n_fluid:
+            build_coupling(scene, parts, options)
+    return parts
+
+
+def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
+
+    xf, vf, depth, xb = seed_particles(scene, device)
+    if parts.blocks is not None:
+        xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth, options)
+    if scene.fluid.packed_start and len(xf):
+
+        rho0 = scene.fluid.rest_density_kg_m3
+        params = make_params(scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, len(xf))
+        g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
+        xf = packed_start(xf, depth, lambda d: hydrostatic_density(params, g * d) / rho0, scene.fluid.spacing_m, scene.dim - 1)
+    bstep, layers = boundary_lattice(scene)
+    if scene.fluid.boundary == "adami" and parts.blocks is not None:
+        xw = fixed_block_walls(scene, parts, xf, bstep, layers)
+        if len(xw):
+            xb = np.concatenate([xb, xw]) if len(xb) else xw
+    xm = None
+    if parts.blocks is not None and block_walls_on(scene, options):
+        xm, parts.moving_wall_blocks = moving_block_walls(scene, parts, xf, bstep, layers)
+        if len(xm):
+            print(f"moving blocks: {len(xm)} Adami wall particles on "
+                  f"{len(np.unique(parts.moving_wall_blocks))} blocks", flush=True)
+    fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, device, bstep, layers,
+                              moving_wall_positions=xm)
+    fopts = getattr(options, "fluid", None) or FluidOptions()
+    if fopts.cfl_number is None:  # the adaptive step's Courant number comes from the scene
+        fopts = replace(fopts, cfl_number=scene.simulation.cfl_number)
+    if scene.fluid.method == "ghost":
+
+        warn_unstable_step(scene)
+        gopts = getattr(options, "ghost", None) or GhostOptions()
+        solver = GhostFluidSolver(fluid, scene.fluid.ghost, options=fopts, ghost_options=gopts)
+    else:
+        solver = FluidSolver(fluid, options=fopts)
+    state = fluid.state()
+    if fluid.n_fluid:
+        if fluid.density is Density.SUMMATION:
+            solver.compute_density(state)
+        else:
+            g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
+            solver.set_density(state, hydrostatic_density(fluid.params, g * depth))
+        if scene.fluid.boundary == "adami" and fluid.n_boundary:  # the wall pressures of the initial state (gauges)
+            solver.build_cells(state)
+            solver.wall_pressure(state)
+    parts.fluid, parts.state, parts.fluid_solver = fluid, state, solver
+
+
+def build_blocks(scene: Scene, device: str, parts: Parts, options=None) -> None:
+
+    specs = block_specs(scene)
+
+    for name, body in compound_bodies(specs):  # what each non-convex mesh became
+        print(f"block '{name}': non-convex mesh -> {body.summary()}", flush=True)
+    host_check = len(specs) <= 2000  # exact host test for small sets; device FCP for large ones
+    try:
+        # 2D: extruded prisms moving in the x-y plane (planar: the block step keeps them there)
+        blocks = BlockModel(specs, device=device, gravity=pad3(scene.gravity.acceleration_m_s2), check_overlap=host_check,
+                            planar=scene.dim == 2)
+        solver = BlockSolver(blocks, options=getattr(options, "blocks", None) or BlockOptions.from_scene(scene))
+        state = blocks.state()
+        if not host_check:
+            check_initial_overlap_on_device(solver, state)
+    except (BlockOverlapError, GeometryError, ValueError) as e:
+        raise SceneError(scene.path, [("blocks", str(e))]) from None
+    parts.blocks, parts.block_state, parts.block_solver = blocks, state, solver
+
+
+def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options=None):
+    """Drop fluid particles inside a block, or closer to its faces than half the contact distance
+    (rockwave/coupling/penalty.py); the count goes to ``parts.removed_inside_blocks`` and run.json."""
+
+    ratio = coupling_options(scene, options).contact_distance_ratio
+    dist, _ = block_signed_distance(parts.blocks, parts.block_state, xf)
+    keep = dist >= 0.5 * ratio * scene.fluid.spacing_m
+    parts.removed_inside_blocks = int((~keep).sum())
+    return xf[keep], vf[keep], depth[keep]
+
+
+def build_coupling(scene: Scene, parts: Parts, options=None) -> None:
+
+    parts.coupling = c = Coupling(parts.fluid, parts.blocks, scene.dim, options=coupling_options(scene, options))
+    f = parts.fluid
+    if f.n_moving_walls:
+
+        xm = np.asarray(f.initial_positions, float)[f.n_fluid + f.n_static_boundary: f.n_total]
+        c.walls = BlockWalls(parts.fluid_solver, parts.blocks, parts.block_state, xm, parts.moving_wall_blocks,
+                             c.depth_scale, scene.dim)
+
+
+def coupling_options(scene: Scene, options=None):
+    """The coupling's options: passed in Python, else the scene's ``[coupling]`` section."""
+
+    return getattr(options, "coupling", None) or CouplingOptions.from_scene(scene)

@@ -1,0 +1,157 @@
+"""Scene ``[[blocks]]`` entries -> :class:`rockwave.dda.blocks.BlockSpec` list (host side).
+
+A non-convex mesh becomes one rigid compound block (rockwave/dda/geometry.py decompose): its convex parts
+are consecutive BlockSpecs marked with :class:`rockwave.dda.blocks.CompoundPart`, all at the body's pose.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from rockwave.base.maths import euler_xyz_deg_to_quat, quat_to_matrix
+from rockwave.build.rockmass import rock_mass_specs
+from rockwave.dda import geometry
+from rockwave.dda.blocks import BlockSpec, CompoundPart, ContactMaterial, KinematicMotion
+from rockwave.scene.format import Scene, SceneError
+
+
+def decomposition_of(scene: Scene, b) -> geometry.Decomposition:
+    """The entry's decomposition keys as a geometry.Decomposition (cache_dir relative to the scene file)."""
+    d = b.decomposition
+    cache = None
+    if d.cache_dir:
+        base = Path(scene.path).parent if scene.path not in ("<scene>", "") else Path.cwd()
+        cache = str((base / d.cache_dir).resolve())
+    return geometry.Decomposition(max_parts=int(d.max_parts), concavity=float(d.concavity), cache_dir=cache)
+
+
+def compound_bodies(specs: list[BlockSpec]) -> list[tuple[str, geometry.CompoundBlock]]:
+    """(body name, CompoundBlock) of each compound block in specs (its first part's name minus '.part0')."""
+    return [(s.name.removesuffix(".part0"), s.compound.body) for s in specs if s.compound is not None and s.compound.part == 0]
+
+
+def block_specs(scene: Scene) -> list[BlockSpec]:
+    """Expand the scene's block entries (arrays, multi-part meshes) into BlockSpecs."""
+    specs: list[BlockSpec] = []
+    for i, b in enumerate(scene.blocks):
+        path = f"blocks[{i}]"
+        try:
+            if b.shape == "box":
+                parts = [geometry.box(b.size_m, name=b.name)]
+            elif b.shape == "prism":
+                parts = [geometry.prism(b.vertices_m, name=b.name)]
+            else:
+                loaded = geometry.load_mesh(b.mesh, decomposition=decomposition_of(scene, b), scale=b.mesh_scale)
+                parts = loaded if isinstance(loaded, list) else [loaded]
+                if b.mesh_scale != 1.0:
+                    scaled = []
+                    for part in parts:
+                        if isinstance(part, geometry.CompoundBlock):  # decomposed at scale already
+                            scaled.append(part)
+                            continue
+                        tm = part.to_trimesh()
+                        tm.apply_translation(part.origin_offset)
+                        tm.apply_scale(b.mesh_scale)
+                        scaled.append(geometry.from_trimesh(tm, name=part.name))
+                    parts = scaled
+        except (geometry.GeometryError, ValueError) as e:
+            key = f"{path}.mesh" if b.shape == "mesh" else f"{path}.{'vertices_m' if b.shape == 'prism' else 'size_m'}"
+            if getattr(e, "key", ""):
+                key = f"{path}.decomposition.{e.key}"
+            raise SceneError(scene.path, [(key, str(e))]) from None
+        if b.kind == "deformable" and any(isinstance(p, geometry.CompoundBlock) for p in parts):
+            raise SceneError(scene.path, [(f"{path}.kind", "a non-convex mesh becomes a rigid compound block of convex "
+                                           "parts; it cannot be 'deformable' (use 'rigid', 'fixed' or 'kinematic')")])
+        mat = b.material
+        material = ContactMaterial(
+            friction_angle_deg=mat.friction_angle_deg, cohesion_pa=mat.cohesion_pa, tensile_strength_pa=mat.tensile_strength_pa,
+            normal_stiffness=mat.normal_stiffness_n_m, shear_stiffness=mat.shear_stiffness_n_m,
+            restitution=mat.restitution, damping_ratio=mat.damping_ratio)
+        motion = None
+        if b.kind == "kinematic":
+            mo = b.motion
+            if mo.type == "sine":
+                motion = KinematicMotion.sine(mo.amplitude_m, mo.frequency_hz, mo.phase_rad)
+            else:
+                motion = KinematicMotion.table(mo.times_s, mo.displacements_m)
+        q = euler_xyz_deg_to_quat(b.orientation_deg)
+        nx, ny, nz = (int(c) for c in b.array.count)
+        rot = quat_to_matrix(q)  # the array's axes turn with the block
+        offsets = [rot @ (np.array([ix, iy, iz]) * np.asarray(b.array.spacing_m))
+                   for iz in range(nz) for iy in range(ny) for ix in range(nx)]
+        many = len(offsets) * len(parts) > 1
+        k = 0
+        for part in parts:
+            base = np.asarray(b.position_m) if b.position_m is not None else np.asarray(part.origin_offset)
+            if b.position_m is not None and len(parts) > 1:
+                base = base + np.asarray(part.origin_offset)  # keep the parts' relative placement
+            for off in offsets:
+                name = f"{b.name}_{k}" if many else b.name
+                common = dict(position=tuple(base + off), orientation=q, density=b.density_kg_m3,
+                              velocity=tuple(b.velocity_m_s), angular_velocity=tuple(b.angular_velocity_rad_s), kind=b.kind,
+                              youngs_modulus=b.youngs_modulus_pa, poisson_ratio=b.poisson_ratio, motion=motion,
+                              material=material, strain_damping_ratio=b.strain_damping_ratio)
+                if isinstance(part, geometry.CompoundBlock):  # one rigid body: its parts, consecutive
+                    for j, g in enumerate(part.parts):
+                        specs.append(BlockSpec(geometry=g, name=f"{name}.part{j}", compound=CompoundPart(part, j), **common))
+                else:
+                    specs.append(BlockSpec(geometry=part, name=name, **common))
+                k += 1
+    from collections import Counter
+
+
+    specs += rock_mass_specs(scene)  # [[rock_mass]]: blocks cut by joint sets
+    dup = {n for n, c in Counter(s.name for s in specs).items() if c > 1}
+    if dup:
+        # unique names for USD prims and the CSV
+        seen: dict[str, int] = {}
+        for s in specs:
+            if s.name in dup:
+                seen[s.name] = seen.get(s.name, -1) + 1
+                s.name = f"{s.name}_{seen[s.name]}"
+    return specs
+
+
+def scanned_rock_mesh(radius_m: float = 0.5, subdivisions: int = 3, roughness: float = 0.15, bumps: int = 24,
+                      notch_depth: float = 0.7, notch_width_deg: float = 30.0, seed: int = 0):
+    """A scanned-rock-like closed, non-convex surface (trimesh.Trimesh, centred near the origin): an
+    icosphere of radius_m whose vertices move along their directions d,
+
+        r(d) = radius_m (1 + roughness sum_k a_k exp(-(1 - d.c_k) / s_k)) (1 - notch_depth v(d)),
+
+    with ``bumps`` random Gaussian bumps on the sphere (centres c_k, widths s_k, signed amplitudes a_k;
+    lumps and hollows) plus a finer octave of 4 x bumps at a quarter of the amplitude and width, and a notch v(d) = sqrt(max(0, 1 - |angle from the notch plane| / width)
+    max(0, d.axis)) on one side of the rock (a deep cleft: the surface there is far from its convex hull).  A radial
+    displacement of a sphere keeps the surface closed and free of self-intersections.  Seeded: the
+    same seed gives the same mesh."""
+    import trimesh
+
+    rng = np.random.default_rng(seed)
+    m = trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=1.0)
+    d = np.asarray(m.vertices, float)
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    c = rng.normal(size=(bumps, 3))
+    c /= np.linalg.norm(c, axis=1)[:, None]
+    width = rng.uniform(0.05, 0.3, bumps)
+    amp = rng.uniform(-1.0, 1.0, bumps)
+    r = 1.0 + roughness * (amp[None, :] * np.exp(-(1.0 - d @ c.T) / width[None, :])).sum(axis=1)
+    # a finer octave (knobs and pits a few vertices wide): 4 x the bumps, 1/4 the amplitude and width
+    cf = rng.normal(size=(4 * bumps, 3))
+    cf /= np.linalg.norm(cf, axis=1)[:, None]
+    wf = rng.uniform(0.0125, 0.075, 4 * bumps)
+    af = rng.uniform(-0.25, 0.25, 4 * bumps)
+    r = r + roughness * (af[None, :] * np.exp(-(1.0 - d @ cf.T) / wf[None, :])).sum(axis=1)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)  # the notch opens towards this direction
+    plane_n = np.cross(axis, rng.normal(size=3))
+    plane_n /= np.linalg.norm(plane_n)  # the notch plane holds the axis
+    ang = np.degrees(np.arcsin(np.clip(np.abs(d @ plane_n), 0.0, 1.0)))
+    notch = np.sqrt(np.clip(1.0 - ang / notch_width_deg, 0.0, None) * np.clip(d @ axis, 0.0, None))
+    r = r * (1.0 - notch_depth * notch)
+    if np.any(r <= 0.05):
+        raise ValueError("scanned_rock_mesh: roughness and notch_depth leave no rock (radius <= 0.05 of radius_m)")
+    out = trimesh.Trimesh(d * (radius_m * r)[:, None], m.faces, process=False)
+    out.apply_translation(-out.center_mass)
+    return out

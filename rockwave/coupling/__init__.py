@@ -1,0 +1,1 @@
+"""Water meets rock: penalty forces between particles and block faces, Adami wall particles on moving blocks."""

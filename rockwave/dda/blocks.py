@@ -1,0 +1,1512 @@
+"""Explicit 3D DDA rock-block solver (host side).
+
+What lives where:
+
+* ``BlockSpec`` (with ``ContactMaterial``, ``KinematicMotion``): one block as a scene gives it
+  (rockwave/build/rocks.py builds them from ``[[blocks]]``).
+* ``BlockModel``: the static description, device arrays that never change during a run: concatenated
+  vertices / faces / half-edges with per-block offsets, masses, inertia, kinds, materials, kinematic
+  motions, and their kernel argument groups (``topology``, ``props``, ``material``, ``motion``:
+  kernels/dda/blocks.py structs). ``planar=True`` (2D scenes): blocks are prisms extruded along z that move
+  in their x-y plane only (z fixed, rotation about z only).
+* ``BlockState``: everything that changes in time: poses, velocities, strains, load accumulators
+  (``ext_force`` / ``ext_torque``, where the coupling adds its reactions), world vertices, the two
+  contact-history tables (swapped each step) and ``time``; kernel views ``bodies``, ``loads``,
+  ``table_views``. A checkpoint of it is a complete restart point.
+* ``BlockOptions``: the solver's knobs (dt safety, broad-phase cell and margin, capacity paths),
+  defaults equal to the shipped values; ``BlockOptions.from_scene(scene)``.
+* ``BlockSolver(model, options=...)``: the solver contract of rockwave/base/solver.py:
+  ``stable_dt(state)`` = options.dt_safety x ``critical_dt()`` (the physical limit 2/omega_max), and
+  ``step(state, ts)`` (ts: rockwave.base.solver.TimeStep; refuses ts.dt above ``critical_dt()``) = world
+  vertices + AABBs, uniform-grid broad phase, Fast Common Plane narrow phase with multi-point
+  contacts, penalty contact forces with per-pair history, explicit integration and, for a planar
+  model, the 2D constraint. All as Warp kernels on the model's device (kernels/dda/blocks.py). The solver
+  keeps buffers only (capacities, the pair list between broad phases, diagnostics).
+
+Units SI, z up, quaternions (x, y, z, w).  Contact stiffness is *per contact point* (a face resting
+on a face gets >= 3 points, each with k_n), so a box resting on its face sinks m g / (n_points k_n).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from rockwave.base.maths import next_pow2, quat_to_matrix
+from rockwave.base.solver import TimeStep
+from rockwave.dda.geometry import CompoundBlock, ConvexPolyhedron
+from rockwave.kernels.dda import blocks as K
+from rockwave.kernels.dda import blocks_coop as KC
+
+__all__ = [
+    "ContactMaterial",
+    "KinematicMotion",
+    "BlockSpec",
+    "CompoundPart",
+    "BlockModel",
+    "BlockState",
+    "BlockSolver",
+    "BlockOptions",
+    "BlockOverlapError",
+    "check_initial_overlap",
+    "KINDS",
+]
+
+KINDS = {"rigid": 0, "deformable": 1, "fixed": 2, "kinematic": 3}
+DEFAULT_YOUNGS_MODULUS = 10.0e9  # Pa, a medium-strength rock
+DEFAULT_RESTITUTION = 0.5
+PENALTY_FACTOR = 0.1  # default k_n = PENALTY_FACTOR * E * L  (N/m per contact point)
+
+
+class BlockOverlapError(ValueError):
+    """Two blocks overlap in the initial configuration."""
+
+
+def restitution_with_cutoff(zeta: float) -> float:
+    """Coefficient of restitution of a linear spring-dashpot contact whose force is cut off at zero
+    (no pull): x'' + 2 zeta x' + x = 0 from x = 0, x' = 1; the contact force x + 2 zeta x' vanishes at
+    w_d t* = pi - atan2(2 zeta w_d, 1 - 2 zeta^2) (w_d = sqrt(1 - zeta^2)); e = -x'(t*).
+    (Without the cut-off it would be exp(-zeta pi / w_d); the cut-off ends the contact earlier and
+    gives a slightly larger e, e.g. 0.623 instead of 0.6 at zeta = 0.16.)"""
+    if zeta <= 0.0:
+        return 1.0
+    z = min(zeta, 0.999999)
+    wd = math.sqrt(1.0 - z * z)
+    ts = (math.pi - math.atan2(2.0 * z * wd, 1.0 - 2.0 * z * z)) / wd
+    return math.exp(-z * ts) * -(math.cos(wd * ts) - z / wd * math.sin(wd * ts))
+
+
+@functools.lru_cache(maxsize=256)
+def restitution_to_damping_ratio(e: float) -> float:
+    """Damping ratio zeta giving restitution e for the cut-off spring-dashpot contact used here
+    (bisection on restitution_with_cutoff; e -> 1: zeta -> 0; e below ~0.2 needs zeta -> 1, clamped)."""
+    if not 0.0 <= e <= 1.0:
+        raise ValueError(f"restitution must be in [0, 1], got {e}")
+    if e >= 1.0:
+        return 0.0
+    lo, hi = 0.0, 0.999999
+    if restitution_with_cutoff(hi) >= e:
+        return 1.0
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        if restitution_with_cutoff(mid) > e:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+@dataclass
+class ContactMaterial:
+    """Contact law of a block's surface (a pair uses the weaker value of the two blocks; damping the larger).
+
+    friction_angle_deg: Coulomb friction angle phi (mu = tan phi).
+    cohesion_pa: cohesion c (Pa), times the contact area share of each point.
+    tensile_strength_pa: pull allowed per unit area before the cut-off (0 = no tension).
+    normal_stiffness: k_n in N/m per contact point; None -> 0.1 * E * L (E = block modulus or 10 GPa,
+        L = V^(1/3)).  0.1 E L keeps the self-weight penetration ~1e-6 L-ish while the critical step
+        stays ~1e-3 s for metre-sized blocks (a full E*L would cut dt by ~3x for no gain in accuracy).
+    shear_stiffness: k_s in N/m per point; None -> k_n / (2 (1 + nu)) (the G/E ratio of the block).
+    restitution: coefficient e of a normal impact; the dashpot ratio zeta is chosen so that the
+        spring-dashpot with the tension cut-off rebounds with exactly e (restitution_to_damping_ratio).
+        damping_ratio overrides it if given.  Default e = 0.5.
+    """
+
+    friction_angle_deg: float = 30.0
+    cohesion_pa: float = 0.0
+    tensile_strength_pa: float = 0.0
+    normal_stiffness: float | None = None
+    shear_stiffness: float | None = None
+    restitution: float | None = None
+    damping_ratio: float | None = None
+
+    def resolved_damping_ratio(self) -> float:
+        if self.damping_ratio is not None:
+            if self.damping_ratio < 0:
+                raise ValueError("damping_ratio must be >= 0")
+            return float(self.damping_ratio)
+        return restitution_to_damping_ratio(DEFAULT_RESTITUTION if self.restitution is None else self.restitution)
+
+
+@dataclass
+class KinematicMotion:
+    """Prescribed motion of a kinematic block, as a displacement added to BlockSpec.position.
+
+    kind "sine": u(t) = amplitude * sin(2 pi frequency_hz t + phase_rad), du/dt exact.
+    kind "table": u(t) linear between rows (times, displacements), constant outside; du/dt = slope.
+    """
+
+    kind: str = "sine"
+    amplitude: tuple = (0.0, 0.0, 0.0)
+    frequency_hz: float = 0.0
+    phase_rad: float = 0.0
+    times: tuple = ()
+    displacements: tuple = ()
+
+    @staticmethod
+    def sine(amplitude, frequency_hz, phase_rad=0.0) -> "KinematicMotion":
+        return KinematicMotion("sine", tuple(float(a) for a in amplitude), float(frequency_hz), float(phase_rad))
+
+    @staticmethod
+    def table(times, displacements) -> "KinematicMotion":
+        t = np.asarray(times, float)
+        d = np.asarray(displacements, float).reshape(-1, 3)
+        if len(t) < 1 or len(t) != len(d) or np.any(np.diff(t) <= 0):
+            raise ValueError("motion table: times must be strictly increasing and match the displacement rows")
+        return KinematicMotion("table", times=tuple(t), displacements=tuple(map(tuple, d)))
+
+    def displacement(self, t: float) -> np.ndarray:
+        """Host-side evaluation (reference for tests and exporters)."""
+        if self.kind == "sine":
+            return np.asarray(self.amplitude) * math.sin(2 * math.pi * self.frequency_hz * t + self.phase_rad)
+        tt = np.asarray(self.times)
+        d = np.asarray(self.displacements)
+        return np.array([np.interp(t, tt, d[:, k]) for k in range(3)])
+
+
+@dataclass(frozen=True)
+class CompoundPart:
+    """Marks a BlockSpec as part ``part`` of one rigid compound block (a decomposed non-convex mesh).
+
+    The specs of one compound are consecutive, parts 0 .. body.num_parts - 1, with the same position
+    (the body's centroid), orientation, velocities, kind and density; each has geometry =
+    body.parts[part] (in the body frame).  In the model every part carries the body's mass and
+    inertia (of the original mesh) and the body's pose; a compound stage (kernels/dda/blocks.py
+    compound_loads) sums the parts' loads, so every part integrates the same body motion."""
+
+    body: CompoundBlock
+    part: int
+
+
+@dataclass
+class BlockSpec:
+    """One block as a scene gives it.
+
+    geometry: body-frame convex polyhedron (centroid at origin).  position: centroid (m).
+    orientation: quaternion (x, y, z, w).  density kg/m^3.  velocity m/s, angular_velocity rad/s (world).
+    kind: "rigid" | "deformable" | "fixed" | "kinematic".  youngs_modulus Pa (None -> 10 GPa),
+    poisson_ratio.  motion: KinematicMotion (kinematic only).  strain_damping_ratio: damping of the
+    deformable block's strain modes.  compound: CompoundPart when this block is one convex part of a
+    rigid compound (non-convex) block, else None.
+    """
+
+    geometry: ConvexPolyhedron
+    position: tuple = (0.0, 0.0, 0.0)
+    orientation: object = (0.0, 0.0, 0.0, 1.0)
+    density: float = 2600.0
+    velocity: tuple = (0.0, 0.0, 0.0)
+    angular_velocity: tuple = (0.0, 0.0, 0.0)
+    kind: str = "rigid"
+    youngs_modulus: float | None = None
+    poisson_ratio: float = 0.25
+    motion: KinematicMotion | None = None
+    material: ContactMaterial = field(default_factory=ContactMaterial)
+    name: str = ""
+    strain_damping_ratio: float = 0.05
+    compound: CompoundPart | None = None
+
+
+def _compound_ranges(specs: list) -> tuple[np.ndarray, list]:
+    """body_of (N,): the index of each block's body (its first part; a convex block is its own body)
+    and the (first part, part count) ranges of the compound bodies; checks CompoundPart's contract."""
+    n = len(specs)
+    body_of = np.arange(n)
+    ranges = []
+    b = 0
+    while b < n:
+        c = specs[b].compound
+        if c is None:
+            b += 1
+            continue
+        body = c.body
+        name = specs[b].name or body.name
+        if c.part != 0 or b + body.num_parts > n:
+            raise ValueError(f"block '{name}': compound parts must be listed in order, parts 0 .. {body.num_parts - 1}")
+        for k in range(body.num_parts):
+            s = specs[b + k]
+            if s.compound is None or s.compound.body is not body or s.compound.part != k or s.geometry is not body.parts[k]:
+                raise ValueError(f"block '{name}': compound parts must be listed in order, parts 0 .. {body.num_parts - 1}")
+            if s.kind == "deformable":
+                raise ValueError(f"block '{name}': a compound (non-convex) block must be rigid, fixed or kinematic, "
+                                 f"not deformable")
+            for attr in ("position", "orientation", "velocity", "angular_velocity", "kind", "density"):
+                if np.any(np.asarray(getattr(s, attr), dtype=object) != np.asarray(getattr(specs[b], attr), dtype=object)):
+                    raise ValueError(f"block '{name}': the parts of a compound block must share its {attr}")
+        body_of[b: b + body.num_parts] = b
+        ranges.append((b, body.num_parts))
+        b += body.num_parts
+    return body_of, ranges
+
+
+def _quat(q) -> np.ndarray:
+    a = np.asarray([float(c) for c in q], dtype=float)
+    n = np.linalg.norm(a)
+    if a.shape != (4,) or n == 0:
+        raise ValueError(f"orientation must be a non-zero quaternion (x, y, z, w), got {q}")
+    return a / n
+
+
+def _strain_mass(S: np.ndarray) -> np.ndarray:
+    """Generalised mass of the 6 strain DOFs: M_ab = tr(G_a^T G_b S), u = G_a X, S = rho int X X^T."""
+    G = np.zeros((6, 3, 3))
+    G[0][0, 0] = G[1][1, 1] = G[2][2, 2] = 1.0
+    G[3][1, 2] = G[3][2, 1] = 0.5  # gamma_yz
+    G[4][0, 2] = G[4][2, 0] = 0.5  # gamma_zx
+    G[5][0, 1] = G[5][1, 0] = 0.5  # gamma_xy
+    return np.einsum("aji,bjk,ki->ab", G, G, S)
+
+
+def _elastic_D(E: float, nu: float) -> np.ndarray:
+    """3D isotropic elasticity matrix for (eps_x, eps_y, eps_z, gamma_yz, gamma_zx, gamma_xy)."""
+    lam = E * nu / ((1 + nu) * (1 - 2 * nu))
+    G = E / (2 * (1 + nu))
+    D = np.zeros((6, 6))
+    D[:3, :3] = lam
+    D[0, 0] = D[1, 1] = D[2, 2] = lam + 2 * G
+    D[3, 3] = D[4, 4] = D[5, 5] = G
+    return D
+
+
+def _table_slots(pairs: int) -> int:
+    """Contact-history slots for ``pairs`` candidate pairs: 4/3 x (linear probing at load <= 3/4: ~2.5 probes per
+    hit, ~8.5 per miss, Knuth's estimates) + 64."""
+    return 4 * pairs // 3 + 64
+
+
+class BlockModel:
+    """Static description of all blocks, as device arrays (V vertices, F faces, H half-edges, N blocks).
+
+    Geometry (global indices into the concatenated arrays): body_verts (V, vec3, body frame m),
+    vert_block (V,), vert_start/vert_count (N,), face_start/face_count (N,), face_he (F,),
+    vertex_out_he (V,), he_vertex/he_next/he_twin (H,) (no he_prev on the device: the walk around a vertex
+    is h -> he_next[he_twin[h]]).
+    Per block: kinds (N, int: 0 rigid, 1 deformable, 2 fixed, 3 kinematic), mass (kg), inv_mass (0 for
+    fixed/kinematic), inertia_body / inv_inertia_body (mat33, kg m^2, body frame), block_size (bounding
+    diameter m), materials k_n, k_s (N/m per point), tan_phi, cohesion (Pa), tensile (Pa), zeta;
+    deformable: strain_minv, strain_k (spatial_matrix), strain_damp (1/s).
+    Kernel argument groups (kernels/dda/blocks.py structs over the arrays above): topology, props, material,
+    motion. planar (2D scenes): blocks keep z = planar_z (the specs' z) and turn about z only.
+    """
+
+    def __init__(
+        self,
+        specs: list,
+        device=None,
+        gravity=(0.0, 0.0, -9.81),
+        check_overlap: bool = True,
+        overlap_tol: float | None = None,
+        planar: bool = False,
+    ):
+        if not specs:
+            raise ValueError("BlockModel needs at least one block")
+        self.device = wp.get_device(device)
+        self.specs = list(specs)
+        self.gravity = tuple(float(g) for g in gravity)
+        n = len(specs)
+        self.num_blocks = n
+        self.names = []
+        verts, vblock, vstart, vcount = [], [], [], []
+        fstart, fcount, face_he, vout = [], [], [], []
+        hv, hn, ht = [], [], []
+        kinds = np.zeros(n, np.int32)
+        mass = np.zeros(n)
+        inertia = np.zeros((n, 3, 3))
+        size = np.zeros(n)
+        radius = np.zeros(n)
+        kn = np.zeros(n)
+        ks = np.zeros(n)
+        tphi = np.zeros(n)
+        coh = np.zeros(n)
+        ten = np.zeros(n)
+        zeta = np.zeros(n)
+        sminv = np.zeros((n, 6, 6))
+        sk = np.zeros((n, 6, 6))
+        sdamp = np.zeros(n)
+        self.strain_omega = np.zeros(n)
+        self.strain_mass = np.zeros((n, 6, 6))
+        mtype = np.zeros(n, np.int32)
+        mamp = np.zeros((n, 3))
+        mfreq = np.zeros(n)
+        mphase = np.zeros(n)
+        tstart = np.zeros(n, np.int32)
+        tcount = np.zeros(n, np.int32)
+        tab_t, tab_x = [], []
+        nv = nf = nh = 0
+        body_of, compounds = _compound_ranges(self.specs)
+        for b, s in enumerate(specs):
+            g = s.geometry
+            if not isinstance(g, ConvexPolyhedron):
+                raise TypeError(f"block {b}: geometry must be a ConvexPolyhedron")
+            name = s.name or g.name or f"block{b}"
+            self.names.append(name)
+            if s.kind not in KINDS:
+                raise ValueError(f"block '{name}': kind must be one of {sorted(KINDS)}, got '{s.kind}'")
+            if not s.density > 0:
+                raise ValueError(f"block '{name}': density must be > 0")
+            kinds[b] = KINDS[s.kind]
+            verts.append(g.vertices)
+            vblock.append(np.full(g.num_vertices, b))
+            vstart.append(nv)
+            vcount.append(g.num_vertices)
+            fstart.append(nf)
+            fcount.append(g.num_faces)
+            face_he.append(g.face_he + nh)
+            vout.append(g.vertex_out_he + nh)
+            hv.append(g.he_vertex + nv)
+            hn.append(g.he_next + nh)
+            ht.append(g.he_twin + nh)
+            nv += g.num_vertices
+            nf += g.num_faces
+            nh += g.num_half_edges
+            mass[b] = g.mass(s.density)
+            inertia[b] = g.inertia(s.density)
+            size[b] = 2.0 * g.bounding_radius
+            radius[b] = g.bounding_radius
+            body = s.compound.body if s.compound is not None else None
+            if body is not None:  # a part: the body's mass properties (the original mesh's) and extent
+                mass[b] = body.mass(s.density)
+                inertia[b] = body.inertia(s.density)
+                size[b] = 2.0 * body.part_radius[s.compound.part]
+                radius[b] = body.bounding_radius
+            E = DEFAULT_YOUNGS_MODULUS if s.youngs_modulus is None else float(s.youngs_modulus)
+            nu = float(s.poisson_ratio)
+            if not (E > 0 and -1.0 < nu < 0.5):
+                raise ValueError(f"block '{name}': need youngs_modulus > 0 and -1 < poisson_ratio < 0.5")
+            m = s.material
+            L = g.size if body is None else body.size
+            kn[b] = PENALTY_FACTOR * E * L if m.normal_stiffness is None else float(m.normal_stiffness)
+            ks[b] = kn[b] / (2.0 * (1.0 + nu)) if m.shear_stiffness is None else float(m.shear_stiffness)
+            if kn[b] <= 0 or ks[b] < 0:
+                raise ValueError(f"block '{name}': contact stiffness must be positive")
+            tphi[b] = math.tan(math.radians(m.friction_angle_deg))
+            coh[b] = m.cohesion_pa
+            ten[b] = m.tensile_strength_pa
+            zeta[b] = m.resolved_damping_ratio()
+            if s.kind == "deformable":
+                I = inertia[b]
+                S = 0.5 * np.trace(I) * np.eye(3) - I
+                M = _strain_mass(S)
+                Kst = g.volume * _elastic_D(E, nu)
+                # generalised eigenvalues of (V D, M_e): real and positive for SPD matrices
+                om2 = np.real(np.linalg.eigvals(np.linalg.solve(M, Kst)))
+                self.strain_omega[b] = math.sqrt(max(om2.max(), 0.0))
+                self.strain_mass[b] = M
+                sminv[b] = np.linalg.inv(M)
+                sk[b] = Kst
+                sdamp[b] = 2.0 * s.strain_damping_ratio * self.strain_omega[b]
+            if s.kind == "kinematic":
+                mo = s.motion
+                if mo is None:
+                    raise ValueError(f"block '{name}': kinematic block needs a motion (KinematicMotion)")
+                if mo.kind == "sine":
+                    mtype[b] = 1
+                    mamp[b] = mo.amplitude
+                    mfreq[b] = mo.frequency_hz
+                    mphase[b] = mo.phase_rad
+                elif mo.kind == "table":
+                    mtype[b] = 2
+                    tstart[b] = len(tab_t)
+                    tcount[b] = len(mo.times)
+                    tab_t.extend(mo.times)
+                    tab_x.extend(mo.displacements)
+                else:
+                    raise ValueError(f"block '{name}': motion kind must be 'sine' or 'table'")
+        movable = (kinds == 0) | (kinds == 1)
+        inv_mass = np.where(movable, 1.0 / mass, 0.0)
+        inv_inertia = np.linalg.inv(inertia)
+        self.np = dict(
+            kinds=kinds, mass=mass, inertia=inertia, size=size, radius=radius, k_n=kn, k_s=ks, zeta=zeta,
+            tan_phi=tphi, body_verts=np.concatenate(verts), vert_start=np.asarray(vstart), vert_count=np.asarray(vcount),
+            motion_type=mtype,
+        )
+        self.movable = movable
+        # compound blocks (CompoundPart): body_of[b] = first part of b's body (b for a convex block);
+        # lead: the blocks that stand for a body (momentum, energy); compound_start/count: the bodies' parts
+        self.body_of = body_of
+        self.lead = body_of == np.arange(n)
+        self.num_compounds = len(compounds)
+        d = self.device
+        f32 = wp.float32
+
+        def arr(a, dtype):
+            return wp.array(np.ascontiguousarray(a), dtype=dtype, device=d)
+
+        self.body_verts = arr(np.concatenate(verts).astype(np.float32), wp.vec3)
+        self.vert_block = arr(np.concatenate(vblock).astype(np.int32), int)
+        self.vert_start = arr(np.asarray(vstart, np.int32), int)
+        self.vert_count = arr(np.asarray(vcount, np.int32), int)
+        self.face_start = arr(np.asarray(fstart, np.int32), int)
+        self.face_count = arr(np.asarray(fcount, np.int32), int)
+        self.face_he = arr(np.concatenate(face_he).astype(np.int32), int)
+        self.vertex_out_he = arr(np.concatenate(vout).astype(np.int32), int)
+        self.he_vertex = arr(np.concatenate(hv).astype(np.int32), int)
+        self.he_next = arr(np.concatenate(hn).astype(np.int32), int)
+        self.he_twin = arr(np.concatenate(ht).astype(np.int32), int)
+        self.num_vertices = nv
+        self.num_half_edges = nh
+        self.max_vertex_pair = int(np.sum(np.sort(np.asarray(vcount))[-2:]))  # most vertices of any two blocks
+        # half-edges in walk order: built by half_edge_walk() when a solver has pairs of big blocks
+        self.he_start = self.he_count = self.he_walk = wp.zeros(1, dtype=int, device=d)
+        self.block_body = arr(body_of.astype(np.int32), int)
+        if compounds:
+            self.compound_start = arr(np.asarray([c[0] for c in compounds], np.int32), int)
+            self.compound_count = arr(np.asarray([c[1] for c in compounds], np.int32), int)
+        self.kinds = arr(kinds, int)
+        self.mass = arr(mass.astype(np.float32), f32)
+        self.inv_mass = arr(inv_mass.astype(np.float32), f32)
+        self.inertia_body = arr(inertia.astype(np.float32), wp.mat33)
+        self.inv_inertia_body = arr(inv_inertia.astype(np.float32), wp.mat33)
+        self.block_size = arr(size.astype(np.float32), f32)
+        self.k_n = arr(kn.astype(np.float32), f32)
+        self.k_s = arr(ks.astype(np.float32), f32)
+        self.tan_phi = arr(tphi.astype(np.float32), f32)
+        self.cohesion = arr(coh.astype(np.float32), f32)
+        self.tensile = arr(ten.astype(np.float32), f32)
+        self.zeta = arr(zeta.astype(np.float32), f32)
+        # Shi's strain matrices are read for deformable blocks only (integrate_blocks): one entry when there are
+        # none (288 bytes per block less in a rigid rock mass)
+        if not np.any(kinds == int(K.KIND_DEFORMABLE)):
+            sminv, sk = sminv[:1], sk[:1]
+        self.strain_minv = arr(sminv.astype(np.float32), wp.spatial_matrix)
+        self.strain_k = arr(sk.astype(np.float32), wp.spatial_matrix)
+        self.strain_damp = arr(sdamp.astype(np.float32), f32)
+        self.motion_type = arr(mtype, int)
+        self.motion_amp = arr(mamp.astype(np.float32), wp.vec3)
+        self.motion_freq = arr(mfreq.astype(np.float32), f32)
+        self.motion_phase = arr(mphase.astype(np.float32), f32)
+        self.table_start = arr(tstart, int)
+        self.table_count = arr(tcount, int)
+        self.table_t = arr(np.asarray(tab_t if tab_t else [0.0], np.float32), f32)
+        self.table_x = arr(np.asarray(tab_x if tab_x else [[0.0, 0.0, 0.0]], np.float32).reshape(-1, 3), wp.vec3)
+        self.base_position = np.array([np.asarray(s.position, float).reshape(3) for s in specs])
+        self.base_x = arr(self.base_position.astype(np.float32), wp.vec3)
+        self.d50 = float(np.median(size))
+        # 2D scenes: blocks are prisms extruded along z that move in their x-y plane (z fixed at the
+        # spec's, rotation about z only); BlockSolver.step applies it after each integration
+        self.planar = bool(planar)
+        self.planar_z = arr(self.base_position[:, 2].astype(np.float32), f32) if self.planar else None
+        # kernel argument groups (kernels/dda/blocks.py), built once
+        self.topology = K.BlockTopology()
+        for name in ("vert_start", "vert_count", "face_start", "face_count", "face_he", "vertex_out_he", "he_vertex",
+                     "he_next", "he_twin", "block_size", "he_start", "he_count", "he_walk"):
+            setattr(self.topology, name, getattr(self, name))
+        self.props = K.BlockProps()
+        for name in ("kinds", "inv_mass", "inertia_body", "inv_inertia_body", "strain_minv", "strain_k", "strain_damp"):
+            setattr(self.props, name, getattr(self, name))
+        self.material = K.BlockMaterial()
+        for name in ("k_n", "k_s", "tan_phi", "cohesion", "tensile", "zeta"):
+            setattr(self.material, name, getattr(self, name))
+        self.motion = K.BlockMotion()
+        for name in ("base_x", "motion_type", "motion_amp", "motion_freq", "motion_phase", "table_start", "table_count",
+                     "table_t", "table_x"):
+            setattr(self.motion, name, getattr(self, name))
+        if check_overlap:
+            check_initial_overlap(self, tol=overlap_tol)
+
+    def half_edge_walk(self) -> None:
+        """Each block's half-edges in walk order (vertex by vertex, around each vertex as narrow_phase
+        walks them; topology.he_walk / he_start / he_count): the work items of narrow_phase_coop
+        (kernels/dda/blocks.py). Built once, on the first solver that has pairs of big blocks."""
+        if self.he_walk.shape[0] > 1 or self.num_half_edges <= 1:
+            return
+        d = self.device
+        walk_count = wp.zeros(self.num_vertices, dtype=int, device=d)
+        wp.launch(K.vertex_walk_count, dim=self.num_vertices, inputs=[self.vertex_out_he, self.he_next, self.he_twin, walk_count],
+                  device=d)
+        off = np.concatenate([[0], np.cumsum(walk_count.numpy().astype(np.int64))])
+        vs = self.np["vert_start"].astype(np.int64)
+        ve = vs + self.np["vert_count"].astype(np.int64)
+        self.he_start = wp.array(off[vs].astype(np.int32), dtype=int, device=d)
+        self.he_count = wp.array((off[ve] - off[vs]).astype(np.int32), dtype=int, device=d)
+        self.he_walk = wp.zeros(int(off[-1]), dtype=int, device=d)
+        wp.launch(K.vertex_walk_fill, dim=self.num_vertices,
+                  inputs=[self.vertex_out_he, self.he_next, self.he_twin, wp.array(off[:-1].astype(np.int32), dtype=int, device=d),
+                          self.he_walk], device=d)
+        self.topology.he_start, self.topology.he_count, self.topology.he_walk = self.he_start, self.he_count, self.he_walk
+
+    def initial_poses(self):
+        """(positions (N,3), quaternions (N,4) xyzw) at t = 0, kinematic motion applied."""
+        pos = self.base_position.copy()
+        quats = np.array([_quat(s.orientation) for s in self.specs])
+        for b, s in enumerate(self.specs):
+            if s.kind == "kinematic":
+                pos[b] = pos[b] + s.motion.displacement(0.0)
+        return pos, quats
+
+    def state(self) -> "BlockState":
+        """Allocate a BlockState at the specs' initial conditions."""
+        return BlockState(self)
+
+
+def _table_view(t: dict) -> "K.ContactTable":
+    v = K.ContactTable()
+    for name, a in t.items():
+        setattr(v, name, a)
+    return v
+
+
+class BlockState:
+    """Time-varying block data (device arrays, N blocks, V vertices).
+
+    x (N, vec3 m, centroid world; float32, the part below its resolution in x_lo (N, vec3 m): the centroid
+    is x + x_lo, carried by a compensated sum in integrate_blocks), q (N, quat xyzw body->world), v (N, vec3 m/s), w (N, vec3 rad/s,
+    world frame), strain / strain_rate (N, spatial_vector: eps_x, eps_y, eps_z, gamma_yz, gamma_zx,
+    gamma_xy, body frame; zero for non-deformable), ext_force / ext_torque (N, vec3 N, N m about the
+    centroid, world; other modules atomically add here before step, the solver zeroes them after use),
+    force / torque / strain_force (contact accumulators), contact_count (N, int: contact points of the
+    last step), world_verts_arm (V, vec3: each vertex from x; WorldVerts), time (s), contact history tables (two dicts of arrays, swapped
+    each step by swap_tables). Kernel views (kernels/dda/blocks.py structs): bodies (x, q, v, w, strain,
+    strain_rate), loads (force ... contact_count), table_views (one per table, swapped with them).
+    """
+
+    def __init__(self, model: BlockModel):
+        self.model = model
+        d = model.device
+        n = model.num_blocks
+        pos, quats = model.initial_poses()
+        vel = np.array([np.asarray(s.velocity, float).reshape(3) for s in model.specs])
+        ang = np.array([np.asarray(s.angular_velocity, float).reshape(3) for s in model.specs])
+        fixed = ~model.movable
+        vel[fixed] = 0.0
+        ang[fixed] = 0.0
+        for b, s in enumerate(model.specs):
+            if s.kind == "kinematic":
+                mo = s.motion
+                if mo.kind == "sine":
+                    om = 2 * math.pi * mo.frequency_hz
+                    vel[b] = np.asarray(mo.amplitude) * om * math.cos(mo.phase_rad)
+                else:
+                    vel[b] = 0.0
+        self.x = wp.array(pos.astype(np.float32), dtype=wp.vec3, device=d)
+        self.q = wp.array(quats.astype(np.float32), dtype=wp.quat, device=d)
+        self.v = wp.array(vel.astype(np.float32), dtype=wp.vec3, device=d)
+        self.w = wp.array(ang.astype(np.float32), dtype=wp.vec3, device=d)
+        self.strain = wp.zeros(n, dtype=wp.spatial_vector, device=d)
+        self.strain_rate = wp.zeros(n, dtype=wp.spatial_vector, device=d)
+        # centroid = x + x_lo (kernels/dda/blocks.py two_sum): the specs' float64 poses to ~48 bits, so a scene placed
+        # far from the world origin starts with the same contacts as at the origin (kinematic blocks follow
+        # their float32 base position: BlockMotion.base_x)
+        lo = pos - pos.astype(np.float32)
+        lo[np.array([s.kind == "kinematic" for s in model.specs], dtype=bool)] = 0.0
+        self.x_lo = wp.array(lo.astype(np.float32), dtype=wp.vec3, device=d)
+        self.force = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.torque = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.strain_force = wp.zeros(n, dtype=wp.spatial_vector, device=d)
+        self.ext_force = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.ext_torque = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.contact_count = wp.zeros(n, dtype=int, device=d)
+        self.damp_c = wp.zeros(n, dtype=K.sym6, device=d)  # implicit contact dashpots (kernels/dda/blocks.py; upper triangle)
+        self.damp_b = wp.zeros(n, dtype=wp.spatial_vector, device=d)
+        # each vertex relative to its block's float32 centroid x: x_lo + R (X + E X) (the narrow phase's pair frame)
+        self.world_verts_arm = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
+        # poses of the history table's planes (last narrow phase: x, q, x_lo and, of deformable blocks, strain;
+        # q_ref = 0: none yet) and the motion since (pose_motion)
+        self.x_ref = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.q_ref = wp.zeros(n, dtype=wp.quat, device=d)
+        self.x_lo_ref = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.strain_ref = wp.zeros(n if np.any(model.np["kinds"] == int(K.KIND_DEFORMABLE)) else 1, dtype=wp.spatial_vector,
+                                   device=d)
+        self.motion_dx = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.motion_rho = wp.zeros(n, dtype=wp.float32, device=d)
+        self.time = 0.0
+        # kernel argument groups (kernels/dda/blocks.py) over the arrays above, built once (the arrays are
+        # only ever assigned in place, e.g. by a checkpoint restore)
+        self.bodies = K.BlockBodies()
+        for name in ("x", "q", "v", "w", "strain", "strain_rate", "x_lo"):
+            setattr(self.bodies, name, getattr(self, name))
+        self.verts = K.WorldVerts()
+        self.verts.arm = self.world_verts_arm
+        self.loads = K.BlockLoads()
+        for name in ("force", "torque", "strain_force", "ext_force", "ext_torque", "contact_count", "damp_c", "damp_b"):
+            setattr(self.loads, name, getattr(self, name))
+        self.tables = [None, None]
+        self.table_views = [None, None]  # K.ContactTable over tables[0], tables[1] (swapped with them)
+        # small to start with: BlockSolver grows both from the live pairs and contact points
+        self.alloc_tables(_table_slots(n), 4 * n + 64)
+
+    def alloc_tables(self, cap: int, point_cap: int | None = None):
+        """(Re)allocate both contact-history tables: ``cap`` pair slots (BlockSolver keeps it >= 4/3 x the
+        candidate pairs: _table_slots) and ``point_cap`` contact points each (None: as now). tables[0]'s
+        history is kept (rehashed). Sized from the live pairs and points, not a capacity per block."""
+        d = self.model.device
+        if point_cap is None:
+            point_cap = self.point_cap
+        old = self.tables[0]
+        if old is not None:
+            point_cap = max(int(point_cap), int(old["pcount"].numpy()[0]))
+
+        # the contact points' positions are written by the narrow phase and read by contact_forces of the same
+        # step (the current table's): no kernel reads the previous step's, so both tables share one array
+        pos = wp.zeros(point_cap, dtype=wp.vec3, device=d)
+
+        def make():
+            return dict(
+                keys=wp.full(cap, -1, dtype=wp.int64, device=d),
+                normal=wp.zeros(cap, dtype=wp.vec3, device=d),
+                gapb=wp.zeros(cap, dtype=wp.float32, device=d),  # gap (or lower bound) along normal
+                nc=wp.zeros(cap, dtype=int, device=d),
+                pstart=wp.zeros(cap, dtype=int, device=d),  # first point in the pool
+                pcount=wp.zeros(1, dtype=int, device=d),  # pool entries taken this step
+                ckey=wp.zeros(point_cap, dtype=wp.vec2i, device=d),
+                shear=wp.zeros(point_cap, dtype=wp.vec3, device=d),
+                pos=pos,
+                depth=wp.zeros(point_cap, dtype=wp.float32, device=d),
+                fn=wp.zeros(point_cap, dtype=wp.float32, device=d),
+                vimp=wp.zeros(point_cap, dtype=wp.float32, device=d),  # closing speed at first touch
+                fcap=wp.zeros(point_cap, dtype=wp.float32, device=d),  # Coulomb cap of the step
+            )
+
+        self.tables = [make(), make()]
+        self.table_views = [_table_view(t) for t in self.tables]
+        self.table_cap = cap
+        self.point_cap = point_cap
+        if old is not None:  # keep the contact history (rehash into the larger table)
+            wp.launch(K.rehash_table, dim=old["keys"].shape[0], inputs=[_table_view(old), self.table_views[0]], device=d)
+
+    def swap_tables(self) -> None:
+        """tables[0] <-> tables[1] (after a narrow phase: tables[0] holds this step's history)."""
+        self.tables = [self.tables[1], self.tables[0]]
+        self.table_views = [self.table_views[1], self.table_views[0]]
+
+    # ---- read-back helpers (host sync) ----
+    def positions_numpy(self) -> np.ndarray:
+        """Centroids x + x_lo [m] (float64: the compensated sum's ~48 bits)."""
+        return self.x.numpy().astype(np.float64) + self.x_lo.numpy()
+
+    def orientations_numpy(self) -> np.ndarray:
+        return self.q.numpy().astype(np.float64)
+
+    def velocities_numpy(self) -> np.ndarray:
+        return self.v.numpy().astype(np.float64)
+
+    def angular_velocities_numpy(self) -> np.ndarray:
+        return self.w.numpy().astype(np.float64)
+
+    def strains_numpy(self) -> np.ndarray:
+        return self.strain.numpy().astype(np.float64)
+
+    def contact_counts(self) -> np.ndarray:
+        """Contact points per block found in the last step."""
+        return self.contact_count.numpy().copy()
+
+    def world_vertices(self) -> list:
+        """World-space vertices per block (list of (V_b, 3) arrays) at the current pose and strain."""
+        m = self.model
+        wp.launch(K.block_world_vertices, dim=m.num_vertices,
+                  inputs=[m.body_verts, m.vert_block, self.bodies, m.kinds, self.verts], device=m.device)
+        wv = self.x.numpy().astype(np.float64)[m.vert_block.numpy()] + self.world_verts_arm.numpy()
+        s, c = m.np["vert_start"], m.np["vert_count"]
+        return [wv[s[b]: s[b] + c[b]] for b in range(m.num_blocks)]
+
+    def linear_momentum(self) -> np.ndarray:
+        """Sum of m v over movable blocks (kg m/s)."""
+        m = self.model
+        mv = m.np["mass"][:, None] * self.velocities_numpy()
+        return mv[m.movable & m.lead].sum(axis=0)
+
+    def kinetic_energy(self) -> float:
+        """Translational + rotational (+ strain-rate) kinetic energy of movable blocks (J)."""
+        m = self.model
+        v = self.velocities_numpy()
+        w = self.angular_velocities_numpy()
+        q = self.orientations_numpy()
+        sr = self.strain_rate.numpy().astype(np.float64)
+        e = 0.0
+        for b in np.nonzero(m.movable & m.lead)[0]:
+            R = quat_to_matrix(q[b])
+            Iw = R @ m.np["inertia"][b] @ R.T
+            e += 0.5 * m.np["mass"][b] * v[b] @ v[b] + 0.5 * w[b] @ Iw @ w[b]
+            if m.np["kinds"][b] == 1:
+                e += 0.5 * sr[b] @ m.strain_mass[b] @ sr[b]
+        return float(e)
+
+
+def _sat_overlap(va: np.ndarray, ga: ConvexPolyhedron, Ra, vb: np.ndarray, gb: ConvexPolyhedron, Rb) -> float:
+    """Penetration depth of two convex polyhedra by the separating-axis test (<= 0: apart)."""
+    axes = [ga.face_normals @ Ra.T, gb.face_normals @ Rb.T]
+    ea = ga.edges()
+    eb = gb.edges()
+    da = va[ea[:, 1]] - va[ea[:, 0]]
+    db = vb[eb[:, 1]] - vb[eb[:, 0]]
+    cr = np.cross(da[:, None, :], db[None, :, :]).reshape(-1, 3)
+    ln = np.linalg.norm(cr, axis=1)
+    keep = ln > 1e-9 * max(1.0, ln.max(initial=0.0))
+    axes.append(cr[keep] / ln[keep, None])
+    ax = np.concatenate(axes)
+    pa = va @ ax.T
+    pb = vb @ ax.T
+    ov = np.minimum(pa.max(0) - pb.min(0), pb.max(0) - pa.min(0))
+    return float(ov.min())
+
+
+def _sweep_pairs(pos: np.ndarray, rad: np.ndarray):
+    """Pairs whose bounding spheres overlap (sort and sweep along x)."""
+    order = np.argsort(pos[:, 0])
+    xs = pos[order, 0]
+    rmax = float(rad.max())
+    for a, i in enumerate(order):
+        end = np.searchsorted(xs, xs[a] + rad[i] + rmax, side="right")
+        for j in order[a + 1: end]:
+            if np.linalg.norm(pos[i] - pos[j]) <= rad[i] + rad[j]:
+                yield (int(min(i, j)), int(max(i, j)))
+
+
+def check_initial_overlap(model: BlockModel, positions=None, quats=None, tol: float | None = None):
+    """Raise BlockOverlapError naming the first pair (with a movable block) that overlaps by more than tol.
+
+    tol defaults to 1e-3 x the smallest block size.  Pairs of two fixed/kinematic blocks are skipped
+    (they never interact).  Exact separating-axis test on the host (numpy).
+    """
+    if positions is None or quats is None:
+        positions, quats = model.initial_poses()
+    sizes = model.np["size"]
+    if tol is None:
+        tol = 1e-3 * float(sizes.min())
+    rad = model.np["radius"]
+    n = model.num_blocks
+    if n < 2:
+        return
+    Rs = [quat_to_matrix(q) for q in quats]
+    worst = None
+    for i, j in _sweep_pairs(positions, rad):
+        if not (model.movable[i] or model.movable[j]) or model.body_of[i] == model.body_of[j]:
+            continue
+        gi, gj = model.specs[i].geometry, model.specs[j].geometry
+        vi = gi.vertices @ Rs[i].T + positions[i]
+        vj = gj.vertices @ Rs[j].T + positions[j]
+        depth = _sat_overlap(vi, gi, Rs[i], vj, gj, Rs[j])
+        if depth > tol and (worst is None or depth > worst[2]):
+            worst = (i, j, depth)
+    if worst is not None:
+        i, j, depth = worst
+        raise BlockOverlapError(
+            f"blocks '{model.names[i]}' (#{i}) and '{model.names[j]}' (#{j}) overlap by {depth:.6g} m at the start "
+            f"(tolerance {tol:.3g} m); move them apart"
+        )
+
+
+def check_initial_overlap_on_device(solver: "BlockSolver", state: "BlockState", tol: float | None = None):
+    """The same check as check_initial_overlap for large block sets: the device broad phase and FCP
+    narrow phase (validated against the exact separating-axis test in the tests) give each candidate
+    pair's gap; a gap below -tol is an overlap. O(n) instead of the host test's per-pair numpy work."""
+    model = solver.model
+    if tol is None:
+        tol = 1e-3 * float(model.np["size"].min())
+    solver.detect(state)
+    n = solver.pair_count
+    if n == 0:
+        return
+    gaps = solver.pair_gap.numpy()[:n]
+    pairs = solver.pairs.numpy()[:n]
+    mov = np.asarray(model.movable, dtype=bool)
+    bad = (gaps < -tol) & (mov[pairs[:, 0]] | mov[pairs[:, 1]])
+    if bad.any():
+        k = int(np.argmin(np.where(bad, gaps, np.inf)))
+        i, j = (int(c) for c in pairs[k])
+        raise BlockOverlapError(
+            f"blocks '{model.names[i]}' (#{i}) and '{model.names[j]}' (#{j}) overlap by {-gaps[k]:.6g} m at the start "
+            f"(tolerance {tol:.3g} m); move them apart")
+
+
+@dataclass(frozen=True)
+class BlockOptions:
+    """Knobs of the DDA block solver: ``BlockSolver(model, options=BlockOptions(...))``. The defaults are
+    the shipped values; ``BlockOptions.from_scene(scene)`` reads the ones a scene sets."""
+
+    dt_safety: float = 0.5
+    """stable_dt = dt_safety x critical_dt() [-] (scene: ``simulation.block_dt_safety``)."""
+
+    cell_factor: float = 1.5
+    """Broad-phase cell size S = cell_factor x median block bounding size D50 [-] (Nezami: 1.5)."""
+
+    cell_size_m: float | None = None
+    """Explicit broad-phase cell size S [m]; overrides cell_factor."""
+
+    aabb_margin_m: float | None = None
+    """Inflation of each block's AABB in the broad phase [m]; None: 0.05 D50."""
+
+    contact_points_for_dt: int = 8
+    """Contact points assumed on one block in the critical-step estimate (critical_dt) [-]."""
+
+    large_block_cells: int = 27
+    """A block whose AABB covers more broad-phase cells than this (per axis or in all) is "large": it
+    is tested against every block instead of being hashed into cells [cells]."""
+
+    sync_free_max_blocks: int = 64
+    """Up to this many blocks the broad phase runs at capacities that cannot overflow and the step
+    reads nothing back from the device; above it capacities grow on demand (one counter read per
+    step) [blocks]."""
+
+    substep_graphs: bool = True
+    """CUDA: multi-rate sub-steps 1..n-1 of a fluid step (kept pair list, sync-free path) replay one captured
+    graph per sub-step instead of ~12 launches from Python (each costs ~30-50 us of host time against a few
+    us of GPU work for a coupled scene's few blocks). Same kernels, same order; ignored on the CPU."""
+
+    fluid_step_graphs: bool = True
+    """CUDA, with substep_graphs: all n sub-steps of a fluid step, the first one's broad and narrow phases
+    included, replay one captured graph (sync-free path, the pair list not kept across fluid steps): one
+    launch per fluid step. Same kernels, same order; ignored on the CPU."""
+
+    sync_check_interval_steps: int = 200
+    """Sync-free path: the overflow flags (a bug if set) are read back every this many steps [steps]."""
+
+    keep_pairs: bool | None = None
+    """Keep the pair list while every block's AABB grown by margin/2 stays inside the box of the last
+    broad phase (kernels/dda/blocks.py aabbs_left_pair_boxes); None: on for the counter-read path (more than
+    sync_free_max_blocks blocks), off for the sync-free one. False: a broad phase every step."""
+
+    coop_min_vertices: int | None = None
+    """A candidate pair whose two blocks have more vertices than this together goes to the cooperative
+    narrow phase (kernels/dda/blocks_coop.py narrow_phase_coop: one thread block per pair, the work over
+    vertices, faces and half-edge pairs spread over its lanes; the same result); smaller pairs: one
+    thread each [-]. None: 32 on a GPU (or on the CPU with warp.config.enable_cpu_blocks), 0 (every pair) on
+    a GPU for models of at most sync_free_max_blocks blocks, else off (Warp's CPU backend runs one lane per
+    block, where the cooperative kernel is the serial loop plus overhead)."""
+
+    hold_contacts: bool = True
+    """Multi-rate sub-steps (substeps() with the pair list kept): sub-steps 1..n-1 of a fluid step carry the
+    first sub-step's contacts (kernels/dda/blocks.py carry_contacts: points moved with the blocks, depths advanced
+    by their approach) instead of running the narrow phase, while holds_contacts() finds every candidate pair
+    out of contact farther apart than it can close before the next check (scene: ``simulation.block_contacts =
+    "held"``, the default; "found": a narrow phase every sub-step)."""
+
+    narrow_block_dim: int = 32
+    """Threads per pair in the cooperative narrow phase (a GPU warp; Warp's CPU backend runs 1 unless
+    warp.config.enable_cpu_blocks) [-]."""
+
+    @classmethod
+    def from_scene(cls, scene) -> "BlockOptions":
+        """The options a scene sets (``simulation.block_dt_safety``, ``simulation.block_contacts``), defaults for
+        the rest."""
+        kw = {}
+        safety = scene.simulation.get("block_dt_safety")
+        if safety is not None:
+            kw["dt_safety"] = float(safety)
+        if scene.simulation.get("block_contacts", "held") == "found":
+            kw["hold_contacts"] = False
+        return cls(**kw)
+
+
+class BlockSolver:
+    """Explicit DDA solver (the rockwave/base/solver.py contract): ``stable_dt(state)`` and
+    ``step(state, ts)`` = broad phase, FCP narrow phase, contact forces, integration (and, for a planar
+    model, the 2D constraint). Knobs: ``options`` (BlockOptions). It keeps buffer capacities, the
+    kept pair list and diagnostics only; everything a step needs from the past is in the BlockState.
+    """
+
+    def __init__(self, model: BlockModel, device=None, options: BlockOptions | None = None):
+        self.model = model
+        self.options = opt = options if options is not None else BlockOptions()
+        self.device = wp.get_device(device) if device is not None else model.device
+        if self.device != model.device:
+            raise ValueError(f"solver device {self.device} differs from model device {model.device}")
+        if not 0.0 < opt.dt_safety <= 1.0:
+            raise ValueError(f"BlockOptions.dt_safety must be in (0, 1], got {opt.dt_safety}")
+        self.cell_size = float(opt.cell_size_m) if opt.cell_size_m else opt.cell_factor * model.d50
+        self.margin = 0.05 * model.d50 if opt.aabb_margin_m is None else float(opt.aabb_margin_m)
+        self.contact_points_for_dt = int(opt.contact_points_for_dt)
+        self.g_mag = float(np.linalg.norm(model.gravity))  # |g| for the resting-contact speed (narrow_phase)
+        self.large_cells = int(opt.large_block_cells)
+        coop = opt.coop_min_vertices
+        if coop is None:
+            coop = 32 if (self.device.is_cuda or wp.config.enable_cpu_blocks) else 2**31 - 1
+            if self.device.is_cuda and model.num_blocks <= opt.sync_free_max_blocks:
+                # few blocks (a coupled scene): the few pairs leave the GPU idle but for their threads, so every
+                # pair gets a thread block (measured, H100, submarine_slide_2d: one 14-vertex pair took 400 us
+                # in one thread, and the coupled run went from 41 to 25 wall s per simulated s at 20 mm)
+                coop = 0
+        self.coop_min = int(coop)
+        self.narrow_block_dim = int(opt.narrow_block_dim)
+        if self.coop_min < 0 or not 1 <= self.narrow_block_dim <= 1024:
+            raise ValueError(f"BlockOptions: coop_min_vertices must be >= 0 (got {self.coop_min}) and narrow_block_dim "
+                             f"in 1..1024 (got {self.narrow_block_dim})")
+        self.has_big_pairs = model.max_vertex_pair > self.coop_min  # any pair for narrow_phase_coop?
+        if self.has_big_pairs:
+            model.half_edge_walk()
+        self.coop_pairs = 0  # pairs the last narrow phase gave narrow_phase_coop (counter-read path; diagnostics)
+        n = model.num_blocks
+        d = self.device
+        self.lo = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.hi = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.is_large = wp.zeros(n, dtype=int, device=d)
+        self.counters = wp.zeros(5, dtype=int, device=d)
+        self.grid = K.BroadPhaseGrid()  # kernel argument groups, refreshed when a capacity grows
+        self.grid.lo, self.grid.hi, self.grid.is_large = self.lo, self.hi, self.is_large
+        self.grid.inv_s = 1.0 / self.cell_size
+        self.grid.body = model.block_body  # parts of one compound block are never paired
+        self.grid.large_cells = self.large_cells
+        self.pair_list = K.PairList()
+        self.pair_list.counters = self.counters
+        # Few blocks (the coupled scenes): capacities that cannot overflow (a block in more than
+        # large_cells cells is "large"; each pair is emitted at most twice), so a step reads nothing
+        # back and the GPU never waits for the host; the overflow flags are still checked every
+        # sync_check_interval_steps steps. More blocks: capacities grow on demand (one counter read per step).
+        self.sync_free = n <= opt.sync_free_max_blocks
+        self.sync_check_interval = int(opt.sync_check_interval_steps)
+        # no rigid or deformable block: nothing can collide (fixed and kinematic blocks do not act on each
+        # other), so a step only moves the kinematic blocks and clears the coupling's forces
+        kinds = model.np["kinds"]
+        self.has_free_blocks = bool(np.any((kinds == int(K.KIND_RIGID)) | (kinds == int(K.KIND_DEFORMABLE))))
+        if self.sync_free:
+            self._alloc_large(n)
+            self._alloc_entries(self.large_cells * n + 64)
+            self._alloc_pairs(n * n + 64)
+        else:
+            self._alloc_large(min(n, 16))
+            self._alloc_entries(8 * n + 64)
+            self._alloc_pairs(8 * n + 64)
+        self._pair_count = 0
+        self._unchecked_steps = 0
+        self._dt_crit = None
+        # Many blocks (the counter-read path): the pair list is kept while every block's AABB grown by
+        # margin/2 stays inside the box (grown by margin) of the last broad phase (kernels/dda/blocks.py
+        # aabbs_left_pair_boxes; one flag read joins the step's counter read). Few blocks: every step.
+        self._keep_pairs = (not self.sync_free) if opt.keep_pairs is None else bool(opt.keep_pairs)
+        self.lo_bp = wp.zeros(n, dtype=wp.vec3, device=d)
+        self.hi_bp = wp.zeros(n, dtype=wp.vec3, device=d)
+        self._moved = wp.ones(1, dtype=int, device=d)
+        # [t_next, dt] of the current (sub-)step, read by contact_forces and integrate_blocks on the device
+        self.block_clock = wp.zeros(2, dtype=float, device=d)
+        # CUDA graphs of one multi-rate sub-step (substeps()), keyed by the contact tables' parity and the
+        # addresses the graph baked in; None: not on this device (CPU, or graphs switched off)
+        self._substep_graphs: dict | None = {} if (wp.get_device(d).is_cuda and opt.substep_graphs) else None
+        self.graph_substeps = 0  # sub-steps replayed from a CUDA graph (diagnostics)
+        self._step_graphs_ok = opt.fluid_step_graphs  # whole fluid steps of sub-steps as one graph (_fluid_step_graph)
+        self.broad_phases = 0  # broad phases run (diagnostics)
+        self.narrow_phases = 0  # narrow phases launched from the host (diagnostics; a graph replay is not counted)
+        self.carried_substeps = 0  # sub-steps that carried their contacts (hold_contacts; launched or replayed)
+        self.graph_captures = 0  # CUDA graphs captured (diagnostics)
+        self.fluid_step_graphs = 0  # fluid steps whose sub-steps replayed one graph (_fluid_step_graph; diagnostics)
+        self.point_regrows = 0  # narrow phases redone after the contact-point pool grew (diagnostics)
+        self.contact_points = 0  # contact points of the last step (counter-read path; diagnostics)
+        # the paths, chosen once
+        self._grid_pass = self._grid_pass_sync_free if self.sync_free else self._grid_pass_counted
+        self._step_broad_phase = self._broad_phase_if_moved if self._keep_pairs else self._broad_phase_always
+        self._contact_forces = self._contact_forces_all if self.has_free_blocks else self._no_contacts
+
+    @property
+    def keep_pairs(self) -> bool:
+        """Whether the pair list is kept between broad phases (options.keep_pairs, resolved at construction)."""
+        return self._keep_pairs
+
+    @property
+    def pair_count(self) -> int:
+        """Candidate pairs of the last broad phase (a host read when the solver runs sync-free)."""
+        if self.sync_free:
+            return min(int(self.counters.numpy()[0]), self.pair_cap)
+        return self._pair_count
+
+    def _check_capacity_flags(self) -> None:
+        flags = int(self.counters.numpy()[1])
+        if flags:
+            raise RuntimeError(f"DDA broad phase overflowed its fixed capacities (flags {flags}) with "
+                               f"{self.model.num_blocks} blocks; this is a bug: please report the scene")
+
+    # ---- capacity management ----
+    def _alloc_large(self, cap):
+        self.large_list = wp.zeros(max(1, cap), dtype=int, device=self.device)
+        self.grid.large_list = self.large_list
+
+    def _alloc_entries(self, cap):
+        d = self.device
+        self.entry_cap = cap
+        # buckets >= entries (load <= 1; a shared bucket only costs the cell test in bp_pairs)
+        self.nbuckets = next_pow2(cap)
+        self.entry_block = wp.zeros(cap, dtype=int, device=d)
+        self.entry_cell = wp.zeros(cap, dtype=wp.vec3i, device=d)
+        self.bucket_count = wp.zeros(self.nbuckets, dtype=int, device=d)
+        self.bucket_start = wp.zeros(self.nbuckets, dtype=int, device=d)
+        g = self.grid
+        g.nbuckets = self.nbuckets
+        g.entry_block, g.entry_cell = self.entry_block, self.entry_cell
+        g.bucket_count, g.bucket_start = self.bucket_count, self.bucket_start
+
+    def _alloc_pairs(self, cap):
+        d = self.device
+        self.pair_cap = cap
+        self.pairs = wp.zeros(cap, dtype=wp.vec2i, device=d)
+        self.pair_gap = wp.zeros(cap, dtype=wp.float32, device=d)
+        self.pair_slot = wp.zeros(cap, dtype=int, device=d)
+        self.pair_oslot = wp.zeros(cap, dtype=int, device=d)
+        self.active = wp.zeros(cap, dtype=int, device=d)  # pairs not certified separated (narrow_screen)
+        self.active_big = wp.zeros(cap if self.has_big_pairs else 1, dtype=int, device=d)  # of them: narrow_phase_coop's
+        pl = self.pair_list
+        pl.pairs, pl.gap, pl.slot, pl.oslot, pl.active = self.pairs, self.pair_gap, self.pair_slot, self.pair_oslot, self.active
+        pl.active_big = self.active_big
+
+    # ---- time step limits ----
+    def critical_dt(self) -> float:
+        """The physical limit [s]: dt_crit = min over movable blocks of 2/omega (sqrt(1+zeta^2) - zeta),
+        omega from translation sqrt(k_n n_c / m), rotation sqrt(k_n n_c r^2 / I_min) (r = bounding
+        radius, n_c = options.contact_points_for_dt) and, for deformable blocks, the largest strain-mode
+        frequency of M_e^-1 V D (~ 3.5 c / L). step() refuses a dt above it."""
+        if self._dt_crit is None:
+            m = self.model
+            nc = self.contact_points_for_dt
+            best = math.inf
+            for b in np.nonzero(m.movable)[0]:
+                kn = m.np["k_n"][b]
+                z = m.np["zeta"][b]
+                fac = math.sqrt(1.0 + z * z) - z
+                mass = m.np["mass"][b]
+                imin = float(np.linalg.eigvalsh(m.np["inertia"][b]).min())
+                r = m.np["radius"][b]
+                om = max(math.sqrt(kn * nc / mass), math.sqrt(kn * nc * r * r / imin))
+                if 2.0 / om * fac < best:
+                    best, self._dt_crit_block = 2.0 / om * fac, (int(b), "contact")
+                if m.np["kinds"][b] == 1:
+                    zs = m.specs[b].strain_damping_ratio
+                    ds = 2.0 / m.strain_omega[b] * (math.sqrt(1 + zs * zs) - zs)
+                    if ds < best:
+                        best, self._dt_crit_block = ds, (int(b), "strain")
+            self._dt_crit = best
+        return self._dt_crit
+
+    def critical_block(self) -> tuple[int, str] | None:
+        """(block index, 'contact' or 'strain'): the block and mode that set critical_dt() (None: no
+        movable block)."""
+        self.critical_dt()
+        return getattr(self, "_dt_crit_block", None)
+
+    def stable_dt(self, state: BlockState) -> float:
+        """Largest step the clock should take [s]: options.dt_safety x critical_dt() (the DDA limit
+        depends on the model only, not on ``state``)."""
+        if isinstance(state, (int, float)):
+            raise TypeError("BlockSolver.stable_dt(state) takes the BlockState; the safety factor is "
+                            "BlockOptions.dt_safety")
+        return self.options.dt_safety * self.critical_dt()
+
+    # ---- pipeline ----
+    def _prepare(self, state: BlockState):
+        m, d = self.model, self.device
+        wp.launch(K.block_world_vertices, dim=m.num_vertices,
+                  inputs=[m.body_verts, m.vert_block, state.bodies, m.kinds, state.verts], device=d)
+        wp.launch(K.block_aabbs, dim=m.num_blocks,
+                  inputs=[state.x, state.world_verts_arm, m.vert_start, m.vert_count, self.margin, self.lo, self.hi,
+                          state.contact_count], device=d)
+
+    def _broad_phase(self, force: bool = False):
+        """Broad phase of this step: always when ``force``, else as options.keep_pairs chose."""
+        if force:
+            self._broad_phase_always()
+        else:
+            self._step_broad_phase()
+
+    def _broad_phase_if_moved(self):
+        self._moved.zero_()
+        wp.launch(K.aabbs_left_pair_boxes, dim=self.model.num_blocks,
+                  inputs=[self.lo, self.hi, self.lo_bp, self.hi_bp, 0.5 * self.margin, self._moved], device=self.device)
+        if int(self._moved.numpy()[0]) != 0:
+            self._broad_phase_always()
+
+    def _broad_phase_always(self):
+        self.broad_phases += 1
+        wp.copy(self.lo_bp, self.lo)
+        wp.copy(self.hi_bp, self.hi)
+        while not self._grid_pass():
+            pass
+
+    def _grid_launches(self):
+        m, d = self.model, self.device
+        self.counters.zero_()
+        self.bucket_count.zero_()
+        wp.launch(K.bp_count, dim=m.num_blocks, inputs=[self.grid, self.counters], device=d)
+        wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
+        wp.launch(K.bp_fill, dim=m.num_blocks, inputs=[self.grid, self.counters], device=d)
+        wp.launch(K.bp_pairs, dim=self.entry_cap, inputs=[self.grid, m.kinds, self.pair_list], device=d)
+        wp.launch(K.bp_large_pairs, dim=(self.large_list.shape[0], m.num_blocks),
+                  inputs=[self.grid, m.kinds, self.pair_list], device=d)
+
+    def _grid_pass_sync_free(self) -> bool:
+        """Launch dims at capacity; the kernels stop at the device counts; nothing is read back."""
+        self._grid_launches()
+        self._unchecked_steps += 1
+        if self._unchecked_steps >= self.sync_check_interval:
+            self._unchecked_steps = 0
+            self._check_capacity_flags()
+        return True
+
+    def _grid_pass_counted(self) -> bool:
+        """One counter read (the host sync of the step); False after growing an overflowed capacity."""
+        self._grid_launches()
+        c = self.counters.numpy()
+        flags = int(c[1])
+        if flags == 0:
+            self._pair_count = int(c[0])
+            return True
+        if flags & 1:
+            self._alloc_entries(2 * int(self.bucket_count.numpy().sum()))
+        if flags & 2:
+            self._alloc_large(2 * int(c[2]))
+        if flags & 4:
+            self._alloc_pairs(int(c[0]) + int(c[0]) // 4 + 64)  # the live pairs + 25%
+        return False
+
+    def _narrow_phase(self, state: BlockState, dt: float, screen: bool = True):
+        """FCP narrow phase + contact forces (at block_clock's dt, set by the caller; ``dt`` is that value). screen: pairs whose warm-start plane already separates
+        them (gap > 0; first by the bound from last step's gap and the blocks' motion since, else from
+        the world vertices) skip FCP and contact generation (narrow_screen); detect() turns it off so
+        that every pair's gap is FCP's."""
+        m, d = self.model, self.device
+        n = self.pair_cap if self.sync_free else self._pair_count
+        # history tables sized from the live pairs (slots >= 4/3 x the pairs: linear probing at load <= 3/4)
+        # and contact points; sync-free (few blocks): for every pair at K_MAX points, so nothing is read back
+        cap, pcap = state.table_cap, state.point_cap
+        if 4 * n > 3 * cap:
+            cap = _table_slots(n)
+        if self.sync_free:
+            pcap = max(pcap, K.MAX_CONTACTS * self.pair_cap)
+        if (cap, pcap) != (state.table_cap, state.point_cap):
+            state.alloc_tables(cap, pcap)
+        wp.launch(K.pose_motion, dim=m.num_blocks,
+                  inputs=[m.body_verts, m.kinds, m.vert_start, m.vert_count, state.bodies, state.world_verts_arm, state.x_ref,
+                          state.q_ref, state.x_lo_ref, state.strain_ref, state.motion_dx, state.motion_rho], device=d)
+        while True:
+            old, new = state.table_views
+            new.keys.fill_(-1)
+            new.pcount.zero_()
+            if n > 0:
+                self.counters[3:5].zero_()  # lengths of the active lists
+                coop_min = self.coop_min if self.has_big_pairs else m.max_vertex_pair
+                wp.launch(K.narrow_screen, dim=n,
+                          inputs=[self.pair_list, m.num_blocks, int(screen), coop_min, state.verts, m.topology,
+                                  state.bodies, state.motion_dx, state.motion_rho, old, new], device=d)
+                wp.launch(K.narrow_phase, dim=n,
+                          inputs=[self.pair_list, coop_min, state.verts, m.topology, state.bodies, old, new], device=d)
+                if self.has_big_pairs:
+                    nb = n
+                    if not self.sync_free:  # the counter-read path: launch for the big pairs only
+                        nb = self.coop_pairs = int(self.counters.numpy()[4])
+                    if nb > 0:
+                        wp.launch_tiled(KC.narrow_phase_coop, dim=[nb], block_dim=self.narrow_block_dim,
+                                        inputs=[self.pair_list, state.verts, m.topology, state.bodies, old, new],
+                                        device=d)
+                wp.launch(K.contact_forces, dim=n,
+                          inputs=[self.pair_list, self.block_clock, self.g_mag, m.props, m.material, state.bodies, old, new,
+                                  state.loads], device=d)
+            if self.sync_free or n == 0:
+                break
+            used = int(new.pcount.numpy()[0])  # the counter-read path: one read of the points taken
+            self.contact_points = used
+            if used <= state.point_cap:
+                break
+            # the pool overflowed: grow it to the live points (+25%) and redo this narrow phase from
+            # zeroed contact accumulators (the same launches on the same inputs: the same result)
+            state.alloc_tables(state.table_cap, used + used // 4 + 64)
+            for a in (state.force, state.torque, state.strain_force, state.damp_c, state.damp_b, state.contact_count):
+                a.zero_()
+            self.point_regrows += 1
+        state.swap_tables()  # tables[0] now holds this step's history
+        self.narrow_phases += 1
+
+    def _carry_contacts(self, state: BlockState):
+        """A held sub-step's contacts: the last narrow phase's pairs, planes and points carried over the sub-step
+        just taken (kernels/dda/blocks.py carry_contacts), then the contact forces on them; the tables swap as
+        after a narrow phase."""
+        m, d = self.model, self.device
+        old, new = state.table_views
+        new.keys.fill_(-1)
+        wp.copy(new.pcount, old.pcount)
+        state.contact_count.zero_()  # (block_aabbs zeroes it on a narrow-phase sub-step)
+        self.carried_substeps += 1
+        n = self.pair_cap if self.sync_free else self._pair_count
+        if n > 0:
+            wp.launch(K.carry_contacts, dim=n, inputs=[self.pair_list, self.block_clock, m.kinds, state.bodies, old, new],
+                      device=d)
+            wp.launch(K.contact_forces, dim=n,
+                      inputs=[self.pair_list, self.block_clock, self.g_mag, m.props, m.material, state.bodies, old, new,
+                              state.loads], device=d)
+        state.swap_tables()
+
+    def holds_contacts(self, state: BlockState, dt: float, steps: int, headroom: float = 2.0) -> bool:
+        """Whether the sub-steps of the next ``steps`` fluid steps of length dt may carry their contacts
+        (options.hold_contacts): every candidate pair without contact points at the last narrow phase is
+        farther apart than the two blocks can close over them, gap > headroom (reach_A + reach_B) dt steps,
+        reach = |v| + |w| r (so no new contact appears inside a held sub-step), and every pair in contact is at
+        rest or sliding: its points approach or part, and the blocks turn against each other, slower than the
+        resting-contact speed v_rest = |g| / sqrt(n k_n / m_eff) (kernels/dda/blocks.py hold_check_pairs). A carried
+        pair keeps its points and gains none until the next fluid step's narrow phase. A host read (hold_checks)."""
+        return self.hold_checks(state, dt, steps, headroom)[1]
+
+    def _contact_forces_all(self, state: BlockState, dt: float):
+        self._prepare(state)
+        self._broad_phase()
+        self._narrow_phase(state, dt)
+
+    def _no_contacts(self, state: BlockState, dt: float):
+        pass
+
+    def _set_clock(self, t_next: float, dt: float):
+        wp.launch(K.set_block_clock, dim=1, inputs=[self.block_clock, float(t_next), float(dt)], device=self.device)
+
+    def _integrate(self, state: BlockState):
+        """Integration over the clock's step (block_clock: [t_next, dt]; and the planar constraint of a 2D
+        model)."""
+        m, d = self.model, self.device
+        if m.num_compounds:  # compound blocks: each part gets its body's summed load
+            wp.launch(K.compound_loads, dim=m.num_compounds, inputs=[m.compound_start, m.compound_count, state.loads], device=d)
+        wp.launch(K.integrate_blocks, dim=m.num_blocks,
+                  inputs=[m.props, m.motion, wp.vec3(*m.gravity), self.block_clock, state.bodies, state.loads],
+                  device=d)
+        if m.planar:
+            wp.launch(K.planar_blocks, dim=m.num_blocks, inputs=[m.planar_z, m.kinds, state.bodies], device=d)
+
+    def detect(self, state: BlockState):
+        """Collision detection only (world vertices, broad + narrow phase), forces discarded."""
+        self._set_clock(0.0, 0.0)
+        self._prepare(state)
+        self._broad_phase(force=True)
+        self._narrow_phase(state, 0.0, screen=False)
+        wp.launch(K.clear_forces, dim=self.model.num_blocks, inputs=[state.loads], device=self.device)
+
+    def step(self, state: BlockState, ts: TimeStep):
+        """Advance state by ts.dt from ts.time; refuses a dt above critical_dt()."""
+        dt, t = ts.dt, ts.time
+        if not dt > 0:
+            raise ValueError(f"dt must be > 0, got {dt}")
+        dc = self.critical_dt()
+        if dt > dc:
+            raise ValueError(f"dt = {dt:.4g} s exceeds the critical DDA time step {dc:.4g} s (2/omega_max); "
+                             f"use BlockSolver.stable_dt(state) = {self.stable_dt(state):.4g} s "
+                             f"(BlockOptions.dt_safety = {self.options.dt_safety:g} of the critical step)")
+        self._set_clock(t + dt, dt)
+        self._contact_forces(state, dt)
+        self._integrate(state)
+        state.time = t + dt
+
+    def substeps(self, state: BlockState, ts: TimeStep, n: int, keep_pairs: bool = False, hold_contacts: bool = False):
+        """Multi-rate stepping (rockwave/sim/clock.py): n steps of ts.dt / n from ts.time with the external
+        load (ext_force / ext_torque: the water's reaction, written once per fluid step by the coupling)
+        held over all of them, so the blocks receive exactly the impulse ts.dt x load. n = 1 is step().
+        ``keep_pairs``: the first sub-step's broad phase serves all n (the caller checked with
+        pairs_hold() that no block moves margin/2 over ts.dt, so the pair list stays complete). ``hold_contacts``
+        (with keep_pairs; the caller checked holds_contacts()): sub-steps 1..n-1 carry the first one's contacts
+        (_carry_contacts) instead of running the narrow phase."""
+        if n == 1:
+            return self.step(state, ts)
+        h = ts.dt / n
+        dc = self.critical_dt()
+        if not 0.0 < h <= dc:
+            raise ValueError(f"block sub-step {h:.4g} s must be in (0, {dc:.4g}] s (the critical DDA step)")
+        held = getattr(self, "_held_load", None)
+        if held is None:
+            nb = self.model.num_blocks
+            held = self._held_load = (wp.zeros(nb, dtype=wp.vec3, device=self.device), wp.zeros(nb, dtype=wp.vec3, device=self.device))
+        wp.copy(held[0], state.ext_force)  # integrate_blocks zeroes the load after each sub-step
+        wp.copy(held[1], state.ext_torque)
+        contacts_only = keep_pairs and self.has_free_blocks
+        hold = contacts_only and hold_contacts
+        graphs = self._substep_graphs if (contacts_only and self.sync_free) else None
+        if graphs is not None and self._step_graphs_ok and not self._keep_pairs and self.narrow_phases > 0:
+            # the whole fluid step's n sub-steps replayed from one CUDA graph (the first one's broad and narrow
+            # phases included: the sync-free path reads nothing back), one launch instead of ~25 from Python
+            g = self._fluid_step_graph(state, held, h, n, hold)
+            if g is not None:
+                self._set_clock(ts.time + h, h)
+                wp.capture_launch(g)
+                if n % 2:
+                    state.swap_tables()  # each sub-step wrote the other table
+                self.graph_substeps += n
+                self.fluid_step_graphs += 1
+                if hold:
+                    self.carried_substeps += n - 1
+                self.broad_phases += 1
+                self._unchecked_steps += 1
+                if self._unchecked_steps >= self.sync_check_interval:
+                    self._unchecked_steps = 0
+                    self._check_capacity_flags()
+                state.time = ts.time + ts.dt
+                return
+        for i in range(n):
+            if i and graphs is not None:  # sub-steps 1..n-1 replayed from a CUDA graph (the clock advances on the device)
+                if i == 1:
+                    self._set_clock(ts.time + h + h, h)
+                wp.capture_launch(self._substep_graph(state, held, h, hold))
+                state.swap_tables()  # the graph's narrow phase wrote the other table
+                self.graph_substeps += 1
+                continue
+            if i:
+                wp.copy(state.ext_force, held[0])
+                wp.copy(state.ext_torque, held[1])
+            self._set_clock(ts.time + i * h + h, h)
+            if i and hold:
+                self._carry_contacts(state)
+            elif i and contacts_only:
+                self._prepare(state)
+                self._narrow_phase(state, h)
+            else:
+                self._contact_forces(state, h)
+            self._integrate(state)
+        state.time = ts.time + ts.dt
+
+    def _fluid_step_body(self, state: BlockState, held, h: float, n: int, hold: bool):
+        """The n sub-steps of one fluid step at the device clock (set_block_clock before it; the clock advances
+        after each): the captured body of _fluid_step_graph. Sync-free path only (no host read)."""
+        wp.copy(held[0], state.ext_force)
+        wp.copy(held[1], state.ext_torque)
+        for i in range(n):
+            if i:
+                wp.copy(state.ext_force, held[0])
+                wp.copy(state.ext_torque, held[1])
+            if i and hold:
+                self._carry_contacts(state)
+            else:
+                self._prepare(state)
+                if i == 0:
+                    wp.copy(self.lo_bp, self.lo)
+                    wp.copy(self.hi_bp, self.hi)
+                    self._grid_launches()
+                self._narrow_phase(state, h)
+            self._integrate(state)
+            wp.launch(K.advance_block_clock, dim=1, inputs=[self.block_clock], device=self.device)
+
+    def _fluid_step_graph(self, state: BlockState, held, h: float, n: int, hold: bool):
+        """The CUDA graph of one fluid step's n block sub-steps for the tables' current parity, captured on first
+        use and keyed by every address it baked in (None, and no more tries, if the capture fails: the
+        sub-steps are then launched as before)."""
+        t0, t1 = state.tables
+        key = ("step", n, hold, id(t0), id(t1), state.table_cap, state.point_cap, self.pair_cap, state.x.ptr,
+               state.ext_force.ptr, held[0].ptr, self.pair_list.active.ptr, self.entry_cap, self.large_list.ptr)
+        g = self._substep_graphs.get(key)
+        if g is None:
+            if len(self._substep_graphs) > 8:  # stale keys after reallocations
+                self._substep_graphs.clear()
+            tables, views = list(state.tables), list(state.table_views)
+            counts = (self.narrow_phases, self.carried_substeps)
+            try:
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                    self._fluid_step_body(state, held, h, n, hold)
+            except Exception as e:  # e.g. a Warp utility that cannot be captured: launch as before
+                self._step_graphs_ok = False
+                warnings.warn(f"block sub-steps: one graph per fluid step could not be captured ({e}); launching them")
+                return None
+            finally:
+                state.tables, state.table_views = tables, views  # capture ran no kernel: the parity is unchanged
+                self.narrow_phases, self.carried_substeps = counts
+            g = self._substep_graphs[key] = cap.graph
+            self.graph_captures += 1
+        return g
+
+    def _substep_one(self, state: BlockState, held, h: float, hold: bool = False):
+        """One kept-pairs sub-step at the device clock, then the clock advances (the captured body)."""
+        wp.copy(state.ext_force, held[0])
+        wp.copy(state.ext_torque, held[1])
+        if hold:
+            self._carry_contacts(state)
+        else:
+            self._prepare(state)
+            self._narrow_phase(state, h)
+        self._integrate(state)
+        wp.launch(K.advance_block_clock, dim=1, inputs=[self.block_clock], device=self.device)
+
+    def _substep_graph(self, state: BlockState, held, h: float, hold: bool = False):
+        """The CUDA graph of one kept-pairs sub-step for the tables' current parity, captured on first use
+        (sync-free path: no host read, no allocation inside). Its key holds every address it baked in
+        (state arrays, both contact tables, the pair list), so a reallocation captures a new one."""
+        t0, t1 = state.tables
+        key = (id(t0), id(t1), state.table_cap, state.point_cap, self.pair_cap, state.x.ptr, state.ext_force.ptr,
+               held[0].ptr, self.pair_list.active.ptr if hasattr(self.pair_list, "active") else 0, hold)
+        g = self._substep_graphs.get(key)
+        if g is None:
+            if len(self._substep_graphs) > 8:  # stale keys after reallocations
+                self._substep_graphs.clear()
+            tables, views = list(state.tables), list(state.table_views)
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                self._substep_one(state, held, h, hold)
+            state.tables, state.table_views = tables, views  # capture ran no kernel: the parity is unchanged
+            g = self._substep_graphs[key] = cap.graph
+            self.graph_captures += 1
+        return g
+
+    def pairs_hold(self, state: BlockState, dt: float, headroom: float = 2.0) -> bool:
+        """Whether one broad phase can serve a whole step dt of sub-steps: max over the blocks that move
+        (rigid, deformable, kinematic) of (|v| + |w| r) dt, times ``headroom`` for the speed growing before
+        the next check, is within margin/2 (the distance the kept pair list tolerates,
+        aabbs_left_pair_boxes). A host read (hold_checks)."""
+        return self.hold_checks(state, dt, 1, headroom)[0]
+
+    def hold_checks(self, state: BlockState, dt: float, steps: int, headroom: float = 2.0) -> tuple[bool, bool]:
+        """(pairs_hold, holds_contacts) from two small kernels (kernels/dda/blocks.py hold_check_blocks,
+        hold_check_pairs) and one read of two ints through a pinned host buffer (array reads of v, w and the pair
+        list cost milliseconds on a GPU host). Contacts are held only when the pair list is, and after a
+        narrow phase (before it nothing is known)."""
+        m, d = self.model, self.device
+        flags = getattr(self, "_hold_flags", None)
+        if flags is None:
+            flags = self._hold_flags = (wp.zeros(2, dtype=int, device=d),
+                                        wp.zeros(2, dtype=int, device="cpu", pinned=wp.get_device(d).is_cuda))
+        flags[0].fill_(1)
+        wp.launch(K.hold_check_blocks, dim=m.num_blocks,
+                  inputs=[m.kinds, m.block_size, state.v, state.w, float(headroom * dt), 0.5 * self.margin, flags[0]],
+                  device=d)
+        check_contacts = bool(self.options.hold_contacts and self.narrow_phases)
+        n = self.pair_cap if self.sync_free else self._pair_count
+        if check_contacts and n > 0:
+            wp.launch(K.hold_check_pairs, dim=n,
+                      inputs=[self.pair_list, m.props, m.material, m.block_size, state.bodies, self.g_mag,
+                              float(headroom * dt * steps), state.table_views[0], flags[0]], device=d)
+        wp.copy(flags[1], flags[0])
+        wp.synchronize_device(d)
+        f = flags[1].numpy()
+        pairs_ok = bool(f[0])
+        return pairs_ok, bool(pairs_ok and check_contacts and f[1])
+
+    # ---- diagnostics ----
+    def contacts(self, state: BlockState) -> list:
+        """Pairs examined in the last step: dicts with blocks (i, j), normal (i -> j), gap (m,
+        negative = overlap), points (k, 3, world), depths (k,), normal_forces (k,).  After step(), a pair
+        certified separated by its warm-start plane keeps that plane and a positive lower bound of the
+        gap; after detect() every gap is FCP's."""
+        n = self.pair_count
+        if n == 0:
+            return []
+        pairs = self.pairs.numpy()[:n]
+        gaps = self.pair_gap.numpy()[:n]
+        slots = self.pair_slot.numpy()[:n]
+        t = state.tables[0]
+        normal = t["normal"].numpy()
+        nc = t["nc"].numpy()
+        ps = t["pstart"].numpy()
+        pos = t["pos"].numpy()
+        dep = t["depth"].numpy()
+        fn = t["fn"].numpy()
+        # the table keeps points relative to block i's centroid x + x_lo (kernels/dda/blocks.py contact_forces)
+        centroid = state.x.numpy().astype(np.float64) + state.x_lo.numpy()
+        out = []
+        for p in range(n):
+            s = slots[p]
+            k = nc[s] if s >= 0 else 0
+            i = ps[s] if s >= 0 else 0
+            a = int(pairs[p][0])
+            out.append(dict(blocks=(a, int(pairs[p][1])), normal=normal[s].astype(float),
+                            gap=float(gaps[p]), points=pos[i: i + k].astype(float) + centroid[a],
+                            depths=dep[i: i + k].astype(float), normal_forces=fn[i: i + k].astype(float)))
+        return out
+
+    def device_bytes(self, state: BlockState) -> dict:
+        """Device memory of the block solver [bytes]: every Warp array of the model (``model``), the state
+        without its history tables (``state``), the two contact-history tables (``history``) and the
+        solver's buffers (``solver``: AABBs, broad-phase grid, pair list), each array counted once;
+        ``total`` and ``per_block`` (total / blocks)."""
+        seen = set()
+
+        def walk(obj):
+            tot = 0
+            items = obj.items() if isinstance(obj, dict) else vars(obj).items()
+            for name, a in items:
+                if isinstance(a, wp.array) and a.ptr is not None and id(a) not in seen and name != "model":
+                    seen.add(id(a))
+                    tot += a.capacity
+            return tot
+
+        out = dict(model=walk(self.model), history=sum(walk(t) for t in state.tables))
+        out["state"] = walk(state)
+        out["solver"] = walk(self)
+        out["total"] = out["model"] + out["history"] + out["state"] + out["solver"]
+        out["per_block"] = out["total"] / self.model.num_blocks
+        return out

@@ -1,0 +1,1 @@
+"""What a run writes: recorders (USD, VTK, CSV), the fluid surface and the hazard summary. Reads the simulation only."""

@@ -1,0 +1,1 @@
+"""The scene file: its schema, validation and loading (TOML -> Scene). Nothing below this layer reads scene keys."""

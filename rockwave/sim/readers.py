@@ -1,0 +1,285 @@
+"""Readers: host copies of a simulation's state that leave it untouched.
+
+Reading never reorders the particles, never drops the neighbour lists and never invalidates a
+captured CUDA graph: when the fluid solver keeps its particles sorted by cell (FluidSolver.reorder),
+a reader scatters them into a buffer of its own in the seeded order (state.ids) and copies that.
+Gauges (:class:`Gauges`) are evaluated on the device from the current state and come back in one
+host read for all gauges.
+
+For monitoring a large run on a GPU, ``view_async`` and ``gauges_async`` queue a read behind the steps
+launched so far and return at once; ``result()`` waits for it. Launching the next steps before waiting keeps
+the GPU busy while the copy is on its way (benchmarks/readers.py, mode "async")::
+
+    pending = None
+    while running:
+        sim.step_many(10)
+        if pending:
+            x, g = pending[0].result(), pending[1].result()   # the state after the previous block
+        pending = sim.readers.view_async("x"), sim.readers.gauges_async()
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from rockwave.base.maths import pad3
+from rockwave.coupling.penalty import block_signed_distance
+from rockwave.kernels.sim import readers as gk
+from rockwave.kernels.sph import fluid as sph
+
+
+class Gauges:
+    """The scene's gauges (``[[output.gauges]]``) evaluated on the device.
+
+    A 'height' gauge reads the top of the continuous water column from the bed along its vertical line
+    (the gauge's horizontal position; its vertical coordinate is not used). The line runs from the
+    bottom of the particle domain (below the tank floor: the lowest boundary or fluid particle less the
+    kernel support H) to one domain height above its top, sampled every s/8 (s: particle spacing). At
+    each sample z the water fraction is phi(z) = phi_f / (1 - phi_s), with phi_f = sum_j (m_j/rho_j)
+    W(|x(z) - x_j|) over the fluid particles (the scene's kernel) and phi_s the same sum over the static
+    boundary particles (volume Psi_b/rho0; computed once): away from walls phi = phi_f; next to a wall,
+    whose particles fill part of the kernel support, bulk water still reads 1; where 1 - phi_s < 0.2 (inside
+    a wall) phi = 0. Going up from the lower end, the bed is where phi first reaches 0.5 and the reading is
+    where it next drops below 0.5, linearly interpolated between the two samples. Water overhead with air
+    between (spray, a jet, a splash) does not count; a film too thin to reach phi = 0.5 (about one particle
+    layer) reads dry. NaN when dry. Still water whose top particle layer is at z_top reads z_top + s/2.
+    The column must start within 2H of the bed, the lowest point of the line not inside a wall (boundary
+    particles, or a fixed DDA block: a floor, beach or wall of blocks); water on the line that rests on
+    nothing (a jet over a dry bed) reads NaN. A moving block across the line ends the column at its underside.
+    A 'pressure' gauge is the Shepard-normalised SPH interpolation of the pressure at its position [Pa], over
+    the fluid particles and, with Adami walls, the wall particles (whose pressure continues the fluid's), so a
+    sensor placed on a wall surface reads the wall pressure there.
+    """
+
+    MAX_SAMPLES = 1 << 16  # per gauge line; the step grows past s/8 only for a domain 8192 spacings tall
+
+    def __init__(self, scene, fluid, device, blocks=None, block_state=None, gauges=None):
+        g = scene.output.gauges if gauges is None else gauges  # gauges: objects with name, kind, position_m
+        self.names = [gg.name for gg in g]
+        self.fluid = fluid
+        self.up = up = scene.dim - 1
+        n = len(g)
+        self.pos = wp.array(np.asarray([pad3(gg.position_m) for gg in g] or np.zeros((0, 3)), dtype=np.float32),
+                            dtype=wp.vec3, device=device)
+        heights = [gg.kind == "height" for gg in g]
+        self.is_height = wp.array(np.array(heights or [0], dtype=np.int32), dtype=int, device=device)
+        lo, hi = float(fluid.domain_lo[up]), float(fluid.domain_hi[up])
+        top = hi + (hi - lo)  # one domain height above: a column running up a wall or overtopping it
+        self.dz = max(fluid.spacing / 8.0, (top - lo) / (self.MAX_SAMPLES - 1))
+        self.z0 = lo
+        # the water must reach phi = 0.5 within 2H of the bed (the lowest point of the line not inside a wall):
+        # water on a dry bed sits there within ~H/2, while the bottom of the line is H below the lowest particle
+        self.reach = int(math.ceil(2.0 * fluid.support_radius / self.dz))
+        self.n_samples = int(math.ceil((top - lo) / self.dz)) + 1 if any(heights) else 1
+        rows = max(n, 1)
+        self.phi_f = wp.zeros((rows, self.n_samples), dtype=float, device=device)
+        self.phi_s = wp.zeros((rows, self.n_samples), dtype=float, device=device)
+        nf, nb = fluid.n_fluid, fluid.n_boundary - getattr(fluid, "n_moving_walls", 0)
+        if any(heights) and nb:  # the static walls: their fraction along the lines once (not the moving blocks')
+            xb = wp.array(np.asarray(fluid.initial_positions[nf:nf + nb], dtype=np.float32), dtype=wp.vec3, device=device)
+            wp.launch(gk.gauge_solid_profile, dim=(nb, n), inputs=[xb, fluid.particle_mass, nf, self.pos, self.is_height,
+                                                                   up, self.z0, self.dz, fluid.params],
+                      outputs=[self.phi_s], device=device)
+        if any(heights) and blocks is not None and any(spec.kind == "fixed" for spec in blocks.specs):
+            self._add_fixed_blocks(blocks, block_state, heights)
+        self.out = wp.zeros(rows, dtype=float, device=device)
+        self.sums = wp.zeros((rows, 2), dtype=float, device=device)
+        pinned = wp.get_device(device).is_cuda
+        self.hosts = [wp.zeros(rows, dtype=float, device="cpu", pinned=pinned) for _ in range(2)]  # used in turn
+        self.any_height = any(heights)
+        self.device = device
+
+    def _add_fixed_blocks(self, blocks, block_state, heights) -> None:
+        """Samples inside a fixed DDA block (a floor, a beach, a wall built of blocks: no boundary particles)
+        count as wall (phi_s = 1), so the bed on such a line is the block's top (once, at start-up: fixed blocks
+        do not move)."""
+
+        z = self.z0 + self.dz * np.arange(self.n_samples)
+        pos = self.pos.numpy().astype(np.float64)
+        phi_s = self.phi_s.numpy()
+        fixed = np.array([spec.kind == "fixed" for spec in blocks.specs])
+        for gi, is_h in enumerate(heights):
+            if not is_h:
+                continue
+            pts = np.repeat(pos[gi][None, :], len(z), axis=0)
+            pts[:, self.up] = z
+            dist, which = block_signed_distance(blocks, block_state, pts)
+            phi_s[gi, (dist < 0.0) & fixed[which]] = 1.0
+        self.phi_s.assign(phi_s)
+
+    def read(self, state) -> dict[str, float]:
+        """The readings now (one host read for all gauges)."""
+        return self.read_async(state).result()
+
+    def read_async(self, state) -> "PendingRead":
+        """Queue the readings on the device (the copy to the host included); ``result()`` waits for them. The
+        host may launch more steps in between, which keeps the GPU busy while the copy is on its way."""
+        n, m = len(self.names), self.fluid
+        if n == 0 or m.n_fluid == 0:
+            return PendingRead(None, None, lambda a: {})
+        d = self.device
+        self.sums.zero_()
+        wp.launch(gk.gauge_pressure_sums, dim=(m.n_fluid, n), inputs=[state.x, state.rho, state.pressure, m.particle_mass,
+                                                                     self.pos, m.params], outputs=[self.sums], device=d)
+        if m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary:  # Adami walls carry the fluid's pressure
+            wp.launch(gk.gauge_pressure_wall_sums, dim=(m.n_boundary, n),
+                      inputs=[state.x, state.wall_pressure, m.particle_mass, self.pos, m.params], outputs=[self.sums], device=d)
+        wp.launch(gk.gauge_pressure, dim=n, inputs=[self.sums], outputs=[self.out], device=d)
+        self.launch_levels(state)
+        names = self.names
+
+        def finish(vals):
+            return {name: float(vals[i]) for i, name in enumerate(names)}
+
+        self.hosts.reverse()
+        return _queue_copy(self.hosts[0], self.out, n, d, finish)
+
+    def launch_levels(self, state) -> wp.array:
+        """Queue the height gauges' readings into ``self.out`` on the device (no host read; rockwave/output/hazard.py
+        reduces them there). Returns ``self.out``."""
+        m = self.fluid
+        if self.any_height and m.n_fluid:
+            self.phi_f.zero_()
+            wp.launch(gk.gauge_fluid_profile, dim=(m.n_fluid, len(self.names)),
+                      inputs=[state.x, state.rho, m.particle_mass, self.pos, self.is_height, self.up, self.z0, self.dz,
+                              m.params], outputs=[self.phi_f], device=self.device)
+            wp.launch(gk.gauge_level, dim=len(self.names), inputs=[self.phi_f, self.phi_s, self.is_height, self.z0, self.dz,
+                                                                   self.reach], outputs=[self.out], device=self.device)
+        return self.out
+
+    def profiles(self, state) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(z, phi_f, phi_s) along the height gauges' lines now (host copies; rows in gauge order): for
+        inspecting a reading."""
+        self.read(state)
+        z = self.z0 + self.dz * np.arange(self.n_samples)
+        return z, self.phi_f.numpy().copy(), self.phi_s.numpy().copy()
+
+
+class PendingRead:
+    """A read queued on the device: ``result()`` waits for its copy to reach the host and returns it."""
+
+    def __init__(self, host, event, finish):
+        self.host, self.event, self.finish = host, event, finish
+
+    def result(self):
+        if self.event is not None:
+            wp.synchronize_event(self.event)
+        return self.finish(self.host.numpy() if self.host is not None else None)
+
+
+def _queue_copy(host: wp.array, src: wp.array, n: int, device, finish) -> PendingRead:
+    """Copy src[:n] into the host buffer on the device's stream and record an event after it (CUDA; on the
+    CPU the copy is done at once)."""
+    wp.copy(host, src, 0, 0, n)
+    event = None
+    if wp.get_device(device).is_cuda:
+        with wp.ScopedDevice(device):
+            event = wp.record_event()  # a copy into pinned memory is asynchronous
+    return PendingRead(host, event, finish)
+
+
+class Readers:
+    """Host copies of a Simulation's fluid arrays in the seeded particle order, and its gauges."""
+
+    def __init__(self, sim):
+        self.sim = sim
+        self.fluid = sim.fluid
+        self.dim = sim.scene.dim
+        self._buf = {}  # device buffers in the seeded order (when the solver sorts by cell)
+        self._host = {}  # host buffers, two per quantity (pinned on CUDA)
+        self._copied = {}  # CUDA: the event after the last copy of each quantity to the host
+        self._stream = None  # CUDA: the stream of the copies to the host
+        self._gauges = (Gauges(sim.scene, sim.fluid, sim.device, getattr(sim, "blocks", None),
+                               getattr(sim, "block_state", None)) if sim.fluid is not None else None)
+
+    def view(self, name: str) -> np.ndarray:
+        """state.<name>[:n_fluid] (x, v, rho or pressure) in the seeded order, in the state's precision
+        (float32), as a view of a host buffer of this reader (pinned memory on a GPU: one device-to-host copy,
+        no allocation). The view is overwritten by the read after next of the same quantity: copy it to keep it.
+        The fast path for monitoring a large run; positions() etc. return new float64 arrays."""
+        return self.view_async(name).result()
+
+    def view_async(self, name: str) -> PendingRead:
+        """``view(name)`` queued on the device: ``result()`` waits for it. Each quantity has two host buffers
+        used in turn, so a pending read stays valid while the next one of the same quantity is queued (a
+        monitoring loop can launch the next steps before it waits: the GPU never idles on the copy)."""
+        st, m = self.sim.state, self.fluid
+        a = getattr(st, name)
+        nf = m.n_fluid
+        if nf == 0:
+            return PendingRead(None, None, lambda h: a.numpy()[:0])
+        pair = self._host.get(name)
+        if pair is None:
+            pinned = a.device.is_cuda
+            pair = self._host[name] = [wp.empty(nf, dtype=a.dtype, device="cpu", pinned=pinned) for _ in range(2)]
+        pair.reverse()  # the other buffer of the two (never the state's own memory, also on the CPU)
+        sorted_ = getattr(self.sim.fluid_solver, "sorted_by_cell", False)
+        if not a.device.is_cuda:
+            if sorted_:
+                a = self._snapshot(name, a, st.ids, nf)
+            return _queue_copy(pair[0], a, nf, a.device, lambda h: h)
+        # CUDA: a snapshot in the seeded order on the compute stream (cheap), then the copy to the host on a
+        # side stream, so the next steps run while the copy engine works; the next snapshot of this quantity
+        # waits for that copy
+        compute = wp.get_stream(a.device)
+        busy = self._copied.get(name)
+        if busy is not None:
+            compute.wait_event(busy)
+        snap = self._snapshot(name, a, st.ids if sorted_ else None, nf)
+        side = self._side_stream(a.device)
+        side.wait_stream(compute)
+        with wp.ScopedStream(side):
+            wp.copy(pair[0], snap, 0, 0, nf)
+            event = wp.record_event()
+        self._copied[name] = event
+        return PendingRead(pair[0], event, lambda h: h)
+
+    def _snapshot(self, name: str, a: wp.array, ids, nf: int) -> wp.array:
+        """state.<name>[:n_fluid] in the seeded order in a device buffer of ours (scattered by ids when sorted)."""
+        buf = self._buf.get(name)
+        if buf is None:
+            buf = self._buf[name] = wp.empty(nf, dtype=a.dtype, device=a.device)
+        if ids is not None:
+            wp.launch(sph.scatter_by, dim=nf, inputs=[ids, a, buf], device=a.device)
+        else:
+            wp.copy(buf, a, 0, 0, nf)
+        return buf
+
+    def _side_stream(self, device):
+        if self._stream is None:
+            self._stream = wp.Stream(device)
+        return self._stream
+
+    def positions(self) -> np.ndarray:
+        if self.fluid is None:
+            return np.zeros((0, self.dim))
+        return self.view("x")[:, : self.dim].astype(np.float64)
+
+    def velocities(self) -> np.ndarray:
+        if self.fluid is None:
+            return np.zeros((0, self.dim))
+        return self.view("v")[:, : self.dim].astype(np.float64)
+
+    def densities(self) -> np.ndarray:
+        return self.view("rho").astype(np.float64)
+
+    def pressures(self) -> np.ndarray:
+        return self.view("pressure").astype(np.float64)
+
+    def boundary_positions(self) -> np.ndarray:
+        m = self.fluid
+        return self.sim.state.x.numpy()[m.n_fluid:, : self.dim].astype(np.float64)
+
+    def gauges(self) -> dict[str, float]:
+        if self._gauges is None:
+            return {}
+        return self._gauges.read(self.sim.state)
+
+    def gauges_async(self) -> PendingRead:
+        """gauges() queued on the device; ``result()`` waits for the readings."""
+        if self._gauges is None:
+            return PendingRead(None, None, lambda a: {})
+        return self._gauges.read_async(self.sim.state)

@@ -1,0 +1,902 @@
+"""Weakly compressible SPH: static :class:`FluidModel`, per-step :class:`FluidState`, and
+:class:`FluidSolver`, which orders the kernel launches of one fluid step.
+
+Particle arrays hold the fluid particles first and the static boundary particles (walls,
+obstacles; Akinci et al. 2012) after them, so one ``wp.HashGrid`` serves both.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, replace
+from types import SimpleNamespace
+
+import numpy as np
+import warp as wp
+
+from rockwave.base.solver import TimeStep
+from rockwave.kernels.sph import diffusion
+from rockwave.kernels.sph import fluid as sph
+
+
+class Density(enum.IntEnum):
+    """How the fluid density is found each step (``fluid.density``), chosen once at build time."""
+
+    SUMMATION = sph.DENSITY_SUMMATION  # rho_i = sum_j m_j W_ij
+    CONTINUITY = sph.DENSITY_CONTINUITY  # d rho_i / dt = sum_j m_j (v_i - v_j) . grad W_ij
+
+
+@dataclass
+class FluidOptions:
+    """Tuning of the fluid solver (Python API: ``Simulation(scene, options=SimulationOptions(fluid=...))``).
+    The defaults are measured (docs/notes.md); none changes the physics, only the cost.
+
+    neighbour_skin: Verlet-list skin as a fraction of the support radius H; the list holds pairs within
+        (1 + skin) H and is kept until a displacement check fails (0: rebuilt every step). 0.05: a 3D dam
+        break keeps a list ~3 steps, CPU step 19.6 -> 14.0 ms at 10.9k particles.
+    skin_check: "relative" (rebuild when two particles that may have become neighbours moved skin H
+        relative to each other; cells of 2H by build position) or "absolute" (any particle moved skin H/2).
+    reorder_interval: steps between sorts of the fluid particles by cell on a GPU and in step_many (0: never;
+        None: 10, or 0 for Ghost SPH, whose grid also holds the ghosts).
+    recorded_launches: record the per-step launches once and replay them (None: on for Ghost SPH, whose step
+        cannot be a CUDA graph; the basic step is replayed as a CUDA graph instead).
+    fused_density: build the neighbour list and the density in one pass (None: on the CPU, where it saves a
+        traversal, 17.1 vs 19.8 ms/step at 10k particles; off on CUDA, 2.16 ms fused vs 1.03 + 0.55 ms apart on
+        an H100 at 2.16 M particles).
+    conditional_rebuild: in a CUDA graph, the list rebuild is a conditional node on the device flag.
+    cell_ratio: hash-grid cell width / H. cell_subdivision_x: list cell grid x-cells H/n wide.
+    min_cells, cells_per_particle: the list cell grid wraps past max(min_cells, cells_per_particle x particles).
+    check_cells_per_particle: the relative check falls back to "absolute" past this many cells a particle.
+    relative_min_particles_cuda: on a GPU the relative check starts at this many particles (below, its 5 extra
+        launches cost more than the builds they save: H100, 3,600 particles, 0.46 -> 0.69 ms/step).
+    cfl_number: Courant number of the adaptive step (``simulation.cfl_number``; None: 0.6, the scene default)."""
+
+    neighbour_skin: float = 0.05
+    skin_check: str = "relative"
+    reorder_interval: int | None = None
+    recorded_launches: bool | None = None
+    fused_density: bool | None = None
+    conditional_rebuild: bool = True
+    cell_ratio: float = 1.0
+    cell_subdivision_x: int = 4
+    min_cells: int = 1 << 20
+    cells_per_particle: int = 4
+    check_cells_per_particle: int = 4
+    relative_min_particles_cuda: int = 250_000
+    cfl_number: float | None = None
+
+    def __post_init__(self):
+        if self.skin_check not in ("relative", "absolute"):
+            raise ValueError(f"FluidOptions.skin_check = {self.skin_check!r}: expected 'relative' or 'absolute'")
+        if self.neighbour_skin < 0:
+            raise ValueError(f"FluidOptions.neighbour_skin = {self.neighbour_skin}: must be >= 0")
+
+
+def sound_speed_from_eos(eos, rest_density: float) -> float:
+    """c0 from the EOS constants: Tait c0^2 = gamma B / rho0; linear c0^2 = k."""
+    if eos["speed_of_sound_m_s"] is not None:
+        return float(eos["speed_of_sound_m_s"])
+    if eos["type"] == "tait":
+        return math.sqrt(eos["gamma"] * eos["b_pa"] / rest_density)
+    return math.sqrt(eos["k_m2_s2"])
+
+
+def eos_constant(eos, rest_density: float) -> float:
+    """Tait B = c0^2 rho0 / gamma (Pa) or linear k = c0^2 (m^2/s^2)."""
+    if eos["type"] == "tait":
+        if eos["b_pa"] is not None:
+            return float(eos["b_pa"])
+        return eos["speed_of_sound_m_s"] ** 2 * rest_density / eos["gamma"]
+    if eos["k_m2_s2"] is not None:
+        return float(eos["k_m2_s2"])
+    return eos["speed_of_sound_m_s"] ** 2
+
+
+@dataclass
+class FluidModel:
+    """Static fluid data.
+
+    Attributes:
+        dim: 2 or 3.
+        up: index of the vertical axis (1 in 2D, 2 in 3D).
+        n_fluid, n_boundary: particle counts (fluid first in every particle array).
+        n_moving_walls: the last n_moving_walls boundary particles are the wall particles of moving blocks
+            (rockwave/coupling/walls.py BlockWalls places them each step); the others are static.
+        spacing: initial particle spacing [m].
+        support_radius: kernel support H [m].
+        particle_mass: wp.array(float, n_fluid + n_boundary): fluid mass [kg], or boundary Psi_b [kg].
+        params: sph.SPHParams passed to every kernel.
+        sound_speed: c0 [m/s]; kinematic_viscosity: mu/rho0 [m^2/s].
+        density: Density (summation or continuity), chosen once from ``fluid.density``.
+        domain_lo, domain_hi: bounding box of all particles [m] (3 components).
+    """
+
+    dim: int
+    up: int
+    n_fluid: int
+    n_boundary: int
+    spacing: float
+    support_radius: float
+    particle_mass: wp.array
+    params: sph.SPHParams
+    sound_speed: float
+    kinematic_viscosity: float
+    density: Density
+    domain_lo: np.ndarray
+    domain_hi: np.ndarray
+    initial_positions: np.ndarray
+    initial_velocities: np.ndarray
+    device: wp.context.Device
+    density_diffusion: float = 0.0  # delta of the delta-SPH density diffusion (kernels/sph/diffusion.py); 0: off
+    boundary_spacing: float = 0.0  # boundary particle lattice spacing [m]; 0: the fluid spacing
+    n_moving_walls: int = 0  # wall particles of moving blocks, the last of the boundary particles
+
+    @property
+    def n_static_boundary(self) -> int:
+        """Boundary particles that never move (tank, obstacles, fixed blocks)."""
+        return self.n_boundary - self.n_moving_walls
+
+    @property
+    def density_mode(self) -> str:
+        """"summation" or "continuity" (the scene's word for ``density``)."""
+        return self.density.name.lower()
+
+    @property
+    def n_total(self) -> int:
+        return self.n_fluid + self.n_boundary
+
+    @property
+    def fluid_mass(self) -> float:
+        return float(self.particle_mass.numpy()[0]) if self.n_fluid else 0.0
+
+    def state(self) -> "FluidState":
+        """Allocate a state holding the initial positions and velocities."""
+        d = self.device
+        nf = self.n_fluid
+        x = wp.array(self.initial_positions.astype(np.float32), dtype=wp.vec3, device=d)
+        v = wp.array(self.initial_velocities.astype(np.float32), dtype=wp.vec3, device=d)
+        rest = np.full(nf, self.params.rest_density, dtype=np.float32)
+        return FluidState(
+            x=x,
+            v=v,
+            rho=wp.array(rest, dtype=float, device=d),
+            pressure=wp.zeros(nf, dtype=float, device=d),
+            accel=wp.zeros(nf, dtype=wp.vec3, device=d),
+            xsph_dv=wp.zeros(nf, dtype=wp.vec3, device=d),
+            drho_dt=wp.zeros(nf, dtype=float, device=d),
+            ids=wp.array(np.arange(nf, dtype=np.int32), dtype=int, device=d),
+            wall_pressure=wp.zeros(max(self.n_boundary, 1), dtype=float, device=d),
+            wall_velocity=wp.zeros(max(self.n_boundary, 1), dtype=wp.vec3, device=d),
+        )
+
+
+@dataclass
+class FluidState:
+    """Arrays that change each step (device arrays; fluid particles first, then boundary).
+
+    x: wp.array(vec3, n_total) positions [m]; v: wp.array(vec3, n_total) velocities [m/s]
+    (boundary entries zero); rho, pressure: wp.array(float, n_fluid) [kg/m^3], [Pa];
+    accel, xsph_dv: wp.array(vec3, n_fluid) [m/s^2], [m/s]; drho_dt: [kg/m^3/s].
+    ids: wp.array(int, n_fluid): original index of the fluid particle stored at each slot
+    (FluidSolver.reorder sorts the fluid by cell; FluidSolver.unsort restores ids = 0..n-1).
+    wall_pressure: wp.array(float, max(n_boundary, 1)) [Pa]: with Adami walls (``fluid.boundary``) the pressure
+    of each boundary particle, extrapolated from the fluid in each step (0 with Akinci walls).
+    wall_velocity: wp.array(vec3, max(n_boundary, 1)) [m/s]: Adami no-slip walls: the extrapolated wall velocity
+    of the viscous terms.
+    """
+
+    x: wp.array
+    v: wp.array
+    rho: wp.array
+    pressure: wp.array
+    accel: wp.array
+    xsph_dv: wp.array
+    drho_dt: wp.array
+    ids: wp.array
+    wall_pressure: wp.array
+    wall_velocity: wp.array
+
+
+def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
+    rho0 = scene_fluid["rest_density_kg_m3"]
+    eos = scene_fluid["eos"]
+    visc = scene_fluid["viscosity"]
+    p = sph.SPHParams()
+    p.dim = dim
+    p.kernel = {"muller": 0, "cubic_spline": 1, "wendland": 2}[scene_fluid["kernel"]]
+    p.H = scene_fluid["support_radius_ratio"] * scene_fluid["spacing_m"]
+    p.rest_density = rho0
+    p.eos = 0 if eos["type"] == "tait" else 1
+    p.eos_b = eos_constant(eos, rho0)
+    p.eos_gamma = eos["gamma"]
+    p.clamp_negative = 1 if scene_fluid["clamp_negative_pressure"] else 0
+    # the continuity density's floor at rho0 (kernels/sph/fluid.py continuity_floor); the loader refuses it with Ghost SPH,
+    # summation density or unclipped pressure (rockwave/scene/format.py _check_method_options)
+    p.density_floor = 1 if scene_fluid.get("density_floor") else 0
+    p.pressure_form = 0 if scene_fluid["pressure_force"] == "momentum" else 1
+    p.sound_speed = sound_speed_from_eos(eos, rho0)
+    p.mu = visc["laplacian_pa_s"]
+    p.alpha = visc["artificial_alpha"]
+    p.xsph = visc["xsph_epsilon"]
+    g = list(gravity) + [0.0] * (3 - len(gravity))
+    p.gravity = wp.vec3(*g)
+    p.n_fluid = n_fluid
+    p.boundary = sph.BOUNDARY_ADAMI if scene_fluid.get("boundary") == "adami" else sph.BOUNDARY_AKINCI
+    p.no_slip = 1 if scene_fluid.get("wall_slip") == "no_slip" else 0
+    p.gradient_correction = 1 if scene_fluid.get("gradient_correction") else 0
+    p.wall_volume = 1 if scene_fluid.get("wall_volume") == "geometric" else 0
+    p.grad_scale = 1.0
+    p.fluid_mass = 0.0  # set by build_fluid_model (calibrated)
+    set_kernel_constants(p)
+    return p
+
+
+def set_kernel_constants(p: sph.SPHParams) -> None:
+    """Mueller kernel constants for p.H and p.dim (kernels/sph/fluid.py kernel_w, spiky_grad, kernel_laplacian)."""
+    H = float(p.H)
+    if p.dim == 3:
+        p.w_coef = 315.0 / (64.0 * math.pi * H ** 9)
+        p.grad_coef = 45.0 / (math.pi * H ** 6)
+        p.lap_coef = 45.0 / (math.pi * H ** 6)
+    else:
+        p.w_coef = 4.0 / (math.pi * H ** 8)
+        p.grad_coef = 30.0 / (math.pi * H ** 5)
+        p.lap_coef = 40.0 / (math.pi * H ** 5)
+
+
+def _grid_dims(lo: np.ndarray, hi: np.ndarray, cell: float, dim: int) -> tuple[int, int, int]:
+    """Hash-grid dimensions covering the domain (cells hash modulo dims), capped for memory."""
+    n = np.ceil((hi - lo) / cell).astype(int) + 2
+    n = np.clip(n, 1, 1024)
+    if dim == 2:
+        n[2] = 1
+    while int(np.prod(n)) > 64_000_000:
+        n = np.maximum(n // 2, 1)
+    return int(n[0]), int(n[1]), int(n[2])
+
+
+class FluidSolver:
+    """Advances a :class:`FluidState` by one step: neighbour grid, density + EOS, forces,
+    semi-implicit Euler. Each call launches a fixed set of kernels and never reads back to the
+    host, so the step can be captured in a CUDA graph.
+
+    Particle order: ``reorder`` (Simulation runs it every ``reorder_interval`` steps in step_many and
+    in advance on a GPU) sorts
+    the fluid particles by cell so that neighbour reads are coherent; boundary
+    particles stay after them (build_fluid_model sorts them once). ``state.ids`` keeps each slot's
+    original index and ``unsort`` restores the original order (Simulation does it before any read).
+
+    Neighbour skin (Verlet list): with ``neighbour_skin`` = s > 0 the list holds the pairs within
+    R = (1 + s) H and is kept over several steps; the density and force passes skip its pairs at
+    r >= H. Each step kernels compare every fluid position with the one stored at the build and set a
+    device flag when two particles that may have become neighbours moved s H or more relative to each
+    other (``skin_check`` "relative": displacement boxes per 2H cell of build position, adjacent cells
+    compared, static boundary particles at rest, the wall particles of moving blocks checked as the fluid's; also when one moved H/2) or, with "absolute", when any moved
+    s H / 2 (either way every pair now closer than H was closer than R at the build). The cell-grid kernels and the list build run every step and return at once while the
+    flag is clear, so no host read is needed (CUDA graphs); on the CPU the host reads the flag and skips
+    the launches (and the radix sort). The check compares positions slot by slot, so it covers every
+    change of x (the coupling's corrections, checkpoint restores, assignments); reorder and unsort set
+    the flag as well (they permute the slots and reorder rebuilds the grid), and so does a checkpoint
+    capture or restore (rockwave/sim/checkpoint.py: a resumed run rebuilds where the running one does, so a
+    resume stays bit-identical). s = 0: rebuild every step."""
+
+    def __init__(self, model: FluidModel, options: FluidOptions | None = None, neighbour_skin: float | None = None):
+        o = options or FluidOptions()
+        if neighbour_skin is not None:
+            o = replace(o, neighbour_skin=float(neighbour_skin))
+        self.options = o
+        self._recorded = {}  # _launch: recorded launches by kernel and argument arrays
+        self.model = model
+        d = model.device
+        is_cuda = wp.get_device(d).is_cuda
+        self.neighbour_skin = float(o.neighbour_skin)
+        self.reorder_interval = self.default_reorder_interval if o.reorder_interval is None else int(o.reorder_interval)
+        self.recorded_launches = self.default_recorded_launches if o.recorded_launches is None else bool(o.recorded_launches)
+        self.fused_density = (not is_cuda) if o.fused_density is None else bool(o.fused_density)
+        self.cfl_number = 0.6 if o.cfl_number is None else float(o.cfl_number)
+        self.skin_check = o.skin_check
+        self.conditional_rebuild = o.conditional_rebuild
+        self.cell = model.support_radius * o.cell_ratio
+        dims = _grid_dims(model.domain_lo, model.domain_hi, self.cell, model.dim)
+        self.grid = wp.HashGrid(*dims, device=d)
+        self.grid.reserve(model.n_total)
+        self._extrema = wp.zeros(2, dtype=float, device=d)
+        self._in_original_order = True  # False after a reorder, until unsort
+        self._order_buf = None
+        self._always = wp.ones(1, dtype=int, device=d)  # the rebuild flag of unconditional builds
+        self._rebuild = wp.ones(1, dtype=int, device=d)  # 1: the list must be rebuilt this step
+        self.host_decides = not is_cuda  # CPU: read the flag, skip the launches
+        self.list_builds = 0  # host-decided builds (CPU), for tests and measurements
+        nf = max(model.n_fluid, 1)
+        self._pr2 = wp.zeros(nf, dtype=float, device=d)  # p / rho^2 of this step (kernels/sph/fluid.py pair_acceleration_fluid)
+        self._wall_pr2 = wp.zeros(max(model.n_boundary, 1), dtype=wp.vec2, device=d)  # (p_b / rho_b^2, rho_b / rho0) (Adami walls)
+        self._zero_dt = wp.zeros(1, dtype=float, device=d)
+        # fluid.gradient_correction: L_i of every fluid particle, computed each step after the lists
+        # (kernels/sph/fluid.py gradient_correction_matrix); a one-entry placeholder without it
+        self.kgc = wp.zeros(nf if model.params.gradient_correction else 1, dtype=wp.mat33, device=d)
+        # wall particles of moving blocks (rockwave/coupling/walls.py BlockWalls): their acceleration a_b (Adami 2012
+        # eq. 27, written by the coupling each step; zero for static walls) and their positions at the last list
+        # build (_xq: the cell queries of the wall pressure start there; static walls: their own positions)
+        self.wall_accel = wp.zeros(max(model.n_boundary, 1), dtype=wp.vec3, device=d)
+        self._xq = None
+        if model.n_moving_walls:
+            xb = np.asarray(model.initial_positions, float)[model.n_fluid: model.n_total]
+            self._xq = wp.array(xb.astype(np.float32), dtype=wp.vec3, device=d)
+        self.wall_reactions = []  # f(solver, state): after the pair forces, before the integration (BlockWalls)
+        self._block_dim = 128 if is_cuda else 256  # force pass: 0.84 vs 0.91 ms at 256 (H100, 2.16 M)
+        self._init_lists()
+
+    default_reorder_interval = 10  # FluidOptions.reorder_interval = None
+    default_recorded_launches = False  # FluidOptions.recorded_launches = None
+    capturable = True  # a step is launches only: a chunk of steps can be one CUDA graph
+
+    @property
+    def sorted_by_cell(self) -> bool:
+        """True while the fluid particles are in cell order (after reorder; state.ids gives the seeded order)."""
+        return not self._in_original_order
+
+    def set_neighbour_skin(self, skin: float) -> None:
+        """Change the skin (fraction of H): reallocates the lists and the cell grid; the next step rebuilds."""
+        self.neighbour_skin = float(skin)
+        self._init_lists()
+
+    def _init_lists(self) -> None:
+        """Neighbour lists (kernels/sph/fluid.py build_neighbour_list_cells): count[i] and nbr[k * n_fluid + i]
+        for k < cap; cap ~1.6x the neighbours within the list radius in the initial lattice."""
+        m, d = self.model, self.model.device
+        if self.neighbour_skin < 0:
+            raise ValueError(f"neighbour_skin {self.neighbour_skin} < 0")
+        self.list_radius = m.support_radius * (1.0 + self.neighbour_skin)
+        self.neighbour_cap = self.list_capacity(m, self.neighbour_skin)
+        nf = max(m.n_fluid, 1)
+        self._nbr_count = wp.zeros(nf, dtype=int, device=d)
+        self._nbr = wp.zeros(nf * self.neighbour_cap, dtype=int, device=d)
+        self._x_build = wp.zeros(nf, dtype=wp.vec3, device=d)
+        self._rebuild.fill_(1)
+        self.arrays_version = getattr(self, "arrays_version", 0) + 1  # captured graphs of older arrays are stale
+        self._init_cells()
+        self._init_check_grid()
+
+    # The skin check (class doc): "relative" rebuilds a list when two particles that may have become
+    # neighbours moved s H relative to each other (cells of 2 H by build position, kernels/sph/fluid.py
+    # displacement_check_cells); "absolute" when any particle moved s H / 2. In a flowing 3D dam break
+    # the water moves together: a list then lasts ~9x longer (10,850 particles, 0.3 s: 37 builds with an
+    # exact test, 331 with "absolute"). "relative" falls back to "absolute" past check_cells_per_particle.
+
+    def _init_check_grid(self) -> None:
+        m, d = self.model, self.model.device
+        self._check = None
+        if self.skin_check != "relative" or self.neighbour_skin <= 0 or m.n_fluid == 0:
+            return
+        if m.device.is_cuda and m.n_fluid < self.options.relative_min_particles_cuda:
+            return
+        c = 2.0 * m.support_radius
+        lo = np.asarray(m.domain_lo, float) - c
+        dims = np.maximum(np.ceil((np.asarray(m.domain_hi, float) + c - lo) / c).astype(np.int64), 1)
+        if m.dim == 2:
+            dims[2] = 1
+        n_cells = int(np.prod(dims))
+        if n_cells > self.options.check_cells_per_particle * m.n_fluid + 4096:
+            return
+        g = sph.CheckGrid()
+        g.lo = wp.vec3(*[float(a) for a in lo])
+        g.inv_c = 1.0 / c
+        g.nx, g.ny, g.nz = (int(a) for a in dims)
+        self._check = g
+        self._check_width = c
+        self._d_lo = wp.zeros(n_cells, dtype=wp.vec3, device=d)
+        self._d_hi = wp.zeros(n_cells, dtype=wp.vec3, device=d)
+        self._overflowed = wp.ones(1, dtype=int, device=d)
+        self._moved = wp.zeros(1, dtype=int, device=d)  # a particle moved s H / 2 since the build
+        # cells holding boundary particles (static): their displacement boxes include d = 0
+        wall = np.zeros(n_cells, np.int32)
+        if m.n_static_boundary:  # (the wall particles of moving blocks enter the boxes as the fluid does)
+            xb = np.asarray(m.initial_positions, float)[m.n_fluid: m.n_fluid + m.n_static_boundary].reshape(-1, 3)
+            idx = np.clip(np.floor((xb - lo) / c).astype(np.int64), 0, dims - 1)
+            wall[idx[:, 0] + dims[0] * (idx[:, 1] + dims[1] * idx[:, 2])] = 1
+        self._wall_cells = wp.array(wall, dtype=int, device=d)
+
+    def _init_cells(self) -> None:
+        """The cell grid of the neighbour lists: dimensions covering the domain (+2R, R the list radius),
+        wrapped (hashed) when that would exceed max(min_cells, cells_per_particle x particles) cells."""
+        m, d = self.model, self.model.device
+        H = self.list_radius
+        c = H * 1.0001  # a neighbour within R is at most one y/z cell away despite rounding
+        cx = H / self.options.cell_subdivision_x
+        lo = np.asarray(m.domain_lo, float) - 2 * H
+        hi = np.asarray(m.domain_hi, float) + 2 * H
+        dims = np.maximum(np.ceil((hi - lo) / np.array([cx, c, c])).astype(np.int64) + 1, 1)
+        if m.dim == 2:
+            dims[2] = 1
+        limit = min(max(self.options.min_cells, self.options.cells_per_particle * m.n_total), 1 << 26)
+        # wrapped y/z rows keep >= 3 cells so the 3 columns around a particle never alias
+        floor = np.array([1, min(3, dims[1]), min(3, dims[2])])
+        while int(np.prod(dims)) > limit and np.any(dims > floor):
+            k = int(np.argmax(np.where(dims > floor, dims, 0)))
+            dims[k] = max(floor[k], (dims[k] + 1) // 2)
+        n_cells = int(np.prod(dims))
+        nt = max(m.n_total, 1)
+        self._cell_keys = wp.zeros(2 * nt, dtype=int, device=d)
+        self._cell_order = wp.zeros(2 * nt, dtype=int, device=d)
+        self._cell_first = wp.zeros(n_cells + 1, dtype=int, device=d)
+        self._cell_bits = max(1, int(n_cells).bit_length())
+        g = sph.CellGrid()
+        g.lo = wp.vec3(*[float(a) for a in lo])
+        g.inv_cx = 1.0 / cx
+        g.c = c
+        g.nx, g.ny, g.nz = (int(a) for a in dims)
+        g.first = self._cell_first
+        g.order = self._cell_order
+        self._x_sorted = wp.zeros(nt, dtype=wp.vec3, device=d)
+        g.x_sorted = self._x_sorted
+        self.cells = g
+        self._slot_ranges = (0, 18) if m.dim == 3 else (6, 12)  # 9 columns (3 in 2D) x 2 parts
+
+    def _launch(self, kernel, dim, inputs, outputs=(), block_dim: int = 256) -> None:
+        """wp.launch for the per-step launches: with ``recorded_launches``, recorded once per kernel and
+        argument arrays, then replayed with the scalar arguments and the launch size updated (a plain
+        wp.launch packs every argument each time: on a GPU the host, not the device, sets the pace of a
+        small step launched step by step; the ghost solver, whose step cannot be a CUDA graph). Else a
+        plain wp.launch (the basic step: on a GPU `advance` replays it as a CUDA graph)."""
+        m = self.model
+        if not self.recorded_launches:
+            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=m.device, block_dim=block_dim)
+            return
+        args = (*inputs, *outputs)
+        scalar = tuple(isinstance(a, (int, float, np.integer, np.floating)) for a in args)
+        arrays = tuple(None if sc else id(a) for a, sc in zip(args, scalar))
+        entry = self._recorded.get(kernel.key)
+        if entry is None or entry[3] != arrays:
+            cmd = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=m.device, block_dim=block_dim,
+                            record_cmd=True)
+            # (args keeps the recorded arrays alive, so their ids stay theirs)
+            entry = self._recorded[kernel.key] = [cmd, list(args), dim, arrays]
+        else:
+            cmd, values, last_dim = entry[0], entry[1], entry[2]
+            for i, sc in enumerate(scalar):
+                if sc and args[i] != values[i]:
+                    cmd.set_param_at_index(i, args[i])
+                    values[i] = args[i]
+            if dim != last_dim:
+                cmd.set_dim(dim)
+                entry[2] = dim
+        entry[0].launch()
+
+    def build_cells(self, state: FluidState, rebuild: wp.array | None = None) -> None:
+        """Sort all particles (fluid and boundary) by cell: cells.order, cells.first, cells.x_sorted.
+        ``rebuild``: a device flag; while rebuild[0] == 0 the kernels return at once (the radix sort still
+        runs; on the unchanged sorted keys it keeps the order). None: always."""
+        m = self.model
+        f = self._always if rebuild is None else rebuild
+        self._launch(sph.cell_keys, m.n_total, [self.cells, state.x, self._cell_keys, self._cell_order, f])
+        wp.utils.radix_sort_pairs(self._cell_keys, self._cell_order, m.n_total, 0, self._cell_bits)
+        self._launch(sph.cell_first, self._cell_first.shape[0], [self._cell_keys, m.n_total, self._cell_first, f])
+        self._launch(sph.gather_sorted_positions, m.n_total, [self._cell_order, state.x, self._x_sorted, f])
+
+    @staticmethod
+    def list_capacity(model: "FluidModel", skin: float = 0.0) -> int:
+        """~1.6x the lattice neighbours within the list radius. With a boundary lattice finer than the fluid's,
+        a particle at a wall has half its support at the boundary density (spacing/bstep)^dim times the
+        fluid's: counted, or those particles overflow every step (the overflow passes then scan cells: 117 of
+        3,600 particles in the report's 2D dam breaks with walls at half the spacing, 0.1 ms a step on an H100)."""
+        r = model.support_radius * (1.0 + skin) / model.spacing
+        lattice = math.pi * r ** 3 * 4.0 / 3.0 if model.dim == 3 else math.pi * r * r
+        if 0.0 < model.boundary_spacing < model.spacing:
+            lattice *= 0.5 * (1.0 + (model.spacing / model.boundary_spacing) ** model.dim)
+        return int(8 * math.ceil(1.6 * lattice / 8.0))
+
+    # ---------------------------------------------------------------- particle order ----------
+    def _order_buffers(self):
+        if self._order_buf is None:
+            m, d = self.model, self.model.device
+            nt, nf = m.n_total, m.n_fluid
+            self._order_buf = dict(flag=wp.zeros(nt, dtype=int, device=d), rank=wp.zeros(nt, dtype=int, device=d),
+                                   perm=wp.zeros(nf, dtype=int, device=d), vec=wp.zeros(nf, dtype=wp.vec3, device=d),
+                                   f=wp.zeros(nf, dtype=float, device=d), i=wp.zeros(nf, dtype=int, device=d))
+        return self._order_buf
+
+    def _permute(self, kernel, index: wp.array, arrays) -> None:
+        b, m = self._order_buf, self.model
+        for a in arrays:
+            tmp = b["vec"] if a.dtype == wp.vec3 else (b["i"] if a.dtype == wp.int32 else b["f"])
+            wp.launch(kernel, dim=m.n_fluid, inputs=[index, a, tmp], device=m.device)
+            wp.copy(a, tmp, 0, 0, m.n_fluid)
+
+    def reorder(self, state: FluidState) -> None:
+        """Sort the fluid particles by cell (kernels/sph/fluid.py CellGrid order; any permutation is correct).
+        Launches only: capturable in a CUDA graph."""
+        m = self.model
+        b = self._order_buffers()
+        self.build_cells(state)
+        order = self._cell_order
+        wp.launch(sph.sorted_fluid_flags, dim=m.n_total, inputs=[order, m.n_fluid, b["flag"]], device=m.device)
+        wp.utils.array_scan(b["flag"], b["rank"], inclusive=False)
+        wp.launch(sph.sorted_fluid_perm, dim=m.n_total, inputs=[order, m.n_fluid, b["flag"], b["rank"], b["perm"]],
+                  device=m.device)
+        # accel, xsph_dv, drho_dt, pressure are recomputed by the next step before they are read
+        # (stable_dt's maxima do not depend on the order)
+        self._permute(sph.gather_by, b["perm"], (state.x, state.v, state.rho, state.ids))
+        self._in_original_order = False
+        self.invalidate_lists()  # the slots changed and the grid is the pre-permutation one
+
+    def unsort(self, state: FluidState) -> None:
+        """Restore the original particle order (ids = 0..n_fluid-1), so that host reads, outputs and
+        checkpoints see the particles as seeded. Cheap when the order is already original."""
+        m = self.model
+        if self._in_original_order or m.n_fluid == 0:
+            return
+        self._order_buffers()
+        self._permute(sph.scatter_by, state.ids, (state.x, state.v, state.rho, state.pressure, state.accel,
+                                                  state.xsph_dv, state.drho_dt))
+        wp.launch(sph.iota, dim=m.n_fluid, inputs=[state.ids], device=m.device)
+        self._in_original_order = True
+        self.invalidate_lists()
+
+    def build_grid(self, state: FluidState) -> None:
+        """wp.HashGrid of all particles, for queries outside the step (gauges, neighbour counts, boundary
+        volumes, the ghost solver); the step itself uses the cell grid (build_cells)."""
+        self.grid.build(state.x, self.cell)
+
+    def build_neighbour_lists(self, state: FluidState, rebuild: wp.array | None = None) -> None:
+        """Neighbours within the list radius (1 + neighbour_skin) H of each fluid particle (after
+        build_cells); ``rebuild`` as in build_cells."""
+        m = self.model
+        f = self._always if rebuild is None else rebuild
+        self._launch(sph.build_neighbour_list_cells, m.n_fluid,
+                     [self.cells, state.x, self.list_radius, *self._slot_ranges, f],
+                     [self._nbr_count, self._nbr, self._x_build])
+        self._store_wall_build(state, f)
+        self._flag_overflow(f)
+
+    def _store_wall_build(self, state: FluidState, rebuild: wp.array) -> None:
+        """At a list build: the positions of the moving blocks' wall particles (their displacement checks)."""
+        m = self.model
+        if m.n_moving_walls:
+            self._launch(sph.store_build_positions, m.n_moving_walls,
+                         [state.x, m.n_fluid + m.n_static_boundary, rebuild, self._xq, m.n_static_boundary])
+
+    def _flag_overflow(self, rebuild: wp.array) -> None:
+        """After a list build: does a list of this build overflow? (the relative skin check needs to know)"""
+        m = self.model
+        if self._check is not None:
+            self._launch(sph.list_overflow_reset, 1, [rebuild, self._overflowed])
+            self._launch(sph.list_overflow_flag, m.n_fluid, [self._nbr_count, self.neighbour_cap, rebuild, self._overflowed])
+
+    def _list_guard(self, state: FluidState):
+        """Start of a step: the displacement check. Returns the flag the cell grid and list build take,
+        or None when the host knows the list is still valid (CPU: the launches are skipped)."""
+        m = self.model
+        if self.neighbour_skin <= 0:
+            self.list_builds += 1
+            return self._always
+        half = 0.5 * self.neighbour_skin * m.support_radius
+        nw, w_off, wb_off = m.n_moving_walls, m.n_fluid + m.n_static_boundary, m.n_static_boundary
+        if self._check is None:
+            self._launch(sph.list_displacement_check, m.n_fluid, [state.x, 0, self._x_build, 0, half * half, self._rebuild])
+            if nw:  # the moving walls' particles, as the fluid's
+                self._launch(sph.list_displacement_check, nw, [state.x, w_off, self._xq, wb_off, half * half, self._rebuild])
+        else:
+            # first the absolute test into `moved`: while no particle moved s H / 2 (early in a flow, at rest)
+            # the relative kernels return at once (0.2 ms of the relative test saved on an H100 at 2.16 M)
+            g = self._check
+            self._moved.zero_()
+            self._launch(sph.list_displacement_check, m.n_fluid, [state.x, 0, self._x_build, 0, half * half, self._moved])
+            if nw:
+                self._launch(sph.list_displacement_check, nw, [state.x, w_off, self._xq, wb_off, half * half, self._moved])
+            self._d_lo.fill_(wp.vec3(1.0e30))
+            self._d_hi.fill_(wp.vec3(-1.0e30))
+            self._launch(sph.displacement_bounds, m.n_fluid,
+                         [g, state.x, 0, self._x_build, 0, half * half, self._overflowed, self._moved, self._d_lo, self._d_hi,
+                          self._rebuild])
+            if nw:
+                self._launch(sph.displacement_bounds, nw,
+                             [g, state.x, w_off, self._xq, wb_off, half * half, self._overflowed, self._moved, self._d_lo,
+                              self._d_hi, self._rebuild])
+            skin = self.neighbour_skin * m.support_radius
+            reach = 0.5 * (self._check_width - m.support_radius)
+            self._launch(sph.displacement_check_cells, self._d_lo.shape[0],
+                         [g, self._d_lo, self._d_hi, self._wall_cells, skin * skin, reach * reach, self._moved,
+                          self._rebuild])
+        if not self.host_decides:
+            return self._rebuild
+        if int(self._rebuild.numpy()[0]) == 0:
+            return None
+        self.list_builds += 1
+        return self._always
+
+    def invalidate_lists(self) -> None:
+        """Rebuild the cell grid and neighbour list at the next step (a device-side fill, capturable)."""
+        self._rebuild.fill_(1)
+
+    def _lists_built(self) -> None:
+        if self.neighbour_skin > 0:
+            self._rebuild.zero_()
+
+    def gradient_correction(self, state: FluidState) -> None:
+        """fluid.gradient_correction: the matrices L_i of this step into self.kgc (kernels/sph/fluid.py
+        gradient_correction_matrix), after the lists and before the density; nothing without the correction."""
+        m = self.model
+        if m.params.gradient_correction:
+            self._launch(sph.gradient_correction_matrix, m.n_fluid,
+                         [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, m.params], [self.kgc])
+
+    def compute_density(self, state: FluidState, lists: bool = False) -> None:
+        """Summation density and pressure (before the first step, and each step in summation mode;
+        ``lists``: the cell grid and neighbour lists are current)."""
+        m = self.model
+        if not lists:
+            self.build_cells(state)
+            self.build_neighbour_lists(state)
+            self._lists_built()
+        self._launch(sph.particle_density_summation_list, m.n_fluid,
+                     [self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
+                     [state.rho, state.pressure, self._pr2])
+        self._density_overflow(state, None, summation=True)
+
+    def _density_overflow(self, state: FluidState, dt, summation: bool) -> None:
+        m = self.model
+        self._launch(sph.particle_density_overflow, m.n_fluid,
+                     [self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
+                      state.v, m.particle_mass, dt if dt is not None else self._zero_dt, self.kgc, m.params, 1 if summation else 0],
+                     [state.drho_dt, state.rho, state.pressure, self._pr2])
+
+    def set_density(self, state: FluidState, rho: np.ndarray) -> None:
+        """Set the fluid densities (continuity mode's initial condition) and their pressures."""
+        m = self.model
+        state.rho.assign(np.asarray(rho, dtype=np.float32))
+        wp.launch(sph.equation_of_state_pass, dim=m.n_fluid, inputs=[state.rho, m.params], outputs=[state.pressure], device=m.device)
+
+    def step(self, state: FluidState, ts: TimeStep) -> None:
+        """One step of length ts.dt (kernels read it from the device array ts.dt_array): neighbour lists,
+        density (summation, or continuity advanced by dt) and pressure, density diffusion, acceleration and
+        XSPH, semi-implicit Euler. A variant (rockwave/sph/ghost.py) adds its terms through the hooks
+        ``_neighbour_lists``, ``_density`` and ``_extra_forces``; it never copies this sequence."""
+        m = self.model
+        if m.n_fluid == 0:
+            return
+        dt = ts.dt_array
+        density_done = self._neighbour_lists(state, dt)
+        self.gradient_correction(state)
+        self._density(state, dt, density_done)
+        if m.density_diffusion > 0.0 and m.density is Density.CONTINUITY:
+            self._density_diffusion(state, dt)
+        self.wall_pressure(state)
+        self._launch(sph.particle_acceleration_list, m.n_fluid,
+                     [self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
+                      m.particle_mass, self._wall_pr2, state.wall_velocity, self.kgc, m.params],
+                     [state.accel, state.xsph_dv], block_dim=self._block_dim)
+        self._launch(sph.particle_acceleration_overflow, m.n_fluid,
+                     [self.cells, *self._slot_ranges, self.list_radius, self._nbr_count, self.neighbour_cap, state.x,
+                      state.v, state.rho, state.pressure, m.particle_mass, self._wall_pr2, state.wall_velocity, self.kgc,
+                      m.params],
+                     [state.accel, state.xsph_dv])
+        self._extra_forces(state)
+        for reaction in self.wall_reactions:  # the moving walls' share goes to their blocks (rockwave/coupling/penalty.py)
+            reaction(self, state)
+        self._launch(sph.integrate_particles, m.n_fluid, [state.accel, state.xsph_dv, dt], [state.x, state.v])
+
+    def wall_pressure(self, state: FluidState) -> None:
+        """Adami et al. (2012) walls: each boundary particle's pressure (and no-slip velocity) extrapolated from the
+        fluid around it (kernels/sph/fluid.py wall_pressure_adami), after the density of this step and before the
+        forces. Nothing with Akinci walls. Needs the cell grid of the last list build (or a newer one)."""
+        m = self.model
+        if m.params.boundary != sph.BOUNDARY_ADAMI or m.n_boundary == 0 or m.n_fluid == 0:
+            return
+        xq, q_off = (state.x, m.n_fluid) if self._xq is None else (self._xq, 0)
+        self._launch(sph.wall_pressure_adami, m.n_boundary,
+                     [self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, state.rho, state.pressure,
+                      xq, q_off, self.wall_accel, m.params],
+                     [state.wall_pressure, self._wall_pr2, state.wall_velocity])
+
+    def _neighbour_lists(self, state: FluidState, dt: wp.array) -> bool:
+        """Hook: the cell grid and Verlet lists, rebuilt when the skin check says so. Returns True when the
+        density was computed in the same pass (fused_density)."""
+        m = self.model
+        guard = self._list_guard(state)
+        # the fused list build + density needs the host to know that the list is rebuilt this step
+        fused = self.fused_density and guard is self._always and not m.params.gradient_correction  # L_i first
+        if guard is self._rebuild and self.conditional_rebuild and m.device.is_capturing:
+            # in a CUDA graph the rebuild is a conditional node on the device flag: the steps that keep
+            # the list skip the radix sort and the cell/list launches instead of running them to no effect
+            def rebuild():
+                self.build_cells(state, self._always)
+                self.build_neighbour_lists(state, self._always)
+                self._lists_built()
+
+            wp.capture_if(self._rebuild, on_true=rebuild)
+            guard = None
+        if guard is not None:
+            self.build_cells(state, guard)
+            if fused:
+                self._launch(sph.neighbour_list_density, m.n_fluid,
+                             [self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, m.particle_mass, dt,
+                              m.params, int(m.density), self.kgc],
+                             [self._nbr_count, self._nbr, state.drho_dt, state.rho, state.pressure, self._pr2,
+                              self._x_build])
+                self._store_wall_build(state, guard)
+                self._flag_overflow(guard)
+            else:
+                self.build_neighbour_lists(state, guard)
+            self._lists_built()
+        return fused
+
+    def _density(self, state: FluidState, dt: wp.array, done: bool) -> None:
+        """Hook: density and pressure over the lists (unless the list pass computed them)."""
+        if done:
+            return
+        m = self.model
+        if m.density is Density.SUMMATION:
+            self.compute_density(state, lists=True)
+        else:
+            self._launch(sph.particle_density_continuity_list, m.n_fluid,
+                         [self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, self.kgc, m.params],
+                         [state.drho_dt, state.rho, state.pressure, self._pr2])
+            self._density_overflow(state, dt, summation=False)
+
+    def _extra_forces(self, state: FluidState) -> None:
+        """Hook: accelerations a variant adds after the pair forces (none here)."""
+
+    def _density_diffusion(self, state: FluidState, dt: wp.array) -> None:
+        """delta-SPH density diffusion after the continuity density (opt-in; kernels/sph/diffusion.py)."""
+
+        m = self.model
+        if getattr(self, "_diff_rate", None) is None:
+            self._diff_rate = wp.zeros(m.n_fluid, dtype=float, device=m.device)
+        wp.launch(diffusion.density_diffusion_rate, dim=m.n_fluid,
+                  inputs=[self._nbr_count, self._nbr, state.x, state.rho, m.params, m.density_diffusion],
+                  outputs=[self._diff_rate], device=m.device)
+        wp.launch(diffusion.apply_density_diffusion, dim=m.n_fluid, inputs=[self._diff_rate, dt, m.params],
+                  outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
+
+    # ---------------------------------------------------------------- checkpoint ------------
+    def checkpoint_arrays(self) -> dict[str, wp.array]:
+        """What the solver keeps between steps beyond the state: the positions of the last list build and the
+        rebuild flag (the lists themselves are rebuilt from them on restore, in the same order)."""
+        out = {"x_build": self._x_build, "rebuild": self._rebuild}
+        if self._xq is not None:  # the moving walls' build positions
+            out["wall_build"] = self._xq
+        return out
+
+    def checkpoint_meta(self) -> dict:
+        """Host values the solver keeps between steps (none here)."""
+        return {}
+
+    def restore_checkpoint(self, state: FluidState, arrays: dict, meta: dict) -> None:
+        """After ``state`` was restored: the particle order flag and the neighbour lists of the checkpointed
+        run, rebuilt from its list-build positions (the same lists, in the same order: a resumed run is
+        bit-identical on the CPU)."""
+        m = self.model
+        nf = m.n_fluid
+        self._in_original_order = bool(np.array_equal(state.ids.numpy(), np.arange(nf)))
+        if nf == 0:
+            return
+        x = wp.clone(state.x)
+        wp.copy(x, wp.array(np.asarray(arrays["x_build"], np.float32), dtype=wp.vec3, device=m.device), 0, 0, nf)
+        if self._xq is not None:
+            self._xq.assign(np.asarray(arrays["wall_build"], np.float32))
+            wp.copy(x, self._xq, nf, 0, m.n_boundary)
+        at_build = SimpleNamespace(x=x)  # the list builds read positions only
+        self.build_cells(at_build)
+        self.build_neighbour_lists(at_build)
+        self._rebuild.assign(np.asarray(arrays["rebuild"], np.int32))
+
+    def list_overflow(self) -> int:
+        """Fluid particles whose last neighbour list overflowed the capacity (summed by a cell-grid query)."""
+        return int((self._nbr_count.numpy() > self.neighbour_cap).sum()) if self.model.n_fluid else 0
+
+    def stable_dt(self, state: FluidState, cfl: float | None = None) -> float:
+        """Largest stable step for the current motion (one host read; cfl: default ``cfl_number``):
+        min(C h/(c0 (1 + 0.6 alpha) + u_max), 0.25 sqrt(h/a_max), 0.125 h^2/nu), h = H/2 (Monaghan 1992)."""
+        m = self.model
+        self._extrema.zero_()
+        if m.n_fluid:
+            stride = min(m.n_fluid, 16384)
+            wp.launch(sph.motion_extrema, dim=stride, inputs=[state.v, state.accel, m.n_fluid, stride], outputs=[self._extrema],
+                      device=m.device)
+        vmax2, amax2 = (float(a) for a in self._extrema.numpy())
+        return fluid_dt_limit(m, self.cfl_number if cfl is None else cfl, math.sqrt(vmax2), math.sqrt(amax2))
+
+    def neighbour_counts(self, state: FluidState) -> np.ndarray:
+        m = self.model
+        self.build_grid(state)
+        out = wp.zeros(m.n_fluid, dtype=int, device=m.device)
+        wp.launch(sph.neighbour_count, dim=m.n_fluid, inputs=[self.grid.id, state.x, m.support_radius], outputs=[out], device=m.device)
+        return out.numpy()
+
+
+def fluid_dt_limit(m: FluidModel, cfl: float, u_max: float, a_max: float) -> float:
+    h = 0.5 * m.support_radius
+    p = m.params
+    c = m.sound_speed * (1.0 + 0.6 * p.alpha)
+    dt = cfl * h / (c + u_max)
+    if a_max > 0:
+        dt = min(dt, 0.25 * math.sqrt(h / a_max))
+    if m.kinematic_viscosity > 0:
+        dt = min(dt, 0.125 * h * h / m.kinematic_viscosity)
+    return dt
+
+
+def calibrate_lattice(params: sph.SPHParams, spacing: float, dim: int, device) -> tuple[float, float]:
+    """Particle mass and kernel-gradient scale from a full lattice of the given spacing.
+
+    m = rho0 / sum_j W_0j, so a particle inside the fluid at rest has exactly rho0; and
+    s = 1 / (sum_j V_j (x_j - x_0)_x dW/dx), V_j = m/rho0, so the SPH gradient of a linear
+    field is exact on the lattice. At H = 2 spacing the raw lattice sums miss both by several
+    per cent, which shows as a hydrostatic pressure gradient off by as much."""
+    k = int(math.ceil(params.H / spacing)) + 1
+    r = np.arange(-k, k + 1) * spacing
+    g = np.meshgrid(*([r] * dim), indexing="ij")
+    pts = np.stack([c.ravel() for c in g] + [np.zeros(g[0].size)] * (3 - dim), axis=1).astype(np.float32)
+    centre = pts.shape[0] // 2
+    pts[[0, centre]] = pts[[centre, 0]]
+    xa = wp.array(pts, dtype=wp.vec3, device=device)
+    w = wp.zeros(len(pts), dtype=float, device=device)
+    gx = wp.zeros(len(pts), dtype=float, device=device)
+    wp.launch(sph.lattice_moments, dim=len(pts), inputs=[xa, params], outputs=[w, gx], device=device)
+    w_sum, grad_moment = float(np.sum(w.numpy(), dtype=np.float64)), float(np.sum(gx.numpy(), dtype=np.float64))
+    mass = params.rest_density / w_sum
+    return mass, w_sum / grad_moment
+
+
+def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray, boundary_positions: np.ndarray,
+                      scene_fluid, dim: int, gravity, device, boundary_spacing: float | None = None,
+                      boundary_layers: int | None = None, moving_wall_positions: np.ndarray | None = None) -> FluidModel:
+    """Assemble the model: calibrated particle mass and boundary masses Psi_b.
+
+    ``moving_wall_positions``: the wall particles of moving blocks at the start (rockwave/coupling/walls.py BlockWalls),
+    appended after the static boundary particles in the order given (their blocks place them each step).
+
+    Boundary walls whose layers cover the kernel support act as frozen fluid: Psi_b is the
+    lattice-calibrated mass at the boundary spacing. Thinner walls use Akinci et al. (2012):
+    Psi_b = rho0 / sum_k W_bk. Both push with Akinci's single term -Psi_b p_i/rho_i^2 grad W,
+    the force that conserves energy with the density sum (a mirrored 2 p_i/rho_i^2 gained
+    energy in a resting tank)."""
+    nf, nb = len(fluid_positions), len(boundary_positions)
+    params = make_params(scene_fluid, dim, gravity, nf)
+    if nb > 1:  # static boundary particles in cell order (coherent neighbour reads; the fluid is reordered as it moves)
+        bp = np.asarray(boundary_positions, dtype=np.float64)
+        c = np.floor((bp - bp.min(axis=0)) / params.H).astype(np.int64)
+        boundary_positions = bp[np.lexsort((c[:, 0], c[:, 1], c[:, 2]))]
+    n_moving = 0 if moving_wall_positions is None else len(moving_wall_positions)
+    if n_moving:
+        boundary_positions = np.concatenate([np.asarray(boundary_positions, float).reshape(-1, 3),
+                                             np.asarray(moving_wall_positions, float)])
+        nb += n_moving
+    spacing = scene_fluid["spacing_m"]
+    bstep = boundary_spacing or spacing
+    full_support = boundary_layers is None or boundary_layers * bstep >= 0.999 * params.H
+    x = np.concatenate([fluid_positions, boundary_positions]).astype(np.float64) if nb else fluid_positions.astype(np.float64)
+    v = np.zeros_like(x)
+    v[:nf] = fluid_velocities
+    lo = x.min(axis=0) - params.H if len(x) else np.zeros(3)
+    hi = x.max(axis=0) + params.H if len(x) else np.ones(3)
+    mass, params.grad_scale = calibrate_lattice(params, spacing, dim, device)
+    params.fluid_mass = mass
+    masses = wp.array(np.full(nf + nb, mass, dtype=np.float32), dtype=float, device=device)
+    model = FluidModel(
+        dim=dim, up=dim - 1, n_fluid=nf, n_boundary=nb, spacing=spacing, support_radius=params.H,
+        particle_mass=masses, params=params, sound_speed=params.sound_speed,
+        kinematic_viscosity=params.mu / params.rest_density,
+        density=Density.SUMMATION if scene_fluid["density"] == "summation" else Density.CONTINUITY,
+        domain_lo=lo, domain_hi=hi, initial_positions=x, initial_velocities=v, device=wp.get_device(device),
+        density_diffusion=float(scene_fluid.get("density_diffusion", 0.0) or 0.0),
+        boundary_spacing=float(bstep) if nb else 0.0, n_moving_walls=n_moving,
+    )
+    if nb and full_support:
+        mb = calibrate_lattice(params, bstep, dim, device)[0]
+        masses.assign(np.concatenate([np.full(nf, mass), np.full(nb, mb)]).astype(np.float32))
+    elif nb:
+        solver = FluidSolver(model)
+        xa = wp.array(x.astype(np.float32), dtype=wp.vec3, device=device)
+        solver.grid.build(xa, params.H)
+        wp.launch(sph.boundary_volume, dim=nb, inputs=[solver.grid.id, xa, params], outputs=[masses], device=device)
+    return model
+
+
+def density_for_pressure(params, p: np.ndarray) -> np.ndarray:
+    """Inverse EOS: Tait rho = rho0 (1 + p/B)^(1/gamma); linear rho = rho0 + p/k."""
+    rho0 = params.rest_density
+    if params.eos == 0:
+        return rho0 * (1.0 + p / params.eos_b) ** (1.0 / params.eos_gamma)
+    return rho0 + p / params.eos_b
