@@ -23,7 +23,7 @@ class BlockWalls:
     extrapolates their pressure (Adami's eq. 27 with the wall acceleration term,
     p_w = (sum_f p_f W_wf + (g - a_w) . sum_f rho_f r_wf W_wf) / sum_f W_wf) and no-slip velocity
     (2 v_w - the fluid's, eq. 23), the fluid feels them in its force pass, and after it (the solver's
-    ``wall_reactions`` hook, before the integration) block_wall_reactions sums the same pair forces, with the
+    ``block_wall_reactions`` pass, before the integration) block_wall_reactions sums the same pair forces, with the
     opposite sign, onto the blocks: into ``water_force`` / ``water_torque`` (N, N m about the centroid, per
     block, every moving block: diagnostics) and, for rigid and deformable blocks, into the loads the penalty
     uses (ext_force / ext_torque), so multi-rate stepping holds them over the block sub-steps as it does the
@@ -63,7 +63,7 @@ class BlockWalls:
         self.water_torque = wp.zeros(nb, dtype=wp.vec3, device=d)
         self.x_off = m.n_fluid + m.n_static_boundary  # first wall particle in the fluid arrays
         self.b_off = m.n_static_boundary  # ... among the boundary particles
-        solver.wall_reactions.append(self.react)
+        solver.insert_pass("block_wall_reactions", lambda state, dt: self.react(solver, state), after="pair_forces")
 
     def place(self, fluid_state, block_state, ts: TimeStep) -> None:
         """Put the wall particles at the blocks' poses (positions, velocities, accelerations) for this step."""

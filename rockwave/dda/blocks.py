@@ -970,7 +970,9 @@ class BlockSolver:
         self.lo_bp = wp.zeros(n, dtype=wp.vec3, device=d)
         self.hi_bp = wp.zeros(n, dtype=wp.vec3, device=d)
         self._moved = wp.ones(1, dtype=int, device=d)
-        # [t_next, dt] of the current (sub-)step, read by contact_forces and integrate_blocks on the device
+        # [t_next, dt] of the current (sub-)step, read by contact_forces and integrate_blocks on the device. Not the
+        # fluid's TimeStep.dt_array: in multi-rate stepping a block sub-step is dt/n and its end time (kinematic
+        # blocks' prescribed motion) advances n times inside one fluid step, on the device inside a captured graph
         self.block_clock = wp.zeros(2, dtype=float, device=d)
         # CUDA graphs of one multi-rate sub-step (substeps()), keyed by the contact tables' parity and the
         # addresses the graph baked in; None: not on this device (CPU, or graphs switched off)

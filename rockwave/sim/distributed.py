@@ -276,7 +276,7 @@ class DistributedFluid:
         return self._sendrecv(self.rows[self._sent[0]], self.rows[self._sent[1]])
 
     def exchange_densities(self, state, solver) -> None:
-        """Inside the step, after the densities and before the forces (RankFluidSolver.wall_pressure): the halo
+        """Inside the step, after the densities and before the forces (RankFluidSolver's halo_densities pass): the halo
         particles take their owners' new rho, p and p/rho^2, computed there with all their neighbours (a halo
         slot's own sum misses the neighbours beyond the halo). The halo rows are in the order halo() received
         them, and the owners send the same rows in the same order."""
@@ -356,15 +356,11 @@ class DistributedFluid:
 
 class RankFluidSolver(FluidSolver):
     """The fluid solver of one rank: FluidSolver.step unchanged, with the halo's densities taken from their
-    owners between the density and force passes (the wall_pressure hook runs there in every step)."""
+    owners between the density and force passes (a ``halo_densities`` pass before the wall pressure)."""
 
     def __init__(self, model, options, exchange):
         super().__init__(model, options)
-        self._exchange = exchange
-
-    def wall_pressure(self, state) -> None:
-        self._exchange(state, self)
-        super().wall_pressure(state)
+        self.insert_pass("halo_densities", lambda state, dt: exchange(state, self), before="wall_pressure")
 
 
 def _lap(timings: dict, key: str, t0: float) -> float:
@@ -459,12 +455,7 @@ class DistributedSimulation(Simulation):
         df.migrate()
         t = _lap(tm, "exchange", t)
         if self.block_solver is not None:  # replicated: identical loads, identical steps on every rank
-            n = self.clock.substeps
-            if n > 1 and (self.clock.steps % self.clock.update_interval == 0 or not hasattr(self, "_pairs_hold")):
-                self._pairs_hold, self._contacts_hold = self.block_solver.hold_checks(
-                    self.block_state, ts.dt, self.clock.update_interval + 1)
-            self.block_solver.substeps(self.block_state, ts, n, keep_pairs=n > 1 and self._pairs_hold,
-                                       hold_contacts=n > 1 and self._contacts_hold)
+            self.block_stepping.advance(self.block_state, ts)
 
     def _coupled_compute(self, state, local, ts) -> None:
         """The coupling over the owned particles only (they come first); the block loads summed over ranks."""

@@ -38,6 +38,7 @@ from rockwave.sim import checkpoint
 from rockwave.sim.clock import MAX_BLOCK_SUBSTEPS, Clock, gravity_norm
 from rockwave.sim.guard import BlowUpError, HealthGuard
 from rockwave.sim.readers import Readers
+from rockwave.sim.stepping import BlockSubstepping
 from rockwave.sph.fluid import fluid_dt_limit
 
 
@@ -82,6 +83,7 @@ class Simulation:
         self.removed_inside_blocks = parts.removed_inside_blocks
         self.gravity = np.asarray(pad3(scene.gravity.acceleration_m_s2))
         self.clock = Clock(scene, self.device, self._limits(), self._stability_bounds(), self._block_substep())
+        self.block_stepping = BlockSubstepping(self.block_solver, self.clock) if self.block_solver is not None else None
         self.gauge_names = [g.name for g in scene.output.gauges]
         if self.coupling is not None and self.coupling.walls is not None:  # the walls' acceleration estimate
             walls = self.coupling.walls
@@ -186,15 +188,7 @@ class Simulation:
         if self.coupling is not None:
             self.coupling.apply(self.state, ts)
         if self.block_solver is not None:  # 2D: with the planar constraint
-            n = self.clock.substeps
-            if n > 1 and (self.clock.steps % self.clock.update_interval == 0 or not hasattr(self, "_pairs_hold")):
-                # one broad phase per fluid step while the blocks move < margin/2 in it, and the first sub-step's
-                # contacts carried through the others while no pair out of contact can close before the next
-                # check (BlockOptions.hold_contacts): one host read, at the clock's update rhythm
-                self._pairs_hold, self._contacts_hold = self.block_solver.hold_checks(
-                    self.block_state, ts.dt, self.clock.update_interval + 1)
-            self.block_solver.substeps(self.block_state, ts, n, keep_pairs=n > 1 and self._pairs_hold,
-                                       hold_contacts=n > 1 and self._contacts_hold)  # water's load held
+            self.block_stepping.advance(self.block_state, ts)
 
     # Chunks (step_many; advance on a GPU): a reorder of the fluid by cell, then reorder_interval
     # steps. A fluid-only scene on a GPU replays a chunk as one CUDA graph (dt is read from the device

@@ -323,7 +323,7 @@ class FluidSolver:
         if model.n_moving_walls:
             xb = np.asarray(model.initial_positions, float)[model.n_fluid: model.n_total]
             self._xq = wp.array(xb.astype(np.float32), dtype=wp.vec3, device=d)
-        self.wall_reactions = []  # f(solver, state): after the pair forces, before the integration (BlockWalls)
+        self.passes = self._default_passes()  # the step: an ordered list of named passes (FluidSolver.step)
         self._block_dim = 128 if is_cuda else 256  # force pass: 0.84 vs 0.91 ms at 256 (H100, 2.16 M)
         self._init_lists()
 
@@ -647,21 +647,73 @@ class FluidSolver:
         state.rho.assign(np.asarray(rho, dtype=np.float32))
         wp.launch(sph.equation_of_state_pass, dim=m.n_fluid, inputs=[state.rho, m.params], outputs=[state.pressure], device=m.device)
 
+    # ---------------------------------------------------------------- the step: named passes ----
+    # The one way to extend the fluid step: an ordered list of named passes, each f(state, dt) with dt the device
+    # array of the step's length. A variant solver (rockwave/sph/ghost.py) or an attached part (the wall particles of
+    # moving blocks, rockwave/coupling/walls.py; a rank's halo exchange, rockwave/sim/distributed.py) replaces or
+    # inserts passes by name (replace_pass / insert_pass); nothing copies the sequence.
+    PASS_NAMES = ("neighbour_lists", "gradient_correction", "density", "density_diffusion", "wall_pressure",
+                  "pair_forces", "integrate")
+
+    def _default_passes(self) -> list:
+        return [("neighbour_lists", self._neighbour_lists_pass), ("gradient_correction", self._gradient_correction_pass),
+                ("density", self._density_pass), ("density_diffusion", self._density_diffusion_pass),
+                ("wall_pressure", self._wall_pressure_pass), ("pair_forces", self._pair_forces_pass),
+                ("integrate", self._integrate_pass)]
+
+    def pass_names(self) -> list[str]:
+        return [name for name, _ in self.passes]
+
+    def _pass_index(self, name: str) -> int:
+        names = self.pass_names()
+        if name not in names:
+            raise KeyError(f"no fluid pass {name!r} (passes: {', '.join(names)})")
+        return names.index(name)
+
+    def replace_pass(self, name: str, fn) -> None:
+        """Run ``fn(state, dt)`` in place of the pass ``name``."""
+        self.passes[self._pass_index(name)] = (name, fn)
+
+    def insert_pass(self, name: str, fn, *, after: str | None = None, before: str | None = None) -> None:
+        """Add the pass ``name`` = ``fn(state, dt)`` right after (or before) an existing pass."""
+        if (after is None) == (before is None):
+            raise ValueError("insert_pass: give exactly one of after= or before=")
+        if name in self.pass_names():
+            raise ValueError(f"a fluid pass {name!r} exists already")
+        i = self._pass_index(after) + 1 if after is not None else self._pass_index(before)
+        self.passes.insert(i, (name, fn))
+
     def step(self, state: FluidState, ts: TimeStep) -> None:
-        """One step of length ts.dt (kernels read it from the device array ts.dt_array): neighbour lists,
-        density (summation, or continuity advanced by dt) and pressure, density diffusion, acceleration and
-        XSPH, semi-implicit Euler. A variant (rockwave/sph/ghost.py) adds its terms through the hooks
-        ``_neighbour_lists``, ``_density`` and ``_extra_forces``; it never copies this sequence."""
-        m = self.model
-        if m.n_fluid == 0:
+        """One step of length ts.dt (kernels read it from the device array ts.dt_array): the passes in order
+        (neighbour lists, density (summation, or continuity advanced by dt) and pressure, density diffusion, wall
+        pressure, acceleration and XSPH, semi-implicit Euler)."""
+        if self.model.n_fluid == 0:
             return
         dt = ts.dt_array
-        density_done = self._neighbour_lists(state, dt)
+        for _, run_pass in self.passes:
+            run_pass(state, dt)
+
+    def _neighbour_lists_pass(self, state: FluidState, dt: wp.array) -> None:
+        self._density_done = self._neighbour_lists(state, dt)
+
+    def _gradient_correction_pass(self, state: FluidState, dt: wp.array) -> None:
         self.gradient_correction(state)
-        self._density(state, dt, density_done)
+
+    def _density_pass(self, state: FluidState, dt: wp.array) -> None:
+        self._density(state, dt, self._density_done)
+
+    def _density_diffusion_pass(self, state: FluidState, dt: wp.array) -> None:
+        m = self.model
         if m.density_diffusion > 0.0 and m.density is Density.CONTINUITY:
             self._density_diffusion(state, dt)
+
+    def _wall_pressure_pass(self, state: FluidState, dt: wp.array) -> None:
         self.wall_pressure(state)
+
+    def _pair_forces_pass(self, state: FluidState, dt: wp.array) -> None:
+        """Acceleration and XSPH velocity of every fluid particle from its neighbours (the lists, then the
+        particles whose lists overflowed)."""
+        m = self.model
         self._launch(sph.particle_acceleration_list, m.n_fluid,
                      [self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
                       m.particle_mass, self._wall_pr2, state.wall_velocity, self.kgc, m.params],
@@ -671,10 +723,9 @@ class FluidSolver:
                       state.v, state.rho, state.pressure, m.particle_mass, self._wall_pr2, state.wall_velocity, self.kgc,
                       m.params],
                      [state.accel, state.xsph_dv])
-        self._extra_forces(state)
-        for reaction in self.wall_reactions:  # the moving walls' share goes to their blocks (rockwave/coupling/penalty.py)
-            reaction(self, state)
-        self._launch(sph.integrate_particles, m.n_fluid, [state.accel, state.xsph_dv, dt], [state.x, state.v])
+
+    def _integrate_pass(self, state: FluidState, dt: wp.array) -> None:
+        self._launch(sph.integrate_particles, self.model.n_fluid, [state.accel, state.xsph_dv, dt], [state.x, state.v])
 
     def wall_pressure(self, state: FluidState) -> None:
         """Adami et al. (2012) walls: each boundary particle's pressure (and no-slip velocity) extrapolated from the
@@ -690,7 +741,7 @@ class FluidSolver:
                      [state.wall_pressure, self._wall_pr2, state.wall_velocity])
 
     def _neighbour_lists(self, state: FluidState, dt: wp.array) -> bool:
-        """Hook: the cell grid and Verlet lists, rebuilt when the skin check says so. Returns True when the
+        """The cell grid and Verlet lists, rebuilt when the skin check says so. Returns True when the
         density was computed in the same pass (fused_density)."""
         m = self.model
         guard = self._list_guard(state)
@@ -722,7 +773,7 @@ class FluidSolver:
         return fused
 
     def _density(self, state: FluidState, dt: wp.array, done: bool) -> None:
-        """Hook: density and pressure over the lists (unless the list pass computed them)."""
+        """Density and pressure over the lists (unless the list pass computed them)."""
         if done:
             return
         m = self.model
@@ -733,9 +784,6 @@ class FluidSolver:
                          [self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, self.kgc, m.params],
                          [state.drho_dt, state.rho, state.pressure, self._pr2])
             self._density_overflow(state, dt, summation=False)
-
-    def _extra_forces(self, state: FluidState) -> None:
-        """Hook: accelerations a variant adds after the pair forces (none here)."""
 
     def _density_diffusion(self, state: FluidState, dt: wp.array) -> None:
         """delta-SPH density diffusion after the continuity density (opt-in; kernels/sph/diffusion.py)."""

@@ -213,6 +213,9 @@ class GhostFluidSolver(FluidSolver):
             raise ValueError(f"FluidOptions.reorder_interval = {options.reorder_interval}: Ghost SPH keeps the particle "
                              "order (its grid also holds the ghosts); leave it None or 0")
         super().__init__(model, options)
+        self.replace_pass("neighbour_lists", self._ghost_lists_pass)
+        self.replace_pass("density", self._ghost_density_pass)
+        self.insert_pass("ghost_pressure", self._ghost_pressure_pass, after="pair_forces")
         go = ghost_options or GhostOptions()
         self.ghost_options = go
         self.phase_launches = go.phase_launches
@@ -676,13 +679,12 @@ class GhostFluidSolver(FluidSolver):
                           self._near_stamp, self._near],
                          [state.drho_dt, state.rho, state.pressure, self._pr2])
 
-    # FluidSolver.step's hooks: the ghost step is the fluid step with these three terms
-    def _neighbour_lists(self, state: FluidState, dt: wp.array) -> bool:
+    # FluidSolver.step's passes: the ghost step is the fluid step with three of them replaced or added (__init__)
+    def _ghost_lists_pass(self, state: FluidState, dt: wp.array) -> None:
         """The liquid and boundary lists (never fused with the density: the ghosts come first)."""
         self._update_lists(state)
-        return False
 
-    def _density(self, state: FluidState, dt: wp.array, done: bool) -> None:
+    def _ghost_density_pass(self, state: FluidState, dt: wp.array) -> None:
         """Ghost sampling, then the density over the lists plus the ghosts' part. Continuity: the rate over
         liquid and boundary is summed in sample_ghosts' div x pass (ghosts only with ghost_continuity, see
         __init__), the overflowed lists' rate here."""
@@ -695,7 +697,7 @@ class GhostFluidSolver(FluidSolver):
             if self.ghost_continuity:
                 self._ghost_density(state, dt, 2)
 
-    def _extra_forces(self, state: FluidState) -> None:
+    def _ghost_pressure_pass(self, state: FluidState, dt: wp.array) -> None:
         """The ghosts' pressure term (they enter only through the liquid particle's own p_i/rho_i^2)."""
         m = self.model
         if self.n_ghost and self.ghost_pressure_term:
