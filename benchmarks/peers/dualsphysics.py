@@ -1,8 +1,8 @@
 """DualSPHysics 5.0 side by side with rockwave on SPHERIC Test 2 (issue 19): same case, spacing, duration
 and GPU, gauge errors scored by one function (benchmarks/harness.py ``spheric_errors``).
 
-DualSPHysics is not installed with rockwave (LGPL, C++/CUDA: built from source on the GPU machine as
-../shared/peers.md describes). Its SPHERIC Test 2 case file comes from the DualSPHysics performance-test
+DualSPHysics is not installed with rockwave (LGPL, C++/CUDA: built from source on the GPU machine
+with its own build scripts). Its SPHERIC Test 2 case file comes from the DualSPHysics performance-test
 repository (``test_linux/_DataCases_Ds5Test/Spheric2Dam_400K.xml``); this module never ships that file,
 it rewrites a copy the user gives it:
 

@@ -3,8 +3,8 @@ between walls) with WCSPH, the cubic spline kernel, the same particles, support 
 step in both codes, on the CPU. Reports the throughput ratio and the front error of both.
 
 SPlisHSPlasH (pip install pysplishsplash==2.19.0, MIT; extra 'peers') runs in a child process with
-LD_PRELOAD=/lib/x86_64-linux-gnu/libGLdispatch.so.0 (its wheel's GL library clashes with the system's;
-/work/shared/peers.md). Its scene JSON is generated here (splash_scene). What is matched, and how:
+LD_PRELOAD=/lib/x86_64-linux-gnu/libGLdispatch.so.0 (its wheel's GL library clashes with the system's).
+Its scene JSON is generated here (splash_scene). What is matched, and how:
 
 - Particles: the same lattice. SPlisHSPlasH's FluidBlocks sampler (SimulatorBase::createFluidBlocks, dense
   mode 0) puts round(L / 2r) - 1 particles per axis, the first at min + 2r: a block [0, a] at r = spacing/2

@@ -1,5 +1,5 @@
 """Runs one SPlisHSPlasH scene headless inside its own process (started by benchmarks/peers/splash.py
-with LD_PRELOAD set for the wheel's GL library; /work/shared/peers.md) and writes a JSON result:
+with LD_PRELOAD set for the wheel's GL library, which clashes with the system's) and writes a JSON result:
 fluid particles, per-step wall times, and the front at the sample times (benchmarks/peers/front.py
 bulk_front, and the largest x of any particle).
 
