@@ -1,4 +1,4 @@
-"""The one command of the benchmarks (README, "Benchmarks"; docs/benchmarks.md):
+"""The one command of the benchmarks (docs/benchmarks.md):
 
     python -m benchmarks list                                  # the parts and what each measures
     python -m benchmarks run --device cpu --suite quick        # every part, small sizes (2-core CPU)

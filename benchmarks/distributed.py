@@ -1,4 +1,4 @@
-"""Scaling of one scene over MPI ranks (rockwave/sim/distributed.py; README "Several GPUs (MPI)").
+"""Scaling of one scene over MPI ranks (rockwave/sim/distributed.py; docs/mpi.md).
 
 The 3D dam break (scenes/dam_break_3d.toml, gauges off) at the spacing that gives about ``--particles``
 fluid particles in all (strong scaling) or per rank (``--weak``), advanced by ``--steps`` times the initial

@@ -1,7 +1,7 @@
 """Benchmark harness: error metrics, the run classifier, the Pareto front, and the runners of the
 accuracy matrix and the stability sweeps (driven by ``python -m benchmarks run``).
 
-Error metrics (also defined in the README, "Benchmarks"):
+Error metrics (also defined in docs/benchmarks.md, 'Error metrics'):
 
 - 2D dam break (Martin & Moyce 1952, n^2 = 2, a = 0.05715 m):
   ``front_rms`` = RMS over the measured points of (Z_sim - Z_exp) / Z_exp, Z = x_front / a at
@@ -50,7 +50,7 @@ A_MM = 0.05715  # Martin & Moyce column width a [m] (n^2 = 2)
 SPHERIC_H0 = 0.55  # SPHERIC Test 2 water depth [m]
 FRONT_LATE_T = 1.5  # front_bias_late: Martin & Moyce points at T >= this (past the start-up of the collapse)
 
-# classifier bounds (README, "Benchmarks")
+# classifier bounds (docs/benchmarks.md, 'Run classes')
 BOUNDS = dict(
     energy_growth=0.10,     # blown up: mechanical energy above its start by 10% of m g H
     escaped_fraction=0.01,  # blown up: more than 1% of the water outside the tank

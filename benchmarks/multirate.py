@@ -1,4 +1,4 @@
-"""Part ``multirate``: the cost of a coupled slide with multi-rate stepping (issue 20; README "Multi-rate
+"""Part ``multirate``: the cost of a coupled slide with multi-rate stepping (issue 20; docs/coupling.md "Multi-rate
 stepping"). scenes/submarine_slide_2d.toml at each spacing, three runs timed over the same simulated
 window after a warm-up (kernels loaded): ``multirate`` (the default: the fluid's limit sets the step, the
 block sub-steps), ``single`` (simulation.block_stepping = 'single': one step for both at the block

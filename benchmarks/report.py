@@ -442,7 +442,7 @@ def charts(res: dict, stem: str, out_dir=None) -> list[str]:
             ax.set_xscale("log")
             ax.set_yscale("log")
             ax.set_xlabel("wall-clock seconds per simulated second")
-            ax.set_ylabel("error (README, Benchmarks)")
+            ax.set_ylabel("error (docs/benchmarks.md)")
             ax.set_title(f"{title} - {res['device']}")
             ax.legend(fontsize=7)
             ax.grid(True, which="both", alpha=0.3)

@@ -1,6 +1,6 @@
 """Two-way SPH-DDA coupling (rockwave/coupling/penalty.py): Archimedes in 2D and 3D, a sinking block, a piston
 wave maker against linear theory, a wedge sliding into water, no particle inside a block, momentum
-accounting, scene rules. CPU, small scenes (DESIGN.md §7)."""
+accounting, scene rules. CPU, small scenes (Warp's CPU backend runs a kernel on one thread)."""
 
 from __future__ import annotations
 

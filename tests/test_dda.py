@@ -1,5 +1,5 @@
 """DDA block solver: FCP contact detection, friction, toppling, impact, stacks, deformable and
-kinematic blocks, time-step refusal.  Exact solutions from shared/validation/README.md
+kinematic blocks, time-step refusal.  Exact solutions as in docs/validation.md 'Rock mechanics verification'
 ("Rock blocks (exact)").  Small scenes so the Warp CPU backend (one thread) runs them quickly;
 set ROCKWAVE_TEST_DEVICE=cuda:0 to run the same tests on a GPU."""
 
@@ -613,7 +613,7 @@ def test_overlapping_initial_blocks_refused_naming_pair():
 
 
 def test_free_fall_bounce_restitution():
-    # rebound height e^2 H for a linear spring-dashpot with zeta from e (validation README)
+    # rebound height e^2 H for a linear spring-dashpot with zeta from e (docs/validation.md)
     e, H = 0.6, 0.2
     # stiff contact: gravity during the contact (duration ~ pi sqrt(m / 4k)) biases e by ~ g / (omega v0)
     mat = ContactMaterial(normal_stiffness=2e7, restitution=e, friction_angle_deg=30.0)

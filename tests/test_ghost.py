@@ -174,7 +174,7 @@ def test_zero_gravity_drop_keeps_shape_with_ghosts_and_basic_summation_clumps():
     differ only in the ghosts: both summation density (where basic SPH's free-surface deficiency
     shows), cubic spline, Tait c0 10 m/s with no clamp, fixed dt 0.2 ms, alpha 0.2, XSPH 0.05
     (scenes/drop_zero_g_2d.toml). Ghosts there: persistent, filling the density up to rho0 only, no
-    pressure term (README, Ghost SPH, says why each is needed).
+    pressure term (docs/ghost.md says why each is needed).
     Ghost keeps shape and area: radius of gyration within 0.5%, hull area within 2%, closest pair
     > 0.5 dx, outer particles' median neighbour distance > 0.75 dx.
     Basic does not: the surface layer (summation density ~0.8 rho0, p < 0) clumps (closest pair

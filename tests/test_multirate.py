@@ -1,4 +1,4 @@
-"""Multi-rate stepping (rockwave/sim/clock.py, README "Multi-rate stepping"): in a scene with water and
+"""Multi-rate stepping (rockwave/sim/clock.py, docs/coupling.md): in a scene with water and
 blocks the fluid's limits set the step and the blocks sub-step inside it with the water's load held.
 All on scenes/submarine_slide_2d.toml at 40 mm spacing (~1,400 particles)."""
 

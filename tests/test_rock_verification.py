@@ -1,7 +1,7 @@
 """Rock-mechanics verification set (issue 20): a block on an incline at a 0.1 degree friction margin over
 block sizes, slenderness and contact stiffnesses; a wedge on two joints against Hoek & Bray's limit
 equilibrium; a block on a shaking slope against Newmark's (1965) rigid-plastic sliding. One or two blocks
-on fixed or kinematic blocks, short runs: cheap on Warp's CPU backend.  The README table "Rock mechanics
+on fixed or kinematic blocks, short runs: cheap on Warp's CPU backend.  docs/validation.md "Rock mechanics
 verification" lists these with their measured errors."""
 
 import dataclasses

@@ -6,11 +6,9 @@ import math
 
 import numpy as np
 import pytest
-import warp as wp
 
 import rockwave
 from rockwave.build.sampling import box_lattice
-from rockwave.kernels.sph import fluid as sph
 from rockwave.sph.fluid import FluidSolver, build_fluid_model, calibrate_lattice, make_params
 
 from conftest import DEVICE
@@ -103,10 +101,7 @@ def test_pair_forces_conserve_momentum_and_match_reference(form, kernel):
     solver = FluidSolver(model)
     solver.build_grid(s)
     solver.compute_density(s)
-    wp.launch(sph.particle_acceleration, dim=model.n_fluid,
-              inputs=[solver.grid.id, s.x, s.v, s.rho, s.pressure, model.particle_mass, solver._wall_pr2, s.wall_velocity,
-                      solver.kgc, model.params],
-              outputs=[s.accel, s.xsph_dv], device=DEVICE)
+    solver.pair_accelerations(s)
     a = s.accel.numpy().astype(np.float64)
     m = model.fluid_mass
     total = (m * a).sum(axis=0)
@@ -205,10 +200,7 @@ def test_xsph_matches_reference():
     solver = FluidSolver(model)
     solver.build_grid(s)
     solver.compute_density(s)
-    wp.launch(sph.particle_acceleration, dim=model.n_fluid,
-              inputs=[solver.grid.id, s.x, s.v, s.rho, s.pressure, model.particle_mass, solver._wall_pr2, s.wall_velocity,
-                      solver.kgc, model.params],
-              outputs=[s.accel, s.xsph_dv], device=DEVICE)
+    solver.pair_accelerations(s)
     X = s.x.numpy().astype(np.float64)
     rho = s.rho.numpy().astype(np.float64)
     r = np.linalg.norm(X[:, None] - X[None], axis=2)

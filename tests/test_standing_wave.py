@@ -33,7 +33,7 @@ def test_default_formulation_damps_the_standing_wave_far_less_than_draft():
     (fidelity 'standard', Wendland C2 at 3 spacings, Adami walls) 14% then 9% per period, 'draft' (the old
     default) 31% and 31%. The bound, at most 20% per period from the second period on and at most two thirds of
     draft's, holds with margin at this resolution and fails for the old formulation; the issue's 1% per period
-    is a 50-per-depth figure, measured on the H100 (README, 'Accuracy against cost': 2.35%)."""
+    is a 50-per-depth figure, measured on the H100 (docs/validation.md 'Accuracy against cost': 2.35%)."""
     std = standing_wave_amplitudes({"fluid.fidelity": "standard"}, periods=3)
     old = standing_wave_amplitudes({"fluid.fidelity": "draft"}, periods=3)
     decay = lambda a: 1.0 - a[2] / a[1]  # noqa: E731 (the first period holds the start-up transient)

@@ -175,46 +175,6 @@ def gauge_pressure(sums: wp.array2d(dtype=float), out: wp.array(dtype=float)):
 
 
 @wp.kernel
-def gauge_median(top: wp.array2d(dtype=float), is_height: wp.array(dtype=int), out: wp.array(dtype=float)):
-    """Median of the wet column tops of each height gauge (top > -1e29; NaN when none is wet), as
-    numpy.median: the mean of the two middle values for an even count. One thread per gauge
-    (a few dozen columns: rank counting, no sort)."""
-    g = wp.tid()
-    if is_height[g] == 0:
-        return
-    n = top.shape[1]
-    k = int(0)
-    for c in range(n):
-        if top[g, c] > -1.0e29:
-            k += 1
-    if k == 0:
-        out[g] = wp.nan
-        return
-    lo_rank = (k - 1) / 2
-    hi_rank = k / 2
-    a = float(0.0)
-    b = float(0.0)
-    for c in range(n):
-        v = top[g, c]
-        if v > -1.0e29:
-            below = int(0)
-            equal = int(0)
-            for e in range(n):
-                u = top[g, e]
-                if u > -1.0e29:
-                    if u < v:
-                        below += 1
-                    elif u == v:
-                        equal += 1
-            # v holds ranks below .. below + equal - 1
-            if lo_rank >= below and lo_rank < below + equal:
-                a = v
-            if hi_rank >= below and hi_rank < below + equal:
-                b = v
-    out[g] = (a + b) * 0.5
-
-
-@wp.kernel
 def gauge_pressure_wall_sums(
     x: wp.array(dtype=wp.vec3),
     wall_pressure: wp.array(dtype=float),
@@ -234,8 +194,6 @@ def gauge_pressure_wall_sums(
         w = particle_mass[b] / p.rest_density * kernel_w(r2, p)
         wp.atomic_add(sums, g, 0, w * wall_pressure[t])
         wp.atomic_add(sums, g, 1, w)
-
-
 
 
 # ---------------------------------------------------------------------------------------------------

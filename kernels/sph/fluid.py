@@ -411,44 +411,6 @@ def pair_acceleration(
     return a, dv
 
 
-@wp.kernel
-def particle_acceleration(
-    grid: wp.uint64,
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    rho: wp.array(dtype=float),
-    pressure: wp.array(dtype=float),
-    particle_mass: wp.array(dtype=float),
-    wall_pr2: wp.array(dtype=wp.vec2),
-    wall_v: wp.array(dtype=wp.vec3),
-    kgc: wp.array(dtype=wp.mat33),
-    p: SPHParams,
-    accel: wp.array(dtype=wp.vec3),
-    xsph_dv: wp.array(dtype=wp.vec3),
-):
-    """a_i = pressure + viscosity + gravity; also the XSPH correction dv_i = eps sum m_j/rho_ij (v_j - v_i) W_ij
-    (neighbours from a hash-grid query; the fluid solver's own step uses particle_acceleration_list; kgc: the
-    gradient-correction matrices, or a one-entry placeholder without the correction)."""
-    i = wp.tid()
-    xi = x[i]
-    vi = v[i]
-    rhoi = rho[i]
-    pi = pressure[i]
-    a = wp.vec3(0.0)
-    dv = wp.vec3(0.0)
-    li = own_correction(kgc, i, p)
-    q = wp.hash_grid_query(grid, xi, p.H)
-    j = int(0)
-    while wp.hash_grid_query_next(q, j):
-        if j != i and wp.length_sq(xi - x[j]) < p.H * p.H:
-            da, ddv = pair_acceleration(i, j, xi, vi, rhoi, pi, x, v, rho, pressure, particle_mass, wall_pr2, wall_v,
-                                        li, kgc, p)
-            a += da
-            dv += ddv
-    accel[i] = a + p.gravity
-    xsph_dv[i] = p.xsph * dv
-
-
 # ------------------------------------------------------------------ cell grid ------
 # The fluid solver's own neighbour search (rockwave.sph.fluid.FluidSolver.build_cells builds it):
 # particles sorted by cell key, cells H wide in y and z and H/4 in x, keys x-fastest, so the cells
@@ -1130,7 +1092,9 @@ def particle_acceleration_list(
     accel: wp.array(dtype=wp.vec3),
     xsph_dv: wp.array(dtype=wp.vec3),
 ):
-    """particle_acceleration over the neighbour list (overflowed lists: particle_acceleration_overflow)."""
+    """a_i = pressure + viscosity + gravity and the XSPH correction dv_i = eps sum m_j/rho_ij (v_j - v_i) W_ij over the
+    neighbour list (pair_acceleration per neighbour; overflowed lists: particle_acceleration_overflow; kgc: the
+    gradient-correction matrices, or a one-entry placeholder without the correction)."""
     i = wp.tid()
     n = count.shape[0]
     c = count[i]
@@ -1173,7 +1137,7 @@ def particle_acceleration_overflow(
     accel: wp.array(dtype=wp.vec3),
     xsph_dv: wp.array(dtype=wp.vec3),
 ):
-    """particle_acceleration for the particles whose neighbour list overflowed, over a cell-grid query of
+    """particle_acceleration_list for the particles whose neighbour list overflowed, over a cell-grid query of
     radius R (the list radius; see particle_density_overflow)."""
     i = wp.tid()
     if count[i] <= cap:

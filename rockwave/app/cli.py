@@ -50,7 +50,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--checkpoint-every", type=float, default=None, metavar="SECONDS",
                    help="wall-clock seconds between checkpoints (overrides output.checkpoint_interval_s; 0: none)")
     r.add_argument("--ranks", action="store_true", help="one scene on all ranks of the MPI job (mpiexec -n N ...; detected "
-                   "without the flag when the MPI world has more than one rank; README 'Several GPUs (MPI)')")
+                   "without the flag when the MPI world has more than one rank; docs/mpi.md)")
     v = sub.add_parser("validate", help="check a scene file without running it: every check 'run' makes before its first step")
     v.add_argument("scene", nargs="?", default=None, help=f"scene TOML file (default: the built-in {DEFAULT_SCENE_NAME})")
     v.add_argument("--device", default=None, help="device the memory and run-length estimates are for (default: the scene's)")

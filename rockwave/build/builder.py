@@ -31,7 +31,7 @@ from rockwave.sph.ghost import GhostFluidSolver, GhostOptions, warn_unstable_ste
 
 
 def hydrostatic_density(p, g_depth: np.ndarray) -> np.ndarray:
-    """Density that makes p = rho0 g d under the EOS of the SPHParams ``p`` (validation/README.md, Hydrostatics):
+    """Density that makes p = rho0 g d under the EOS of the SPHParams ``p`` (docs/physics.md 'Walls'; p = rho0 g d at depth d):
     Tait rho = rho0 (1 + rho0 g d / B)^(1/gamma); linear rho = rho0 + rho0 g d / k."""
     rho0 = p.rest_density
     if p.eos == 0:

@@ -1,4 +1,4 @@
-"""Two-way coupling between the SPH water and the DDA rock blocks (DESIGN.md §4).
+"""Two-way coupling between the SPH water and the DDA rock blocks (docs/coupling.md).
 
 What lives where:
 

@@ -3,7 +3,7 @@
 Every key is checked against :data:`SCHEMA`. Errors are collected (all at once, not one at a
 time) and raised as one :class:`SceneError` whose lines name the scene file, the key path
 (``fluid.eos.gamma``) and what is allowed. Units are SI and appear in the key names
-(``_m``, ``_s``, ``_kg_m3``, ``_pa`` ...). The README's scene-format table is generated from the
+(``_m``, ``_s``, ``_kg_m3``, ``_pa`` ...). The scene-format reference docs/scene_format.md is generated from the
 same schema (``python -m rockwave schema``), so docs and checks cannot drift apart.
 """
 
@@ -124,8 +124,8 @@ SCHEMA: dict[str, Key] = {
         dt_s=Key("float", "fixed time step (time_step = 'fixed'); refused if above the stability limit", min=0, min_open=True),
         block_dt_safety=Key("float", "block step = this fraction of the critical DDA step 2/omega_max", default=0.5, min=0.0, max=1.0, min_open=True),
         dt_update_interval=Key("int", "steps between adaptive time-step updates (one host read each)", default=10, min=1, max=10000),
-        block_contacts=Key("str", "multi-rate block sub-steps: 'held': a fluid step's first sub-step finds the contacts, the others carry them (points moved, depths advanced by the blocks' motion; while every pair out of contact stays farther apart than it can close in the step); 'found': every sub-step runs the narrow phase (README 'Multi-rate stepping')", default="held", choices=("held", "found")),
-        block_stepping=Key("str", "with water and blocks: 'multirate': the water's limits set the step and the blocks sub-step inside it at their own (the water's load held over the step; at most 1000 sub-steps); 'single': one step for both at the smallest limit (README 'Multi-rate stepping')", default="multirate", choices=("multirate", "single")),
+        block_contacts=Key("str", "multi-rate block sub-steps: 'held': a fluid step's first sub-step finds the contacts, the others carry them (points moved, depths advanced by the blocks' motion; while every pair out of contact stays farther apart than it can close in the step); 'found': every sub-step runs the narrow phase (docs/coupling.md 'Multi-rate stepping')", default="held", choices=("held", "found")),
+        block_stepping=Key("str", "with water and blocks: 'multirate': the water's limits set the step and the blocks sub-step inside it at their own (the water's load held over the step; at most 1000 sub-steps); 'single': one step for both at the smallest limit (docs/coupling.md 'Multi-rate stepping')", default="multirate", choices=("multirate", "single")),
         device=Key("str", "'auto' (first GPU if any, else CPU), 'cpu', 'cuda' or 'cuda:N'; the CLI --device overrides", default="auto"),
     ),
     "gravity": _sec(
@@ -914,7 +914,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
 
 
 def schema_markdown() -> str:
-    """The scene format as a Markdown table (used for the README)."""
+    """The scene format as a Markdown table (docs/scene_format.md; `python -m rockwave schema`)."""
     rows = ["| key | type | default | allowed | meaning |", "|---|---|---|---|---|"]
 
     def walk(spec: dict[str, Key], prefix: str) -> None:

@@ -10,7 +10,7 @@ The adaptive target is re-evaluated every ``simulation.dt_update_interval`` step
 ``advance`` divides the time left into equal steps no longer than the target, so frames land exactly.
 ``limiting`` names the solver whose limit set the current target (run.json, the progress line).
 
-Multi-rate stepping (``simulation.block_stepping = "multirate"``, the default; README "Multi-rate
+Multi-rate stepping (``simulation.block_stepping = "multirate"``, the default; docs/coupling.md "Multi-rate
 stepping"). In a scene with water and blocks the step is set by the fluid-rate limits alone (the
 fluid's, and the coupling's penalty spring, which acts on the particles once per fluid step); the
 blocks' contacts and integration run ``substeps`` = ceil(dt / block stable step) sub-steps of

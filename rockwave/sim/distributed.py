@@ -1,6 +1,6 @@
 """One scene on several processes (one per GPU): slab decomposition of the water over MPI.
 
-Launch with ``mpiexec -n N python -m rockwave run SCENE --ranks`` (README "Several GPUs (MPI)"); the
+Launch with ``mpiexec -n N python -m rockwave run SCENE --ranks`` (docs/mpi.md); the
 MPI world size is detected without ``--ranks`` too. Each rank runs the unchanged fluid solver
 (rockwave/sph/fluid.py FluidSolver.step) on its own arrays; this module owns what happens around the step.
 

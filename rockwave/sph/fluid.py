@@ -724,6 +724,16 @@ class FluidSolver:
                       m.params],
                      [state.accel, state.xsph_dv])
 
+    def pair_accelerations(self, state: FluidState) -> None:
+        """The step's pair forces for the current density and pressure, without moving a particle: lists built,
+        wall pressure extrapolated, then state.accel (pressure + viscosity + gravity) and state.xsph_dv."""
+        with wp.ScopedDevice(self.model.device):
+            self.build_cells(state)
+            self.build_neighbour_lists(state)
+            self._lists_built()
+            self.wall_pressure(state)
+            self._pair_forces_pass(state, None)
+
     def _integrate_pass(self, state: FluidState, dt: wp.array) -> None:
         self._launch(sph.integrate_particles, self.model.n_fluid, [state.accel, state.xsph_dv, dt], [state.x, state.v])
 
