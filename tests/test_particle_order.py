@@ -122,8 +122,8 @@ def test_neighbour_lists_match_brute_force(dim, wrapped, skin):
         solver.build_cells(s)
         solver.build_neighbour_lists(s)
     n = model.n_fluid
-    cnt = solver._nbr_count.numpy()
-    nbr = solver._nbr.numpy().reshape(solver.neighbour_cap, n)
+    cnt = solver.list_counts.numpy()
+    nbr = solver.list_entries.numpy().reshape(solver.neighbour_cap, n)
     X = s.x.numpy().astype(np.float64)
     d = np.linalg.norm(X[:n, None, :] - X[None, :, :], axis=2)
     H = solver.list_radius
@@ -136,7 +136,6 @@ def test_neighbour_lists_match_brute_force(dim, wrapped, skin):
 def test_neighbour_list_overflow_falls_back_to_cell_query():
     """Particles with more neighbours than the list holds get the same density and acceleration
     from the cell-grid query."""
-    from rockwave.kernels.sph import fluid as sph
 
     model, solver = _random_model(3, wrapped=False)
     s = model.state()
@@ -145,21 +144,11 @@ def test_neighbour_list_overflow_falls_back_to_cell_query():
     def rates():
         with wp.ScopedDevice(DEVICE):
             solver.compute_density(s)
-            wp.launch(sph.particle_acceleration_list, dim=n,
-                      inputs=[solver._nbr_count, solver._nbr, s.x, s.v, s.rho, s.pressure, solver._pr2,
-                              model.particle_mass, solver._wall_pr2, s.wall_velocity, solver.kgc, model.params],
-                      outputs=[s.accel, s.xsph_dv], device=DEVICE)
-            wp.launch(sph.particle_acceleration_overflow, dim=n,
-                      inputs=[solver.cells, *solver._slot_ranges, solver.list_radius, solver._nbr_count, solver.neighbour_cap, s.x, s.v,
-                              s.rho, s.pressure, model.particle_mass, solver._wall_pr2, s.wall_velocity, solver.kgc,
-                              model.params],
-                      outputs=[s.accel, s.xsph_dv],
-                      device=DEVICE)
+            solver.pair_accelerations(s, lists_built=True)
         return s.rho.numpy().copy(), s.accel.numpy().copy(), s.xsph_dv.numpy().copy()
 
     full = rates()
-    solver.neighbour_cap = 8
-    solver._nbr = wp.zeros(8 * n, dtype=int, device=DEVICE)
+    solver.set_list_capacity(8)
     small = rates()
     assert solver.list_overflow() > 0.5 * n
     for a, b in zip(full, small):
@@ -172,10 +161,10 @@ class _BuildCounter:
     """Counts list builds of a solver from its stored build positions (works in the device-flag mode too)."""
 
     def __init__(self, fs):
-        self.fs, self.last, self.builds = fs, fs._x_build.numpy().copy(), 0
+        self.fs, self.last, self.builds = fs, fs.list_build_positions.numpy().copy(), 0
 
     def update(self):
-        x = self.fs._x_build.numpy()
+        x = self.fs.list_build_positions.numpy()
         if not np.array_equal(x, self.last):
             self.builds += 1
             self.last = x.copy()
@@ -255,8 +244,8 @@ def test_neighbour_skin_rebuilds_after_large_displacement(host_decides):
     R = solver.list_radius
 
     def lists():
-        cnt = solver._nbr_count.numpy()
-        nbr = solver._nbr.numpy().reshape(solver.neighbour_cap, n)
+        cnt = solver.list_counts.numpy()
+        nbr = solver.list_entries.numpy().reshape(solver.neighbour_cap, n)
         return [set(nbr[: cnt[i], i].tolist()) for i in range(n)]
 
     def brute(X):
@@ -272,7 +261,7 @@ def test_neighbour_skin_rebuilds_after_large_displacement(host_decides):
         x[5] += np.array([0.4 * 0.5 * 0.2 * H, 0.0, 0.0], dtype=np.float32)
         s.x.assign(x)
         solver.step(s, _ts(dt))
-        assert np.array_equal(solver._x_build.numpy()[:n], X0[:n].astype(np.float32))
+        assert np.array_equal(solver.list_build_positions.numpy()[:n], X0[:n].astype(np.float32))
         assert lists() == brute(X0)
         # one particle jumps by 0.6 H: the list is rebuilt at the new positions
         x = s.x.numpy()
@@ -280,7 +269,7 @@ def test_neighbour_skin_rebuilds_after_large_displacement(host_decides):
         s.x.assign(x)
         X1 = s.x.numpy().astype(np.float64)
         solver.step(s, _ts(dt))
-        assert np.array_equal(solver._x_build.numpy()[:n], X1[:n].astype(np.float32))
+        assert np.array_equal(solver.list_build_positions.numpy()[:n], X1[:n].astype(np.float32))
         assert lists() == brute(X1)
         # a large velocity for every particle: rebuilt each step
         s.v.assign(np.random.default_rng(1).normal(0, 0.3 * H / 1e-6, (model.n_total, 3)).astype(np.float32) *
@@ -311,15 +300,15 @@ def test_reorder_and_unsort_force_a_rebuild():
     sim = _sim(neighbour_skin=0.1)
     fs = sim.fluid_solver
     sim.step()
-    assert int(fs._rebuild.numpy()[0]) == 0
+    assert int(fs.rebuild_flag.numpy()[0]) == 0
     with wp.ScopedDevice(sim.device):
         fs.reorder(sim.state)
-    assert int(fs._rebuild.numpy()[0]) == 1
+    assert int(fs.rebuild_flag.numpy()[0]) == 1
     sim.step()
-    assert int(fs._rebuild.numpy()[0]) == 0
+    assert int(fs.rebuild_flag.numpy()[0]) == 0
     with wp.ScopedDevice(sim.device):
         fs.unsort(sim.state)
-    assert int(fs._rebuild.numpy()[0]) == 1
+    assert int(fs.rebuild_flag.numpy()[0]) == 1
 
 
 @pytest.mark.parametrize("host_decides", [True, False])
@@ -333,14 +322,13 @@ def test_neighbour_skin_overflow_fallback_on_a_kept_grid(host_decides):
     solver.set_neighbour_skin(0.2)
     solver.host_decides = host_decides
     n, H = model.n_fluid, model.support_radius
-    solver.neighbour_cap = 8
-    solver._nbr = wp.zeros(8 * n, dtype=int, device=DEVICE)
+    solver.set_list_capacity(8)
     ref = FluidSolver(model, neighbour_skin=0.0)
     s, s2 = model.state(), model.state()
     dt = wp.array([1e-7], dtype=float, device=DEVICE)
     with wp.ScopedDevice(DEVICE):
         solver.step(s, _ts(dt))
-        xb = solver._x_build.numpy().copy()
+        xb = solver.list_build_positions.numpy().copy()
         assert solver.list_overflow() > 0.5 * n
         d = np.random.default_rng(2).normal(size=(model.n_total, 3))
         d *= (0.45 * 0.1 * H / np.linalg.norm(d, axis=1))[:, None] * (np.arange(model.n_total) < n)[:, None]
@@ -351,7 +339,7 @@ def test_neighbour_skin_overflow_fallback_on_a_kept_grid(host_decides):
         s2.x.assign(x)
         solver.step(s, _ts(dt))
         ref.step(s2, _ts(dt))
-        assert np.array_equal(solver._x_build.numpy(), xb)  # the list and grid were kept
+        assert np.array_equal(solver.list_build_positions.numpy(), xb)  # the list and grid were kept
     for k in ("rho", "accel", "xsph_dv"):
         u, w = getattr(s, k).numpy(), getattr(s2, k).numpy()
         assert np.allclose(u, w, rtol=1e-5, atol=1e-5 * np.abs(w).max()), k
@@ -381,7 +369,7 @@ def test_relative_skin_check_keeps_every_neighbour_and_rebuilds_less():
             count.update()
             if mode != "relative":
                 continue
-            cnt, nbr, cap = fs._nbr_count.numpy(), fs._nbr.numpy(), fs.neighbour_cap
+            cnt, nbr, cap = fs.list_counts.numpy(), fs.list_entries.numpy(), fs.neighbour_cap
             near = ((x[:n, None, :] - x[None, :, :]) ** 2).sum(-1) < H * H
             near[np.arange(n), np.arange(n)] = False
             listed = np.zeros_like(near)

@@ -253,7 +253,7 @@ def test_neighbour_lists_hold_particles_at_a_fine_wall():
     for _ in range(5):
         sim.step()
     fs = sim.fluid_solver
-    counts = fs._nbr_count.numpy()
+    counts = fs.list_counts.numpy()
     assert fs.list_overflow() == 0
     fluid_lattice_only = dataclasses.replace(sim.fluid, boundary_spacing=0.0)
     assert counts.max() > FluidSolver.list_capacity(fluid_lattice_only, fs.neighbour_skin), "the wall lists would have fit anyway"

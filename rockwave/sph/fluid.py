@@ -336,19 +336,24 @@ class FluidSolver:
         """True while the fluid particles are in cell order (after reorder; state.ids gives the seeded order)."""
         return not self._in_original_order
 
+    def set_list_capacity(self, capacity: int) -> None:
+        """Neighbour slots per particle (fewer than the neighbours: the rest come from the cell query of the
+        overflow passes); the lists are rebuilt at the next step."""
+        self._init_lists(capacity)
+
     def set_neighbour_skin(self, skin: float) -> None:
         """Change the skin (fraction of H): reallocates the lists and the cell grid; the next step rebuilds."""
         self.neighbour_skin = float(skin)
         self._init_lists()
 
-    def _init_lists(self) -> None:
+    def _init_lists(self, capacity: int | None = None) -> None:
         """Neighbour lists (kernels/sph/fluid.py build_neighbour_list_cells): count[i] and nbr[k * n_fluid + i]
-        for k < cap; cap ~1.6x the neighbours within the list radius in the initial lattice."""
+        for k < cap; cap ~1.6x the neighbours within the list radius in the initial lattice (or ``capacity``)."""
         m, d = self.model, self.model.device
         if self.neighbour_skin < 0:
             raise ValueError(f"neighbour_skin {self.neighbour_skin} < 0")
         self.list_radius = m.support_radius * (1.0 + self.neighbour_skin)
-        self.neighbour_cap = self.list_capacity(m, self.neighbour_skin)
+        self.neighbour_cap = self.list_capacity(m, self.neighbour_skin) if capacity is None else int(capacity)
         nf = max(m.n_fluid, 1)
         self._nbr_count = wp.zeros(nf, dtype=int, device=d)
         self._nbr = wp.zeros(nf * self.neighbour_cap, dtype=int, device=d)
@@ -647,6 +652,16 @@ class FluidSolver:
         state.rho.assign(np.asarray(rho, dtype=np.float32))
         wp.launch(sph.equation_of_state_pass, dim=m.n_fluid, inputs=[state.rho, m.params], outputs=[state.pressure], device=m.device)
 
+    # ---------------------------------------------------------------- read-only views -----------
+    # The solver's own arrays for diagnostics and tests (read them; the step owns them).
+    list_counts = property(lambda self: self._nbr_count, doc="wp.array(int, n_fluid): neighbours in each list")
+    list_entries = property(lambda self: self._nbr, doc="wp.array(int, cap * n_fluid): list slots, column-major")
+    list_build_positions = property(lambda self: self._x_build, doc="wp.array(vec3): positions at the last list build [m]")
+    rebuild_flag = property(lambda self: self._rebuild, doc="wp.array(int, 1): 1 when the next step rebuilds the lists")
+    cell_order = property(lambda self: self._cell_order, doc="wp.array(int): particle index of each cell-sorted slot")
+    diffusion_rate = property(lambda self: getattr(self, "_diff_rate", None),
+                              doc="wp.array(float, n_fluid) or None: the last density-diffusion rate [kg/m^3/s]")
+
     # ---------------------------------------------------------------- the step: named passes ----
     # The one way to extend the fluid step: an ordered list of named passes, each f(state, dt) with dt the device
     # array of the step's length. A variant solver (rockwave/sph/ghost.py) or an attached part (the wall particles of
@@ -724,13 +739,15 @@ class FluidSolver:
                       m.params],
                      [state.accel, state.xsph_dv])
 
-    def pair_accelerations(self, state: FluidState) -> None:
-        """The step's pair forces for the current density and pressure, without moving a particle: lists built,
-        wall pressure extrapolated, then state.accel (pressure + viscosity + gravity) and state.xsph_dv."""
+    def pair_accelerations(self, state: FluidState, lists_built: bool = False) -> None:
+        """The step's pair forces for the current density and pressure, without moving a particle: lists built
+        (unless ``lists_built``), wall pressure extrapolated, then state.accel (pressure + viscosity + gravity) and
+        state.xsph_dv."""
         with wp.ScopedDevice(self.model.device):
-            self.build_cells(state)
-            self.build_neighbour_lists(state)
-            self._lists_built()
+            if not lists_built:
+                self.build_cells(state)
+                self.build_neighbour_lists(state)
+                self._lists_built()
             self.wall_pressure(state)
             self._pair_forces_pass(state, None)
 
