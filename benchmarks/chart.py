@@ -36,6 +36,7 @@ import json
 import math
 
 from benchmarks import harness as H
+from benchmarks.common import fmt_value as _f
 from benchmarks.common import log
 
 # name -> dotted scene changes: the three fidelity levels (fluid.fidelity; "draft" is the formulation that was the
@@ -350,7 +351,6 @@ def main(argv=None) -> None:
 
 def table_rows(part: dict) -> list[list]:
     """Rows for the Markdown table (benchmarks/report.py)."""
-    from benchmarks.report import _f
 
     out = []
     for r in part.get("rows", []):

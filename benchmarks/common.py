@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import subprocess
@@ -80,3 +81,10 @@ def write_json(res: dict, path) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+
+
+def fmt_value(v, fmt: str = ".3f", missing: str = "-") -> str:
+    """``v`` formatted, or ``missing`` where it is absent or not finite."""
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return missing
+    return format(v, fmt)

@@ -14,19 +14,13 @@ import os
 from pathlib import Path
 
 from benchmarks.common import RESULTS, ROOT, rel
+from benchmarks.common import fmt_value as _f
 
 PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface",
               "multirate", "chart", "block_contacts", "nonconvex", "at_rest")
 
 
 # ----------------------------------------------------------------------------------- tables ----
-def _f(v, fmt: str = ".3f", missing: str = "-") -> str:
-    """``v`` formatted, or ``missing`` where it is absent or not finite."""
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return missing
-    return format(v, fmt)
-
-
 def _table(head: list[str], rows: list[list]) -> list[str]:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     return lines + ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
