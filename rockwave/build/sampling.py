@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from rockwave.kernels.build import sampling as sampling_kernels
+from rockwave.kernels.build import sampling as sampling_k
 
 
 class MeshInputError(ValueError):
@@ -59,7 +59,7 @@ def mesh_signed_distance(mesh, points: np.ndarray, device) -> np.ndarray:
     pts = wp.array(points.astype(np.float32), dtype=wp.vec3, device=device)
     out = wp.zeros(len(points), dtype=float, device=device)
     span = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]) + np.abs(points).max() + 1.0) * 4.0
-    wp.launch(sampling_kernels.mesh_signed_distance, dim=len(points), inputs=[wmesh.id, pts, span, out], device=device)
+    wp.launch(sampling_k.mesh_signed_distance, dim=len(points), inputs=[wmesh.id, pts, span, out], device=device)
     return out.numpy().astype(np.float64)
 
 

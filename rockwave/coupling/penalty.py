@@ -100,8 +100,8 @@ import warp as wp
 
 from rockwave.base.maths import next_pow2, quat_to_matrix
 from rockwave.base.solver import TimeStep
-from rockwave.kernels.coupling import penalty as CK
-from rockwave.kernels.dda import blocks as DK
+from rockwave.kernels.coupling import penalty as penalty_k
+from rockwave.kernels.dda import blocks as dda_k
 
 DEFAULT_D0_RATIO = 0.5
 DEFAULT_STIFFNESS_FACTOR = 1.0
@@ -245,14 +245,14 @@ class Coupling:
         self.box_hi = wp.zeros(nb, dtype=wp.vec3, device=d)
         self.counters = wp.zeros(2, dtype=int, device=d)  # [0] (block, cell) entries, [1] large blocks
         # kernel argument groups (kernels/coupling/penalty.py), built once (grid: refreshed when it grows)
-        self.faces = CK.BlockFaces()
+        self.faces = penalty_k.BlockFaces()
         self.faces.face_start, self.faces.face_count = blocks.face_start, blocks.face_count
         self.faces.plane_n, self.faces.plane_d = self.plane_n, self.plane_d
         self.faces.kinds, self.faces.depth_scale = blocks.kinds, self.depth_scale
-        g = self.grid = CK.CouplingGrid()
+        g = self.grid = penalty_k.CouplingGrid()
         g.cell_lo, g.cell_hi, g.ncell, g.cell_offset = self.cell_lo, self.cell_hi, self.ncell, self.cell_offset
         g.large, g.counters, g.box_lo, g.box_hi = self.large, self.counters, self.box_lo, self.box_hi
-        self.params = CK.CouplingParams()
+        self.params = penalty_k.CouplingParams()
         p = self.params
         p.k_s, p.k_d, p.d0 = self.k_s, self.k_d, self.d0
         p.inv_s = 1.0 / self.cell
@@ -312,7 +312,7 @@ class Coupling:
 
     # ------------------------------------------------------------------ geometry ----------
     def update_planes(self, block_state) -> None:
-        wp.launch(CK.face_planes, dim=self.num_faces,
+        wp.launch(penalty_k.face_planes, dim=self.num_faces,
                   inputs=[self.face_block, self.body_normal, self.body_offset, block_state.x, block_state.q],
                   outputs=[self.plane_n, self.plane_d], device=self.device)
 
@@ -324,11 +324,11 @@ class Coupling:
         m, d, nf = self.blocks, self.device, self.fluid.n_fluid
         wp.copy(self.bounds, self._bounds_init)
         stride = min(nf, 16384)
-        wp.launch(CK.fluid_bounds, dim=stride, inputs=[fluid_state.x, nf, stride], outputs=[self.bounds], device=d)
-        wp.launch(DK.world_vertices, dim=m.num_vertices,
+        wp.launch(penalty_k.fluid_bounds, dim=stride, inputs=[fluid_state.x, nf, stride], outputs=[self.bounds], device=d)
+        wp.launch(dda_k.world_vertices, dim=m.num_vertices,
                   inputs=[m.body_verts, m.vert_block, block_state.x, block_state.q, block_state.strain, m.kinds, self.wv], device=d)
         self.counters.zero_()
-        wp.launch(CK.block_cells, dim=m.num_blocks,
+        wp.launch(penalty_k.block_cells, dim=m.num_blocks,
                   inputs=[self.wv, m.vert_start, m.vert_count, self.bounds, self.reach + 1e-6, 1.0 / self.cell,
                           -1 if self.direct else self.max_cells, self.grid], device=d)
         self._hash_blocks()
@@ -353,9 +353,9 @@ class Coupling:
         if total:
             # one thread per (block, cell) entry, not a serial loop per block (kernels/coupling/penalty.py)
             wp.utils.array_scan(self.ncell, self.cell_offset, inclusive=False)
-            wp.launch(CK.count_buckets, dim=total, inputs=[self.grid], device=d)
+            wp.launch(penalty_k.count_buckets, dim=total, inputs=[self.grid], device=d)
             wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
-            wp.launch(CK.fill_buckets, dim=total, inputs=[self.grid], device=d)
+            wp.launch(penalty_k.fill_buckets, dim=total, inputs=[self.grid], device=d)
         self._total = total
 
     def _nothing_near(self) -> bool:
@@ -378,7 +378,7 @@ class Coupling:
         self.update_planes(block_state)
         if self.track_walls:
             self.wall_force.zero_()
-        wp.launch(CK.particle_block_forces, dim=nf,
+        wp.launch(penalty_k.particle_block_forces, dim=nf,
                   inputs=[fluid_state.x, fluid_state.v, self.fluid.particle_mass, ts.dt_array, self.params, self.grid,
                           self.faces, block_state.bodies, block_state.loads, self.wall_force],
                   outputs=[self.dv], device=self.device)
@@ -390,7 +390,7 @@ class Coupling:
         nf = self.fluid.n_fluid
         if nf == 0 or self._nothing_near():
             return
-        wp.launch(CK.apply_dv, dim=nf, inputs=[self.dv, ts.dt_array], outputs=[fluid_state.x, fluid_state.v], device=self.device)
+        wp.launch(penalty_k.apply_dv, dim=nf, inputs=[self.dv, ts.dt_array], outputs=[fluid_state.x, fluid_state.v], device=self.device)
 
     def candidate_blocks(self) -> set[int]:
         """Blocks that the last compute tested against particles (near water): in the (block, cell)
@@ -417,7 +417,7 @@ def block_signed_distance(blocks, block_state, points: np.ndarray) -> tuple[np.n
     nfaces = int(sum(len(o) for o in offsets))
     pn = wp.zeros(nfaces, dtype=wp.vec3, device=d)
     pd = wp.zeros(nfaces, dtype=float, device=d)
-    wp.launch(CK.face_planes, dim=nfaces,
+    wp.launch(penalty_k.face_planes, dim=nfaces,
               inputs=[wp.array(np.concatenate(fblock).astype(np.int32), dtype=int, device=d),
                       wp.array(np.concatenate(normals).astype(np.float32), dtype=wp.vec3, device=d),
                       wp.array(np.concatenate(offsets).astype(np.float32), dtype=float, device=d), block_state.x, block_state.q],
@@ -425,6 +425,6 @@ def block_signed_distance(blocks, block_state, points: np.ndarray) -> tuple[np.n
     pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=d)
     out = wp.zeros(len(points), dtype=float, device=d)
     which = wp.zeros(len(points), dtype=int, device=d)
-    wp.launch(CK.signed_distance_to_blocks, dim=len(points),
+    wp.launch(penalty_k.signed_distance_to_blocks, dim=len(points),
               inputs=[pts, blocks.num_blocks, blocks.face_start, blocks.face_count, pn, pd], outputs=[out, which], device=d)
     return out.numpy().astype(np.float64), which.numpy()

@@ -7,7 +7,7 @@ import warp as wp
 
 from rockwave.base.maths import quat_to_matrix
 from rockwave.base.solver import TimeStep
-from rockwave.kernels.coupling import walls as CK
+from rockwave.kernels.coupling import walls as walls_k
 
 
 class BlockWalls:
@@ -68,11 +68,11 @@ class BlockWalls:
     def place(self, fluid_state, block_state, ts: TimeStep) -> None:
         """Put the wall particles at the blocks' poses (positions, velocities, accelerations) for this step."""
         d, m = self.device, self.solver.model
-        wp.launch(CK.block_wall_motion, dim=self.blocks.num_blocks,
+        wp.launch(walls_k.block_wall_motion, dim=self.blocks.num_blocks,
                   inputs=[block_state.bodies, self.dt_prev], outputs=[self.v_prev, self.w_prev, self.acc, self.ang_acc],
                   device=d)
         wp.copy(self.dt_prev, ts.dt_array)
-        wp.launch(CK.place_block_walls, dim=self.n,
+        wp.launch(walls_k.place_block_walls, dim=self.n,
                   inputs=[self.body_r, self.wall_block, block_state.bodies, self.acc, self.ang_acc, int(m.dim == 2),
                           self.x_off, self.b_off],
                   outputs=[fluid_state.x, fluid_state.v, self.solver.wall_accel], device=d)
@@ -86,7 +86,7 @@ class BlockWalls:
         if m.n_fluid == 0:
             return
         bs = self._block_state
-        wp.launch(CK.block_wall_reactions, dim=self.n,
+        wp.launch(walls_k.block_wall_reactions, dim=self.n,
                   inputs=[solver.cells, *solver._slot_ranges, solver.list_radius, state.x, state.v, state.rho, solver._pr2,
                           m.particle_mass, solver._wall_pr2, state.wall_velocity, solver._xq, self.b_off, self.wall_block,
                           m.params, bs.bodies, self.blocks.kinds, self.depth_scale, bs.loads],

@@ -43,7 +43,7 @@ import numpy as np
 import warp as wp
 
 from rockwave.base.maths import pad3
-from rockwave.kernels.sim import readers as gk
+from rockwave.kernels.sim import readers as gauge_k
 from rockwave.scene.format import DEFAULT_MAX_COLUMNS, DEFAULT_SAMPLE_INTERVAL_S, SceneError
 from rockwave.sim.readers import Gauges
 
@@ -148,10 +148,10 @@ class HazardMonitor:
         nw = max(self.n_wave, 1)
         self.still_d = wp.array(np.asarray(still or [0.0], np.float32), dtype=float, device=d)
         self.thr_d = wp.array(np.asarray(thr or [0.0], np.float32), dtype=float, device=d)
-        init = np.zeros((nw, gk.HZ_COLUMNS), np.float32)
-        init[:, gk.HZ_MAX] = -np.inf
-        init[:, gk.HZ_MIN] = np.inf
-        init[:, [gk.HZ_T_MAX, gk.HZ_T_MIN, gk.HZ_ARRIVAL, gk.HZ_PREV_ETA, gk.HZ_PREV_T]] = np.nan
+        init = np.zeros((nw, gauge_k.HZ_COLUMNS), np.float32)
+        init[:, gauge_k.HZ_MAX] = -np.inf
+        init[:, gauge_k.HZ_MIN] = np.inf
+        init[:, [gauge_k.HZ_T_MAX, gauge_k.HZ_T_MIN, gauge_k.HZ_ARRIVAL, gauge_k.HZ_PREV_ETA, gauge_k.HZ_PREV_T]] = np.nan
         self.wave_stats = wp.array(init, dtype=float, device=d)
         self.col_stats = []
         for _, pos in self.columns:
@@ -199,7 +199,7 @@ class HazardMonitor:
         sim, d = self.sim, self.device
         t = float(sim.time)
         if self.slide_index:
-            wp.launch(gk.hazard_block_speed, dim=len(self.slide_index), inputs=[sim.block_state.v, self.slide_d, t],
+            wp.launch(gauge_k.hazard_block_speed, dim=len(self.slide_index), inputs=[sim.block_state.v, self.slide_d, t],
                       outputs=[self.slide_stats], device=d)
         if t + 1e-12 >= self.next_t:
             self.sample()
@@ -213,17 +213,17 @@ class HazardMonitor:
         if self.gauges is not None:
             level = self.gauges.launch_levels(sim.state)
             if self.n_wave:
-                wp.launch(gk.hazard_wave_update, dim=self.n_wave, inputs=[level, self.still_d, self.thr_d, t],
+                wp.launch(gauge_k.hazard_wave_update, dim=self.n_wave, inputs=[level, self.still_d, self.thr_d, t],
                           outputs=[self.wave_stats], device=d)
             for (off, pos), st in zip(self.columns, self.col_stats):
-                wp.launch(gk.hazard_column_update, dim=len(pos), inputs=[level, off, t], outputs=[st], device=d)
+                wp.launch(gauge_k.hazard_column_update, dim=len(pos), inputs=[level, off, t], outputs=[st], device=d)
         if self.crossings:
             m = sim.fluid
             self.cross_vol.zero_()
-            wp.launch(gk.hazard_side_volume, dim=(m.n_fluid, len(self.crossings)),
+            wp.launch(gauge_k.hazard_side_volume, dim=(m.n_fluid, len(self.crossings)),
                       inputs=[sim.state.x, sim.state.rho, m.particle_mass, self.cross_point, self.cross_normal],
                       outputs=[self.cross_vol], device=d)
-            wp.launch(gk.hazard_crossing_update, dim=len(self.crossings), inputs=[self.cross_vol, t],
+            wp.launch(gauge_k.hazard_crossing_update, dim=len(self.crossings), inputs=[self.cross_vol, t],
                       outputs=[self.cross_stats], device=d)
         self.samples += 1
         self.last_sample_t = t
@@ -247,9 +247,9 @@ class HazardMonitor:
                 out["gauges"][g.name] = {
                     "position_m": list(g.position_m), "still_level_m": self.still[i],
                     "arrival_threshold_m": self.thresholds[i],
-                    "max_crest_m": row[gk.HZ_MAX], "max_crest_time_s": row[gk.HZ_T_MAX],
-                    "deepest_trough_m": row[gk.HZ_MIN], "deepest_trough_time_s": row[gk.HZ_T_MIN],
-                    "arrival_time_s": row[gk.HZ_ARRIVAL],
+                    "max_crest_m": row[gauge_k.HZ_MAX], "max_crest_time_s": row[gauge_k.HZ_T_MAX],
+                    "deepest_trough_m": row[gauge_k.HZ_MIN], "deepest_trough_time_s": row[gauge_k.HZ_T_MIN],
+                    "arrival_time_s": row[gauge_k.HZ_ARRIVAL],
                 }
         for i, (r, (off, pos), st) in enumerate(zip(self.runups, self.columns, self.col_stats)):
             a = st.numpy().astype(np.float64)

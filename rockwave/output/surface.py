@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from rockwave.kernels.output import surface as K
+from rockwave.kernels.output import surface as surface_k
 
 SURFACE_PRIM = "/World/fluid_surface"
 
@@ -152,12 +152,12 @@ class SurfaceExtractor:
         with wp.ScopedDevice(self.device):
             g = self._particle_cells(x, rho, lower, (n - 1) * cell)
             run = self.node_run
-            wp.launch(K.fluid_field, dim=((f.shape[0] + run - 1) // run, f.shape[1], f.shape[2]),
+            wp.launch(surface_k.fluid_field, dim=((f.shape[0] + run - 1) // run, f.shape[1], f.shape[2]),
                       inputs=[g, lower32, float(cell), self.radius, self.kind, self.dim, float(self.metaball_norm), run],
                       outputs=[f])
         return f, lower, cell
 
-    def _particle_cells(self, x: wp.array, rho: wp.array, lower: np.ndarray, extent: np.ndarray) -> K.ParticleCells:
+    def _particle_cells(self, x: wp.array, rho: wp.array, lower: np.ndarray, extent: np.ndarray) -> surface_k.ParticleCells:
         """The particles sorted by cell of a dense grid over the field's box (cells of width R/2, wider when
         the box would need more than max_grid_nodes cells; kernels/output/surface.py), for the gather."""
         n = len(x)
@@ -169,7 +169,7 @@ class SurfaceExtractor:
             if int(np.prod(nc)) <= self.max_nodes:
                 break
             c *= 1.25
-        g = K.ParticleCells()
+        g = surface_k.ParticleCells()
         g.lo = wp.vec3(*np.asarray(lower, np.float32)[:3])
         g.c = float(c)
         g.inv_c = float(1.0 / c)
@@ -177,14 +177,14 @@ class SurfaceExtractor:
         # radix_sort_pairs sorts in place and needs 2 n of room
         keys = self._buffer("keys", 2 * n, int)[: 2 * n]
         order = self._buffer("order", 2 * n, int)[: 2 * n]
-        wp.launch(K.particle_cell_keys, dim=n, inputs=[g, x], outputs=[keys, order])
+        wp.launch(surface_k.particle_cell_keys, dim=n, inputs=[g, x], outputs=[keys, order])
         wp.utils.radix_sort_pairs(keys, order, n)
         ncell = int(np.prod(nc)) + 1
         g.first = self._buffer("first", ncell, int)[:ncell]
-        wp.launch(K.cell_starts, dim=ncell, inputs=[keys, n], outputs=[g.first])
+        wp.launch(surface_k.cell_starts, dim=ncell, inputs=[keys, n], outputs=[g.first])
         g.x_sorted = self._buffer("x_sorted", n, wp.vec3)[:n]
         g.w_sorted = self._buffer("w_sorted", n, float)[:n]
-        wp.launch(K.gather_sorted_particles, dim=n, inputs=[order, x, rho, self.mass], outputs=[g.x_sorted, g.w_sorted])
+        wp.launch(surface_k.gather_sorted_particles, dim=n, inputs=[order, x, rho, self.mass], outputs=[g.x_sorted, g.w_sorted])
         return g
 
     def extract(self, x: wp.array, rho: wp.array, lo=None, hi=None) -> SurfaceMesh:
@@ -224,7 +224,7 @@ class SurfaceExtractor:
         seg = wp.zeros(4 * nc, dtype=wp.vec3, device=self.device)
         cnt = wp.zeros(nc, dtype=int, device=self.device)
         with wp.ScopedDevice(self.device):
-            wp.launch(K.marching_squares, dim=(nx - 1, ny - 1), inputs=[f, self.iso, wp.vec3(*lower.astype(np.float32)), float(cell)],
+            wp.launch(surface_k.marching_squares, dim=(nx - 1, ny - 1), inputs=[f, self.iso, wp.vec3(*lower.astype(np.float32)), float(cell)],
                       outputs=[seg, cnt])
         c = cnt.numpy()
         s = seg.numpy().reshape(nc, 2, 2, 3)

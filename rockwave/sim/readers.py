@@ -27,7 +27,7 @@ import warp as wp
 
 from rockwave.base.maths import pad3
 from rockwave.coupling.penalty import block_signed_distance
-from rockwave.kernels.sim import readers as gk
+from rockwave.kernels.sim import readers as gauge_k
 from rockwave.kernels.sph import fluid as sph
 
 
@@ -80,7 +80,7 @@ class Gauges:
         nf, nb = fluid.n_fluid, fluid.n_boundary - getattr(fluid, "n_moving_walls", 0)
         if any(heights) and nb:  # the static walls: their fraction along the lines once (not the moving blocks')
             xb = wp.array(np.asarray(fluid.initial_positions[nf:nf + nb], dtype=np.float32), dtype=wp.vec3, device=device)
-            wp.launch(gk.gauge_solid_profile, dim=(nb, n), inputs=[xb, fluid.particle_mass, nf, self.pos, self.is_height,
+            wp.launch(gauge_k.gauge_solid_profile, dim=(nb, n), inputs=[xb, fluid.particle_mass, nf, self.pos, self.is_height,
                                                                    up, self.z0, self.dz, fluid.params],
                       outputs=[self.phi_s], device=device)
         if any(heights) and blocks is not None and any(spec.kind == "fixed" for spec in blocks.specs):
@@ -122,12 +122,12 @@ class Gauges:
             return PendingRead(None, None, lambda a: {})
         d = self.device
         self.sums.zero_()
-        wp.launch(gk.gauge_pressure_sums, dim=(m.n_fluid, n), inputs=[state.x, state.rho, state.pressure, m.particle_mass,
+        wp.launch(gauge_k.gauge_pressure_sums, dim=(m.n_fluid, n), inputs=[state.x, state.rho, state.pressure, m.particle_mass,
                                                                      self.pos, m.params], outputs=[self.sums], device=d)
         if m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary:  # Adami walls carry the fluid's pressure
-            wp.launch(gk.gauge_pressure_wall_sums, dim=(m.n_boundary, n),
+            wp.launch(gauge_k.gauge_pressure_wall_sums, dim=(m.n_boundary, n),
                       inputs=[state.x, state.wall_pressure, m.particle_mass, self.pos, m.params], outputs=[self.sums], device=d)
-        wp.launch(gk.gauge_pressure, dim=n, inputs=[self.sums], outputs=[self.out], device=d)
+        wp.launch(gauge_k.gauge_pressure, dim=n, inputs=[self.sums], outputs=[self.out], device=d)
         self.launch_levels(state)
         names = self.names
 
@@ -143,10 +143,10 @@ class Gauges:
         m = self.fluid
         if self.any_height and m.n_fluid:
             self.phi_f.zero_()
-            wp.launch(gk.gauge_fluid_profile, dim=(m.n_fluid, len(self.names)),
+            wp.launch(gauge_k.gauge_fluid_profile, dim=(m.n_fluid, len(self.names)),
                       inputs=[state.x, state.rho, m.particle_mass, self.pos, self.is_height, self.up, self.z0, self.dz,
                               m.params], outputs=[self.phi_f], device=self.device)
-            wp.launch(gk.gauge_level, dim=len(self.names), inputs=[self.phi_f, self.phi_s, self.is_height, self.z0, self.dz,
+            wp.launch(gauge_k.gauge_level, dim=len(self.names), inputs=[self.phi_f, self.phi_s, self.is_height, self.z0, self.dz,
                                                                    self.reach], outputs=[self.out], device=self.device)
         return self.out
 
