@@ -120,7 +120,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "info":
         import warp as wp
 
-
         init_warp()
         print(f"rockwave {__import__('rockwave').__version__}, warp {wp.__version__}")
         for d in wp.get_devices():

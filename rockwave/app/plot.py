@@ -68,7 +68,6 @@ def _read_csv(path: Path) -> tuple[list[str], list[list[str]]]:
 
 
 def _scene_for(run: Path, scene_path=None):
-
     if scene_path is None:
         try:
             scene_path = json.loads((run / "run.json").read_text()).get("scene")

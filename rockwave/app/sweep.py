@@ -396,7 +396,6 @@ def run_scenario(config: dict) -> dict:
 
 
 def write_result(out: Path, res: dict) -> None:
-
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / RESULT_FILE, json.dumps(res, indent=2, default=str))
 
@@ -591,7 +590,6 @@ def write_table(study: Study, rows: list[dict]) -> dict:
     """study.csv always; study.parquet with pyarrow (the [sweep] extra). Written atomically. Returns the paths."""
     import csv
     import io
-
 
     cols: list[str] = []
     for r in rows:

@@ -291,7 +291,6 @@ def build(scene: Scene, device: str, options=None) -> Parts:
 
 
 def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
-
     xf, vf, depth, xb = seed_particles(scene, device)
     if parts.blocks is not None:
         xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth, options)
@@ -338,7 +337,6 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
 
 
 def build_blocks(scene: Scene, device: str, parts: Parts, options=None) -> None:
-
     specs = block_specs(scene)
 
     for name, body in compound_bodies(specs):  # what each non-convex mesh became
@@ -369,7 +367,6 @@ def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options=None
 
 
 def build_coupling(scene: Scene, parts: Parts, options=None) -> None:
-
     parts.coupling = c = Coupling(parts.fluid, parts.blocks, scene.dim, options=coupling_options(scene, options))
     f = parts.fluid
     if f.n_moving_walls:

@@ -101,7 +101,6 @@ def block_specs(scene: Scene) -> list[BlockSpec]:
                 k += 1
     from collections import Counter
 
-
     specs += rock_mass_specs(scene)  # [[rock_mass]]: blocks cut by joint sets
     dup = {n for n, c in Counter(s.name for s in specs).items() if c > 1}
     if dup:

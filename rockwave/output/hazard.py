@@ -81,7 +81,6 @@ class HazardMonitor:
     ``wrap(watch)`` for Simulation.advance's watch); ``result()`` reads the summary (one host read)."""
 
     def __init__(self, sim):
-
         self.sim = sim
         scene = sim.scene
         hz = scene.hazard

@@ -165,7 +165,6 @@ class UsdRecorder:
     """The run's USD stage: particles, blocks and the fluid surface (rockwave/output/usd.py)."""
 
     def __init__(self, sim, path: Path, surface=None):
-
         scene = sim.scene
         self.sim = sim
         self.dim = scene.dim
@@ -182,7 +181,6 @@ class UsdRecorder:
 
     def _setup(self, stage) -> None:
         from pxr import Sdf, UsdGeom
-
 
         scene = self.sim.scene
         info = {"dimension": self.dim, "spacing_m": self.spacing, "fluid_prim": FLUID_PRIM if self.nf else "",
@@ -228,7 +226,6 @@ class UsdRecorder:
     def frame(self, f: Frame) -> None:
         from pxr import Gf
 
-
         samples = {}
         if self.sim.fluid is not None:
             samples[(FLUID_PRIM, "points", "point3f[]")] = f.x
@@ -267,13 +264,11 @@ class VtkRecorder:
     """The ParaView series: fluid (points with velocity, density, pressure), blocks, surface."""
 
     def __init__(self, sim, folder: Path):
-
         self.sim = sim
         self.dim = sim.scene.dim
         self.series = vtk.VtkSeries(folder)
 
     def frame(self, f: Frame) -> None:
-
         d = self.dim
         if f.n_fluid:
             self.series.write(f.index, f.time, "fluid", vtk.fluid_vtu(f.x[:, :d], f.v[:, :d], f.rho, f.pressure))

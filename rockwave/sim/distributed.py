@@ -110,7 +110,6 @@ def rank_device(device: str, comm) -> str:
 
 
 def _copy_params(p, n_fluid: int):
-
     q = sph.SPHParams()
     for name in sph.SPHParams.vars:
         setattr(q, name, getattr(p, name))
@@ -371,7 +370,6 @@ def _lap(timings: dict, key: str, t0: float) -> float:
 
 
 def _fluid_options(sim):
-
     return FluidOptions(cfl_number=sim.fluid_solver.cfl_number)
 
 

@@ -74,7 +74,6 @@ class Simulation:
         self.options = options or SimulationOptions()
         self.device = resolve_device(device if device is not None else scene.simulation.device)
 
-
         self.estimate = preflight.check_scene(scene, self.device)
         parts = builder.build(scene, self.device, self.options)
         self.fluid, self.state, self.fluid_solver = parts.fluid, parts.state, parts.fluid_solver
