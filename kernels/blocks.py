@@ -123,7 +123,9 @@ class BlockMotion:
 class BlockBodies:
     """Pose and velocity of every block (BlockState): centroid x, orientation q, velocity v,
     angular velocity w (world), strain and strain rate (body frame), and x_lo, the part of the centroid
-    below float32's resolution at x: the centroid is x + x_lo ("double-float", ~48 bits; integrate_blocks)."""
+    below float32's resolution at x: the centroid is x + x_lo ("double-float", ~48 bits; integrate_blocks); q_lo likewise
+    the part of the orientation below q's resolution (the orientation is q + q_lo, unit to float64's precision;
+    every kernel reads the rounded q)."""
 
     x: wp.array(dtype=wp.vec3)
     q: wp.array(dtype=wp.quat)
@@ -132,6 +134,7 @@ class BlockBodies:
     strain: wp.array(dtype=wp.spatial_vector)
     strain_rate: wp.array(dtype=wp.spatial_vector)
     x_lo: wp.array(dtype=wp.vec3)
+    q_lo: wp.array(dtype=wp.quat)
 
 
 # a symmetric 6x6 matrix as its upper triangle, row by row (21 entries: 84 B, not the full matrix's 144)
@@ -1950,12 +1953,37 @@ def integrate_blocks(
         bodies.x_lo[b] = xl
         v[b] = vn
         w[b] = om
-        # exact rotation by |w| dt about w: q <- dq(w dt) q
+        # exact rotation by |w| dt about w, q <- dq q with dq = (sin(a/2) e, cos(a/2)), a = |w| dt, compensated like
+        # the position: q + q_lo += (dq - 1) q, dq - 1 = (sin(a/2) e, -2 sin^2(a/4)) (no cancellation). A resting
+        # block turns by far less than float32's spacing of q per step (|w| dt = 2.4e-8 rad against 6e-8 at
+        # q_i ~ 0.9): the plain product rounded every such turn away, and a block whose stuck contact points
+        # held its base could roll on them at |w| = v / r, its centroid creeping at v (issue 36, docs/notes.md)
         ang = wp.length(om) * dt
-        qn = q[b]
+        ql = bodies.q_lo[b]
+        qh = q[b]
         if ang > 0.0:
-            qn = wp.mul(wp.quat_from_axis_angle(om / wp.length(om), ang), qn)
-        q[b] = wp.normalize(qn)
+            e = om / wp.length(om)
+            sh = wp.sin(0.5 * ang)
+            s4 = wp.sin(0.25 * ang)
+            dqm = wp.quat(sh * e[0], sh * e[1], sh * e[2], -2.0 * s4 * s4)
+            dlt = wp.mul(dqm, qh) + ql
+            qs = qh + dlt
+            bb = qs - qh
+            ql = (qh - (qs - bb)) + (dlt - bb)  # two_sum, componentwise
+            qh = qs
+        # keep q + q_lo unit: its norm's excess e2 = |q + q_lo|^2 - 1 in float64 (float32 would round it to its
+        # own size), then q_lo -= (e2 / 2) q (first order, exact to ~1e-14)
+        n2 = wp.float64(0.0)
+        for i in range(4):
+            ci = wp.float64(qh[i]) + wp.float64(ql[i])
+            n2 += ci * ci
+        hc = wp.float32(wp.float64(0.5) * (n2 - wp.float64(1.0)))
+        ql = ql - hc * qh
+        if wp.abs(hc) > 1.0e-5:  # far from unit (a quaternion set from outside): start the compensation over
+            qh = wp.normalize(qh + ql)
+            ql = wp.quat(0.0, 0.0, 0.0, 0.0)
+        q[b] = qh
+        bodies.q_lo[b] = ql
         if kind == KIND_DEFORMABLE:
             # Shi's strain DOFs: M_e de'/dt = Q - V D e - 2 zeta w_e M_e e'
             s = bodies.strain[b]
@@ -2025,6 +2053,8 @@ def planar_blocks(z0: wp.array(dtype=float), kinds: wp.array(dtype=int), bodies:
     w[b] = wp.vec3(0.0, 0.0, o[2])
     r = q[b]
     q[b] = wp.normalize(wp.quat(0.0, 0.0, r[2], r[3]))
+    r = bodies.q_lo[b]
+    bodies.q_lo[b] = wp.quat(0.0, 0.0, r[2], r[3])
 
 
 @wp.kernel

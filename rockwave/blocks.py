@@ -557,7 +557,8 @@ class BlockState:
     """Time-varying block data (device arrays, N blocks, V vertices).
 
     x (N, vec3 m, centroid world; float32, the part below its resolution in x_lo (N, vec3 m): the centroid
-    is x + x_lo, carried by a compensated sum in integrate_blocks), q (N, quat xyzw body->world), v (N, vec3 m/s), w (N, vec3 rad/s,
+    is x + x_lo, carried by a compensated sum in integrate_blocks), q (N, quat xyzw body->world; float32, the part below
+    its resolution in q_lo (N, quat): the orientation is q + q_lo, integrate_blocks), v (N, vec3 m/s), w (N, vec3 rad/s,
     world frame), strain / strain_rate (N, spatial_vector: eps_x, eps_y, eps_z, gamma_yz, gamma_zx,
     gamma_xy, body frame; zero for non-deformable), ext_force / ext_torque (N, vec3 N, N m about the
     centroid, world; other modules atomically add here before step, the solver zeroes them after use),
@@ -597,6 +598,8 @@ class BlockState:
         lo = pos - pos.astype(np.float32)
         lo[np.array([s.kind == "kinematic" for s in model.specs], dtype=bool)] = 0.0
         self.x_lo = wp.array(lo.astype(np.float32), dtype=wp.vec3, device=d)
+        # orientation = q + q_lo likewise (integrate_blocks): the specs' float64 quaternions to ~48 bits
+        self.q_lo = wp.array((quats - quats.astype(np.float32)).astype(np.float32), dtype=wp.quat, device=d)
         self.force = wp.zeros(n, dtype=wp.vec3, device=d)
         self.torque = wp.zeros(n, dtype=wp.vec3, device=d)
         self.strain_force = wp.zeros(n, dtype=wp.spatial_vector, device=d)
@@ -620,7 +623,7 @@ class BlockState:
         # kernel argument groups (kernels/blocks.py) over the arrays above, built once (the arrays are
         # only ever assigned in place, e.g. by a checkpoint restore)
         self.bodies = K.BlockBodies()
-        for name in ("x", "q", "v", "w", "strain", "strain_rate", "x_lo"):
+        for name in ("x", "q", "v", "w", "strain", "strain_rate", "x_lo", "q_lo"):
             setattr(self.bodies, name, getattr(self, name))
         self.verts = K.WorldVerts()
         self.verts.arm = self.world_verts_arm
