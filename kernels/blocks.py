@@ -1764,6 +1764,28 @@ def hold_check_blocks(
 
 
 @wp.kernel
+def settle_speed(
+    kinds: wp.array(dtype=int),
+    block_size: wp.array(dtype=float),
+    v: wp.array(dtype=wp.vec3),
+    w: wp.array(dtype=wp.vec3),
+    tol: float,
+    flags: wp.array(dtype=int),
+    reach: wp.array(dtype=float),
+):
+    """BlockSolver.settle: reach[b] = the speed of a rigid or deformable block's fastest point |v| + |w| r
+    (r = block_size / 2; 0 for the others), and flags[0] = 1 when one is above tol."""
+    b = wp.tid()
+    reach[b] = 0.0
+    if not movable(kinds[b]):
+        return
+    r = block_reach(b, v, w, block_size)
+    reach[b] = r
+    if r > tol:
+        flags[0] = 1
+
+
+@wp.kernel
 def hold_check_pairs(
     pl: PairList,
     props: BlockProps,
