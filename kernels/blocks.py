@@ -1429,8 +1429,10 @@ def contact_forces(
     """Contact forces at the step's contact points (narrow_phase / narrow_phase_coop wrote them into
     `cur`; `prev`: last step's history), into `loads`: one thread per pair of the active list, in its
     order (the forces add up in the same order whichever kernel found the points). clock = [t_next, dt]
-    of this step (set_block_clock), read on the device so a CUDA graph can replay the step."""
+    of this step (set_block_clock), read on the device so a CUDA graph can replay the step; clock[2] = 1: friction
+    locked (BlockSolver.settle), every point sticks whatever its Coulomb cap (the cap is still recorded)."""
     dt = clock[1]
+    locked = clock[2] > 0.5  # BlockSolver.settle: friction locked, every point sticks
     kinds = props.kinds
     inv_mass = props.inv_mass
     x = bodies.x
@@ -1576,7 +1578,7 @@ def contact_forces(
         # slides at the cap, in the direction of that trial force, with no dashpot
         ftr = fs - cs0 * vt
         lftr = wp.length(ftr)
-        if lftr <= fmax and not (was_sliding == 1 and wp.dot(vt, fs) < 0.0):
+        if locked or (lftr <= fmax and not (was_sliding == 1 and wp.dot(vt, fs) < 0.0)):
             stuck_mask = stuck_mask | (1 << k)
             n_stuck += 1
         elif lftr > 0.0:
@@ -1620,7 +1622,7 @@ def contact_forces(
         lvt2 = wp.dot(vt, vt)
         if stuck:
             csk = cs
-            if lvt2 > 0.0:
+            if lvt2 > 0.0 and not locked:
                 fcap = cur.fcap[c]
                 fv = wp.dot(fs, vt)
                 disc = fv * fv - lvt2 * (wp.dot(fs, fs) - fcap * fcap)
