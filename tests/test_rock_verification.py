@@ -116,12 +116,14 @@ STATIC_CASES = [
 @pytest.mark.parametrize("width, aspect, kn", STATIC_CASES)
 def test_static_friction_holds_over_sizes_shapes_and_stiffnesses(width, aspect, kn):
     # issue 20: friction 0.1 deg above a 35 deg slope, started in contact without pre-set penetration,
-    # gravity from t = 0: in 2 s the base moves no more than its elastic shear deflection + 1 mm, and the
-    # block is at rest
+    # gravity from t = 0: in 2 s the base moves no more than its elastic shear deflection + 0.1 mm, and the
+    # block is at rest. Issue 36 (float32 orientations no longer round a resting block's turn away): measured
+    # disp - ext -0.02 .. -4.4 mm (the most loaded spring's extension exceeds the base's motion), speed <= 5e-6 m/s
+    # (before: 1 mm and 1e-3 x width m/s allowed; the creep rate itself: tests/test_static_friction.py)
     kn = soft_joint_kn(width) if kn == "soft" else kn
     disp, ext, speed, tilt, T = block_on_slope(35.0, 35.1, width, aspect * width, kn, 2.0)
-    assert disp - ext < 1e-3, (disp, ext)
-    assert speed < 1e-3 * width, speed
+    assert disp - ext < 1e-4, (disp, ext)
+    assert speed < 1e-5, speed
     assert tilt < 2e-3, tilt  # elastic tilt only: neither toppling nor lifting
 
 
@@ -138,9 +140,12 @@ def test_static_friction_holds_for_slender_blocks(width, aspect, kn):
     info = {}
     disp, ext, speed, tilt, T = block_on_slope(35.0, 35.1, width, aspect * width, kn, 2.0, info)
     no_slip = info["mass"] * g * math.sin(math.radians(35.0)) / (4 * info["k_s"])
-    assert disp - ext < 1e-3, (disp, ext)
-    assert disp < no_slip + 1e-3, (disp, no_slip)
-    assert speed < 1e-3 * width, speed
+    # issue 36: measured disp - ext <= -1.2 mm, disp - no_slip <= -0.35 mm; the soft 10 m blocks still rock at 2 s
+    # (6e-5 and 1.4e-4 x width m/s: the overdamped rocking mode of a plain start decays with ~0.7 s), the others
+    # move <= 2e-6 m/s
+    assert disp - ext < 1e-4, (disp, ext)
+    assert disp < no_slip + 1e-4, (disp, no_slip)
+    assert speed < 2e-4 * width, speed
     assert tilt < 2e-3, tilt
 
 

@@ -123,7 +123,9 @@ class BlockMotion:
 class BlockBodies:
     """Pose and velocity of every block (BlockState): centroid x, orientation q, velocity v,
     angular velocity w (world), strain and strain rate (body frame), and x_lo, the part of the centroid
-    below float32's resolution at x: the centroid is x + x_lo ("double-float", ~48 bits; integrate_blocks)."""
+    below float32's resolution at x: the centroid is x + x_lo ("double-float", ~48 bits; integrate_blocks); q_lo likewise
+    the part of the orientation below q's resolution (the orientation is q + q_lo, unit to float64's precision;
+    every kernel reads the rounded q)."""
 
     x: wp.array(dtype=wp.vec3)
     q: wp.array(dtype=wp.quat)
@@ -132,6 +134,7 @@ class BlockBodies:
     strain: wp.array(dtype=wp.spatial_vector)
     strain_rate: wp.array(dtype=wp.spatial_vector)
     x_lo: wp.array(dtype=wp.vec3)
+    q_lo: wp.array(dtype=wp.quat)
 
 
 # a symmetric 6x6 matrix as its upper triangle, row by row (21 entries: 84 B, not the full matrix's 144)
@@ -1426,8 +1429,10 @@ def contact_forces(
     """Contact forces at the step's contact points (narrow_phase / narrow_phase_coop wrote them into
     `cur`; `prev`: last step's history), into `loads`: one thread per pair of the active list, in its
     order (the forces add up in the same order whichever kernel found the points). clock = [t_next, dt]
-    of this step (set_block_clock), read on the device so a CUDA graph can replay the step."""
+    of this step (set_block_clock), read on the device so a CUDA graph can replay the step; clock[2] = 1: friction
+    locked (BlockSolver.settle), every point sticks whatever its Coulomb cap (the cap is still recorded)."""
     dt = clock[1]
+    locked = clock[2] > 0.5  # BlockSolver.settle: friction locked, every point sticks
     kinds = props.kinds
     inv_mass = props.inv_mass
     x = bodies.x
@@ -1573,7 +1578,7 @@ def contact_forces(
         # slides at the cap, in the direction of that trial force, with no dashpot
         ftr = fs - cs0 * vt
         lftr = wp.length(ftr)
-        if lftr <= fmax and not (was_sliding == 1 and wp.dot(vt, fs) < 0.0):
+        if locked or (lftr <= fmax and not (was_sliding == 1 and wp.dot(vt, fs) < 0.0)):
             stuck_mask = stuck_mask | (1 << k)
             n_stuck += 1
         elif lftr > 0.0:
@@ -1617,7 +1622,7 @@ def contact_forces(
         lvt2 = wp.dot(vt, vt)
         if stuck:
             csk = cs
-            if lvt2 > 0.0:
+            if lvt2 > 0.0 and not locked:
                 fcap = cur.fcap[c]
                 fv = wp.dot(fs, vt)
                 disc = fv * fv - lvt2 * (wp.dot(fs, fs) - fcap * fcap)
@@ -1758,6 +1763,28 @@ def hold_check_blocks(
         return
     if reach_dt * block_reach(b, v, w, block_size) > half_margin:
         flags[0] = 0
+
+
+@wp.kernel
+def settle_speed(
+    kinds: wp.array(dtype=int),
+    block_size: wp.array(dtype=float),
+    v: wp.array(dtype=wp.vec3),
+    w: wp.array(dtype=wp.vec3),
+    tol: float,
+    flags: wp.array(dtype=int),
+    reach: wp.array(dtype=float),
+):
+    """BlockSolver.settle: reach[b] = the speed of a rigid or deformable block's fastest point |v| + |w| r
+    (r = block_size / 2; 0 for the others), and flags[0] = 1 when one is above tol."""
+    b = wp.tid()
+    reach[b] = 0.0
+    if not movable(kinds[b]):
+        return
+    r = block_reach(b, v, w, block_size)
+    reach[b] = r
+    if r > tol:
+        flags[0] = 1
 
 
 @wp.kernel
@@ -1950,12 +1977,37 @@ def integrate_blocks(
         bodies.x_lo[b] = xl
         v[b] = vn
         w[b] = om
-        # exact rotation by |w| dt about w: q <- dq(w dt) q
+        # exact rotation by |w| dt about w, q <- dq q with dq = (sin(a/2) e, cos(a/2)), a = |w| dt, compensated like
+        # the position: q + q_lo += (dq - 1) q, dq - 1 = (sin(a/2) e, -2 sin^2(a/4)) (no cancellation). A resting
+        # block turns by far less than float32's spacing of q per step (|w| dt = 2.4e-8 rad against 6e-8 at
+        # q_i ~ 0.9): the plain product rounded every such turn away, and a block whose stuck contact points
+        # held its base could roll on them at |w| = v / r, its centroid creeping at v (issue 36, docs/notes.md)
         ang = wp.length(om) * dt
-        qn = q[b]
+        ql = bodies.q_lo[b]
+        qh = q[b]
         if ang > 0.0:
-            qn = wp.mul(wp.quat_from_axis_angle(om / wp.length(om), ang), qn)
-        q[b] = wp.normalize(qn)
+            e = om / wp.length(om)
+            sh = wp.sin(0.5 * ang)
+            s4 = wp.sin(0.25 * ang)
+            dqm = wp.quat(sh * e[0], sh * e[1], sh * e[2], -2.0 * s4 * s4)
+            dlt = wp.mul(dqm, qh) + ql
+            qs = qh + dlt
+            bb = qs - qh
+            ql = (qh - (qs - bb)) + (dlt - bb)  # two_sum, componentwise
+            qh = qs
+        # keep q + q_lo unit: its norm's excess e2 = |q + q_lo|^2 - 1 in float64 (float32 would round it to its
+        # own size), then q_lo -= (e2 / 2) q (first order, exact to ~1e-14)
+        n2 = wp.float64(0.0)
+        for i in range(4):
+            ci = wp.float64(qh[i]) + wp.float64(ql[i])
+            n2 += ci * ci
+        hc = wp.float32(wp.float64(0.5) * (n2 - wp.float64(1.0)))
+        ql = ql - hc * qh
+        if wp.abs(hc) > 1.0e-5:  # far from unit (a quaternion set from outside): start the compensation over
+            qh = wp.normalize(qh + ql)
+            ql = wp.quat(0.0, 0.0, 0.0, 0.0)
+        q[b] = qh
+        bodies.q_lo[b] = ql
         if kind == KIND_DEFORMABLE:
             # Shi's strain DOFs: M_e de'/dt = Q - V D e - 2 zeta w_e M_e e'
             s = bodies.strain[b]
@@ -2025,6 +2077,8 @@ def planar_blocks(z0: wp.array(dtype=float), kinds: wp.array(dtype=int), bodies:
     w[b] = wp.vec3(0.0, 0.0, o[2])
     r = q[b]
     q[b] = wp.normalize(wp.quat(0.0, 0.0, r[2], r[3]))
+    r = bodies.q_lo[b]
+    bodies.q_lo[b] = wp.quat(0.0, 0.0, r[2], r[3])
 
 
 @wp.kernel

@@ -279,6 +279,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         "steps_limited_by": dict(sim.clock.steps_limited_by),
         "block_substeps": sim.clock.substeps if sim.clock.block_substep is not None else None,
         "block_steps": sim.clock.block_steps if sim.blocks is not None else None,
+        "block_start": dict(sim.block_solver.start_report) if sim.block_solver is not None else None,
         "wall_s": wall,
         "particle_steps_per_s": nf * (sim.steps - steps0) / wall if wall > 0 and nf else None,
         "block_steps_per_s": (sim.blocks.num_blocks * (sim.clock.block_steps - block_steps0) / wall  # sub-steps counted

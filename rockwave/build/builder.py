@@ -352,6 +352,8 @@ def build_blocks(scene: Scene, device: str, parts: Parts, options=None) -> None:
             check_initial_overlap_on_device(solver, state)
     except (BlockOverlapError, GeometryError, ValueError) as e:
         raise SceneError(scene.path, [("blocks", str(e))]) from None
+    if solver.options.start == "settled":  # simulation.start: the blocks at rest start in equilibrium
+        solver.settle(state)
     parts.blocks, parts.block_state, parts.block_solver = blocks, state, solver
 
 

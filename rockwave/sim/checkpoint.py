@@ -46,9 +46,11 @@ from rockwave.base.files import atomic_write, file_sha256
 
 # 3: block centroids carry their float32 compensation (blocks/x_lo, blocks/world_verts_arm); 4: no
 # blocks/world_verts (the world vertices are x + arm, not stored) and the narrow phase's reference as a pose
-# (blocks/q_ref, x_lo_ref, strain_ref), not as vertices (blocks/wv_ref)
-FORMAT_VERSION = 4
-READABLE_FORMATS = (2, 3, 4)  # 2: read with zero compensation (the centroids as saved); 2, 3: world_verts dropped
+# (blocks/q_ref, x_lo_ref, strain_ref), not as vertices (blocks/wv_ref); 5: block orientations carry their
+# float32 compensation too (blocks/q_lo, issue 36)
+FORMAT_VERSION = 5
+READABLE_FORMATS = (2, 3, 4, 5)  # 2: read with zero compensation (the centroids as saved); 2, 3: world_verts dropped;
+# 2-4: q_lo = 0 (the orientations as saved)
 FILE_NAME = "checkpoint.npz"
 
 
@@ -332,6 +334,9 @@ def restore(sim, arrays: dict, meta: dict) -> None:
 
             print("resuming with changed settings: " + "; ".join(f"{k}: {a!r} -> {b!r}" for k, a, b in changes),
                   file=sys.stderr)
+    if meta.get("format") in (2, 3, 4) and "blocks/q" in arrays:
+        arrays = dict(arrays)  # before the orientations' compensation: q as saved, q_lo = 0
+        arrays.setdefault("blocks/q_lo", np.zeros_like(arrays["blocks/q"]))
     if meta.get("format") in (2, 3) and "blocks/world_verts" in arrays:
         arrays = dict(arrays)
         wv = arrays.pop("blocks/world_verts")  # format 4 forms x + arm where needed

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from rockwave.app.run import run
 from rockwave.base.device import resolve_device  # noqa: F401  (rockwave/base/device.py; re-exported)
 from rockwave.base.errors import SimulationError
 from rockwave.base.maths import pad3
@@ -343,7 +344,6 @@ class Simulation:
     def run(self, out_dir: str | os.PathLike, duration: float | None = None, progress: bool = True,
             resume: bool = False, checkpoint_interval_s: float | None = None, force: bool = False) -> dict:
         """Run the scene with outputs into ``out_dir``; see rockwave.app.run.run."""
-        from rockwave.app.run import run  # the one upward import (tests/test_layers.py EXCEPTIONS): the run loop
 
         return run(self, out_dir, duration=duration, progress=progress, resume=resume,
                    checkpoint_interval_s=checkpoint_interval_s, force=force)
