@@ -40,8 +40,8 @@ import warp as wp
 from rockwave.base.maths import next_pow2, quat_to_matrix
 from rockwave.base.solver import TimeStep
 from rockwave.dda.geometry import CompoundBlock, ConvexPolyhedron
-from rockwave.kernels.dda import blocks as K
-from rockwave.kernels.dda import blocks_coop as KC
+from rockwave.kernels.dda import blocks as dda_k
+from rockwave.kernels.dda import blocks_coop as coop_k
 
 __all__ = [
     "ContactMaterial",
@@ -470,7 +470,7 @@ class BlockModel:
         self.zeta = arr(zeta.astype(np.float32), f32)
         # Shi's strain matrices are read for deformable blocks only (integrate_blocks): one entry when there are
         # none (288 bytes per block less in a rigid rock mass)
-        if not np.any(kinds == int(K.KIND_DEFORMABLE)):
+        if not np.any(kinds == int(dda_k.KIND_DEFORMABLE)):
             sminv, sk = sminv[:1], sk[:1]
         self.strain_minv = arr(sminv.astype(np.float32), wp.spatial_matrix)
         self.strain_k = arr(sk.astype(np.float32), wp.spatial_matrix)
@@ -491,17 +491,17 @@ class BlockModel:
         self.planar = bool(planar)
         self.planar_z = arr(self.base_position[:, 2].astype(np.float32), f32) if self.planar else None
         # kernel argument groups (kernels/dda/blocks.py), built once
-        self.topology = K.BlockTopology()
+        self.topology = dda_k.BlockTopology()
         for name in ("vert_start", "vert_count", "face_start", "face_count", "face_he", "vertex_out_he", "he_vertex",
                      "he_next", "he_twin", "block_size", "he_start", "he_count", "he_walk"):
             setattr(self.topology, name, getattr(self, name))
-        self.props = K.BlockProps()
+        self.props = dda_k.BlockProps()
         for name in ("kinds", "inv_mass", "inertia_body", "inv_inertia_body", "strain_minv", "strain_k", "strain_damp"):
             setattr(self.props, name, getattr(self, name))
-        self.material = K.BlockMaterial()
+        self.material = dda_k.BlockMaterial()
         for name in ("k_n", "k_s", "tan_phi", "cohesion", "tensile", "zeta"):
             setattr(self.material, name, getattr(self, name))
-        self.motion = K.BlockMotion()
+        self.motion = dda_k.BlockMotion()
         for name in ("base_x", "motion_type", "motion_amp", "motion_freq", "motion_phase", "table_start", "table_count",
                      "table_t", "table_x"):
             setattr(self.motion, name, getattr(self, name))
@@ -516,7 +516,7 @@ class BlockModel:
             return
         d = self.device
         walk_count = wp.zeros(self.num_vertices, dtype=int, device=d)
-        wp.launch(K.vertex_walk_count, dim=self.num_vertices, inputs=[self.vertex_out_he, self.he_next, self.he_twin, walk_count],
+        wp.launch(dda_k.vertex_walk_count, dim=self.num_vertices, inputs=[self.vertex_out_he, self.he_next, self.he_twin, walk_count],
                   device=d)
         off = np.concatenate([[0], np.cumsum(walk_count.numpy().astype(np.int64))])
         vs = self.np["vert_start"].astype(np.int64)
@@ -524,7 +524,7 @@ class BlockModel:
         self.he_start = wp.array(off[vs].astype(np.int32), dtype=int, device=d)
         self.he_count = wp.array((off[ve] - off[vs]).astype(np.int32), dtype=int, device=d)
         self.he_walk = wp.zeros(int(off[-1]), dtype=int, device=d)
-        wp.launch(K.vertex_walk_fill, dim=self.num_vertices,
+        wp.launch(dda_k.vertex_walk_fill, dim=self.num_vertices,
                   inputs=[self.vertex_out_he, self.he_next, self.he_twin, wp.array(off[:-1].astype(np.int32), dtype=int, device=d),
                           self.he_walk], device=d)
         self.topology.he_start, self.topology.he_count, self.topology.he_walk = self.he_start, self.he_count, self.he_walk
@@ -543,8 +543,8 @@ class BlockModel:
         return BlockState(self)
 
 
-def _table_view(t: dict) -> "K.ContactTable":
-    v = K.ContactTable()
+def _table_view(t: dict) -> "dda_k.ContactTable":
+    v = dda_k.ContactTable()
     for name, a in t.items():
         setattr(v, name, a)
     return v
@@ -603,7 +603,7 @@ class BlockState:
         self.ext_force = wp.zeros(n, dtype=wp.vec3, device=d)
         self.ext_torque = wp.zeros(n, dtype=wp.vec3, device=d)
         self.contact_count = wp.zeros(n, dtype=int, device=d)
-        self.damp_c = wp.zeros(n, dtype=K.sym6, device=d)  # implicit contact dashpots (kernels/dda/blocks.py; upper triangle)
+        self.damp_c = wp.zeros(n, dtype=dda_k.sym6, device=d)  # implicit contact dashpots (kernels/dda/blocks.py; upper triangle)
         self.damp_b = wp.zeros(n, dtype=wp.spatial_vector, device=d)
         # each vertex relative to its block's float32 centroid x: x_lo + R (X + E X) (the narrow phase's pair frame)
         self.world_verts_arm = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
@@ -612,23 +612,23 @@ class BlockState:
         self.x_ref = wp.zeros(n, dtype=wp.vec3, device=d)
         self.q_ref = wp.zeros(n, dtype=wp.quat, device=d)
         self.x_lo_ref = wp.zeros(n, dtype=wp.vec3, device=d)
-        self.strain_ref = wp.zeros(n if np.any(model.np["kinds"] == int(K.KIND_DEFORMABLE)) else 1, dtype=wp.spatial_vector,
+        self.strain_ref = wp.zeros(n if np.any(model.np["kinds"] == int(dda_k.KIND_DEFORMABLE)) else 1, dtype=wp.spatial_vector,
                                    device=d)
         self.motion_dx = wp.zeros(n, dtype=wp.vec3, device=d)
         self.motion_rho = wp.zeros(n, dtype=wp.float32, device=d)
         self.time = 0.0
         # kernel argument groups (kernels/dda/blocks.py) over the arrays above, built once (the arrays are
         # only ever assigned in place, e.g. by a checkpoint restore)
-        self.bodies = K.BlockBodies()
+        self.bodies = dda_k.BlockBodies()
         for name in ("x", "q", "v", "w", "strain", "strain_rate", "x_lo", "q_lo"):
             setattr(self.bodies, name, getattr(self, name))
-        self.verts = K.WorldVerts()
+        self.verts = dda_k.WorldVerts()
         self.verts.arm = self.world_verts_arm
-        self.loads = K.BlockLoads()
+        self.loads = dda_k.BlockLoads()
         for name in ("force", "torque", "strain_force", "ext_force", "ext_torque", "contact_count", "damp_c", "damp_b"):
             setattr(self.loads, name, getattr(self, name))
         self.tables = [None, None]
-        self.table_views = [None, None]  # K.ContactTable over tables[0], tables[1] (swapped with them)
+        self.table_views = [None, None]  # dda_k.ContactTable over tables[0], tables[1] (swapped with them)
         # small to start with: BlockSolver grows both from the live pairs and contact points
         self.alloc_tables(_table_slots(n), 4 * n + 64)
 
@@ -669,7 +669,7 @@ class BlockState:
         self.table_cap = cap
         self.point_cap = point_cap
         if old is not None:  # keep the contact history (rehash into the larger table)
-            wp.launch(K.rehash_table, dim=old["keys"].shape[0], inputs=[_table_view(old), self.table_views[0]], device=d)
+            wp.launch(dda_k.rehash_table, dim=old["keys"].shape[0], inputs=[_table_view(old), self.table_views[0]], device=d)
 
     def swap_tables(self) -> None:
         """tables[0] <-> tables[1] (after a narrow phase: tables[0] holds this step's history)."""
@@ -700,7 +700,7 @@ class BlockState:
     def world_vertices(self) -> list:
         """World-space vertices per block (list of (V_b, 3) arrays) at the current pose and strain."""
         m = self.model
-        wp.launch(K.block_world_vertices, dim=m.num_vertices,
+        wp.launch(dda_k.block_world_vertices, dim=m.num_vertices,
                   inputs=[m.body_verts, m.vert_block, self.bodies, m.kinds, self.verts], device=m.device)
         wv = self.x.numpy().astype(np.float64)[m.vert_block.numpy()] + self.world_verts_arm.numpy()
         s, c = m.np["vert_start"], m.np["vert_count"]
@@ -963,12 +963,12 @@ class BlockSolver:
         self.hi = wp.zeros(n, dtype=wp.vec3, device=d)
         self.is_large = wp.zeros(n, dtype=int, device=d)
         self.counters = wp.zeros(5, dtype=int, device=d)
-        self.grid = K.BroadPhaseGrid()  # kernel argument groups, refreshed when a capacity grows
+        self.grid = dda_k.BroadPhaseGrid()  # kernel argument groups, refreshed when a capacity grows
         self.grid.lo, self.grid.hi, self.grid.is_large = self.lo, self.hi, self.is_large
         self.grid.inv_s = 1.0 / self.cell_size
         self.grid.body = model.block_body  # parts of one compound block are never paired
         self.grid.large_cells = self.large_cells
-        self.pair_list = K.PairList()
+        self.pair_list = dda_k.PairList()
         self.pair_list.counters = self.counters
         # Few blocks (the coupled scenes): capacities that cannot overflow (a block in more than
         # large_cells cells is "large"; each pair is emitted at most twice), so a step reads nothing
@@ -979,7 +979,7 @@ class BlockSolver:
         # no rigid or deformable block: nothing can collide (fixed and kinematic blocks do not act on each
         # other), so a step only moves the kinematic blocks and clears the coupling's forces
         kinds = model.np["kinds"]
-        self.has_free_blocks = bool(np.any((kinds == int(K.KIND_RIGID)) | (kinds == int(K.KIND_DEFORMABLE))))
+        self.has_free_blocks = bool(np.any((kinds == int(dda_k.KIND_RIGID)) | (kinds == int(dda_k.KIND_DEFORMABLE))))
         if self.sync_free:
             self._alloc_large(n)
             self._alloc_entries(self.large_cells * n + 64)
@@ -1119,9 +1119,9 @@ class BlockSolver:
     # ---- pipeline ----
     def _prepare(self, state: BlockState):
         m, d = self.model, self.device
-        wp.launch(K.block_world_vertices, dim=m.num_vertices,
+        wp.launch(dda_k.block_world_vertices, dim=m.num_vertices,
                   inputs=[m.body_verts, m.vert_block, state.bodies, m.kinds, state.verts], device=d)
-        wp.launch(K.block_aabbs, dim=m.num_blocks,
+        wp.launch(dda_k.block_aabbs, dim=m.num_blocks,
                   inputs=[state.x, state.world_verts_arm, m.vert_start, m.vert_count, self.margin, self.lo, self.hi,
                           state.contact_count], device=d)
 
@@ -1134,7 +1134,7 @@ class BlockSolver:
 
     def _broad_phase_if_moved(self):
         self._moved.zero_()
-        wp.launch(K.aabbs_left_pair_boxes, dim=self.model.num_blocks,
+        wp.launch(dda_k.aabbs_left_pair_boxes, dim=self.model.num_blocks,
                   inputs=[self.lo, self.hi, self.lo_bp, self.hi_bp, 0.5 * self.margin, self._moved], device=self.device)
         if int(self._moved.numpy()[0]) != 0:
             self._broad_phase_always()
@@ -1150,11 +1150,11 @@ class BlockSolver:
         m, d = self.model, self.device
         self.counters.zero_()
         self.bucket_count.zero_()
-        wp.launch(K.bp_count, dim=m.num_blocks, inputs=[self.grid, self.counters], device=d)
+        wp.launch(dda_k.bp_count, dim=m.num_blocks, inputs=[self.grid, self.counters], device=d)
         wp.utils.array_scan(self.bucket_count, self.bucket_start, inclusive=False)
-        wp.launch(K.bp_fill, dim=m.num_blocks, inputs=[self.grid, self.counters], device=d)
-        wp.launch(K.bp_pairs, dim=self.entry_cap, inputs=[self.grid, m.kinds, self.pair_list], device=d)
-        wp.launch(K.bp_large_pairs, dim=(self.large_list.shape[0], m.num_blocks),
+        wp.launch(dda_k.bp_fill, dim=m.num_blocks, inputs=[self.grid, self.counters], device=d)
+        wp.launch(dda_k.bp_pairs, dim=self.entry_cap, inputs=[self.grid, m.kinds, self.pair_list], device=d)
+        wp.launch(dda_k.bp_large_pairs, dim=(self.large_list.shape[0], m.num_blocks),
                   inputs=[self.grid, m.kinds, self.pair_list], device=d)
 
     def _grid_pass_sync_free(self) -> bool:
@@ -1195,10 +1195,10 @@ class BlockSolver:
         if 4 * n > 3 * cap:
             cap = _table_slots(n)
         if self.sync_free:
-            pcap = max(pcap, K.MAX_CONTACTS * self.pair_cap)
+            pcap = max(pcap, dda_k.MAX_CONTACTS * self.pair_cap)
         if (cap, pcap) != (state.table_cap, state.point_cap):
             state.alloc_tables(cap, pcap)
-        wp.launch(K.pose_motion, dim=m.num_blocks,
+        wp.launch(dda_k.pose_motion, dim=m.num_blocks,
                   inputs=[m.body_verts, m.kinds, m.vert_start, m.vert_count, state.bodies, state.world_verts_arm, state.x_ref,
                           state.q_ref, state.x_lo_ref, state.strain_ref, state.motion_dx, state.motion_rho], device=d)
         while True:
@@ -1208,20 +1208,20 @@ class BlockSolver:
             if n > 0:
                 self.counters[3:5].zero_()  # lengths of the active lists
                 coop_min = self.coop_min if self.has_big_pairs else m.max_vertex_pair
-                wp.launch(K.narrow_screen, dim=n,
+                wp.launch(dda_k.narrow_screen, dim=n,
                           inputs=[self.pair_list, m.num_blocks, int(screen), coop_min, state.verts, m.topology,
                                   state.bodies, state.motion_dx, state.motion_rho, old, new], device=d)
-                wp.launch(K.narrow_phase, dim=n,
+                wp.launch(dda_k.narrow_phase, dim=n,
                           inputs=[self.pair_list, coop_min, state.verts, m.topology, state.bodies, old, new], device=d)
                 if self.has_big_pairs:
                     nb = n
                     if not self.sync_free:  # the counter-read path: launch for the big pairs only
                         nb = self.coop_pairs = int(self.counters.numpy()[4])
                     if nb > 0:
-                        wp.launch_tiled(KC.narrow_phase_coop, dim=[nb], block_dim=self.narrow_block_dim,
+                        wp.launch_tiled(coop_k.narrow_phase_coop, dim=[nb], block_dim=self.narrow_block_dim,
                                         inputs=[self.pair_list, state.verts, m.topology, state.bodies, old, new],
                                         device=d)
-                wp.launch(K.contact_forces, dim=n,
+                wp.launch(dda_k.contact_forces, dim=n,
                           inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, state.bodies, old, new,
                                   state.loads], device=d)
             if self.sync_free or n == 0:
@@ -1251,9 +1251,9 @@ class BlockSolver:
         self.carried_substeps += 1
         n = self.pair_cap if self.sync_free else self._pair_count
         if n > 0:
-            wp.launch(K.carry_contacts, dim=n, inputs=[self.pair_list, self.block_clock, m.kinds, state.bodies, old, new],
+            wp.launch(dda_k.carry_contacts, dim=n, inputs=[self.pair_list, self.block_clock, m.kinds, state.bodies, old, new],
                       device=d)
-            wp.launch(K.contact_forces, dim=n,
+            wp.launch(dda_k.contact_forces, dim=n,
                       inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, state.bodies, old, new,
                               state.loads], device=d)
         state.swap_tables()
@@ -1277,19 +1277,19 @@ class BlockSolver:
         pass
 
     def _set_clock(self, t_next: float, dt: float):
-        wp.launch(K.set_block_clock, dim=1, inputs=[self.block_clock, float(t_next), float(dt)], device=self.device)
+        wp.launch(dda_k.set_block_clock, dim=1, inputs=[self.block_clock, float(t_next), float(dt)], device=self.device)
 
     def _integrate(self, state: BlockState):
         """Integration over the clock's step (block_clock: [t_next, dt]; and the planar constraint of a 2D
         model)."""
         m, d = self.model, self.device
         if m.num_compounds:  # compound blocks: each part gets its body's summed load
-            wp.launch(K.compound_loads, dim=m.num_compounds, inputs=[m.compound_start, m.compound_count, state.loads], device=d)
-        wp.launch(K.integrate_blocks, dim=m.num_blocks,
+            wp.launch(dda_k.compound_loads, dim=m.num_compounds, inputs=[m.compound_start, m.compound_count, state.loads], device=d)
+        wp.launch(dda_k.integrate_blocks, dim=m.num_blocks,
                   inputs=[self.props, self.motion, wp.vec3(*m.gravity), self.block_clock, state.bodies, state.loads],
                   device=d)
         if m.planar:
-            wp.launch(K.planar_blocks, dim=m.num_blocks, inputs=[m.planar_z, m.kinds, state.bodies], device=d)
+            wp.launch(dda_k.planar_blocks, dim=m.num_blocks, inputs=[m.planar_z, m.kinds, state.bodies], device=d)
 
     def detect(self, state: BlockState):
         """Collision detection only (world vertices, broad + narrow phase), forces discarded."""
@@ -1297,7 +1297,7 @@ class BlockSolver:
         self._prepare(state)
         self._broad_phase(force=True)
         self._narrow_phase(state, 0.0, screen=False)
-        wp.launch(K.clear_forces, dim=self.model.num_blocks, inputs=[state.loads], device=self.device)
+        wp.launch(dda_k.clear_forces, dim=self.model.num_blocks, inputs=[state.loads], device=self.device)
 
     def settle(self, state: BlockState) -> dict:
         """Equilibrium start (BlockOptions.start = "settled"; issue 36): the blocks that rest on another at t = 0
@@ -1315,7 +1315,7 @@ class BlockSolver:
         m, d, opt = self.model, self.device, self.options
         n = m.num_blocks
         kinds = m.np["kinds"]
-        movable = (kinds == int(K.KIND_RIGID)) | (kinds == int(K.KIND_DEFORMABLE))
+        movable = (kinds == int(dda_k.KIND_RIGID)) | (kinds == int(dda_k.KIND_DEFORMABLE))
         report = {"start": "settled", "settled_blocks": 0, "steps": 0, "time_s": 0.0, "converged": True,
                   "max_speed_m_s": 0.0, "max_displacement_m": 0.0}
         if not self.has_free_blocks:
@@ -1344,12 +1344,12 @@ class BlockSolver:
             return report
         # the settling stage's argument groups: the others held (kind fixed, no inverse mass), kinematic blocks at
         # rest at their pose of t = 0; friction locked by the block clock's flag (kernels/dda/blocks.py contact_forces)
-        props = K.BlockProps()
+        props = dda_k.BlockProps()
         for name in ("inertia_body", "inv_inertia_body", "strain_minv", "strain_k", "strain_damp"):
             setattr(props, name, getattr(m, name))
-        props.kinds = wp.array(np.where(movable & ~settling, int(K.KIND_FIXED), kinds).astype(np.int32), dtype=int, device=d)
+        props.kinds = wp.array(np.where(movable & ~settling, int(dda_k.KIND_FIXED), kinds).astype(np.int32), dtype=int, device=d)
         props.inv_mass = wp.array(np.where(settling, m.inv_mass.numpy(), 0.0).astype(np.float32), dtype=float, device=d)
-        motion = K.BlockMotion()
+        motion = dda_k.BlockMotion()
         for name in ("motion_freq", "motion_phase", "table_start", "table_count", "table_t", "table_x", "motion_amp"):
             setattr(motion, name, getattr(m, name))
         motion.motion_type = wp.zeros(n, dtype=int, device=d)
@@ -1378,7 +1378,7 @@ class BlockSolver:
                 self.broad_phases, self.narrow_phases = counts
                 if steps % every == 0:
                     flags.zero_()
-                    wp.launch(K.settle_speed, dim=n,
+                    wp.launch(dda_k.settle_speed, dim=n,
                               inputs=[props.kinds, m.block_size, state.v, state.w, float(tol), flags, reach], device=d)
                     calm = calm + 1 if int(flags.numpy()[0]) == 0 else 0
                     if calm >= 2:
@@ -1522,7 +1522,7 @@ class BlockSolver:
                     self._grid_launches()
                 self._narrow_phase(state, h)
             self._integrate(state)
-            wp.launch(K.advance_block_clock, dim=1, inputs=[self.block_clock], device=self.device)
+            wp.launch(dda_k.advance_block_clock, dim=1, inputs=[self.block_clock], device=self.device)
 
     def _fluid_step_graph(self, state: BlockState, held, h: float, n: int, hold: bool):
         """The CUDA graph of one fluid step's n block sub-steps for the tables' current parity, captured on first
@@ -1561,7 +1561,7 @@ class BlockSolver:
             self._prepare(state)
             self._narrow_phase(state, h)
         self._integrate(state)
-        wp.launch(K.advance_block_clock, dim=1, inputs=[self.block_clock], device=self.device)
+        wp.launch(dda_k.advance_block_clock, dim=1, inputs=[self.block_clock], device=self.device)
 
     def _substep_graph(self, state: BlockState, held, h: float, hold: bool = False):
         """The CUDA graph of one kept-pairs sub-step for the tables' current parity, captured on first use
@@ -1600,13 +1600,13 @@ class BlockSolver:
             flags = self._hold_flags = (wp.zeros(2, dtype=int, device=d),
                                         wp.zeros(2, dtype=int, device="cpu", pinned=wp.get_device(d).is_cuda))
         flags[0].fill_(1)
-        wp.launch(K.hold_check_blocks, dim=m.num_blocks,
+        wp.launch(dda_k.hold_check_blocks, dim=m.num_blocks,
                   inputs=[m.kinds, m.block_size, state.v, state.w, float(headroom * dt), 0.5 * self.margin, flags[0]],
                   device=d)
         check_contacts = bool(self.options.hold_contacts and self.narrow_phases)
         n = self.pair_cap if self.sync_free else self._pair_count
         if check_contacts and n > 0:
-            wp.launch(K.hold_check_pairs, dim=n,
+            wp.launch(dda_k.hold_check_pairs, dim=n,
                       inputs=[self.pair_list, m.props, m.material, m.block_size, state.bodies, self.g_mag,
                               float(headroom * dt * steps), state.table_views[0], flags[0]], device=d)
         wp.copy(flags[1], flags[0])
