@@ -51,6 +51,8 @@ FORMULATIONS: dict[str, dict] = {
     # fidelity 'waves': standard with the kernel-gradient correction and the density floor (docs/notes.md
     # 'Kernel-gradient correction'); the 2026-11-28 H200 record calls it standard+kgc
     "waves": {"fluid.fidelity": "waves"},
+    # fidelity 'delta_plus' (issue 38): standard with delta-SPH diffusion (walls included) and particle shifting, alpha 0
+    "delta_plus": {"fluid.fidelity": "delta_plus"},
 }
 CASES = ("standing_wave", "wave_maker", "dam_break", "spheric")
 STANDING = dict(depth=0.2, kh=0.9, mode=1, a=0.02, c0=12.0, signal="projection")  # first sloshing mode
@@ -78,7 +80,8 @@ METRICS = (("standing_wave", "decay_per_period", "standing wave: amplitude decay
            ("standing_wave", "period_error", "standing wave: |period error|"),
            ("wave_maker", "error", "piston wave maker: |H / H_linear - 1|, worse gauge"),
            ("dam_break", "error", "2D dam break: |front bias|, T >= 1.5"),
-           ("spheric", "error", "SPHERIC Test 2: water level RMS / 0.55 m, H1-H4 mean"))
+           ("spheric", "error", "SPHERIC Test 2: water level RMS / 0.55 m, H1-H4 mean"),
+           ("spheric", "p1_noise", "SPHERIC Test 2: P1 noise > 200 Hz / low-pass, 20 ms after impact"))
 
 
 # ------------------------------------------------------------------------------- formulations ----
@@ -257,7 +260,7 @@ def line(r: dict) -> str:
              "dam_break": f"front bias T>=1.5 {f('front_bias_late', '+.3f')} rms {f('error_rms', '.3f')} "
                           f"speed x{f('front_speed_ratio', '.3f')} delay {f('front_delay_s', '.4f')} s",
              "spheric": f"H mean {f('h_rms', '.3f')} max {f('h_max', '.3f')} P1 t {f('p1_impact_error', '+.3f')} "
-                        f"peak {f('p1_peak_error', '+.3f')}"}[r["case"]]
+                        f"peak {f('p1_peak_error', '+.3f')} noise {f('p1_noise', '.3f')}"}[r["case"]]
     ex = f" {r['exception']}" if r.get("exception") else ""
     ex += f"  {r.get('class', '')}" + (f" ({'; '.join(r['why'])})" if r.get("why") else "")
     return (f"{r['case']:13s} {r['formulation']:22s} {r['label']:>12s} n={r.get('particles', 0):7d} "
@@ -374,6 +377,8 @@ def table_rows(part: dict) -> list[list]:
         else:
             err = (f"H1-H4 mean {_f(r.get('h_rms'))}, max {_f(r.get('h_max'))}; P1 impact t "
                    f"{_f(r.get('p1_impact_error'), '+.1%')}, peak {_f(r.get('p1_peak_error'), '+.0%')}")
+            if r.get("p1_noise") is not None:
+                err += f", noise {_f(r.get('p1_noise'), '.2f')} (sensor {_f(r.get('p1_noise_exp'), '.2f')})"
         if r.get("exception"):
             err += f"; {r['exception'][:80]}"
         cls = r.get("class", "-") + (f": {'; '.join(r['why'])[:120]}" if r.get("why") else "")

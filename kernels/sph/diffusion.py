@@ -1,27 +1,39 @@
 """Density diffusion (delta-SPH) for continuity density, launched by rockwave/sph/fluid.py
 (FluidSolver._density_diffusion): an opt-in pass after the density pass of FluidSolver.step (scene key
-fluid.density_diffusion), so the default step launches nothing of it.
+fluid.density_diffusion; the `delta_plus` level sets it), so the levels without it launch nothing of it.
 
-Molteni & Colagrossi (2009) added to the continuity equation
+Molteni & Colagrossi (2009) and Antuono et al. (2010, 2012) add to the continuity equation
 
     d rho_i/dt += delta h c0 sum_j psi_ij . grad_i W_ij V_j,   psi_ij = 2 (rho_j - rho_i) (x_j - x_i)/|x_ij|^2,
 
 V_j = m_j/rho0 (not m_j/rho_j: a splash particle's continuity density falls far below rho0, 300 kg/m^3 in
 SPHERIC Test 2, and with m_j/rho_j its neighbours' diffusion then grew without bound and drove densities
-negative: the coupled run blew up), h = H/2: a Laplacian of the density that damps the particle-scale density (pressure) noise
-of continuity-density WCSPH and leaves the smooth field alone (its size is delta h c0, delta ~ 0.1;
-Antuono et al. 2010). In a column of water at rest this diffuses the hydrostatic density gradient (truncated
-kernels at the free surface and walls turn it into a net flux); so, as Fourtakas et al. (2019, the
-'dynamic density' form of DualSPHysics), the hydrostatic part is taken out of the difference:
-rho_j - rho_i - (rho_j^H - rho_i^H), rho_j^H - rho_i^H = rho0 g . (x_j - x_i)/c0^2 (the linearised EOS;
-g the gravity vector). Fluid neighbours only (boundary particles carry no density).
+negative), h = H/2: a Laplacian of the density that damps the particle-scale density (pressure) noise of
+continuity-density WCSPH and leaves the smooth field alone (its size is delta h c0, delta ~ 0.1; Antuono et al.
+2010). In a column of water at rest this diffuses the hydrostatic density gradient (truncated kernels at the free
+surface and walls turn it into a net flux); so, as Fourtakas et al. (2019, the 'dynamic density' form of
+DualSPHysics), the hydrostatic part is taken out of the difference: rho_j - rho_i - (rho_j^H - rho_i^H),
+rho_j^H - rho_i^H = rho0 g . (x_j - x_i)/c0^2 (the linearised EOS; g the gravity vector).
+
+Walls (Adami et al. 2012) take part with the density of their extrapolated pressure, rho_b = EOS^-1(p_b)
+(wall_pr2[b][1] = rho_b/rho0, from this step's wall_pressure_adami, which the solver runs before this pass when
+the diffusion includes walls) and their geometric volume V_b = m_b/rho0. Why (docs/notes.md 'delta-plus'): with
+fluid neighbours only, the sum over a support cut by a wall is not a Laplacian but a one-sided difference,
+~ delta c0 (d rho/dn) (an O(1/h) flux through the wall). At rest the Fourtakas term removes it; at an impact
+the density (pressure) is largest against the wall, and the diffusion drained it from the wall's water every
+step: the Adami wall pressure extrapolated from that water fell, and water crossed the wall (a 2D dam break into
+a wall on the CPU: 6 particles through the end wall at the run-up, densities to -300 kg/m^3 after; SPHERIC
+Test 2 on the H100 blew up the same way after its impact). The wall's extrapolated density continues the fluid's
+field through the wall (its gradient is the fluid's hydrostatic and wall-acceleration part, which the Fourtakas
+term removes), so the boundary flux vanishes and the water pressed against the wall keeps its pressure. Akinci
+walls carry no density: there the sum stays the fluid's (only `draft` uses Akinci walls, without diffusion).
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from rockwave.kernels.sph.fluid import SPHParams, kernel_grad, store_density
+from rockwave.kernels.sph.fluid import BOUNDARY_ADAMI, SPHParams, kernel_grad, store_density
 
 wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
 
@@ -32,12 +44,17 @@ def density_diffusion_rate(
     nbr: wp.array(dtype=int),
     x: wp.array(dtype=wp.vec3),
     rho: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    wall_pr2: wp.array(dtype=wp.vec2),
+    walls: int,
     p: SPHParams,
     delta: float,
     out: wp.array(dtype=float),
 ):
-    """out_i = delta h c0 sum_j 2 (rho_j - rho_i - rho0 g.(x_j - x_i)/c0^2) ((x_j - x_i) . grad_i W_ij)/|x_ij|^2 m/rho0
-    over the neighbour list (pairs at r >= H skipped; a particle whose list overflowed gets 0)."""
+    """out_i = delta h c0 sum_j 2 (rho_j - rho_i - rho0 g.(x_j - x_i)/c0^2) ((x_j - x_i) . grad_i W_ij)/|x_ij|^2 V_j
+    over the neighbour list (pairs at r >= H skipped; a particle whose list overflowed gets 0): fluid neighbours with
+    V_j = m/rho0; with ``walls`` = 1 and Adami walls also the wall particles, rho_b = rho0 wall_pr2[b][1] and
+    V_b = m_b/rho0 (module docstring)."""
     i = wp.tid()
     n = count.shape[0]
     c = count[i]
@@ -48,16 +65,25 @@ def density_diffusion_rate(
     ri = rho[i]
     H2 = p.H * p.H
     c2 = p.sound_speed * p.sound_speed
+    with_walls = walls != 0 and p.boundary == BOUNDARY_ADAMI
     s = float(0.0)
     for k in range(c):
         j = nbr[k * n + i]
+        rj = float(0.0)
+        vj = float(0.0)
         if j < p.n_fluid:
+            rj = rho[j]
+            vj = p.fluid_mass / p.rest_density
+        elif with_walls:
+            rj = p.rest_density * wall_pr2[j - p.n_fluid][1]
+            vj = particle_mass[j] / p.rest_density
+        if vj > 0.0:
             xji = x[j] - xi
             r2 = wp.length_sq(xji)
             if r2 < H2 and r2 > 0.0:
                 g = kernel_grad(-xji, wp.sqrt(r2), p)
-                drho = rho[j] - ri - p.rest_density * wp.dot(p.gravity, xji) / c2
-                s += 2.0 * drho * wp.dot(xji, g) / r2 * (p.fluid_mass / p.rest_density)
+                drho = rj - ri - p.rest_density * wp.dot(p.gravity, xji) / c2
+                s += 2.0 * drho * wp.dot(xji, g) / r2 * vj
     out[i] = delta * 0.5 * p.H * p.sound_speed * s
 
 
@@ -76,4 +102,3 @@ def apply_density_diffusion(
     r = rho[i] + dt[0] * rate[i]
     drho_dt[i] = drho_dt[i] + rate[i]
     store_density(i, r, p, rho, pressure, pr2)
-

@@ -16,7 +16,7 @@ import numpy as np
 import warp as wp
 
 from rockwave.base.solver import TimeStep
-from rockwave.kernels.sph import diffusion
+from rockwave.kernels.sph import diffusion, shifting
 from rockwave.kernels.sph import fluid as sph
 
 
@@ -131,6 +131,7 @@ class FluidModel:
     density_diffusion: float = 0.0  # delta of the delta-SPH density diffusion (kernels/sph/diffusion.py); 0: off
     boundary_spacing: float = 0.0  # boundary particle lattice spacing [m]; 0: the fluid spacing
     n_moving_walls: int = 0  # wall particles of moving blocks, the last of the boundary particles
+    particle_shifting: float = 0.0  # K of the particle shifting (kernels/sph/shifting.py); 0: off
 
     @property
     def n_static_boundary(self) -> int:
@@ -661,6 +662,10 @@ class FluidSolver:
     cell_order = property(lambda self: self._cell_order, doc="wp.array(int): particle index of each cell-sorted slot")
     diffusion_rate = property(lambda self: getattr(self, "_diff_rate", None),
                               doc="wp.array(float, n_fluid) or None: the last density-diffusion rate [kg/m^3/s]")
+    shift_displacements = property(lambda self: getattr(self, "_shift_dr", None),
+                                   doc="wp.array(vec3, n_fluid) or None: the last step's particle shifts [m]")
+    surface_indicator = property(lambda self: getattr(self, "_shift_lam", None),
+                                 doc="wp.array(float, n_fluid) or None: the last free-surface indicator lambda_i")
 
     # ---------------------------------------------------------------- the step: named passes ----
     # The one way to extend the fluid step: an ordered list of named passes, each f(state, dt) with dt the device
@@ -668,13 +673,13 @@ class FluidSolver:
     # moving blocks, rockwave/coupling/walls.py; a rank's halo exchange, rockwave/sim/distributed.py) replaces or
     # inserts passes by name (replace_pass / insert_pass); nothing copies the sequence.
     PASS_NAMES = ("neighbour_lists", "gradient_correction", "density", "density_diffusion", "wall_pressure",
-                  "pair_forces", "integrate")
+                  "pair_forces", "shifting", "integrate", "shift")
 
     def _default_passes(self) -> list:
         return [("neighbour_lists", self._neighbour_lists_pass), ("gradient_correction", self._gradient_correction_pass),
                 ("density", self._density_pass), ("density_diffusion", self._density_diffusion_pass),
                 ("wall_pressure", self._wall_pressure_pass), ("pair_forces", self._pair_forces_pass),
-                ("integrate", self._integrate_pass)]
+                ("shifting", self._shifting_pass), ("integrate", self._integrate_pass), ("shift", self._shift_pass)]
 
     def pass_names(self) -> list[str]:
         return [name for name, _ in self.passes]
@@ -724,6 +729,38 @@ class FluidSolver:
 
     def _wall_pressure_pass(self, state: FluidState, dt: wp.array) -> None:
         self.wall_pressure(state)
+
+    def _shifting_pass(self, state: FluidState, dt: wp.array) -> None:
+        """fluid.particle_shifting: each particle's shift of this step from the step's start positions (free-surface
+        indicator, concentration gradients, then the shift with its free-surface band; kernels/sph/shifting.py),
+        applied after the integration (the ``shift`` pass). Nothing without it."""
+        if self.model.particle_shifting > 0.0:
+            self.particle_shift(state)
+
+    def _shift_pass(self, state: FluidState, dt: wp.array) -> None:
+        if self.model.particle_shifting > 0.0:
+            self._launch(shifting.apply_shift, self.model.n_fluid, [self._shift_dr, state.x])
+
+    def particle_shift(self, state: FluidState) -> None:
+        """The shifts of this step into ``shift_displacements`` (positions unchanged; the lists must be current)."""
+        m = self.model
+        if getattr(self, "_shift_dr", None) is None:
+            nf, d = m.n_fluid, m.device
+            self._shift_lam = wp.zeros(nf, dtype=float, device=d)
+            self._shift_gc = wp.zeros(nf, dtype=wp.vec3, device=d)
+            self._shift_gs = wp.zeros(nf, dtype=wp.vec3, device=d)
+            self._shift_dr = wp.zeros(nf, dtype=wp.vec3, device=d)
+            self._shift_v2 = wp.zeros(1, dtype=float, device=d)
+            self._shift_wdx = float(lattice_kernel_value(m.params, m.spacing, d))
+        self._launch(shifting.surface_and_concentration, m.n_fluid,
+                     [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, m.params, self._shift_wdx],
+                     [self._shift_lam, self._shift_gc, self._shift_gs])
+        self._shift_v2.zero_()
+        stride = min(m.n_fluid, 16384)
+        self._launch(shifting.speed_max, stride, [state.v, m.n_fluid, stride, self._shift_v2])
+        self._launch(shifting.shift_displacement, m.n_fluid,
+                     [self._nbr_count, self._nbr, state.x, self._shift_lam, self._shift_gc, self._shift_gs,
+                      self._shift_v2, m.params, m.particle_shifting, m.spacing], [self._shift_dr])
 
     def _pair_forces_pass(self, state: FluidState, dt: wp.array) -> None:
         """Acceleration and XSPH velocity of every fluid particle from its neighbours (the lists, then the
@@ -818,11 +855,17 @@ class FluidSolver:
         m = self.model
         if getattr(self, "_diff_rate", None) is None:
             self._diff_rate = wp.zeros(m.n_fluid, dtype=float, device=m.device)
-        wp.launch(diffusion.density_diffusion_rate, dim=m.n_fluid,
-                  inputs=[self._nbr_count, self._nbr, state.x, state.rho, m.params, m.density_diffusion],
-                  outputs=[self._diff_rate], device=m.device)
-        wp.launch(diffusion.apply_density_diffusion, dim=m.n_fluid, inputs=[self._diff_rate, dt, m.params],
-                  outputs=[state.drho_dt, state.rho, state.pressure, self._pr2], device=m.device)
+        # Adami walls take part with the density of their pressure extrapolated from this step's density (the
+        # root of the blow-up after an impact, kernels/sph/diffusion.py); the wall_pressure pass then extrapolates
+        # again from the diffused density
+        walls = int(m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary > 0)
+        if walls:
+            self.wall_pressure(state)
+        self._launch(diffusion.density_diffusion_rate, m.n_fluid,
+                     [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, self._wall_pr2, walls, m.params,
+                      m.density_diffusion], [self._diff_rate])
+        self._launch(diffusion.apply_density_diffusion, m.n_fluid, [self._diff_rate, dt, m.params],
+                     [state.drho_dt, state.rho, state.pressure, self._pr2])
 
     # ---------------------------------------------------------------- checkpoint ------------
     def checkpoint_arrays(self) -> dict[str, wp.array]:
@@ -914,6 +957,15 @@ def calibrate_lattice(params: sph.SPHParams, spacing: float, dim: int, device) -
     return mass, w_sum / grad_moment
 
 
+def lattice_kernel_value(params: sph.SPHParams, spacing: float, device) -> float:
+    """W(dx) of the scene's kernel at one particle spacing (the anti-clumping term's reference)."""
+    pts = wp.array(np.array([[0.0, 0.0, 0.0], [spacing, 0.0, 0.0]], np.float32), dtype=wp.vec3, device=device)
+    w = wp.zeros(2, dtype=float, device=device)
+    gx = wp.zeros(2, dtype=float, device=device)
+    wp.launch(sph.lattice_moments, dim=2, inputs=[pts, params], outputs=[w, gx], device=device)
+    return float(w.numpy()[1])
+
+
 def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray, boundary_positions: np.ndarray,
                       scene_fluid, dim: int, gravity, device, boundary_spacing: float | None = None,
                       boundary_layers: int | None = None, moving_wall_positions: np.ndarray | None = None) -> FluidModel:
@@ -957,6 +1009,7 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
         domain_lo=lo, domain_hi=hi, initial_positions=x, initial_velocities=v, device=wp.get_device(device),
         density_diffusion=float(scene_fluid.get("density_diffusion", 0.0) or 0.0),
         boundary_spacing=float(bstep) if nb else 0.0, n_moving_walls=n_moving,
+        particle_shifting=float(scene_fluid.get("particle_shifting", 0.0) or 0.0),
     )
     if nb and full_support:
         mb = calibrate_lattice(params, bstep, dim, device)[0]

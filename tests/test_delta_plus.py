@@ -1,0 +1,186 @@
+"""The `delta_plus` level (issue 38): delta-SPH density diffusion with the walls in the sum (kernels/sph/diffusion.py),
+particle shifting with a free-surface band (kernels/sph/shifting.py), alpha 0. Water at rest stays hydrostatic, the
+shift conserves mass and never moves water across its free surface or into a wall, momentum is kept, the standing
+wave at a CPU size decays less than at `standard`, and a 2D dam break into a wall keeps its water and positive
+densities through the impact and the run-up (where diffusion without the walls in the sum lost water through the
+end wall and drove densities negative). CPU, small."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+import rockwave
+from benchmarks import harness as H
+from benchmarks.harness import standing_wave
+from rockwave.sph.fluid import FluidSolver, build_fluid_model
+
+from conftest import DEVICE
+
+
+def _tank(depth=0.3, width=0.6, spacing=0.015, **fluid):
+    gauges = [{"name": "corner", "kind": "pressure", "position_m": [0.0, 0.0]},
+              {"name": "floor_mid", "kind": "pressure", "position_m": [0.5 * width, 0.0]},
+              {"name": "side_mid", "kind": "pressure", "position_m": [0.0, 0.5 * depth]}]
+    d = {"simulation": {"dimension": 2, "duration_s": 1.0},
+         "fluid": {"spacing_m": spacing, "fidelity": "delta_plus", "eos": {"speed_of_sound_m_s": 20.0},
+                   "regions": [{"box_min_m": [0.0, 0.0], "box_max_m": [width, depth]}]},
+         "tank": {"box_min_m": [0.0, 0.0], "box_max_m": [width, depth + 0.1]},
+         "output": {"gauges": gauges}}
+    d["fluid"].update(fluid)
+    return d
+
+
+def test_level_sets_diffusion_shifting_and_no_viscosity_and_ghost_refuses_shifting():
+    """The level fills its keys (an expert key given wins); Ghost SPH takes the level without the shifting and the
+    diffusion, and shifting set by hand with Ghost SPH is a SceneError naming the key."""
+    f = rockwave.parse_scene(_tank()).fluid
+    assert (f.kernel, f.support_radius_ratio, f.boundary) == ("wendland", 3.0, "adami")
+    assert f.density_diffusion == 0.1 and f.particle_shifting > 0 and f.viscosity.artificial_alpha == 0.0
+    assert rockwave.parse_scene(_tank(particle_shifting=0.0)).fluid.particle_shifting == 0.0
+    ghost = _tank(method="ghost")
+    g = rockwave.parse_scene(ghost).fluid
+    assert g.particle_shifting == 0.0 and g.density_diffusion == 0.0
+    with pytest.raises(rockwave.SceneError) as e:
+        rockwave.parse_scene(_tank(method="ghost", particle_shifting=0.1))
+    assert any(k == "fluid.particle_shifting" for k, _ in e.value.errors)
+
+
+def test_water_at_rest_with_diffusion_and_shifting_stays_hydrostatic():
+    """The 2D tank of tests/test_walls.py (0.3 m deep, 0.6 m wide, 0.015 m, c0 20 m/s, 0.5 s) at `delta_plus`: the
+    gauges at the corner, mid-floor and mid-wall read rho0 g d within 2% (measured +0.18 / +0.33 / -0.20%;
+    standard +0.63 / +0.86 / -0.04%), speeds stay
+    below 0.1% of c0 (RMS), the surface stays within 0.1 spacing: the diffusion's hydrostatic part is taken out
+    (Fourtakas et al. 2019) and the shifting, scaled by the flow's Mach number, leaves still water still."""
+    s, depth = 0.015, 0.3
+    sim = rockwave.Simulation(rockwave.parse_scene(_tank()), device=DEVICE)
+    assert sim.fluid.particle_shifting > 0 and sim.fluid.density_diffusion > 0
+    z0 = sim.positions()[:, 1]
+    level0 = float(z0[z0 > z0.max() - 0.5 * s].mean())
+    sim.advance(0.5)
+    z = sim.positions()[:, 1]
+    level = float(z[z > z.max() - 0.5 * s].mean())
+    assert abs(level - level0) < 0.1 * s, (level, level0)
+    speed = np.linalg.norm(sim.velocities(), axis=1)
+    assert np.sqrt(np.mean(speed ** 2)) < 1e-3 * 20.0
+    g = sim.gauges()
+    top = level + 0.5 * s
+    for name, zg in (("corner", 0.0), ("floor_mid", 0.0), ("side_mid", 0.5 * depth)):
+        ratio = g[name] / (1000.0 * 9.81 * (top - zg))
+        assert abs(ratio - 1.0) < 0.02, (name, ratio)
+
+
+def _sloshing(K=1.0):
+    """A 2D tank, water 0.2 m deep (0.01 m), moving with a sloshing velocity field u = 0.3 sin(pi x/L) (and the
+    matching w), jittered by 0.1 spacing: the shifts of one step (K large so that they are visible)."""
+    d = _tank(depth=0.2, width=0.4, spacing=0.01, particle_shifting=K)
+    sim = rockwave.Simulation(rockwave.parse_scene(d), device=DEVICE)
+    rng = np.random.default_rng(5)
+    nf = sim.n_fluid
+    x = sim.state.x.numpy()
+    x[:nf, :2] += rng.normal(0.0, 0.1 * 0.01, (nf, 2))
+    v = sim.state.v.numpy()
+    v[:nf, 0] = 0.3 * np.cos(np.pi * x[:nf, 0] / 0.4)
+    sim.state.x.assign(x)
+    sim.state.v.assign(v)
+    return sim
+
+
+def test_shifting_keeps_mass_moves_nothing_across_the_free_surface_or_into_a_wall():
+    """One step's shifts in jittered sloshing water (K = 1, larger than the level's): the particles of the top layers
+    (within one kernel support of the surface) move only along the surface (vertical shift < 2% of a spacing,
+    the jittered surface's tilt, and zero on average), the deeper ones are shifted in full (vertical shifts 3x larger), no shift points a particle at the walls closer than the first fluid
+    row stood, and the particle count and mass are unchanged after 0.1 s of the sloshing, with no particle past a
+    wall or above the water's initial top by more than a spacing."""
+    s = 0.01
+    sim = _sloshing()
+    solver = sim.fluid_solver
+    with wp.ScopedDevice(DEVICE):
+        solver.build_cells(sim.state)
+        solver.build_neighbour_lists(sim.state)
+        solver._lists_built()
+        solver.particle_shift(sim.state)
+    x = sim.state.x.numpy()[: sim.n_fluid]
+    dr = solver.shift_displacements.numpy()
+    top = x[:, 1].max()
+    band = x[:, 1] > top - sim.fluid.support_radius - 0.5 * s
+    deep = x[:, 1] < top - 2 * sim.fluid.support_radius
+    # along the local surface: a jittered surface tilts its normal, so the vertical part is small, not zero, and it
+    # averages out (nothing lifts the water); inside the shift acts in full
+    assert np.abs(dr[band, 1]).max() < 0.02 * s, np.abs(dr[band, 1]).max() / s
+    assert abs(dr[band, 1].mean()) < 1e-3 * s, dr[band, 1].mean() / s
+    assert np.abs(dr[deep, 1]).max() > 3 * np.abs(dr[band, 1]).max(), (np.abs(dr[deep, 1]).max(), np.abs(dr[band, 1]).max())
+    nx = x + dr
+    assert nx[:, 0].min() > 0.0 and nx[:, 0].max() < 0.4 and nx[:, 1].min() > 0.0
+    n0, m0 = sim.n_fluid, sim.fluid.fluid_mass * sim.n_fluid
+    sim.advance(0.1)
+    x = sim.positions()
+    assert sim.n_fluid == n0 and sim.fluid.fluid_mass * sim.n_fluid == m0
+    assert x[:, 0].min() > 0.0 and x[:, 0].max() < 0.4 and x[:, 1].min() > 0.0
+    assert x[:, 1].max() < top + 0.02 + s  # the sloshing lifts the surface ~1 cm; the shift adds nothing across it
+
+
+def test_momentum_is_kept_with_diffusion_and_shifting():
+    """Water in free flight (no gravity, no walls), jittered, random velocities, `delta_plus`: after 30 steps the
+    total momentum is unchanged to 1e-5 of sum m |v| (the diffusion changes densities only, the shift positions
+    only, and the pair forces stay antisymmetric)."""
+    rng = np.random.default_rng(3)
+    s, n = 0.01, 12
+    d = {"simulation": {"dimension": 2, "duration_s": 1.0},
+         "fluid": {"spacing_m": s, "fidelity": "delta_plus", "eos": {"speed_of_sound_m_s": 20.0},
+                   "regions": [{"box_min_m": [0.0, 0.0], "box_max_m": [n * s, n * s]}]},
+         "tank": {"box_min_m": [-0.1, -0.1], "box_max_m": [0.3, 0.3]}}
+    fl = rockwave.parse_scene(d).fluid
+    g = np.arange(n) * s + 0.5 * s
+    gx, gy = np.meshgrid(g, g, indexing="ij")
+    x = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1) + np.r_[rng.normal(0, 0.1 * s, (gx.size, 2)).T,
+                                                                             [np.zeros(gx.size)]].T
+    v = np.c_[rng.normal(0.0, 0.3, (gx.size, 2)), np.zeros(gx.size)]
+    model = build_fluid_model(x, v, np.zeros((0, 3)), fl, 2, [0.0, 0.0, 0.0], DEVICE)
+    assert model.particle_shifting > 0 and model.density_diffusion > 0
+    st = model.state()
+    solver = FluidSolver(model)
+    from rockwave.base.solver import TimeStep
+
+    dt = wp.array([2e-4], dtype=float, device=DEVICE)
+    p0 = st.v.numpy().sum(axis=0)
+    scale = np.abs(st.v.numpy()).sum()
+    with wp.ScopedDevice(DEVICE):
+        for _ in range(30):
+            solver.step(st, TimeStep(dt=2e-4, dt_array=dt, time=0.0))
+    p1 = st.v.numpy().sum(axis=0)
+    assert np.abs(p1 - p0).max() < 1e-5 * scale, (p1 - p0, scale)
+    assert np.abs(solver.shift_displacements.numpy()).max() > 0.0
+
+
+def test_delta_plus_damps_the_standing_wave_less_than_standard():
+    """First sloshing mode (k d = 0.9, a = 0.02 m in 0.2 m, c0 12 m/s) at 12 particles per depth, 2 periods, the
+    chart's case at a CPU size (tests/test_gradient_correction.py has `waves`). Measured here: standard 3.75% per
+    period (period -1.55%), delta_plus 2.1% (-0.9%). The bound, 2.5% per period, standard fails and delta_plus meets;
+    its period is within 1.2% of linear theory."""
+    out = {}
+    for level in ("standard", "delta_plus"):
+        out[level] = standing_wave(DEVICE, 12, {"fluid.fidelity": level}, periods=2, a=0.02, kh=0.9, mode=1,
+                                   signal="projection")
+    decay = {k: v["decay_per_period"] for k, v in out.items()}
+    assert decay["standard"] > 0.025 > decay["delta_plus"], decay
+    assert abs(out["delta_plus"]["period_error"]) < 0.012, out["delta_plus"]["period_error"]
+
+
+def test_dam_break_into_a_wall_keeps_its_water_and_positive_densities():
+    """2D dam break (Martin & Moyce column, a/20) in a tank 0.35 m long, through the impact on the end wall (0.23 s)
+    and the run-up to 0.45 s at `delta_plus`: no particle more than one spacing past a wall's face, every density
+    above half of rho0 (measured >= 906 kg/m^3; `standard`'s splash falls to 255). With the diffusion summed over
+    the fluid only, 1-5 particles were past the end wall (beyond 0.75 spacing) from 0.3 s and densities negative
+    from 0.45 s (-79 to -351 kg/m^3): the blow-up after SPHERIC Test 2's impact (kernels/sph/diffusion.py,
+    docs/notes.md 'delta-plus'). Not yet as tight as `standard`: the water of the run-up presses 0.65-0.81 spacing
+    past the end wall's face (standard 0.41), the open item of that note."""
+    dx = H.A_MM / 20
+    d = H.scene_dict("dam_break_2d", dx, {"fluid.fidelity": "delta_plus"}, None, H.FORMULATION_KEYS)
+    d["tank"]["box_max_m"] = [0.35, 0.3]
+    sim = H.build("dam_break_2d", d, DEVICE)
+    sim.advance(0.45)
+    x, rho = sim.positions(), sim.densities()
+    assert x[:, 0].min() > -dx and x[:, 0].max() < 0.35 + dx and x[:, 1].min() > -dx
+    assert rho.min() > 500.0, rho.min()
