@@ -29,6 +29,9 @@ import math
 
 import numpy as np
 
+from rockwave.build.options import boundary_lattice, gravity_norm
+from rockwave.dda.blocks import DEFAULT_YOUNGS_MODULUS
+
 SPEED_FACTOR = 5.0
 ESCAPE_FRACTION = 0.5
 ENERGY_JUMP = 0.5
@@ -52,7 +55,7 @@ class HealthGuard:
     def __init__(self, sim):
         self.sim = sim
         s = sim.scene
-        self.g = float(np.linalg.norm(s.gravity.acceleration_m_s2))
+        self.g = gravity_norm(s)
         self.up = s.dim - 1
         self.prev_energy = None
         self.escaped = 0
@@ -69,7 +72,7 @@ class HealthGuard:
             pos = m.base_position[:, 2 if s.dim == 3 else self.up]
             r = m.np["radius"]
             lo, hi = min(lo, float((pos - r).min())), max(hi, float((pos + r).max()))
-            E = np.array([sp.youngs_modulus or 10.0e9 for sp in m.specs])
+            E = np.array([sp.youngs_modulus or DEFAULT_YOUNGS_MODULUS for sp in m.specs])
             rho = np.array([sp.density for sp in m.specs])
             self.block_wave_speed = np.sqrt(E / rho)
         height = (hi - lo) if hi > lo else 1.0
@@ -91,9 +94,7 @@ class HealthGuard:
         floor = float(x[:, self.up].min()) - 0.5 * sim.fluid.spacing
         t = s.tank
         if t is not None and t.get("box_min_m") is not None:
-            fl = s.fluid
-            bstep = fl.spacing_m * t.boundary_spacing_ratio
-            layers = t.layers or max(1, int(math.ceil(fl.support_radius_ratio * fl.spacing_m / bstep - 1e-9)))
+            bstep, layers = boundary_lattice(s)  # the builder's walls (rockwave/build/options.py)
             lo, hi = np.asarray(t.box_min_m, float), np.asarray(t.box_max_m, float)
             # a particle has left once it is past the walls' outer faces
             self.tank = (lo - layers * bstep, hi + layers * bstep, hi[self.up], bool(t.open_top))
