@@ -32,7 +32,7 @@ from rockwave.build.options import (
     warn_unstable_step,
 )
 from rockwave.build.rocks import block_specs, compound_bodies
-from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance
+from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance, seed_clearance_m
 from rockwave.coupling.walls import BlockWalls
 from rockwave.dda.blocks import (
     BlockModel,
@@ -382,7 +382,7 @@ def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options: Sol
 
     ratio = solver_coupling_options(scene, options).contact_distance_ratio
     dist, _ = block_signed_distance(parts.blocks, parts.block_state, xf)
-    keep = dist >= 0.5 * ratio * scene.fluid.spacing_m
+    keep = dist >= seed_clearance_m(ratio, scene.fluid.spacing_m)
     parts.removed_inside_blocks = int((~keep).sum())
     return xf[keep], vf[keep], depth[keep]
 

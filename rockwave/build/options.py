@@ -134,7 +134,7 @@ def block_options(scene: Scene) -> BlockOptions:
     safety = scene.simulation.get("block_dt_safety")
     if safety is not None:
         kw["dt_safety"] = float(safety)
-    if scene.simulation.get("block_contacts", "held") == "found":
+    if scene.simulation.get("block_contacts") == "found":
         kw["hold_contacts"] = False
     return BlockOptions(**kw)
 

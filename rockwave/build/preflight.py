@@ -28,13 +28,13 @@ from rockwave.build import sampling
 from rockwave.build.options import boundary_lattice, coupling_options, fluid_parameters, gravity_norm, support_radius_m
 from rockwave.build.rockmass import estimate_block_count
 from rockwave.build.rocks import block_specs, decomposition_of
-from rockwave.coupling.penalty import block_signed_distance
+from rockwave.coupling.penalty import block_signed_distance, seed_clearance_m
 from rockwave.dda import blocks as B
 from rockwave.dda import geometry
 from rockwave.dda.blocks import BlockModel, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
 from rockwave.dda.geometry import GeometryError
 from rockwave.scene.format import Node, Scene, SceneError, gauge_domain_errors
-from rockwave.sph.fluid import _grid_dims, fluid_step_limits, sound_speed_from_eos
+from rockwave.sph.fluid import SOUND_SPEED_FACTOR, _grid_dims, expected_flow_speed, fluid_step_limits, sound_speed_from_eos
 
 MM_SUSPECT_EXTENT_M = 100.0
 MEMORY_FRACTION = 0.9
@@ -401,7 +401,7 @@ def check_water_outside_blocks(scene: Scene, meshes: dict | None = None, model=N
         if len(x) == 0:
             continue
         dist, _ = block_signed_distance(model, state, x)
-        if not (dist >= 0.5 * ratio * scene.fluid.spacing_m).any():
+        if not (dist >= seed_clearance_m(ratio, scene.fluid.spacing_m)).any():
             errors.append((key, f"seeds no water particle: every lattice point at spacing {scene.fluid.spacing_m:g} m "
                                 f"(fluid.spacing_m) is inside a block or within half the contact distance of one; "
                                 f"move the blocks or the region, or make the spacing finer"))
@@ -555,7 +555,7 @@ def _fluid_step(scene: Scene) -> tuple[float, str, str, float, float, str] | Non
         "fluid.eos.b_pa" if fp.eos_type == "tait" else "fluid.eos.k_m2_s2")
     g = gravity_norm(scene)
     H, v0 = _water_height_and_speed(scene)
-    u = math.sqrt(2.0 * g * H) + v0
+    u = expected_flow_speed(g, H, v0)
     h = 0.5 * fp.support_radius_m
     nu = fp.laplacian_viscosity_pa_s / fp.rest_density_kg_m3
     # the solver's rule at the start's speed u and acceleration |g| (rockwave/sph/fluid.py fluid_step_limits)
@@ -657,7 +657,7 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
         cands.append(fs[:3])
         c0, u, flow_key = fs[3], fs[4], fs[5]
     bs = _block_step(scene) if scene.blocks or scene.rock_mass else None
-    if bs is not None and (fs is None or sim.get("block_stepping", "multirate") == "single"):
+    if bs is not None and (fs is None or sim.get("block_stepping") == "single"):
         cands.append(bs)  # with water, multi-rate blocks sub-step inside the fluid's step (rockwave/sim/clock.py)
     c = scene.coupling
     if fs is not None and (scene.blocks or scene.rock_mass) and c is not None and c.stiffness_n_m is not None:
@@ -719,7 +719,7 @@ def check_run_length(scene: Scene, device: str = "cpu", duration: float | None =
     max_wall_s = MAX_WALL_S if max_wall_s is None else max_wall_s
     tail = "; or pass --yes (Python: force=True) to run it anyway"
     if rl.sound_speed is not None and rl.flow_speed > 0 and rl.sound_speed < MIN_MACH_MARGIN * rl.flow_speed:
-        target = 10.0 * rl.flow_speed
+        target = SOUND_SPEED_FACTOR * rl.flow_speed
         raise SceneError(scene.path, [(rl.flow_key if rl.flow_key.startswith("gravity") else "fluid.eos.speed_of_sound_m_s",
                                        f"the speed of sound c0 = {rl.sound_speed:.3g} m/s is below the expected flow speed "
                                        f"u_max = sqrt(2 g H) = {rl.flow_speed:.3g} m/s: the water cannot stay weakly "

@@ -385,6 +385,12 @@ class Coupling:
         return int((self.ncell.numpy() > 0).sum()) + self.n_large
 
 
+def seed_clearance_m(contact_distance_ratio: float, spacing_m: float) -> float:
+    """Water is seeded no closer to a block's faces than half the contact distance, d0/2 [m] (the builder drops the
+    particles closer; preflight refuses a region that would keep none)."""
+    return 0.5 * contact_distance_ratio * spacing_m
+
+
 def block_signed_distance(blocks, block_state, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Smallest signed distance (negative inside) of each point to any block, and that block
     (max over face planes of the rigidly moved block; brute force over blocks: start-up and tests)."""

@@ -175,6 +175,17 @@ def support_radius(spacing_m: float, support_radius_ratio: float) -> float:
     return support_radius_ratio * spacing_m
 
 
+# weakly compressible SPH wants c0 >= SOUND_SPEED_FACTOR x the fastest flow speed (density variations ~1%)
+SOUND_SPEED_FACTOR = 10.0
+
+
+def expected_flow_speed(gravity_m_s2: float, water_height_m: float, initial_speed_m_s: float = 0.0) -> float:
+    """Expected largest flow speed u_max ~ sqrt(2 |g| H) + the fastest initial speed [m/s] (H: the water's height):
+    the speed of sound's yardstick in preflight (rockwave/build/preflight.py) and the blow-up guard
+    (rockwave/sim/guard.py)."""
+    return math.sqrt(2.0 * gravity_m_s2 * water_height_m) + initial_speed_m_s
+
+
 def wall_layers(support_radius_m: float, boundary_spacing_m: float) -> int:
     """Boundary particle layers of spacing boundary_spacing_m that cover the kernel support H (at least one)."""
     return max(1, int(math.ceil(support_radius_m / boundary_spacing_m - 1e-9)))
