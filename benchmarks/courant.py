@@ -37,6 +37,7 @@ def lattice_acoustic_limit(kernel: str, support_ratio: float, dim: int, k_points
     dimensions (module docstring); |G(k)| maximised over a k_points^dim grid of the first Brillouin zone's
     positive quadrant (G is odd in each component, so that quadrant holds the maximum)."""
     import rockwave
+    from rockwave.build.options import fluid_parameters
     from rockwave.sph.fluid import calibrate_lattice, make_params
 
     k_points = k_points or (48 if dim == 2 else 20)
@@ -46,7 +47,7 @@ def lattice_acoustic_limit(kernel: str, support_ratio: float, dim: int, k_points
                    "eos": {"speed_of_sound_m_s": 10.0}, "regions": [{"box_min_m": [0.0] * dim, "box_max_m": [1.0] * dim}]},
          "tank": {"box_min_m": [0.0] * dim, "box_max_m": [1.0] * dim}}
     scene = rockwave.parse_scene(d)
-    p = make_params(scene.fluid, dim, [0.0] * dim, 1)
+    p = make_params(fluid_parameters(scene.fluid), dim, [0.0] * dim, 1)
     p.fluid_mass, p.grad_scale = calibrate_lattice(p, dx, dim, "cpu")
     n = int(math.ceil(support_ratio)) + 1
     pts = np.array([q for q in itertools.product(range(-n, n + 1), repeat=dim) if any(q)], float)

@@ -139,6 +139,7 @@ def test_kept_pair_list_matches_a_broad_phase_every_step():
     margin/2 stays inside the box of the last broad phase (BlockOptions.keep_pairs); a jointed slope
     sliding for 300 steps moves as with a broad phase every step, with far fewer broad phases (measured:
     1 instead of 300, 596 pairs either way, positions equal)."""
+    from rockwave.build.options import block_options
     from rockwave.dda.blocks import BlockOptions, BlockSolver
 
     out = {}
@@ -147,7 +148,7 @@ def test_kept_pair_list_matches_a_broad_phase_every_step():
         resize_box_region(scene.rock_mass[0], [3.0, 2.0, 1.5])  # 6 x 4 x 3 blocks of 0.5 m
         sim = rockwave.Simulation(scene, device=DEVICE)
         # sync_free_max_blocks = 0: the path of > 64 blocks
-        options = BlockOptions(dt_safety=BlockOptions.from_scene(scene).dt_safety, sync_free_max_blocks=0, keep_pairs=keep)
+        options = BlockOptions(dt_safety=block_options(scene).dt_safety, sync_free_max_blocks=0, keep_pairs=keep)
         sim.block_solver = bs = BlockSolver(sim.blocks, options=options)
         assert not bs.sync_free and bs.keep_pairs == (keep is None)
         for _ in range(300):

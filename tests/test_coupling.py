@@ -28,16 +28,17 @@ def _rebuild(sim, blocks=None, coupling=None) -> None:
     solvers then hold nothing but buffers); ``blocks`` / ``coupling``: dicts of option fields."""
     from dataclasses import replace
 
-    from rockwave.coupling.penalty import Coupling, CouplingOptions
-    from rockwave.dda.blocks import BlockOptions, BlockSolver
+    from rockwave.build.options import block_options, coupling_options
+    from rockwave.coupling.penalty import Coupling
+    from rockwave.dda.blocks import BlockSolver
 
     assert sim.steps == 0
     if blocks:
-        sim.block_solver = BlockSolver(sim.blocks, options=replace(BlockOptions.from_scene(sim.scene), **blocks))
+        sim.block_solver = BlockSolver(sim.blocks, options=replace(block_options(sim.scene), **blocks))
     if coupling:
         walls = sim.coupling.walls  # the moving blocks' wall particles belong to the fluid model: kept
         sim.coupling = Coupling(sim.fluid, sim.blocks, sim.scene.dim,
-                                options=replace(CouplingOptions.from_scene(sim.scene), **coupling))
+                                options=replace(coupling_options(sim.scene), **coupling))
         sim.coupling.walls = walls
 
 
@@ -287,25 +288,27 @@ def test_sync_free_step_matches_the_counter_read_path():
 
 
 def test_options_from_scene():
-    """BlockOptions / CouplingOptions read simulation.block_dt_safety and the [coupling] section; the
-    solvers use them (d0, K_s, K_d, squeeze gap, both step limits); no section: the defaults."""
+    """BlockOptions / CouplingOptions of a scene (rockwave/build/options.py block_options, coupling_options) read
+    simulation.block_dt_safety and the [coupling] section; the solvers use them (d0, K_s, K_d, squeeze gap, both step
+    limits); no section: the defaults."""
     import tomllib
 
+    from rockwave.build.options import block_options, coupling_options
     from rockwave.coupling.penalty import CouplingOptions, default_penalty
     from rockwave.dda.blocks import BlockOptions
 
     data = tomllib.loads((SCENES / "sinking_block_small.toml").read_text())
     data.pop("coupling", None)
     scene = parse_scene(data, SCENES / "sinking_block_small.toml")
-    assert CouplingOptions.from_scene(scene) == CouplingOptions() and BlockOptions.from_scene(scene) == BlockOptions()
+    assert coupling_options(scene) == CouplingOptions() and block_options(scene) == BlockOptions()
     data["simulation"]["block_dt_safety"] = 0.3
     data["coupling"] = {"contact_distance_ratio": 0.4, "stiffness_factor": 2.0, "damping_ratio": 0.25,
                         "damping_n_s_m": 3.0, "squeeze_out": False}
     scene = parse_scene(data, SCENES / "sinking_block_small.toml")
-    co = CouplingOptions.from_scene(scene)
+    co = coupling_options(scene)
     assert (co.contact_distance_ratio, co.stiffness_factor, co.damping_ratio, co.stiffness_n_m, co.damping_n_s_m,
             co.squeeze_out) == (0.4, 2.0, 0.25, None, 3.0, False)
-    assert BlockOptions.from_scene(scene).dt_safety == 0.3
+    assert block_options(scene).dt_safety == 0.3
     sim = rockwave.Simulation(scene, device=DEVICE)
     c, s = sim.coupling, sim.fluid.spacing
     assert c.options == co and c.d0 == pytest.approx(0.4 * s) and c.squeeze_gap == 0.0

@@ -14,6 +14,7 @@ import warp as wp
 import rockwave
 from benchmarks import harness as H
 from benchmarks.harness import standing_wave
+from rockwave.build.options import fluid_parameters
 from rockwave.sph.fluid import FluidSolver, build_fluid_model
 
 from conftest import DEVICE
@@ -50,7 +51,7 @@ def _disordered_model(dim: int, correction: bool):
     v = rng.normal(0.0, 0.3, x.shape)
     if dim == 2:
         v[:, 2] = 0.0
-    model = build_fluid_model(x, v, np.zeros((0, 3)), fl, dim, [0.0, 0.0, 0.0], DEVICE)
+    model = build_fluid_model(x, v, np.zeros((0, 3)), fluid_parameters(fl), dim, [0.0, 0.0, 0.0], DEVICE)
     return model, s, n
 
 

@@ -133,3 +133,23 @@ def test_no_import_circles():
         if m not in state:
             visit(m)
     assert not cycles, "\n".join(" -> ".join(c) for c in cycles)
+
+
+SCENE_ARGS = ("scene", "scene_fluid", "cfg", "fluid_section")
+
+
+@pytest.mark.parametrize("mod", sorted(m for m in MODULES if _package(m)[0] == "host" and _package(m)[1] in PHYSICS))
+def test_physics_takes_no_scene(mod):
+    """Physics receives typed options and parameters (rockwave/build/options.py makes them from the scene): no function
+    of base, sph, dda or coupling takes a scene or one of its sections, and no Options class reads one (from_scene)."""
+    tree = ast.parse(MODULES[mod].read_text())
+    errors = []
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            if node.name == "from_scene":
+                errors.append(f"{mod}:{node.lineno} from_scene (scene -> options belongs in rockwave/build/options.py)")
+            a = node.args
+            for arg in a.posonlyargs + a.args + a.kwonlyargs:
+                if arg.arg in SCENE_ARGS:
+                    errors.append(f"{mod}:{node.lineno} {node.name}({arg.arg}): physics takes typed options, not the scene")
+    assert not errors, "\n".join(errors)

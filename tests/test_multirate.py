@@ -14,7 +14,7 @@ import pytest
 import warp as wp
 
 import rockwave
-from rockwave.coupling.penalty import CouplingOptions
+from rockwave.build.options import coupling_options
 from rockwave.scene.format import SceneError, parse_scene
 from rockwave.sim.clock import MAX_BLOCK_SUBSTEPS
 from rockwave.sim.simulation import SimulationOptions
@@ -81,7 +81,7 @@ def test_water_block_impulse_equal_and_opposite_over_a_fluid_step():
     (all coupling impulses on the water less those of the fixed slope, tracked)."""
     d = _slide_dict(lift=0.05)
     scene = parse_scene(d, SCENE, SCENE.parent)
-    opts = SimulationOptions(coupling=dataclasses.replace(CouplingOptions.from_scene(scene), track_walls=True))
+    opts = SimulationOptions(coupling=dataclasses.replace(coupling_options(scene), track_walls=True))
     sim = rockwave.Simulation(scene, device=DEVICE, options=opts)
     b = sim.blocks.names.index("slide")
     mass, depth, dt = sim.blocks.np["mass"][b], sim.coupling.depth[b], sim.dt

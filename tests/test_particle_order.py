@@ -85,6 +85,7 @@ def test_boundary_particles_are_in_cell_order():
 def _random_model(dim, wrapped, n_side=7):
     from test_sph import _fluid_section
 
+    from rockwave.build.options import fluid_parameters
     from rockwave.build.sampling import box_lattice
     from rockwave.sph.fluid import FluidSolver, build_fluid_model
 
@@ -98,7 +99,7 @@ def _random_model(dim, wrapped, n_side=7):
     xb = box_lattice([0.0] * dim, [n_side * s, 2 * s] + [n_side * s] * (dim - 2), s)  # a wall layer
     xb = np.concatenate([xb, np.zeros((len(xb), 3 - dim))], axis=1)
     xb[:, 1] -= 2.5 * s
-    model = build_fluid_model(x, rng.normal(0, 0.5, x.shape) * ([1] * dim + [0] * (3 - dim)), xb, fl, dim,
+    model = build_fluid_model(x, rng.normal(0, 0.5, x.shape) * ([1] * dim + [0] * (3 - dim)), xb, fluid_parameters(fl), dim,
                               [0.0] * dim, DEVICE)
     # wrapped: force the cell grid to wrap (hash) in every dimension
     solver = FluidSolver(model, options=FluidOptions(min_cells=16, cells_per_particle=0) if wrapped else None)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import rockwave
+from rockwave.build.options import fluid_parameters
 from rockwave.build.sampling import box_lattice
 from rockwave.sph.fluid import FluidSolver, build_fluid_model, calibrate_lattice, make_params
 
@@ -32,7 +33,7 @@ def test_kernel_normalisation(kernel, dim):
     """sum_j dx^d W(x_0 - x_j) -> 1 on a fine lattice (H = 6 dx): the 2D and 3D normalisations are right,
     and the Shepard sum sum_j m_j/rho_j W_ij = 1 holds inside a resting fluid at the working resolution."""
     fl = _fluid_section(kernel, dim)
-    p = make_params(fl, dim, [0.0] * dim, 0)
+    p = make_params(fluid_parameters(fl), dim, [0.0] * dim, 0)
     dx = p.H / 6.0
     mass, grad_scale = calibrate_lattice(p, dx, dim, DEVICE)
     w_sum = p.rest_density / mass  # = sum_j W_0j
@@ -45,7 +46,7 @@ def test_kernel_normalisation(kernel, dim):
     x = box_lattice([0.0] * dim, [12 * spacing] * dim, spacing)
     x = np.concatenate([x, np.zeros((len(x), 3 - dim))], axis=1)
     fl = dict(fl, density="summation")
-    model = build_fluid_model(x, np.zeros_like(x), np.zeros((0, 3)), fl, dim, [0.0] * dim, DEVICE)
+    model = build_fluid_model(x, np.zeros_like(x), np.zeros((0, 3)), fluid_parameters(fl), dim, [0.0] * dim, DEVICE)
     state = model.state()
     solver = FluidSolver(model)
     solver.build_grid(state)
@@ -96,7 +97,7 @@ def test_pair_forces_conserve_momentum_and_match_reference(form, kernel):
     spacing = fl["spacing_m"]
     x = box_lattice([0, 0, 0], [6 * spacing] * 3, spacing) + rng.normal(0, 0.15 * spacing, (216, 3))
     v = rng.normal(0, 0.5, x.shape)
-    model = build_fluid_model(x, v, np.zeros((0, 3)), fl, dim, [0.0, 0.0, 0.0], DEVICE)
+    model = build_fluid_model(x, v, np.zeros((0, 3)), fluid_parameters(fl), dim, [0.0, 0.0, 0.0], DEVICE)
     s = model.state()
     solver = FluidSolver(model)
     solver.build_grid(s)
@@ -195,7 +196,7 @@ def test_xsph_matches_reference():
     spacing = fl["spacing_m"]
     x = box_lattice([0, 0, 0], [5 * spacing] * 3, spacing) + rng.normal(0, 0.1 * spacing, (125, 3))
     v = rng.normal(0, 0.5, x.shape)
-    model = build_fluid_model(x, v, np.zeros((0, 3)), fl, 3, [0.0, 0.0, 0.0], DEVICE)
+    model = build_fluid_model(x, v, np.zeros((0, 3)), fluid_parameters(fl), 3, [0.0, 0.0, 0.0], DEVICE)
     s = model.state()
     solver = FluidSolver(model)
     solver.build_grid(s)

@@ -12,31 +12,48 @@ Nothing here steps or writes; bad input becomes a :class:`rockwave.scene.format.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
 from rockwave.base.maths import pad3, quat_to_matrix
 from rockwave.build import sampling
+from rockwave.build.options import (
+    SolverOptions,
+    block_options,
+    boundary_lattice,
+    coupling_options,
+    fluid_options,
+    fluid_parameters,
+    ghost_options,
+    gravity_norm,
+    sph_params,
+    warn_unstable_step,
+)
 from rockwave.build.rocks import block_specs, compound_bodies
-from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance
+from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance, seed_clearance_m
 from rockwave.coupling.walls import BlockWalls
-from rockwave.dda.blocks import BlockModel, BlockOptions, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
+from rockwave.dda.blocks import (
+    BlockModel,
+    BlockOptions,
+    BlockOverlapError,
+    BlockSolver,
+    BlockState,
+    check_initial_overlap_on_device,
+)
 from rockwave.dda.geometry import GeometryError
 from rockwave.scene.format import Scene, SceneError
-from rockwave.sph.fluid import Density, FluidOptions, FluidSolver, build_fluid_model, make_params
-from rockwave.sph.ghost import GhostFluidSolver, GhostOptions, warn_unstable_step
-
-
-def hydrostatic_density(p, g_depth: np.ndarray) -> np.ndarray:
-    """Density that makes p = rho0 g d under the EOS of the SPHParams ``p`` (docs/physics.md 'Walls'; p = rho0 g d at depth d):
-    Tait rho = rho0 (1 + rho0 g d / B)^(1/gamma); linear rho = rho0 + rho0 g d / k."""
-    rho0 = p.rest_density
-    if p.eos == 0:
-        return rho0 * (1.0 + rho0 * g_depth / p.eos_b) ** (1.0 / p.eos_gamma)
-    return rho0 + rho0 * g_depth / p.eos_b
+from rockwave.sph.fluid import (
+    Density,
+    FluidModel,
+    FluidOptions,
+    FluidSolver,
+    FluidState,
+    build_fluid_model,
+    hydrostatic_density,
+)
+from rockwave.sph.ghost import GhostFluidSolver, GhostOptions
 
 
 def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up: int) -> np.ndarray:
@@ -69,17 +86,6 @@ def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up
     out = np.array(x, dtype=np.float64, copy=True)
     out[order, up] = z - (total - total[first])
     return out
-
-
-def boundary_lattice(scene: Scene) -> tuple[float, int]:
-    """Boundary particle spacing and number of layers for a scene (without a tank: those of the wall
-    particles on fixed blocks, :func:`fixed_block_walls`)."""
-    t, spacing = scene.tank, scene.fluid.spacing_m
-    H = scene.fluid.support_radius_ratio * spacing
-    if t is None:
-        return spacing, max(1, int(math.ceil(H / spacing - 1e-9)))
-    bstep = spacing * t.boundary_spacing_ratio
-    return bstep, (t.layers or max(1, int(math.ceil(H / bstep - 1e-9))))
 
 
 def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: float, layers: int) -> np.ndarray:
@@ -200,12 +206,12 @@ def moving_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: 
     return np.concatenate(pts_all), np.concatenate(idx)
 
 
-def block_walls_on(scene: Scene, options=None) -> bool:
+def block_walls_on(scene: Scene, options: SolverOptions | None = None) -> bool:
     """Do the moving blocks get Adami wall particles? coupling.block_walls (or CouplingOptions.block_walls);
     off unless asked for (the scene's validation refuses it without Adami walls or with Ghost SPH)."""
     if scene.fluid is None:
         return False
-    return bool(coupling_options(scene, options).block_walls)
+    return bool(solver_coupling_options(scene, options).block_walls)
 
 
 def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -260,25 +266,40 @@ def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, n
 
 @dataclass
 class Parts:
-    """What a scene is made of on the device (None where the scene has none of it).
+    """What a scene is made of on the device (None where the scene has none of it)."""
 
-    fluid (FluidModel), state (FluidState), fluid_solver; blocks (BlockModel), block_state,
-    block_solver; coupling; removed_inside_blocks: fluid particles dropped at seeding because they lay
-    inside a block (or within half the contact distance of its faces)."""
+    fluid: FluidModel | None = None
+    """The fluid's static data."""
 
-    fluid: object = None
-    state: object = None
-    fluid_solver: object = None
-    blocks: object = None
-    block_state: object = None
-    block_solver: object = None
-    coupling: object = None
+    state: FluidState | None = None
+    """The fluid's state at the start (hydrostatic density, the wall pressures of Adami walls)."""
+
+    fluid_solver: FluidSolver | None = None
+    """FluidSolver, or GhostFluidSolver with fluid.method = "ghost"."""
+
+    blocks: BlockModel | None = None
+    """The blocks' static data."""
+
+    block_state: BlockState | None = None
+    """The blocks' state at the start."""
+
+    block_solver: BlockSolver | None = None
+    """The DDA block solver."""
+
+    coupling: Coupling | None = None
+    """The penalty coupling of water and blocks (only when the scene has both)."""
+
     removed_inside_blocks: int = 0
-    moving_wall_blocks: object = None  # block index of each wall particle of a moving block (BlockWalls)
+    """Fluid particles dropped at seeding because they lay inside a block (or within half the contact distance
+    of its faces)."""
+
+    moving_wall_blocks: np.ndarray | None = None
+    """int64 (n_moving_walls,): block index of each wall particle of a moving block (BlockWalls)."""
 
 
-def build(scene: Scene, device: str, options=None) -> Parts:
-    """All parts of ``scene`` on ``device`` (``options``: rockwave.sim.simulation.SimulationOptions)."""
+def build(scene: Scene, device: str, options: SolverOptions | None = None) -> Parts:
+    """All parts of ``scene`` on ``device`` (``options``: rockwave.sim.simulation.SimulationOptions, whose solver
+    options given in Python win over the scene's as rockwave/build/options.py says)."""
     parts = Parts()
     with wp.ScopedDevice(device):
         if scene.blocks or scene.rock_mass:
@@ -290,15 +311,15 @@ def build(scene: Scene, device: str, options=None) -> Parts:
     return parts
 
 
-def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
+def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None) -> None:
     xf, vf, depth, xb = seed_particles(scene, device)
     if parts.blocks is not None:
         xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth, options)
     if scene.fluid.packed_start and len(xf):
 
         rho0 = scene.fluid.rest_density_kg_m3
-        params = make_params(scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, len(xf))
-        g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
+        params = sph_params(scene, len(xf))
+        g = gravity_norm(scene)
         xf = packed_start(xf, depth, lambda d: hydrostatic_density(params, g * d) / rho0, scene.fluid.spacing_m, scene.dim - 1)
     bstep, layers = boundary_lattice(scene)
     if scene.fluid.boundary == "adami" and parts.blocks is not None:
@@ -311,16 +332,14 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
         if len(xm):
             print(f"moving blocks: {len(xm)} Adami wall particles on "
                   f"{len(np.unique(parts.moving_wall_blocks))} blocks", flush=True)
-    fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, device, bstep, layers,
-                              moving_wall_positions=xm)
-    fopts = getattr(options, "fluid", None) or FluidOptions()
-    if fopts.cfl_number is None:  # the adaptive step's Courant number comes from the scene
-        fopts = replace(fopts, cfl_number=scene.simulation.cfl_number)
+    fluid = build_fluid_model(xf, vf, xb, fluid_parameters(scene.fluid), scene.dim, scene.gravity.acceleration_m_s2, device,
+                              bstep, layers, moving_wall_positions=xm)
+    fopts = fluid_options(scene, _given(options, "fluid", FluidOptions))  # the Courant number from the scene
     if scene.fluid.method == "ghost":
 
         warn_unstable_step(scene)
-        gopts = getattr(options, "ghost", None) or GhostOptions()
-        solver = GhostFluidSolver(fluid, scene.fluid.ghost, options=fopts, ghost_options=gopts)
+        gopts = ghost_options(scene, _given(options, "ghost", GhostOptions))  # the [fluid.ghost] settings from the scene
+        solver = GhostFluidSolver(fluid, options=fopts, ghost_options=gopts)
     else:
         solver = FluidSolver(fluid, options=fopts)
     state = fluid.state()
@@ -328,7 +347,7 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
         if fluid.density is Density.SUMMATION:
             solver.compute_density(state)
         else:
-            g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
+            g = gravity_norm(scene)
             solver.set_density(state, hydrostatic_density(fluid.params, g * depth))
         if scene.fluid.boundary == "adami" and fluid.n_boundary:  # the wall pressures of the initial state (gauges)
             solver.build_cells(state)
@@ -336,7 +355,7 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options=None) -> None:
     parts.fluid, parts.state, parts.fluid_solver = fluid, state, solver
 
 
-def build_blocks(scene: Scene, device: str, parts: Parts, options=None) -> None:
+def build_blocks(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None) -> None:
     specs = block_specs(scene)
 
     for name, body in compound_bodies(specs):  # what each non-convex mesh became
@@ -346,7 +365,7 @@ def build_blocks(scene: Scene, device: str, parts: Parts, options=None) -> None:
         # 2D: extruded prisms moving in the x-y plane (planar: the block step keeps them there)
         blocks = BlockModel(specs, device=device, gravity=pad3(scene.gravity.acceleration_m_s2), check_overlap=host_check,
                             planar=scene.dim == 2)
-        solver = BlockSolver(blocks, options=getattr(options, "blocks", None) or BlockOptions.from_scene(scene))
+        solver = BlockSolver(blocks, options=_given(options, "blocks", BlockOptions) or block_options(scene))
         state = blocks.state()
         if not host_check:
             check_initial_overlap_on_device(solver, state)
@@ -357,19 +376,19 @@ def build_blocks(scene: Scene, device: str, parts: Parts, options=None) -> None:
     parts.blocks, parts.block_state, parts.block_solver = blocks, state, solver
 
 
-def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options=None):
+def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options: SolverOptions | None = None):
     """Drop fluid particles inside a block, or closer to its faces than half the contact distance
     (rockwave/coupling/penalty.py); the count goes to ``parts.removed_inside_blocks`` and run.json."""
 
-    ratio = coupling_options(scene, options).contact_distance_ratio
+    ratio = solver_coupling_options(scene, options).contact_distance_ratio
     dist, _ = block_signed_distance(parts.blocks, parts.block_state, xf)
-    keep = dist >= 0.5 * ratio * scene.fluid.spacing_m
+    keep = dist >= seed_clearance_m(ratio, scene.fluid.spacing_m)
     parts.removed_inside_blocks = int((~keep).sum())
     return xf[keep], vf[keep], depth[keep]
 
 
-def build_coupling(scene: Scene, parts: Parts, options=None) -> None:
-    parts.coupling = c = Coupling(parts.fluid, parts.blocks, scene.dim, options=coupling_options(scene, options))
+def build_coupling(scene: Scene, parts: Parts, options: SolverOptions | None = None) -> None:
+    parts.coupling = c = Coupling(parts.fluid, parts.blocks, scene.dim, options=solver_coupling_options(scene, options))
     f = parts.fluid
     if f.n_moving_walls:
 
@@ -378,7 +397,15 @@ def build_coupling(scene: Scene, parts: Parts, options=None) -> None:
                              c.depth_scale, scene.dim)
 
 
-def coupling_options(scene: Scene, options=None):
-    """The coupling's options: passed in Python, else the scene's ``[coupling]`` section."""
+def solver_coupling_options(scene: Scene, options: SolverOptions | None = None) -> CouplingOptions:
+    """The coupling's options: passed in Python (SimulationOptions.coupling), else the scene's ``[coupling]`` section."""
 
-    return getattr(options, "coupling", None) or CouplingOptions.from_scene(scene)
+    return _given(options, "coupling", CouplingOptions) or coupling_options(scene)
+
+
+def _given(options: SolverOptions | None, name: str, kind: type):
+    """The ``name`` options given in Python (SimulationOptions.fluid, .ghost, .blocks, .coupling), or None."""
+    o = getattr(options, name, None)
+    if o is not None and not isinstance(o, kind):
+        raise TypeError(f"SimulationOptions.{name}: expected {kind.__name__} or None, got {type(o).__name__}")
+    return o

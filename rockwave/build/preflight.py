@@ -25,15 +25,16 @@ from pathlib import Path
 import numpy as np
 
 from rockwave.build import sampling
+from rockwave.build.options import boundary_lattice, coupling_options, fluid_parameters, gravity_norm, support_radius_m
 from rockwave.build.rockmass import estimate_block_count
 from rockwave.build.rocks import block_specs, decomposition_of
-from rockwave.coupling.penalty import DEFAULT_D0_RATIO, block_signed_distance
+from rockwave.coupling.penalty import block_signed_distance, seed_clearance_m
 from rockwave.dda import blocks as B
 from rockwave.dda import geometry
 from rockwave.dda.blocks import BlockModel, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
 from rockwave.dda.geometry import GeometryError
 from rockwave.scene.format import Node, Scene, SceneError, gauge_domain_errors
-from rockwave.sph.fluid import _grid_dims, sound_speed_from_eos
+from rockwave.sph.fluid import SOUND_SPEED_FACTOR, _grid_dims, expected_flow_speed, fluid_step_limits, sound_speed_from_eos
 
 MM_SUSPECT_EXTENT_M = 100.0
 MEMORY_FRACTION = 0.9
@@ -204,10 +205,9 @@ def estimate(scene: Scene, meshes: dict | None = None) -> Estimate:
             elif f"fluid.regions[{i}]" in meshes:
                 nf += abs(float(meshes[f"fluid.regions[{i}]"].volume)) / s ** 3
         t = scene.tank
-        H = scene.fluid.support_radius_ratio * s
+        H = support_radius_m(scene)
         if t is not None:
-            bstep = s * t.boundary_spacing_ratio
-            layers = t.layers or max(1, int(math.ceil(H / bstep - 1e-9)))
+            bstep, layers = boundary_lattice(scene)
             if t.get("box_min_m") is not None:
                 nb += _shell_count(t.box_min_m, t.box_max_m, bstep, layers, True, t.open_top, up)
                 lo, hi = np.asarray(t.box_min_m) - layers * bstep, np.asarray(t.box_max_m) + layers * bstep
@@ -319,7 +319,7 @@ def check_gauges_in_mesh_tank(scene: Scene, meshes: dict) -> None:
     errors: list[tuple[str, str]] = []
     lo, hi = meshes["tank"].bounds
     gauge_domain_errors(lambda k, m: errors.append((k, m)), scene.output.gauges, list(lo), list(hi), scene.dim,
-                        scene.fluid.spacing_m * scene.fluid.support_radius_ratio, "the tank mesh's bounds")
+                        support_radius_m(scene), "the tank mesh's bounds")
     if errors:
         raise SceneError(scene.path, errors)
 
@@ -395,14 +395,13 @@ def check_water_outside_blocks(scene: Scene, meshes: dict | None = None, model=N
     if model is None:
         model = _block_model(scene, check_overlap=False)
     state = model.state()
-    c = scene.coupling
-    ratio = c.contact_distance_ratio if c is not None and c.contact_distance_ratio is not None else DEFAULT_D0_RATIO
+    ratio = coupling_options(scene).contact_distance_ratio
     errors = []
     for _, key, x, _ in _region_points(scene, meshes):
         if len(x) == 0:
             continue
         dist, _ = block_signed_distance(model, state, x)
-        if not (dist >= 0.5 * ratio * scene.fluid.spacing_m).any():
+        if not (dist >= seed_clearance_m(ratio, scene.fluid.spacing_m)).any():
             errors.append((key, f"seeds no water particle: every lattice point at spacing {scene.fluid.spacing_m:g} m "
                                 f"(fluid.spacing_m) is inside a block or within half the contact distance of one; "
                                 f"move the blocks or the region, or make the spacing finer"))
@@ -550,25 +549,23 @@ def _fluid_step(scene: Scene) -> tuple[float, str, str, float, float, str] | Non
     fl = scene.fluid
     if fl is None:
         return None
-    eos = fl.eos
-    c0 = float(sound_speed_from_eos(eos, fl.rest_density_kg_m3))
-    c_key = "fluid.eos.speed_of_sound_m_s" if eos.speed_of_sound_m_s is not None else (
-        "fluid.eos.b_pa" if eos.type == "tait" else "fluid.eos.k_m2_s2")
-    g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
+    fp = fluid_parameters(fl)
+    c0 = float(sound_speed_from_eos(fp))
+    c_key = "fluid.eos.speed_of_sound_m_s" if fp.eos_speed_of_sound_m_s is not None else (
+        "fluid.eos.b_pa" if fp.eos_type == "tait" else "fluid.eos.k_m2_s2")
+    g = gravity_norm(scene)
     H, v0 = _water_height_and_speed(scene)
-    u = math.sqrt(2.0 * g * H) + v0
-    h = 0.5 * fl.support_radius_ratio * fl.spacing_m  # as fluid_dt_limit in rockwave/sph/fluid.py
-    c = c0 * (1.0 + 0.6 * fl.viscosity.artificial_alpha)
-    cfl = scene.simulation.cfl_number
+    u = expected_flow_speed(g, H, v0)
+    h = 0.5 * fp.support_radius_m
+    nu = fp.laplacian_viscosity_pa_s / fp.rest_density_kg_m3
+    # the solver's rule at the start's speed u and acceleration |g| (rockwave/sph/fluid.py fluid_step_limits)
+    limits = fluid_step_limits(fp.support_radius_m, c0, fp.artificial_alpha, nu, scene.simulation.cfl_number, u, g)
     flow_key = "gravity.acceleration_m_s2" if g > 100.0 else ("fluid.regions" if v0 > math.sqrt(2.0 * g * H) else c_key)
-    cands = [(cfl * h / (c + u), c_key if c0 >= 100.0 * max(u, 1.0) else (flow_key if u > c0 else "fluid.spacing_m"),
-              f"C h/(c0 + u_max) with h = {h:.3g} m, c0 = {c0:.3g} m/s, u_max = {u:.3g} m/s")]
-    if g > 0:
-        cands.append((0.25 * math.sqrt(h / g), "gravity.acceleration_m_s2", f"0.25 sqrt(h/|g|) with |g| = {g:.3g} m/s^2"))
-    mu = fl.viscosity.laplacian_pa_s
-    if mu > 0:
-        nu = mu / fl.rest_density_kg_m3
-        cands.append((0.125 * h * h / nu, "fluid.viscosity.laplacian_pa_s", f"0.125 h^2/nu with nu = {nu:.3g} m^2/s"))
+    why = {"courant": (c_key if c0 >= 100.0 * max(u, 1.0) else (flow_key if u > c0 else "fluid.spacing_m"),
+                       f"C h/(c0 + u_max) with h = {h:.3g} m, c0 = {c0:.3g} m/s, u_max = {u:.3g} m/s"),
+           "force": ("gravity.acceleration_m_s2", f"0.25 sqrt(h/|g|) with |g| = {g:.3g} m/s^2"),
+           "viscous": ("fluid.viscosity.laplacian_pa_s", f"0.125 h^2/nu with nu = {nu:.3g} m^2/s")}
+    cands = [(dt, *why[name]) for name, dt in limits.items()]
     dt, key, why = min(cands)
     return dt, key, why, c0, u, flow_key
 
@@ -660,7 +657,7 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
         cands.append(fs[:3])
         c0, u, flow_key = fs[3], fs[4], fs[5]
     bs = _block_step(scene) if scene.blocks or scene.rock_mass else None
-    if bs is not None and (fs is None or sim.get("block_stepping", "multirate") == "single"):
+    if bs is not None and (fs is None or sim.get("block_stepping") == "single"):
         cands.append(bs)  # with water, multi-rate blocks sub-step inside the fluid's step (rockwave/sim/clock.py)
     c = scene.coupling
     if fs is not None and (scene.blocks or scene.rock_mass) and c is not None and c.stiffness_n_m is not None:
@@ -722,7 +719,7 @@ def check_run_length(scene: Scene, device: str = "cpu", duration: float | None =
     max_wall_s = MAX_WALL_S if max_wall_s is None else max_wall_s
     tail = "; or pass --yes (Python: force=True) to run it anyway"
     if rl.sound_speed is not None and rl.flow_speed > 0 and rl.sound_speed < MIN_MACH_MARGIN * rl.flow_speed:
-        target = 10.0 * rl.flow_speed
+        target = SOUND_SPEED_FACTOR * rl.flow_speed
         raise SceneError(scene.path, [(rl.flow_key if rl.flow_key.startswith("gravity") else "fluid.eos.speed_of_sound_m_s",
                                        f"the speed of sound c0 = {rl.sound_speed:.3g} m/s is below the expected flow speed "
                                        f"u_max = sqrt(2 g H) = {rl.flow_speed:.3g} m/s: the water cannot stay weakly "

@@ -4,7 +4,8 @@ What lives where:
 
 * ``CouplingOptions``: the penalty and broad-phase knobs (contact distance ratio, stiffness factor /
   damping ratio or explicit K_s / K_d, squeeze-out, dt safety, capacity paths), defaults equal to the
-  shipped values; ``CouplingOptions.from_scene(scene)`` reads the scene's ``[coupling]`` section.
+  shipped values (the scene format takes its defaults from here; rockwave/build/options.py coupling_options reads
+  the scene's ``[coupling]`` section).
 * ``Coupling(fluid_model, block_model, dim, options=...)``: the model-level data (body-frame face
   planes, 2D depths, penalty constants) and its work buffers (broad phase, impulses ``dv``); it keeps
   nothing from one step to the next. ``compute`` reads a FluidState and a BlockState and writes ``dv``
@@ -103,31 +104,20 @@ from rockwave.base.solver import TimeStep
 from rockwave.kernels.coupling import penalty as penalty_k
 from rockwave.kernels.dda import blocks as dda_k
 
-DEFAULT_D0_RATIO = 0.5
-DEFAULT_STIFFNESS_FACTOR = 1.0
-DEFAULT_DAMPING_RATIO = 0.5
-
-
-def default_penalty(particle_mass: float, sound_speed: float, spacing: float,
-                    stiffness_factor: float = DEFAULT_STIFFNESS_FACTOR, damping_ratio: float = DEFAULT_DAMPING_RATIO):
-    """(K_s, K_d) = (f m c0^2 / s^2, 2 zeta sqrt(K_s m)); see the module docstring."""
-    ks = stiffness_factor * particle_mass * sound_speed ** 2 / spacing ** 2
-    return ks, 2.0 * damping_ratio * math.sqrt(ks * particle_mass)
-
 
 @dataclass(frozen=True)
 class CouplingOptions:
     """Knobs of the water-block coupling: ``Coupling(fluid, blocks, dim, options=CouplingOptions(...))``.
-    The defaults are the shipped values; ``CouplingOptions.from_scene(scene)`` reads the scene's
-    ``[coupling]`` section."""
+    The defaults are the shipped values (the scene format takes its defaults from here); rockwave/build/options.py
+    coupling_options reads the scene's ``[coupling]`` section."""
 
-    contact_distance_ratio: float = DEFAULT_D0_RATIO
+    contact_distance_ratio: float = 0.5
     """Contact distance d0 / particle spacing [-] (scene: coupling.contact_distance_ratio)."""
 
-    stiffness_factor: float = DEFAULT_STIFFNESS_FACTOR
+    stiffness_factor: float = 1.0
     """K_s = stiffness_factor m c0^2 / s^2 [-] (scene: coupling.stiffness_factor)."""
 
-    damping_ratio: float = DEFAULT_DAMPING_RATIO
+    damping_ratio: float = 0.5
     """K_d = 2 damping_ratio sqrt(K_s m) [-] (scene: coupling.damping_ratio)."""
 
     stiffness_n_m: float | None = None
@@ -135,7 +125,8 @@ class CouplingOptions:
     (scene: coupling.stiffness_n_m)."""
 
     damping_n_s_m: float | None = None
-    """Explicit K_d [N s/m], overrides damping_ratio (scene: coupling.damping_n_s_m)."""
+    """Explicit K_d [N s/m per particle; per metre of depth in 2D], overrides damping_ratio
+    (scene: coupling.damping_n_s_m)."""
 
     squeeze_out: bool = True
     """Push water pinched between two opposing solid faces out along the gap (module docstring;
@@ -167,22 +158,13 @@ class CouplingOptions:
     """Adami wall particles on the moving blocks within reach of the water (BlockWalls; scene:
     coupling.block_walls; needs fluid.boundary = 'adami' and the basic method). False: the penalty alone."""
 
-    @classmethod
-    def from_scene(cls, scene) -> "CouplingOptions":
-        """The options of the scene's ``[coupling]`` section (defaults where it gives none)."""
-        c = scene.coupling
-        if c is None:
-            return cls()
 
-        def pick(key, default):
-            v = c.get(key)
-            return default if v is None else v
-
-        return cls(contact_distance_ratio=float(pick("contact_distance_ratio", DEFAULT_D0_RATIO)),
-                   stiffness_factor=float(pick("stiffness_factor", DEFAULT_STIFFNESS_FACTOR)),
-                   damping_ratio=float(pick("damping_ratio", DEFAULT_DAMPING_RATIO)),
-                   stiffness_n_m=c.get("stiffness_n_m"), damping_n_s_m=c.get("damping_n_s_m"),
-                   squeeze_out=c.get("squeeze_out") is not False, block_walls=bool(c.get("block_walls")))
+def default_penalty(particle_mass: float, sound_speed: float, spacing: float,
+                    stiffness_factor: float = CouplingOptions.stiffness_factor,
+                    damping_ratio: float = CouplingOptions.damping_ratio):
+    """(K_s, K_d) = (f m c0^2 / s^2, 2 zeta sqrt(K_s m)); see the module docstring."""
+    ks = stiffness_factor * particle_mass * sound_speed ** 2 / spacing ** 2
+    return ks, 2.0 * damping_ratio * math.sqrt(ks * particle_mass)
 
 
 class Coupling:
@@ -401,6 +383,12 @@ class Coupling:
     def active_block_count(self) -> int:
         """Blocks whose grown AABB touches the water's AABB (from the last compute)."""
         return int((self.ncell.numpy() > 0).sum()) + self.n_large
+
+
+def seed_clearance_m(contact_distance_ratio: float, spacing_m: float) -> float:
+    """Water is seeded no closer to a block's faces than half the contact distance, d0/2 [m] (the builder drops the
+    particles closer; preflight refuses a region that would keep none)."""
+    return 0.5 * contact_distance_ratio * spacing_m
 
 
 def block_signed_distance(blocks, block_state, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -14,7 +14,7 @@ What lives where:
   contact-history tables (swapped each step) and ``time``; kernel views ``bodies``, ``loads``,
   ``table_views``. A checkpoint of it is a complete restart point.
 * ``BlockOptions``: the solver's knobs (dt safety, broad-phase cell and margin, capacity paths),
-  defaults equal to the shipped values; ``BlockOptions.from_scene(scene)``.
+  defaults equal to the shipped values (a scene's: rockwave/build/options.py block_options).
 * ``BlockSolver(model, options=...)``: the solver contract of rockwave/base/solver.py:
   ``stable_dt(state)`` = options.dt_safety x ``critical_dt()`` (the physical limit 2/omega_max), and
   ``step(state, ts)`` (ts: rockwave.base.solver.TimeStep; refuses ts.dt above ``critical_dt()``) = world
@@ -279,18 +279,51 @@ def _table_slots(pairs: int) -> int:
 
 
 class BlockModel:
-    """Static description of all blocks, as device arrays (V vertices, F faces, H half-edges, N blocks).
+    """Static description of all blocks, as device arrays (V vertices, F faces, H half-edges, N blocks, C compound
+    bodies). Device arrays are wp.array on ``device``; "int" is int32, "float" float32.
 
-    Geometry (global indices into the concatenated arrays): body_verts (V, vec3, body frame m),
-    vert_block (V,), vert_start/vert_count (N,), face_start/face_count (N,), face_he (F,),
-    vertex_out_he (V,), he_vertex/he_next/he_twin (H,) (no he_prev on the device: the walk around a vertex
-    is h -> he_next[he_twin[h]]).
-    Per block: kinds (N, int: 0 rigid, 1 deformable, 2 fixed, 3 kinematic), mass (kg), inv_mass (0 for
-    fixed/kinematic), inertia_body / inv_inertia_body (mat33, kg m^2, body frame), block_size (bounding
-    diameter m), materials k_n, k_s (N/m per point), tan_phi, cohesion (Pa), tensile (Pa), zeta;
-    deformable: strain_minv, strain_k (spatial_matrix), strain_damp (1/s).
-    Kernel argument groups (kernels/dda/blocks.py structs over the arrays above): topology, props, material,
-    motion. planar (2D scenes): blocks keep z = planar_z (the specs' z) and turn about z only.
+    Attributes:
+        device: the Warp device. specs: list[BlockSpec] (N), as given. names: list[str] (N), block names.
+        gravity: (3,) tuple of float [m/s^2]. num_blocks: N. num_vertices: V. num_half_edges: H.
+        num_compounds: C, the rigid compound (non-convex) bodies.
+        np: host copies (numpy, float64 unless said): kinds (N, int32), mass (N) [kg], inertia (N, 3, 3) [kg m^2],
+            size (N) bounding diameter [m], radius (N) bounding radius [m], k_n, k_s (N) [N/m per point], zeta (N),
+            tan_phi (N), body_verts (V, 3) [m], vert_start, vert_count (N), motion_type (N, int32).
+        movable: bool (N): rigid or deformable (fixed and kinematic blocks are not integrated).
+        body_of: int64 (N): the first part of each block's body (itself for a convex block). lead: bool (N): the
+            blocks that stand for a body (momentum, energy).
+        base_position: float64 (N, 3): the specs' centroids [m]. d50: median bounding diameter D50 [m].
+        strain_omega: float64 (N): highest strain-mode frequency of a deformable block [rad/s] (0 for the rest).
+        strain_mass: float64 (N, 6, 6): generalised strain mass of a deformable block [kg m^2].
+        max_vertex_pair: the most vertices of any two blocks.
+        planar: 2D scene: blocks keep z = planar_z (the specs' z) and turn about z only.
+
+        Geometry (global indices into the concatenated arrays):
+        body_verts: vec3 (V): vertices in the body frame [m]. vert_block: int (V): each vertex's block.
+        vert_start, vert_count: int (N). face_start, face_count: int (N). face_he: int (F): a half-edge of each face.
+        vertex_out_he: int (V): a half-edge leaving each vertex. he_vertex, he_next, he_twin: int (H) (no he_prev on
+            the device: the walk around a vertex is h -> he_next[he_twin[h]]).
+        he_start, he_count: int (N), he_walk: int (H): half-edges in walk order (half_edge_walk; one-entry
+            placeholders until a solver has pairs of big blocks).
+        block_body: int (N): body_of on the device. compound_start, compound_count: int (C): the bodies' parts
+            (only with compounds).
+
+        Per block:
+        kinds: int (N): 0 rigid, 1 deformable, 2 fixed, 3 kinematic. mass: float (N) [kg]. inv_mass: float (N)
+            [1/kg] (0 for fixed and kinematic). inertia_body, inv_inertia_body: mat33 (N) [kg m^2], [1/(kg m^2)],
+            body frame. block_size: float (N): bounding diameter [m].
+        k_n, k_s: float (N): contact stiffness [N/m per point]. tan_phi: float (N). cohesion, tensile: float (N) [Pa].
+            zeta: float (N): contact damping ratio.
+        strain_minv, strain_k: spatial_matrix (N, or 1 without deformable blocks): inverse strain mass [1/(kg m^2)]
+            and strain stiffness [N m]. strain_damp: float (N): strain damping 2 zeta omega [1/s].
+        base_x: vec3 (N): base positions [m] (kinematic motion is added to them). motion_type: int (N): 0 none,
+            1 sine, 2 table. motion_amp: vec3 (N) [m]. motion_freq: float (N) [Hz]. motion_phase: float (N) [rad].
+        table_start, table_count: int (N): each kinematic block's rows of table_t: float (rows) [s] and table_x: vec3
+            (rows) [m].
+        planar_z: float (N): the fixed z of each block [m] (planar only; else None).
+
+        Kernel argument groups (kernels/dda/blocks.py structs over the arrays above): topology, props, material,
+        motion.
     """
 
     def __init__(
@@ -551,18 +584,31 @@ def _table_view(t: dict) -> "dda_k.ContactTable":
 
 
 class BlockState:
-    """Time-varying block data (device arrays, N blocks, V vertices).
+    """Time-varying block data (device arrays on the model's device, N blocks, V vertices; "float" is float32).
 
-    x (N, vec3 m, centroid world; float32, the part below its resolution in x_lo (N, vec3 m): the centroid
-    is x + x_lo, carried by a compensated sum in integrate_blocks), q (N, quat xyzw body->world; float32, the part below
-    its resolution in q_lo (N, quat): the orientation is q + q_lo, integrate_blocks), v (N, vec3 m/s), w (N, vec3 rad/s,
-    world frame), strain / strain_rate (N, spatial_vector: eps_x, eps_y, eps_z, gamma_yz, gamma_zx,
-    gamma_xy, body frame; zero for non-deformable), ext_force / ext_torque (N, vec3 N, N m about the
-    centroid, world; other modules atomically add here before step, the solver zeroes them after use),
-    force / torque / strain_force (contact accumulators), contact_count (N, int: contact points of the
-    last step), world_verts_arm (V, vec3: each vertex from x; WorldVerts), time (s), contact history tables (two dicts of arrays, swapped
-    each step by swap_tables). Kernel views (kernels/dda/blocks.py structs): bodies (x, q, v, w, strain,
-    strain_rate), loads (force ... contact_count), table_views (one per table, swapped with them).
+    Attributes:
+        model: the BlockModel.
+        x: vec3 (N): centroids in the world, float32 part [m]; the part below its resolution is in x_lo: vec3 (N) [m]
+            (the centroid is x + x_lo, carried by a compensated sum in integrate_blocks; positions_numpy).
+        q: quat (N): orientation body -> world (x, y, z, w), float32 part; the part below its resolution is in
+            q_lo: quat (N) (the orientation is q + q_lo, integrate_blocks). v: vec3 (N) [m/s]. w: vec3 (N): spin, world frame [rad/s].
+        strain, strain_rate: spatial_vector (N): eps_x, eps_y, eps_z, gamma_yz, gamma_zx, gamma_xy, body frame [-],
+            [1/s] (zero for non-deformable blocks).
+        ext_force, ext_torque: vec3 (N): external loads [N], [N m] about the centroid, world frame: other modules
+            (the coupling) add here atomically before a step, the solver zeroes them after use.
+        force, torque: vec3 (N) [N], [N m], strain_force: spatial_vector (N) [N m]: contact accumulators of a step.
+        contact_count: int (N): contact points of the last step.
+        damp_c: sym6 (N) (upper triangle), damp_b: spatial_vector (N): the implicit contact dashpots (kernels/dda/blocks.py).
+        world_verts_arm: vec3 (V): each vertex relative to its block's float32 centroid x [m] (x_lo + R (X + E X)).
+        x_ref, x_lo_ref: vec3 (N) [m], q_ref: quat (N) (0: none yet), strain_ref: spatial_vector (N, or 1 without
+            deformable blocks): the poses of the history table's planes (the last narrow phase).
+        motion_dx: vec3 (N) [m], motion_rho: float (N) [m]: the motion since the reference poses: every world vertex
+            moved by motion_dx + dev with |dev| <= motion_rho (kernels/dda/blocks.py pose_motion).
+        time: simulated time [s].
+        tables: two dicts of arrays, the contact-history tables (swapped each step by swap_tables), table_cap pair
+            slots and point_cap contact points each.
+        Kernel views (kernels/dda/blocks.py structs): bodies (x, q, v, w, strain, strain_rate, x_lo), verts (arm),
+        loads (force ... damp_b), table_views (one per table, swapped with them).
     """
 
     def __init__(self, model: BlockModel):
@@ -819,7 +865,8 @@ def check_initial_overlap_on_device(solver: "BlockSolver", state: "BlockState", 
 @dataclass(frozen=True)
 class BlockOptions:
     """Knobs of the DDA block solver: ``BlockSolver(model, options=BlockOptions(...))``. The defaults are
-    the shipped values; ``BlockOptions.from_scene(scene)`` reads the ones a scene sets."""
+    the shipped values (the scene format takes its defaults from here); rockwave/build/options.py block_options
+    reads the ones a scene sets."""
 
     dt_safety: float = 0.5
     """stable_dt = dt_safety x critical_dt() [-] (scene: ``simulation.block_dt_safety``)."""
@@ -902,20 +949,6 @@ class BlockOptions:
     settle_contact_gap: float = 1.0e-4
     """Settled start: a block rests on another at t = 0 when their gap is below this fraction of the smaller
     one's size [-] (a block placed in the air, e.g. 1 mm above a slope, falls as placed)."""
-
-    @classmethod
-    def from_scene(cls, scene) -> "BlockOptions":
-        """The options a scene sets (``simulation.block_dt_safety``, ``simulation.block_contacts``,
-        ``simulation.start``), defaults for the rest."""
-        kw = {}
-        safety = scene.simulation.get("block_dt_safety")
-        if safety is not None:
-            kw["dt_safety"] = float(safety)
-        if scene.simulation.get("block_contacts", "held") == "found":
-            kw["hold_contacts"] = False
-        if scene.simulation.get("start") is not None:
-            kw["start"] = scene.simulation.get("start")
-        return cls(**kw)
 
 
 class BlockSolver:

@@ -409,10 +409,10 @@ def load_mesh(path, decomposition: "Decomposition | None" = None, scale: float =
     return out[0] if len(out) == 1 else out
 
 
-def _scene_parts(scene: trimesh.Scene):
-    for node in scene.graph.nodes_geometry:
-        transform, gname = scene.graph[node]
-        g = scene.geometry[gname].copy()
+def _scene_parts(mesh_scene: trimesh.Scene):
+    for node in mesh_scene.graph.nodes_geometry:
+        transform, gname = mesh_scene.graph[node]
+        g = mesh_scene.geometry[gname].copy()
         g.apply_transform(transform)
         yield node, g
 

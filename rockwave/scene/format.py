@@ -17,7 +17,17 @@ from pathlib import Path
 from typing import Any
 
 from rockwave.base.device import device_syntax_error
-from rockwave.sph.ghost import GHOST_CFL_MAX
+from rockwave.coupling.penalty import CouplingOptions
+from rockwave.dda.blocks import (
+    DEFAULT_RESTITUTION,
+    DEFAULT_YOUNGS_MODULUS,
+    PENALTY_FACTOR,
+    BlockOptions,
+    BlockSpec,
+    ContactMaterial,
+)
+from rockwave.sph.fluid import FluidOptions, support_radius, walls_cover_support
+from rockwave.sph.ghost import DEFAULT_RADIUS_RATIO, DEFAULT_THRESHOLD, GHOST_CFL_MAX, GhostOptions
 
 
 class SceneError(ValueError):
@@ -130,11 +140,11 @@ SCHEMA: dict[str, Key] = {
         dimension=Key("int", "2 (x, y with y up; written in the z = 0 plane) or 3 (x, y, z with z up)", default=3, choices=(2, 3)),
         duration_s=Key("float", "simulated time", required=True, min=0, min_open=True),
         time_step=Key("str", "'cfl': adaptive step from the CFL, force and viscous limits; 'fixed': dt_s", default="cfl", choices=("cfl", "fixed")),
-        cfl_number=Key("float", "Courant number C in dt <= C h/(c0 + u_max), h = H/2 (the semi-implicit Euler step is linearly stable on a particle lattice up to C = 1.7-1.9 for every kernel and support offered; a tank at rest goes unstable between 1.5 and 1.7; 0.6 keeps a factor 2.5 for impacts and splashes, and the standing wave, the piston wave maker, the 2D dam break and SPHERIC Test 2 read the same from 0.25 to 0.8: docs/notes.md 'Time step' and 'Courant number 0.6'; with fluid.method = 'ghost' the default is 0.125, rockwave/sph/ghost.py GHOST_CFL_MAX)", default=0.6, min=0, max=1.0, min_open=True),
+        cfl_number=Key("float", "Courant number C in dt <= C h/(c0 + u_max), h = H/2 (the semi-implicit Euler step is linearly stable on a particle lattice up to C = 1.7-1.9 for every kernel and support offered; a tank at rest goes unstable between 1.5 and 1.7; 0.6 keeps a factor 2.5 for impacts and splashes, and the standing wave, the piston wave maker, the 2D dam break and SPHERIC Test 2 read the same from 0.25 to 0.8: docs/notes.md 'Time step' and 'Courant number 0.6'; with fluid.method = 'ghost' the default is " f"{GHOST_CFL_MAX:g}, rockwave/sph/ghost.py GHOST_CFL_MAX)", default=FluidOptions.DEFAULT_CFL_NUMBER, min=0, max=1.0, min_open=True),
         dt_s=Key("float", "fixed time step (time_step = 'fixed'); refused if above the stability limit", min=0, min_open=True),
-        block_dt_safety=Key("float", "block step = this fraction of the critical DDA step 2/omega_max", default=0.5, min=0.0, max=1.0, min_open=True),
+        block_dt_safety=Key("float", "block step = this fraction of the critical DDA step 2/omega_max", default=BlockOptions.dt_safety, min=0.0, max=1.0, min_open=True),
         dt_update_interval=Key("int", "steps between adaptive time-step updates (one host read each)", default=10, min=1, max=10000),
-        block_contacts=Key("str", "multi-rate block sub-steps: 'held': a fluid step's first sub-step finds the contacts, the others carry them (points moved, depths advanced by the blocks' motion; while every pair out of contact stays farther apart than it can close in the step); 'found': every sub-step runs the narrow phase (docs/coupling.md 'Multi-rate stepping')", default="held", choices=("held", "found")),
+        block_contacts=Key("str", "multi-rate block sub-steps: 'held': a fluid step's first sub-step finds the contacts, the others carry them (points moved, depths advanced by the blocks' motion; while every pair out of contact stays farther apart than it can close in the step); 'found': every sub-step runs the narrow phase (docs/coupling.md 'Multi-rate stepping')", default="held" if BlockOptions.hold_contacts else "found", choices=("held", "found")),
         block_stepping=Key("str", "with water and blocks: 'multirate': the water's limits set the step and the blocks sub-step inside it at their own (the water's load held over the step; at most 1000 sub-steps); 'single': one step for both at the smallest limit (docs/coupling.md 'Multi-rate stepping')", default="multirate", choices=("multirate", "single")),
         device=Key("str", "'auto' (first GPU if any, else CPU), 'cpu', 'cuda' or 'cuda:N'; the CLI --device overrides", default="auto"),
         start=Key("str", "how blocks start (the default 'plain' is BlockOptions.start's): 'settled': the blocks resting on another at t = 0 (no initial velocity, gap below 1e-4 of the smaller one's size) are first brought to the equilibrium of their contact springs under gravity with friction locked, then released, so a stable block or rock mass starts at rest with its contacts loaded (blocks in the air or moving start as placed; a scene that does not come to rest with friction locked starts plain, with a warning); 'plain': as placed, contacts unloaded and gravity from t = 0, so the contacts load while gravity already pulls (a stable block may slip and rocks until its overdamped modes settle: a 10 m cube at k = 2.5e8 N/m per point 0.1 deg above a 35 deg slope still moves 5.8 um/s after 6 s, settled 0.09 um/s); run.json 'block_start' says what was done (docs/notes.md 'Rock that stands stays standing')", default="plain", choices=("plain", "settled")),
@@ -164,15 +174,16 @@ SCHEMA: dict[str, Key] = {
         method=Key("str", "'basic': WCSPH as above; 'ghost': Ghost SPH free surface (Schechter & Bridson 2012), ghost air particles seeded each step around the free surface ([fluid.ghost])", default="basic", choices=("basic", "ghost")),
         ghost=_sec(
             "Ghost SPH settings (used when method = 'ghost')",
-            surface_threshold=Key("float", "free-surface particles have position divergence div x below this (interior: the dimension); default 1.5 in 2D, 2.4 in 3D", min=0, max=3, min_open=True),
-            sample_radius_ratio=Key("float", "Poisson-disk radius r / spacing (default 0.80 in 2D, 0.85 in 3D: darts' flat-surface summation density ~ rho0, the tile's ~0.92 rho0)", min=0.5, max=1.5),
-            layer_ratio=Key("float", "ghost layer thickness / kernel support radius", default=1.0, min=0.25, max=2.0),
-            sampler=Key("str", "'tile': the ghosts are the points of a periodic Poisson-disk tile (Bridson 2007, generated once) laid over the space, kept where they pass the liquid rules each step (one parallel pass); 'darts': Poisson-disk dart throwing in the background cells each step (3^dim dependent phases). Default: 'tile', 'darts' with persistent = true", choices=("tile", "darts")),
-            attempts=Key("int", "darts per background cell and round (Bridson's k; one bit each in a 32-bit mask on the parallel path)", default=16, min=1, max=31),
-            rounds=Key("int", "passes over the 3^dim independent phases of the background grid (each pass is 3^dim dependent launches on a GPU)", default=1, min=1, max=10),
-            pressure_term=Key("bool", "ghosts enter the pressure force through the liquid particle's own p_i/rho_i^2 term (true), or add no pressure force at all (false)", default=True),
-            density_cap=Key("bool", "summation density: ghosts fill a surface particle's kernel support up to rho0 and no further, rho_i = S_i + min(G_i, max(rho0 - S_i, 0)) (true); or add their full sum (false)", default=False),
-            persistent=Key("bool", "keep last step's ghosts, moved with the mean motion of the liquid around them, and only fill the holes (true); or resample the whole layer each step (false). Needed with summation density (a resampled layer's density noise heats a resting drop)", default=False),
+            surface_threshold=Key("float", "free-surface particles have position divergence div x below this (interior: the dimension); "
+                                  f"default {DEFAULT_THRESHOLD[2]:g} in 2D, {DEFAULT_THRESHOLD[3]:g} in 3D", default=GhostOptions.surface_threshold, min=0, max=3, min_open=True),
+            sample_radius_ratio=Key("float", f"Poisson-disk radius r / spacing (default {DEFAULT_RADIUS_RATIO[2]:.2f} in 2D, {DEFAULT_RADIUS_RATIO[3]:.2f} in 3D: darts' flat-surface summation density ~ rho0, the tile's ~0.92 rho0)", default=GhostOptions.sample_radius_ratio, min=0.5, max=1.5),
+            layer_ratio=Key("float", "ghost layer thickness / kernel support radius", default=GhostOptions.layer_ratio, min=0.25, max=2.0),
+            sampler=Key("str", "'tile': the ghosts are the points of a periodic Poisson-disk tile (Bridson 2007, generated once) laid over the space, kept where they pass the liquid rules each step (one parallel pass); 'darts': Poisson-disk dart throwing in the background cells each step (3^dim dependent phases). Default: 'tile', 'darts' with persistent = true", default=GhostOptions.sampler, choices=("tile", "darts")),
+            attempts=Key("int", "darts per background cell and round (Bridson's k; one bit each in a 32-bit mask on the parallel path)", default=GhostOptions.attempts, min=1, max=31),
+            rounds=Key("int", "passes over the 3^dim independent phases of the background grid (each pass is 3^dim dependent launches on a GPU)", default=GhostOptions.rounds, min=1, max=10),
+            pressure_term=Key("bool", "ghosts enter the pressure force through the liquid particle's own p_i/rho_i^2 term (true), or add no pressure force at all (false)", default=GhostOptions.pressure_term),
+            density_cap=Key("bool", "summation density: ghosts fill a surface particle's kernel support up to rho0 and no further, rho_i = S_i + min(G_i, max(rho0 - S_i, 0)) (true); or add their full sum (false)", default=GhostOptions.density_cap),
+            persistent=Key("bool", "keep last step's ghosts, moved with the mean motion of the liquid around them, and only fill the holes (true); or resample the whole layer each step (false). Needed with summation density (a resampled layer's density noise heats a resting drop)", default=GhostOptions.persistent),
         ),
         eos=_sec(
             "equation of state: give speed_of_sound_m_s, or the constant itself (b_pa for Tait, k_m2_s2 for linear)",
@@ -211,13 +222,13 @@ SCHEMA: dict[str, Key] = {
         mesh_scale=Key("float", "uniform scale for the mesh (0.001 for millimetres)", default=1.0, min=0, min_open=True),
         position_m=Key("vec", "centroid position (default: where the prism vertices or the mesh file put it)", length=3),
         orientation_deg=Key("vec", "rotation as successive turns about the fixed x, y, z axes", length=3, default=[0.0, 0.0, 0.0]),
-        density_kg_m3=Key("float", "block density", default=2600.0, min=0, min_open=True),
+        density_kg_m3=Key("float", "block density", default=BlockSpec.density, min=0, min_open=True),
         velocity_m_s=Key("vec", "initial velocity", length=3, default=[0.0, 0.0, 0.0]),
         angular_velocity_rad_s=Key("vec", "initial spin (world frame)", length=3, default=[0.0, 0.0, 0.0]),
         kind=Key("str", "'rigid' (6 DOF), 'deformable' (Shi's 12 DOF, constant strain), 'fixed' or 'kinematic' (prescribed motion)", default="rigid", choices=("rigid", "deformable", "fixed", "kinematic")),
-        youngs_modulus_pa=Key("float", "Young's modulus E (deformable blocks; also sets the default contact stiffness); default 10 GPa", min=0, min_open=True),
-        poisson_ratio=Key("float", "Poisson ratio", default=0.25, min=0.0, max=0.49),
-        strain_damping_ratio=Key("float", "damping ratio of a deformable block's strain modes", default=0.05, min=0.0, max=2.0),
+        youngs_modulus_pa=Key("float", "Young's modulus E (deformable blocks; also sets the default contact stiffness); default " f"{DEFAULT_YOUNGS_MODULUS / 1e9:g} GPa", min=0, min_open=True),
+        poisson_ratio=Key("float", "Poisson ratio", default=BlockSpec.poisson_ratio, min=0.0, max=0.49),
+        strain_damping_ratio=Key("float", "damping ratio of a deformable block's strain modes", default=BlockSpec.strain_damping_ratio, min=0.0, max=2.0),
         motion=_sec("prescribed motion of a kinematic block: displacement added to position_m",
                     type=Key("str", "'sine': u = amplitude sin(2 pi f t + phase); 'table': linear in (times_s, displacements_m)", default="sine", choices=("sine", "table")),
                     amplitude_m=Key("vec", "sine amplitude vector", length=3),
@@ -226,12 +237,12 @@ SCHEMA: dict[str, Key] = {
                     times_s=Key("floatlist", "table times (strictly increasing)"),
                     displacements_m=Key("points", "table displacements, one [x, y, z] per time", length=3)),
         material=_sec("contact law of the block's surface (a pair uses the weaker of the two; damping the larger)",
-                      friction_angle_deg=Key("float", "Coulomb friction angle phi", default=30.0, min=0.0, max=89.0),
-                      cohesion_pa=Key("float", "cohesion c (times each contact point's area share)", default=0.0, min=0.0),
-                      tensile_strength_pa=Key("float", "tension allowed per unit area before the cut-off", default=0.0, min=0.0),
-                      normal_stiffness_n_m=Key("float", "k_n per contact point (default 0.1 E L, L = volume^(1/3))", min=0, min_open=True),
+                      friction_angle_deg=Key("float", "Coulomb friction angle phi", default=ContactMaterial.friction_angle_deg, min=0.0, max=89.0),
+                      cohesion_pa=Key("float", "cohesion c (times each contact point's area share)", default=ContactMaterial.cohesion_pa, min=0.0),
+                      tensile_strength_pa=Key("float", "tension allowed per unit area before the cut-off", default=ContactMaterial.tensile_strength_pa, min=0.0),
+                      normal_stiffness_n_m=Key("float", f"k_n per contact point (default {PENALTY_FACTOR:g} E L, L = volume^(1/3))", min=0, min_open=True),
                       shear_stiffness_n_m=Key("float", "k_s per contact point (default k_n / (2 (1 + nu)))", min=0, min_open=True),
-                      restitution=Key("float", "normal restitution coefficient e (default 0.5)", min=0.0, max=1.0),
+                      restitution=Key("float", f"normal restitution coefficient e (default {DEFAULT_RESTITUTION:g})", min=0.0, max=1.0),
                       damping_ratio=Key("float", "contact dashpot damping ratio (overrides restitution)", min=0.0, max=10.0)),
         decomposition=_sec("how a non-convex mesh is split into convex parts (CoACD, Wei et al. 2022), cached by mesh hash; the run prints the parts and the volume error",
                            max_parts=Key("int", "the most convex parts a mesh may become; more is an error (raise it or the concavity)", default=32, min=1, max=4096),
@@ -243,13 +254,13 @@ SCHEMA: dict[str, Key] = {
     ),
     "coupling": _sec(
         "two-way penalty coupling of water and blocks, f = (K_s d - K_d v_rel.n) n (rockwave/coupling/penalty.py); used when a scene has both", optional=True,
-        contact_distance_ratio=Key("float", "contact distance d0 / spacing: water stays this far from block faces (0.5: the particle's half cell, so the water touches the face)", default=0.5, min=0.0, max=2.0, min_open=True),
-        stiffness_factor=Key("float", "K_s = factor m c0^2 / s^2 (the stiffness of the water itself at 1)", default=1.0, min=0.0, max=10.0, min_open=True),
-        damping_ratio=Key("float", "K_d = 2 ratio sqrt(K_s m): damping ratio of the particle-wall spring", default=0.5, min=0.0, max=2.0),
+        contact_distance_ratio=Key("float", "contact distance d0 / spacing: water stays this far from block faces (0.5: the particle's half cell, so the water touches the face)", default=CouplingOptions.contact_distance_ratio, min=0.0, max=2.0, min_open=True),
+        stiffness_factor=Key("float", "K_s = factor m c0^2 / s^2 (the stiffness of the water itself at 1)", default=CouplingOptions.stiffness_factor, min=0.0, max=10.0, min_open=True),
+        damping_ratio=Key("float", "K_d = 2 ratio sqrt(K_s m): damping ratio of the particle-wall spring", default=CouplingOptions.damping_ratio, min=0.0, max=2.0),
         stiffness_n_m=Key("float", "explicit K_s (N/m per particle; per metre of depth in 2D), overrides stiffness_factor", min=0, min_open=True),
         damping_n_s_m=Key("float", "explicit K_d (N s/m), overrides damping_ratio", min=0.0),
-        squeeze_out=Key("bool", "water pinched between a moving block and an opposing solid face closer than 2 d0 + H is pushed out along the gap, so a block can settle onto another (rockwave/coupling/penalty.py)", default=True),
-        block_walls=Key("bool", "Adami wall particles on the moving (rigid, deformable, kinematic) blocks that start within reach of the water (its bounding box grown by its largest extent), so the water pushes them with its extrapolated pressure, wall acceleration included, and the penalty is only the guard against penetration (rockwave/coupling/walls.py BlockWalls); needs fluid.boundary = 'adami' and fluid.method = 'basic'; false: the penalty alone (with the standard level a floating box then sinks 9% (2D) to 28% (3D) deeper than Archimedes' draft, docs/notes.md)", default=False),
+        squeeze_out=Key("bool", "water pinched between a moving block and an opposing solid face closer than 2 d0 + H is pushed out along the gap, so a block can settle onto another (rockwave/coupling/penalty.py)", default=CouplingOptions.squeeze_out),
+        block_walls=Key("bool", "Adami wall particles on the moving (rigid, deformable, kinematic) blocks that start within reach of the water (its bounding box grown by its largest extent), so the water pushes them with its extrapolated pressure, wall acceleration included, and the penalty is only the guard against penetration (rockwave/coupling/walls.py BlockWalls); needs fluid.boundary = 'adami' and fluid.method = 'basic'; false: the penalty alone (with the standard level a floating box then sinks 9% (2D) to 28% (3D) deeper than Archimedes' draft, docs/notes.md)", default=CouplingOptions.block_walls),
     ),
     "hazard": _sec(
         "hazard summary reduced on the device during a run (rockwave/output/hazard.py), written to hazard.json and run.json", optional=True,
@@ -319,10 +330,10 @@ _ROCK_MASS = _list(
     origin_m=Key("vec", "a point every set's plane 0 passes through before offset_m (default: the region's first corner: box_min_m turned, else the lower corner of its bounds)", length="dim"),
     seed=Key("int", "seed of the random plane offsets and spacing jitter (the same seed gives the same blocks)", default=0, min=0),
     min_block_size_m=Key("float", "blocks whose largest inscribed sphere is narrower than this (small blocks, thin plates, needles) merge into one or two face neighbours whose union with them is convex; 0: no merging", default=0.0, min=0.0),
-    density_kg_m3=Key("float", "rock density", default=2600.0, min=0, min_open=True),
+    density_kg_m3=Key("float", "rock density", default=BlockSpec.density, min=0, min_open=True),
     kind=Key("str", "'rigid' or 'deformable' (Shi's constant strain)", default="rigid", choices=("rigid", "deformable")),
-    youngs_modulus_pa=Key("float", "Young's modulus E (sets the default contact stiffness); default 10 GPa", min=0, min_open=True),
-    poisson_ratio=Key("float", "Poisson ratio", default=0.25, min=0.0, max=0.49),
+    youngs_modulus_pa=Key("float", "Young's modulus E (sets the default contact stiffness); default " f"{DEFAULT_YOUNGS_MODULUS / 1e9:g} GPa", min=0, min_open=True),
+    poisson_ratio=Key("float", "Poisson ratio", default=BlockSpec.poisson_ratio, min=0.0, max=0.49),
     material=_sec(
         "intact rock: the strength of the rock bridges of non-persistent joints and the contact law of a block with no joint face; stiffness and damping of every block",
         **{k: v for k, v in SCHEMA["blocks"].children["material"].children.items()}),
@@ -344,6 +355,7 @@ _ROCK_MASS = _list(
 )
 SCHEMA = {k: v for k, v in list(SCHEMA.items())[:list(SCHEMA).index("blocks") + 1]} | {"rock_mass": _ROCK_MASS} | {
     k: v for k, v in list(SCHEMA.items())[list(SCHEMA).index("blocks") + 1:]}
+_EOS_KEYS = SCHEMA["fluid"].children["eos"].children
 
 
 # --------------------------------------------------------------------------------------------
@@ -701,7 +713,8 @@ def apply_fidelity(v: _Validator, fl: Node, tank: Node | None) -> None:
     if fl["boundary"] == "adami" and tank is not None and tank.get("layers") is not None:
         ratio = fl.get("support_radius_ratio")
         bratio = tank.get("boundary_spacing_ratio") or 1.0
-        if isinstance(ratio, (int, float)) and tank["layers"] * bratio < 0.999 * ratio:
+        # in units of the spacing: layers of bratio against the support of ratio (rockwave/sph/fluid.py)
+        if isinstance(ratio, (int, float)) and not walls_cover_support(tank["layers"], bratio, support_radius(1.0, ratio)):
             v.err("tank.layers", f"= {tank['layers']} layers of {bratio:g} spacing are thinner than the kernel support "
                                  f"({ratio:g} spacings); Adami walls ({origin}) need the support covered: remove tank.layers "
                                  "(the default covers it) or set fluid.boundary = 'akinci'")
@@ -787,7 +800,7 @@ def _check_eos_constant(v: _Validator, fl: Node) -> None:
     else:
         key = "speed_of_sound_m_s"
         try:
-            const = c0 * c0 * (rho0 / (eos["gamma"] or 7.0) if eos["type"] == "tait" else 1.0)
+            const = c0 * c0 * (rho0 / (eos["gamma"] or _EOS_KEYS["gamma"].default) if eos["type"] == "tait" else 1.0)
         except OverflowError:
             const = math.inf
     if const is not None and not const < MAX_EOS_CONSTANT_PA:
@@ -857,7 +870,13 @@ def _check_gauges(v: _Validator, s: Node) -> None:
     box = _box_of(t) if t is not None else None
     if box is None or fl is None or not fl.get("spacing_m") or not gauges:
         return  # mesh tanks: rockwave/build/preflight.py checks against the mesh's bounds
-    gauge_domain_errors(v.err, gauges, box[0], box[1], v.dim, fl["spacing_m"] * (fl.get("support_radius_ratio") or 2.0), "the tank")
+    gauge_domain_errors(v.err, gauges, box[0], box[1], v.dim, _support_radius(fl), "the tank")
+
+
+def _support_radius(fl) -> float:
+    """Kernel support radius H [m] of a [fluid] section under validation (rockwave/sph/fluid.py support_radius;
+    apply_fidelity has set support_radius_ratio, the draft level's where an error left it unset)."""
+    return support_radius(fl["spacing_m"], fl.get("support_radius_ratio") or FIDELITY["draft"]["support_radius_ratio"])
 
 
 def gauge_domain_errors(err, gauges, lo, hi, dim: int, tol: float, what: str) -> None:
@@ -1021,7 +1040,7 @@ def check_hazard_keys(err, s, dim: int) -> None:
     t, fl = s.get("tank"), s.get("fluid")
     if t is not None and fl is not None and t.get("box_min_m") and t.get("box_max_m") and fl.get("spacing_m"):
 
-        tol = fl["spacing_m"] * (fl.get("support_radius_ratio") or 2.0)
+        tol = _support_radius(fl)
         pts = [{"position_m": g.get("position_m"), "kind": "height"} for g in hz.get("gauges") or []]
         gauge_domain_errors(lambda k, m: err(k.replace("output.gauges", "hazard.gauges"), m), pts,
                             t["box_min_m"], t["box_max_m"], dim, tol, "the tank")

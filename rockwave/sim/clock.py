@@ -26,10 +26,10 @@ from __future__ import annotations
 import math
 from typing import Callable
 
-import numpy as np
 import warp as wp
 
 from rockwave.base.solver import TimeStep
+from rockwave.build.options import gravity_norm as gravity_norm  # |g| of a scene (re-exported: rockwave/sim/simulation.py)
 from rockwave.scene.format import Scene, SceneError
 
 MAX_BLOCK_SUBSTEPS = 1000  # block sub-steps per fluid step above which a scene is refused
@@ -148,6 +148,3 @@ class Clock:
         self._count_substeps()
         self.dt_array.fill_(self.dt)
 
-
-def gravity_norm(scene: Scene) -> float:
-    return float(np.linalg.norm(scene.gravity.acceleration_m_s2))

@@ -67,7 +67,7 @@ import numpy as np
 import warp as wp
 
 from rockwave.base.device import resolve_device
-from rockwave.coupling.penalty import CouplingOptions
+from rockwave.build.options import coupling_options
 from rockwave.kernels.sph import fluid as sph
 from rockwave.scene.format import Scene, load_scene
 from rockwave.sim import checkpoint as ckpt
@@ -601,7 +601,7 @@ def _main(argv=None) -> int:
     options = None
     if a.track_walls:
 
-        options = SimulationOptions(coupling=replace(CouplingOptions.from_scene(load_scene(a.scene)), track_walls=True))
+        options = SimulationOptions(coupling=replace(coupling_options(load_scene(a.scene)), track_walls=True))
     sim = (Simulation(a.scene, device="cpu", options=options) if a.plain else
            DistributedSimulation(a.scene, device="cpu", options=options, balance_tolerance=a.balance))
     if not a.plain and sim.rank != 0:

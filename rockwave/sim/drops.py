@@ -8,7 +8,8 @@ import math
 import numpy as np
 import warp as wp
 
-from rockwave.build.builder import boundary_lattice, seed_particles
+from rockwave.build.builder import seed_particles
+from rockwave.build.options import boundary_lattice, fluid_parameters
 from rockwave.sim.simulation import Simulation
 from rockwave.sph.fluid import Density, FluidSolver, build_fluid_model, density_for_pressure
 from rockwave.sph.ghost import GhostFluidSolver
@@ -26,10 +27,11 @@ def drop_simulation(scene, radius: float, velocity=None, device: str | None = No
         xf = xf[np.linalg.norm(xf, axis=1) < radius]
         vf = np.zeros_like(xf) if velocity is None else np.asarray(velocity(xf), float)
         bstep, layers = boundary_lattice(scene)
-        sim.fluid = build_fluid_model(xf, vf, xb, scene.fluid, scene.dim, scene.gravity.acceleration_m_s2, sim.device, bstep, layers)
+        sim.fluid = build_fluid_model(xf, vf, xb, fluid_parameters(scene.fluid), scene.dim, scene.gravity.acceleration_m_s2,
+                                      sim.device, bstep, layers)
         old = sim.fluid_solver
         if scene.fluid.method == "ghost":
-            sim.fluid_solver = GhostFluidSolver(sim.fluid, scene.fluid.ghost, options=old.options, ghost_options=old.ghost_options)
+            sim.fluid_solver = GhostFluidSolver(sim.fluid, options=old.options, ghost_options=old.ghost_options)
         else:
             sim.fluid_solver = FluidSolver(sim.fluid, options=old.options)
         sim.state = sim.fluid.state()

@@ -29,6 +29,10 @@ import math
 
 import numpy as np
 
+from rockwave.build.options import boundary_lattice, gravity_norm
+from rockwave.dda.blocks import DEFAULT_YOUNGS_MODULUS
+from rockwave.sph.fluid import SOUND_SPEED_FACTOR, expected_flow_speed
+
 SPEED_FACTOR = 5.0
 ESCAPE_FRACTION = 0.5
 ENERGY_JUMP = 0.5
@@ -52,7 +56,7 @@ class HealthGuard:
     def __init__(self, sim):
         self.sim = sim
         s = sim.scene
-        self.g = float(np.linalg.norm(s.gravity.acceleration_m_s2))
+        self.g = gravity_norm(s)
         self.up = s.dim - 1
         self.prev_energy = None
         self.escaped = 0
@@ -69,7 +73,7 @@ class HealthGuard:
             pos = m.base_position[:, 2 if s.dim == 3 else self.up]
             r = m.np["radius"]
             lo, hi = min(lo, float((pos - r).min())), max(hi, float((pos + r).max()))
-            E = np.array([sp.youngs_modulus or 10.0e9 for sp in m.specs])
+            E = np.array([sp.youngs_modulus or DEFAULT_YOUNGS_MODULUS for sp in m.specs])
             rho = np.array([sp.density for sp in m.specs])
             self.block_wave_speed = np.sqrt(E / rho)
         height = (hi - lo) if hi > lo else 1.0
@@ -91,9 +95,7 @@ class HealthGuard:
         floor = float(x[:, self.up].min()) - 0.5 * sim.fluid.spacing
         t = s.tank
         if t is not None and t.get("box_min_m") is not None:
-            fl = s.fluid
-            bstep = fl.spacing_m * t.boundary_spacing_ratio
-            layers = t.layers or max(1, int(math.ceil(fl.support_radius_ratio * fl.spacing_m / bstep - 1e-9)))
+            bstep, layers = boundary_lattice(s)  # the builder's walls (rockwave/build/options.py)
             lo, hi = np.asarray(t.box_min_m, float), np.asarray(t.box_max_m, float)
             # a particle has left once it is past the walls' outer faces
             self.tank = (lo - layers * bstep, hi + layers * bstep, hi[self.up], bool(t.open_top))
@@ -104,17 +106,17 @@ class HealthGuard:
             self.above_top = np.zeros(n, bool)
         self.water_height = max(float(x[:, self.up].max()) + 0.5 * sim.fluid.spacing - floor, 0.0)
         v0 = float(np.sqrt((v * v).sum(axis=1)).max()) if len(v) else 0.0
-        self.flow_speed = math.sqrt(2.0 * self.g * self.water_height) + v0
+        self.flow_speed = expected_flow_speed(self.g, self.water_height, v0)
         self.sound_speed = float(sim.fluid.sound_speed)
 
     def _sound_speed_advice(self) -> str | None:
-        """'set fluid.eos.speed_of_sound_m_s >= ...' when c0 < 10 u_max, else None."""
+        """'set fluid.eos.speed_of_sound_m_s >= ...' when c0 < SOUND_SPEED_FACTOR (10) u_max, else None."""
         c0, u = self.sound_speed, self.flow_speed
-        if c0 is None or not u > 0 or c0 >= 10.0 * u:
+        if c0 is None or not u > 0 or c0 >= SOUND_SPEED_FACTOR * u:
             return None
         return (f"the speed of sound c0 = {c0:.3g} m/s is below 10 x the expected flow speed u_max ~ sqrt(2 g H) = {u:.3g} m/s "
                 f"(H = {self.water_height:.3g} m of water): the water is too compressible and a smaller time step does not "
-                f"help; set fluid.eos.speed_of_sound_m_s >= {10.0 * u:.3g}")
+                f"help; set fluid.eos.speed_of_sound_m_s >= {SOUND_SPEED_FACTOR * u:.3g}")
 
     def _count_leaks(self, x: np.ndarray) -> tuple[int, int]:
         """(through the walls, over the open top), counted once per particle since the start."""

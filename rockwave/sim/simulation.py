@@ -34,30 +34,41 @@ from rockwave.build import (
     builder,
     preflight,  # meshes and the memory estimate, before anything is allocated
 )
+from rockwave.coupling.penalty import CouplingOptions
+from rockwave.dda.blocks import BlockOptions
 from rockwave.scene.format import Scene, SceneError, load_scene
 from rockwave.sim import checkpoint
 from rockwave.sim.clock import MAX_BLOCK_SUBSTEPS, Clock, gravity_norm
 from rockwave.sim.guard import BlowUpError, HealthGuard
 from rockwave.sim.readers import Readers
 from rockwave.sim.stepping import BlockSubstepping
-from rockwave.sph.fluid import fluid_dt_limit
+from rockwave.sph.fluid import FluidOptions, fluid_dt_limit
+from rockwave.sph.ghost import GhostOptions
 
 
 @dataclass
 class SimulationOptions:
     """Tuning of the parts, passed in Python (``Simulation(scene, options=...)``); defaults are the
-    measured best (docs/notes.md). None: the part's own defaults.
+    measured best (docs/notes.md). None: the part's own defaults and the scene's settings (rockwave/build/options.py
+    says how the two meet)."""
 
-    fluid: rockwave.sph.fluid.FluidOptions. ghost: rockwave.sph.ghost.GhostOptions. blocks: rockwave.dda.blocks.BlockOptions
-    (None: BlockOptions.from_scene). coupling: rockwave.coupling.penalty.CouplingOptions (None: from the scene's [coupling]).
-    cuda_graphs: replay a chunk of fluid-only steps, and each single step outside the chunks, as a captured CUDA
-        graph on a GPU."""
+    fluid: FluidOptions | None = None
+    """The fluid solver's options (None: the defaults); cfl_number None takes the scene's simulation.cfl_number."""
 
-    fluid: object = None
-    ghost: object = None
-    blocks: object = None
-    coupling: object = None
+    ghost: GhostOptions | None = None
+    """The ghost solver's options (None: the defaults); the scene's [fluid.ghost] settings replace its scene fields
+    (attempts, rounds, sampler, ...)."""
+
+    blocks: BlockOptions | None = None
+    """The block solver's options (None: the scene's simulation.block_dt_safety and block_contacts, the defaults
+    for the rest)."""
+
+    coupling: CouplingOptions | None = None
+    """The water-block coupling's options (None: the scene's [coupling] section)."""
+
     cuda_graphs: bool = True
+    """Replay a chunk of fluid-only steps, and each single step outside the chunks, as a captured CUDA graph on a
+    GPU."""
 
 
 class Simulation:

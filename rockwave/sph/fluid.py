@@ -11,6 +11,7 @@ import enum
 import math
 from dataclasses import dataclass, replace
 from types import SimpleNamespace
+from typing import ClassVar
 
 import numpy as np
 import warp as wp
@@ -29,42 +30,61 @@ class Density(enum.IntEnum):
 
 @dataclass
 class FluidOptions:
-    """Tuning of the fluid solver (Python API: ``Simulation(scene, options=SimulationOptions(fluid=...))``).
-    The defaults are measured (docs/notes.md); none changes the physics, only the cost.
+    """Tuning of the fluid solver (Python API: ``Simulation(scene, options=SimulationOptions(fluid=...))``,
+    ``FluidSolver(model, options=...)``). The defaults are measured (docs/notes.md); none changes the physics, only
+    the cost (but cfl_number, the adaptive step's Courant number)."""
 
-    neighbour_skin: Verlet-list skin as a fraction of the support radius H; the list holds pairs within
-        (1 + skin) H and is kept until a displacement check fails (0: rebuilt every step). 0.05: a 3D dam
-        break keeps a list ~3 steps, CPU step 19.6 -> 14.0 ms at 10.9k particles.
-    skin_check: "relative" (rebuild when two particles that may have become neighbours moved skin H
-        relative to each other; cells of 2H by build position) or "absolute" (any particle moved skin H/2).
-    reorder_interval: steps between sorts of the fluid particles by cell on a GPU and in step_many (0: never;
-        None: 10, or 0 for Ghost SPH, whose grid also holds the ghosts).
-    recorded_launches: record the per-step launches once and replay them (None: on for Ghost SPH, whose step
-        cannot be a CUDA graph; the basic step is replayed as a CUDA graph instead).
-    fused_density: build the neighbour list and the density in one pass (None: on the CPU, where it saves a
-        traversal, 17.1 vs 19.8 ms/step at 10k particles; off on CUDA, 2.16 ms fused vs 1.03 + 0.55 ms apart on
-        an H100 at 2.16 M particles).
-    conditional_rebuild: in a CUDA graph, the list rebuild is a conditional node on the device flag.
-    cell_ratio: hash-grid cell width / H. cell_subdivision_x: list cell grid x-cells H/n wide.
-    min_cells, cells_per_particle: the list cell grid wraps past max(min_cells, cells_per_particle x particles).
-    check_cells_per_particle: the relative check falls back to "absolute" past this many cells a particle.
-    relative_min_particles_cuda: on a GPU the relative check starts at this many particles (below, its 5 extra
-        launches cost more than the builds they save: H100, 3,600 particles, 0.46 -> 0.69 ms/step).
-    cfl_number: Courant number of the adaptive step (``simulation.cfl_number``; None: 0.6, the scene default)."""
+    DEFAULT_CFL_NUMBER: ClassVar[float] = 0.6
+    """The Courant number when cfl_number is None and no scene gives one [-] (the default of the scene's
+    ``simulation.cfl_number``: rockwave/scene/format.py takes it from here)."""
 
     neighbour_skin: float = 0.05
+    """Verlet-list skin as a fraction of the support radius H [-]; the list holds pairs within (1 + skin) H and is
+    kept until a displacement check fails (0: rebuilt every step). 0.05: a 3D dam break keeps a list ~3 steps, CPU
+    step 19.6 -> 14.0 ms at 10.9k particles."""
+
     skin_check: str = "relative"
+    """"relative" (rebuild when two particles that may have become neighbours moved skin H relative to each other;
+    cells of 2H by build position) or "absolute" (any particle moved skin H/2)."""
+
     reorder_interval: int | None = None
+    """Steps between sorts of the fluid particles by cell on a GPU and in step_many [steps] (0: never; None: 10, or
+    0 for Ghost SPH, whose grid also holds the ghosts)."""
+
     recorded_launches: bool | None = None
+    """Record the per-step launches once and replay them (None: on for Ghost SPH, whose step cannot be a CUDA
+    graph; the basic step is replayed as a CUDA graph instead)."""
+
     fused_density: bool | None = None
+    """Build the neighbour list and the density in one pass (None: on the CPU, where it saves a traversal, 17.1 vs
+    19.8 ms/step at 10k particles; off on CUDA, 2.16 ms fused vs 1.03 + 0.55 ms apart on an H100 at 2.16 M
+    particles)."""
+
     conditional_rebuild: bool = True
+    """In a CUDA graph, the list rebuild is a conditional node on the device flag."""
+
     cell_ratio: float = 1.0
+    """Hash-grid cell width / H [-]."""
+
     cell_subdivision_x: int = 4
+    """The list cell grid's x-cells are H/n wide [-]."""
+
     min_cells: int = 1 << 20
+    """The list cell grid wraps past max(min_cells, cells_per_particle x particles) cells [cells]."""
+
     cells_per_particle: int = 4
+    """See min_cells [cells per particle]."""
+
     check_cells_per_particle: int = 4
+    """The relative skin check falls back to "absolute" past this many cells a particle [cells per particle]."""
+
     relative_min_particles_cuda: int = 250_000
+    """On a GPU the relative check starts at this many particles [particles] (below, its 5 extra launches cost more
+    than the builds they save: H100, 3,600 particles, 0.46 -> 0.69 ms/step)."""
+
     cfl_number: float | None = None
+    """Courant number C of the adaptive step, dt <= C h/(c0 + u_max) [-] (None: the scene's ``simulation.cfl_number``
+    when built from a scene, else DEFAULT_CFL_NUMBER)."""
 
     def __post_init__(self):
         if self.skin_check not in ("relative", "absolute"):
@@ -73,65 +93,198 @@ class FluidOptions:
             raise ValueError(f"FluidOptions.neighbour_skin = {self.neighbour_skin}: must be >= 0")
 
 
-def sound_speed_from_eos(eos, rest_density: float) -> float:
-    """c0 from the EOS constants: Tait c0^2 = gamma B / rho0; linear c0^2 = k."""
-    if eos["speed_of_sound_m_s"] is not None:
-        return float(eos["speed_of_sound_m_s"])
-    if eos["type"] == "tait":
-        return math.sqrt(eos["gamma"] * eos["b_pa"] / rest_density)
-    return math.sqrt(eos["k_m2_s2"])
+@dataclass(frozen=True)
+class FluidParameters:
+    """The fluid's physical formulation, typed, SI units in the names: what ``make_params`` and
+    ``build_fluid_model`` are made from (a scene's [fluid] section becomes one in rockwave/build/options.py
+    fluid_parameters; the scene format documents each choice)."""
+
+    spacing_m: float
+    """Initial particle spacing dx [m]."""
+
+    rest_density_kg_m3: float
+    """Rest density rho0 [kg/m^3]."""
+
+    kernel: str
+    """Smoothing kernel: "muller", "cubic_spline" or "wendland"."""
+
+    support_radius_ratio: float
+    """Kernel support radius H / spacing [-] (support_radius)."""
+
+    eos_type: str
+    """Equation of state: "tait" (p = B ((rho/rho0)^gamma - 1)) or "linear" (p = k (rho - rho0))."""
+
+    eos_gamma: float
+    """Tait exponent gamma [-]."""
+
+    eos_speed_of_sound_m_s: float | None
+    """Speed of sound c0 [m/s], or None when the constant (eos_b_pa or eos_k_m2_s2) is given instead."""
+
+    eos_b_pa: float | None
+    """Tait stiffness B [Pa], or None (from c0: B = c0^2 rho0 / gamma)."""
+
+    eos_k_m2_s2: float | None
+    """Linear stiffness k [m^2/s^2] (Pa per kg/m^3), or None (from c0: k = c0^2)."""
+
+    clamp_negative_pressure: bool
+    """Clip p < 0 to 0."""
+
+    density_floor: bool
+    """Keep the continuity density at rho0 or above (kernels/sph/fluid.py continuity_floor)."""
+
+    pressure_force: str
+    """"momentum" (p_i/rho_i^2 + p_j/rho_j^2) or "muller" ((p_i + p_j)/(2 rho_j)) pressure force."""
+
+    laplacian_viscosity_pa_s: float
+    """Dynamic viscosity mu of the Laplacian viscosity [Pa s]."""
+
+    artificial_alpha: float
+    """Monaghan artificial viscosity alpha [-]."""
+
+    xsph_epsilon: float
+    """XSPH velocity smoothing epsilon [-]."""
+
+    boundary: str
+    """Walls: "adami" (extrapolated wall pressure) or "akinci" (frozen particles, -Psi_b p_i/rho_i^2 grad W)."""
+
+    wall_slip: str
+    """Adami walls: "free" or "no_slip"."""
+
+    gradient_correction: bool
+    """Kernel-gradient correction in the continuity and pressure terms (kernels/sph/fluid.py
+    gradient_correction_matrix)."""
+
+    wall_volume: str
+    """Adami walls: "mass" (a wall particle pushes with its mass) or "geometric" (it keeps its volume)."""
+
+    density: Density
+    """Summation or continuity density."""
+
+    density_diffusion: float
+    """delta of the delta-SPH density diffusion [-] (0: off; kernels/sph/diffusion.py)."""
+
+    particle_shifting: float = 0.0
+    """K of the particle shifting [-] (0: off; kernels/sph/shifting.py)."""
+
+    @property
+    def support_radius_m(self) -> float:
+        """Kernel support radius H [m] (support_radius)."""
+        return support_radius(self.spacing_m, self.support_radius_ratio)
 
 
-def eos_constant(eos, rest_density: float) -> float:
+def support_radius(spacing_m: float, support_radius_ratio: float) -> float:
+    """Kernel support radius H = support_radius_ratio x spacing [m]: the one formula every caller uses (the SPH
+    parameters, the boundary lattice, preflight, the guard, the scene's gauge checks)."""
+    return support_radius_ratio * spacing_m
+
+
+# weakly compressible SPH wants c0 >= SOUND_SPEED_FACTOR x the fastest flow speed (density variations ~1%)
+SOUND_SPEED_FACTOR = 10.0
+
+
+def expected_flow_speed(gravity_m_s2: float, water_height_m: float, initial_speed_m_s: float = 0.0) -> float:
+    """Expected largest flow speed u_max ~ sqrt(2 |g| H) + the fastest initial speed [m/s] (H: the water's height):
+    the speed of sound's yardstick in preflight (rockwave/build/preflight.py) and the blow-up guard
+    (rockwave/sim/guard.py)."""
+    return math.sqrt(2.0 * gravity_m_s2 * water_height_m) + initial_speed_m_s
+
+
+def wall_layers(support_radius_m: float, boundary_spacing_m: float) -> int:
+    """Boundary particle layers of spacing boundary_spacing_m that cover the kernel support H (at least one)."""
+    return max(1, int(math.ceil(support_radius_m / boundary_spacing_m - 1e-9)))
+
+
+def walls_cover_support(layers: int, boundary_spacing_m: float, support_radius_m: float) -> bool:
+    """Do ``layers`` boundary layers of spacing boundary_spacing_m cover the kernel support H (within 0.1%)? Adami
+    walls need it; build_fluid_model calibrates such walls' masses on the lattice (else Akinci's Psi_b)."""
+    return layers * boundary_spacing_m >= 0.999 * support_radius_m
+
+
+def sound_speed_from_eos(fp: FluidParameters) -> float:
+    """c0 [m/s] from the EOS constants: Tait c0^2 = gamma B / rho0; linear c0^2 = k."""
+    if fp.eos_speed_of_sound_m_s is not None:
+        return float(fp.eos_speed_of_sound_m_s)
+    if fp.eos_type == "tait":
+        return math.sqrt(fp.eos_gamma * fp.eos_b_pa / fp.rest_density_kg_m3)
+    return math.sqrt(fp.eos_k_m2_s2)
+
+
+def eos_constant(fp: FluidParameters) -> float:
     """Tait B = c0^2 rho0 / gamma (Pa) or linear k = c0^2 (m^2/s^2)."""
-    if eos["type"] == "tait":
-        if eos["b_pa"] is not None:
-            return float(eos["b_pa"])
-        return eos["speed_of_sound_m_s"] ** 2 * rest_density / eos["gamma"]
-    if eos["k_m2_s2"] is not None:
-        return float(eos["k_m2_s2"])
-    return eos["speed_of_sound_m_s"] ** 2
+    if fp.eos_type == "tait":
+        if fp.eos_b_pa is not None:
+            return float(fp.eos_b_pa)
+        return fp.eos_speed_of_sound_m_s ** 2 * fp.rest_density_kg_m3 / fp.eos_gamma
+    if fp.eos_k_m2_s2 is not None:
+        return float(fp.eos_k_m2_s2)
+    return fp.eos_speed_of_sound_m_s ** 2
 
 
 @dataclass
 class FluidModel:
-    """Static fluid data.
-
-    Attributes:
-        dim: 2 or 3.
-        up: index of the vertical axis (1 in 2D, 2 in 3D).
-        n_fluid, n_boundary: particle counts (fluid first in every particle array).
-        n_moving_walls: the last n_moving_walls boundary particles are the wall particles of moving blocks
-            (rockwave/coupling/walls.py BlockWalls places them each step); the others are static.
-        spacing: initial particle spacing [m].
-        support_radius: kernel support H [m].
-        particle_mass: wp.array(float, n_fluid + n_boundary): fluid mass [kg], or boundary Psi_b [kg].
-        params: sph.SPHParams passed to every kernel.
-        sound_speed: c0 [m/s]; kinematic_viscosity: mu/rho0 [m^2/s].
-        density: Density (summation or continuity), chosen once from ``fluid.density``.
-        domain_lo, domain_hi: bounding box of all particles [m] (3 components).
-    """
+    """Static fluid data (build_fluid_model). Particle arrays hold the fluid particles first, then the boundary
+    particles (static ones, then the wall particles of moving blocks)."""
 
     dim: int
+    """Dimensions, 2 or 3."""
+
     up: int
+    """Index of the vertical axis (1 in 2D, 2 in 3D)."""
+
     n_fluid: int
+    """Fluid particles."""
+
     n_boundary: int
+    """Boundary particles (static walls, obstacles and fixed blocks, then n_moving_walls)."""
+
     spacing: float
+    """Initial fluid particle spacing dx [m]."""
+
     support_radius: float
+    """Kernel support radius H [m] (support_radius; params.H)."""
+
     particle_mass: wp.array
+    """wp.array(float32, n_fluid + n_boundary): fluid particle mass [kg], or the boundary particle's Psi_b [kg]."""
+
     params: sph.SPHParams
+    """The kernels' parameters (kernels/sph/fluid.py SPHParams, float32 fields), passed to every kernel."""
+
     sound_speed: float
+    """Speed of sound c0 [m/s]."""
+
     kinematic_viscosity: float
+    """Laplacian viscosity mu / rho0 [m^2/s]."""
+
     density: Density
+    """Summation or continuity density, chosen once (FluidParameters.density)."""
+
     domain_lo: np.ndarray
+    """float64 (3,): lower corner of the box of all particles grown by H [m]."""
+
     domain_hi: np.ndarray
+    """float64 (3,): upper corner of that box [m]."""
+
     initial_positions: np.ndarray
+    """float64 (n_fluid + n_boundary, 3): positions at the start [m] (z = 0 in 2D)."""
+
     initial_velocities: np.ndarray
+    """float64 (n_fluid + n_boundary, 3): velocities at the start [m/s] (boundary rows zero)."""
+
     device: wp.context.Device
-    density_diffusion: float = 0.0  # delta of the delta-SPH density diffusion (kernels/sph/diffusion.py); 0: off
-    boundary_spacing: float = 0.0  # boundary particle lattice spacing [m]; 0: the fluid spacing
-    n_moving_walls: int = 0  # wall particles of moving blocks, the last of the boundary particles
-    particle_shifting: float = 0.0  # K of the particle shifting (kernels/sph/shifting.py); 0: off
+    """The Warp device of every array."""
+
+    density_diffusion: float = 0.0
+    """delta of the delta-SPH density diffusion [-] (kernels/sph/diffusion.py); 0: off."""
+
+    boundary_spacing: float = 0.0
+    """Boundary particle lattice spacing [m]; 0: the fluid spacing (or no boundary)."""
+
+    n_moving_walls: int = 0
+    """The last n_moving_walls boundary particles are the wall particles of moving blocks
+    (rockwave/coupling/walls.py BlockWalls places them each step); the others are static."""
+
+    particle_shifting: float = 0.0
+    """K of the particle shifting [-] (kernels/sph/shifting.py); 0: off."""
 
     @property
     def n_static_boundary(self) -> int:
@@ -174,59 +327,72 @@ class FluidModel:
 
 @dataclass
 class FluidState:
-    """Arrays that change each step (device arrays; fluid particles first, then boundary).
-
-    x: wp.array(vec3, n_total) positions [m]; v: wp.array(vec3, n_total) velocities [m/s]
-    (boundary entries zero); rho, pressure: wp.array(float, n_fluid) [kg/m^3], [Pa];
-    accel, xsph_dv: wp.array(vec3, n_fluid) [m/s^2], [m/s]; drho_dt: [kg/m^3/s].
-    ids: wp.array(int, n_fluid): original index of the fluid particle stored at each slot
-    (FluidSolver.reorder sorts the fluid by cell; FluidSolver.unsort restores ids = 0..n-1).
-    wall_pressure: wp.array(float, max(n_boundary, 1)) [Pa]: with Adami walls (``fluid.boundary``) the pressure
-    of each boundary particle, extrapolated from the fluid in each step (0 with Akinci walls).
-    wall_velocity: wp.array(vec3, max(n_boundary, 1)) [m/s]: Adami no-slip walls: the extrapolated wall velocity
-    of the viscous terms.
-    """
+    """Arrays that change each step (device arrays of the model's device; fluid particles first, then boundary).
+    FluidSolver.reorder sorts the fluid by cell (ids keeps each slot's original index); FluidSolver.unsort restores
+    ids = 0..n_fluid-1."""
 
     x: wp.array
+    """wp.array(vec3 float32, n_fluid + n_boundary): positions [m]."""
+
     v: wp.array
+    """wp.array(vec3 float32, n_fluid + n_boundary): velocities [m/s] (static boundary entries zero)."""
+
     rho: wp.array
+    """wp.array(float32, n_fluid): densities [kg/m^3]."""
+
     pressure: wp.array
+    """wp.array(float32, n_fluid): pressures [Pa]."""
+
     accel: wp.array
+    """wp.array(vec3 float32, n_fluid): accelerations of the last step [m/s^2]."""
+
     xsph_dv: wp.array
+    """wp.array(vec3 float32, n_fluid): XSPH velocity corrections of the last step [m/s]."""
+
     drho_dt: wp.array
+    """wp.array(float32, n_fluid): continuity density rate of the last step [kg/m^3/s]."""
+
     ids: wp.array
+    """wp.array(int32, n_fluid): original index of the fluid particle stored at each slot."""
+
     wall_pressure: wp.array
+    """wp.array(float32, max(n_boundary, 1)): with Adami walls the pressure of each boundary particle, extrapolated
+    from the fluid in each step [Pa] (0 with Akinci walls)."""
+
     wall_velocity: wp.array
+    """wp.array(vec3 float32, max(n_boundary, 1)): Adami no-slip walls: the extrapolated wall velocity of the viscous
+    terms [m/s]."""
 
 
-def make_params(scene_fluid, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
-    rho0 = scene_fluid["rest_density_kg_m3"]
-    eos = scene_fluid["eos"]
-    visc = scene_fluid["viscosity"]
+def make_params(fp: FluidParameters, dim: int, gravity, n_fluid: int) -> sph.SPHParams:
+    """The kernels' parameters (kernels/sph/fluid.py SPHParams) of the formulation ``fp`` in ``dim`` dimensions,
+    gravity [m/s^2] (dim components), n_fluid fluid particles; the lattice calibration (fluid_mass, grad_scale)
+    is build_fluid_model's."""
+    rho0 = fp.rest_density_kg_m3
     p = sph.SPHParams()
     p.dim = dim
-    p.kernel = {"muller": 0, "cubic_spline": 1, "wendland": 2}[scene_fluid["kernel"]]
-    p.H = scene_fluid["support_radius_ratio"] * scene_fluid["spacing_m"]
+    p.kernel = {"muller": 0, "cubic_spline": 1, "wendland": 2}[fp.kernel]
+    p.H = support_radius(fp.spacing_m, fp.support_radius_ratio)
     p.rest_density = rho0
-    p.eos = 0 if eos["type"] == "tait" else 1
-    p.eos_b = eos_constant(eos, rho0)
-    p.eos_gamma = eos["gamma"]
-    p.clamp_negative = 1 if scene_fluid["clamp_negative_pressure"] else 0
+    p.eos = 0 if fp.eos_type == "tait" else 1
+    p.eos_b = eos_constant(fp)
+    p.eos_gamma = fp.eos_gamma
+    p.clamp_negative = 1 if fp.clamp_negative_pressure else 0
     # the continuity density's floor at rho0 (kernels/sph/fluid.py continuity_floor); the loader refuses it with Ghost SPH,
     # summation density or unclipped pressure (rockwave/scene/format.py _check_method_options)
-    p.density_floor = 1 if scene_fluid.get("density_floor") else 0
-    p.pressure_form = 0 if scene_fluid["pressure_force"] == "momentum" else 1
-    p.sound_speed = sound_speed_from_eos(eos, rho0)
-    p.mu = visc["laplacian_pa_s"]
-    p.alpha = visc["artificial_alpha"]
-    p.xsph = visc["xsph_epsilon"]
+    p.density_floor = 1 if fp.density_floor else 0
+    p.pressure_form = 0 if fp.pressure_force == "momentum" else 1
+    p.sound_speed = sound_speed_from_eos(fp)
+    p.mu = fp.laplacian_viscosity_pa_s
+    p.alpha = fp.artificial_alpha
+    p.xsph = fp.xsph_epsilon
     g = list(gravity) + [0.0] * (3 - len(gravity))
     p.gravity = wp.vec3(*g)
     p.n_fluid = n_fluid
-    p.boundary = sph.BOUNDARY_ADAMI if scene_fluid.get("boundary") == "adami" else sph.BOUNDARY_AKINCI
-    p.no_slip = 1 if scene_fluid.get("wall_slip") == "no_slip" else 0
-    p.gradient_correction = 1 if scene_fluid.get("gradient_correction") else 0
-    p.wall_volume = 1 if scene_fluid.get("wall_volume") == "geometric" else 0
+    p.boundary = sph.BOUNDARY_ADAMI if fp.boundary == "adami" else sph.BOUNDARY_AKINCI
+    p.no_slip = 1 if fp.wall_slip == "no_slip" else 0
+    p.gradient_correction = 1 if fp.gradient_correction else 0
+    p.wall_volume = 1 if fp.wall_volume == "geometric" else 0
     p.grad_scale = 1.0
     p.fluid_mass = 0.0  # set by build_fluid_model (calibrated)
     set_kernel_constants(p)
@@ -295,7 +461,7 @@ class FluidSolver:
         self.reorder_interval = self.default_reorder_interval if o.reorder_interval is None else int(o.reorder_interval)
         self.recorded_launches = self.default_recorded_launches if o.recorded_launches is None else bool(o.recorded_launches)
         self.fused_density = (not is_cuda) if o.fused_density is None else bool(o.fused_density)
-        self.cfl_number = 0.6 if o.cfl_number is None else float(o.cfl_number)
+        self.cfl_number = FluidOptions.DEFAULT_CFL_NUMBER if o.cfl_number is None else float(o.cfl_number)
         self.skin_check = o.skin_check
         self.conditional_rebuild = o.conditional_rebuild
         self.cell = model.support_radius * o.cell_ratio
@@ -923,16 +1089,26 @@ class FluidSolver:
         return out.numpy()
 
 
+def fluid_step_limits(support_radius_m: float, sound_speed_m_s: float, artificial_alpha: float,
+                      kinematic_viscosity_m2_s: float, cfl: float, u_max_m_s: float, a_max_m_s2: float) -> dict[str, float]:
+    """The fluid's step limits [s] (Monaghan 1992), h = H/2: "courant": C h/(c0 (1 + 0.6 alpha) + u_max); "force":
+    0.25 sqrt(h/a_max) (when a_max > 0); "viscous": 0.125 h^2/nu (when nu > 0). The one CFL rule: the solver's
+    adaptive step (fluid_dt_limit) and the preflight estimate (rockwave/build/preflight.py) both take it."""
+    h = 0.5 * support_radius_m
+    c = sound_speed_m_s * (1.0 + 0.6 * artificial_alpha)
+    out = {"courant": cfl * h / (c + u_max_m_s)}
+    if a_max_m_s2 > 0:
+        out["force"] = 0.25 * math.sqrt(h / a_max_m_s2)
+    if kinematic_viscosity_m2_s > 0:
+        out["viscous"] = 0.125 * h * h / kinematic_viscosity_m2_s
+    return out
+
+
 def fluid_dt_limit(m: FluidModel, cfl: float, u_max: float, a_max: float) -> float:
-    h = 0.5 * m.support_radius
-    p = m.params
-    c = m.sound_speed * (1.0 + 0.6 * p.alpha)
-    dt = cfl * h / (c + u_max)
-    if a_max > 0:
-        dt = min(dt, 0.25 * math.sqrt(h / a_max))
-    if m.kinematic_viscosity > 0:
-        dt = min(dt, 0.125 * h * h / m.kinematic_viscosity)
-    return dt
+    """The smallest of the model's step limits [s] (fluid_step_limits) at the largest speed u_max [m/s] and
+    acceleration a_max [m/s^2]."""
+    return min(fluid_step_limits(m.support_radius, m.sound_speed, m.params.alpha, m.kinematic_viscosity, cfl, u_max,
+                                 a_max).values())
 
 
 def calibrate_lattice(params: sph.SPHParams, spacing: float, dim: int, device) -> tuple[float, float]:
@@ -967,9 +1143,11 @@ def lattice_kernel_value(params: sph.SPHParams, spacing: float, device) -> float
 
 
 def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray, boundary_positions: np.ndarray,
-                      scene_fluid, dim: int, gravity, device, boundary_spacing: float | None = None,
+                      fp: FluidParameters, dim: int, gravity, device, boundary_spacing: float | None = None,
                       boundary_layers: int | None = None, moving_wall_positions: np.ndarray | None = None) -> FluidModel:
-    """Assemble the model: calibrated particle mass and boundary masses Psi_b.
+    """Assemble the model of the formulation ``fp``: calibrated particle mass and boundary masses Psi_b.
+    Positions and velocities (n, 3) [m], [m/s]; gravity [m/s^2] (dim components); boundary_spacing [m] (None: the
+    fluid spacing) and boundary_layers (None: as thick as the support) of the boundary lattice.
 
     ``moving_wall_positions``: the wall particles of moving blocks at the start (rockwave/coupling/walls.py BlockWalls),
     appended after the static boundary particles in the order given (their blocks place them each step).
@@ -980,7 +1158,7 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
     the force that conserves energy with the density sum (a mirrored 2 p_i/rho_i^2 gained
     energy in a resting tank)."""
     nf, nb = len(fluid_positions), len(boundary_positions)
-    params = make_params(scene_fluid, dim, gravity, nf)
+    params = make_params(fp, dim, gravity, nf)
     if nb > 1:  # static boundary particles in cell order (coherent neighbour reads; the fluid is reordered as it moves)
         bp = np.asarray(boundary_positions, dtype=np.float64)
         c = np.floor((bp - bp.min(axis=0)) / params.H).astype(np.int64)
@@ -990,9 +1168,9 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
         boundary_positions = np.concatenate([np.asarray(boundary_positions, float).reshape(-1, 3),
                                              np.asarray(moving_wall_positions, float)])
         nb += n_moving
-    spacing = scene_fluid["spacing_m"]
+    spacing = fp.spacing_m
     bstep = boundary_spacing or spacing
-    full_support = boundary_layers is None or boundary_layers * bstep >= 0.999 * params.H
+    full_support = boundary_layers is None or walls_cover_support(boundary_layers, bstep, params.H)
     x = np.concatenate([fluid_positions, boundary_positions]).astype(np.float64) if nb else fluid_positions.astype(np.float64)
     v = np.zeros_like(x)
     v[:nf] = fluid_velocities
@@ -1005,11 +1183,11 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
         dim=dim, up=dim - 1, n_fluid=nf, n_boundary=nb, spacing=spacing, support_radius=params.H,
         particle_mass=masses, params=params, sound_speed=params.sound_speed,
         kinematic_viscosity=params.mu / params.rest_density,
-        density=Density.SUMMATION if scene_fluid["density"] == "summation" else Density.CONTINUITY,
+        density=fp.density,
         domain_lo=lo, domain_hi=hi, initial_positions=x, initial_velocities=v, device=wp.get_device(device),
-        density_diffusion=float(scene_fluid.get("density_diffusion", 0.0) or 0.0),
+        density_diffusion=float(fp.density_diffusion),
         boundary_spacing=float(bstep) if nb else 0.0, n_moving_walls=n_moving,
-        particle_shifting=float(scene_fluid.get("particle_shifting", 0.0) or 0.0),
+        particle_shifting=float(fp.particle_shifting),
     )
     if nb and full_support:
         mb = calibrate_lattice(params, bstep, dim, device)[0]
@@ -1022,9 +1200,16 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
     return model
 
 
-def density_for_pressure(params, p: np.ndarray) -> np.ndarray:
-    """Inverse EOS: Tait rho = rho0 (1 + p/B)^(1/gamma); linear rho = rho0 + p/k."""
+def density_for_pressure(params: sph.SPHParams, p: np.ndarray) -> np.ndarray:
+    """Inverse EOS, the one there is: the density [kg/m^3] whose pressure is p [Pa] under the EOS of ``params``:
+    Tait rho = rho0 (1 + p/B)^(1/gamma); linear rho = rho0 + p/k."""
     rho0 = params.rest_density
     if params.eos == 0:
         return rho0 * (1.0 + p / params.eos_b) ** (1.0 / params.eos_gamma)
     return rho0 + p / params.eos_b
+
+
+def hydrostatic_density(params: sph.SPHParams, g_depth: np.ndarray) -> np.ndarray:
+    """The density [kg/m^3] whose pressure is the hydrostatic p = rho0 g d (g_depth = |g| d [m^2/s^2]) under the EOS of
+    ``params`` (density_for_pressure): Tait rho = rho0 (1 + rho0 g d / B)^(1/gamma); linear rho0 + rho0 g d / k."""
+    return density_for_pressure(params, params.rest_density * g_depth)

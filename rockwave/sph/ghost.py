@@ -48,7 +48,6 @@ from __future__ import annotations
 import enum
 import math
 import time
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,14 +77,7 @@ DEFAULT_RADIUS_RATIO = {2: 0.80, 3: 0.85}
 # of seven runs did (docs/notes.md). The ghost scenes use 0.125.
 GHOST_CFL_MAX = 0.125
 
-
-def warn_unstable_step(scene) -> None:
-    """Warn when a ghost scene steps with a Courant number above GHOST_CFL_MAX."""
-    sim = scene.simulation
-    if sim.time_step == "cfl" and sim.cfl_number > GHOST_CFL_MAX:
-        warnings.warn(f"{scene.path}: simulation.cfl_number = {sim.cfl_number:g} with fluid.method = 'ghost': ghost steps "
-                      f"above a Courant number of {GHOST_CFL_MAX} were measured to gain energy and blow up in a "
-                      f"splash (dam break case 3); use simulation.cfl_number <= {GHOST_CFL_MAX}", stacklevel=3)
+# (rockwave/build/options.py warn_unstable_step warns of a ghost scene above it)
 
 
 # periodic Poisson-disk tile of the tile sampler: cells per axis (r/sqrt(d) wide: 36 dx in 2D, 12 dx in 3D)
@@ -164,29 +156,85 @@ class Sampler(str, enum.Enum):
 
 @dataclass
 class GhostOptions:
-    """How the ghosts are sampled (Python API; none changes which ghosts are placed except tile_points).
+    """Everything the ghost solver is told (Python API: ``GhostFluidSolver(model, options=..., ghost_options=...)``,
+    ``Simulation(scene, options=SimulationOptions(ghost=...))``).
 
-    phase_launches: on the CPU too, one dart launch per phase sized by the host bound (the GPU's pattern; tests).
-    shortcuts: skip cells without a query where every dart would fall near a ghost (False: the same ghosts,
-        more queries; tests compare both).
-    parallel_darts: screen every dart of every active cell in one launch, the dependent phase launches only test
-        darts against the new ghosts (the same ghosts as the serial throw; None: on CUDA, where a phase launch
-        lasts as long as its slowest thread).
-    parallel_bound_max: parallel darts without a host read while the phase bound is at most this.
-    graph_darts: on CUDA, a round of parallel darts sized by the host bound replays as one CUDA graph.
-    conflict_span: dart_conflicts threads per (cell, cell of its 5^d block) (1) or per row of 5 (5); None: 1 in
-        3D (H100, 3D drop 0.44 -> 0.32 ms a step), 5 in 2D.
-    tile_points: the tile's points in cell units instead of poisson_disk_tile's (tests).
-    dart_launch_size: parallel darts: at most this many threads along a phase's cells (tests)."""
+    The first fields are the scene's ``[fluid.ghost]`` settings (rockwave/build/options.py ghost_options fills them from
+    the scene, over the values given in Python; the scene format takes its defaults from here). The rest are not in
+    the scene format: the ghost stream's seed and sampling knobs, none of which changes which ghosts are placed
+    (except tile_points)."""
+
+    surface_threshold: float | None = None
+    """Free-surface particles have position divergence div x below this [-] (interior: the dimension); None:
+    DEFAULT_THRESHOLD[dim]. Scene: fluid.ghost.surface_threshold."""
+
+    sample_radius_ratio: float | None = None
+    """Poisson-disk radius r / particle spacing [-]; None: DEFAULT_RADIUS_RATIO[dim]. Scene:
+    fluid.ghost.sample_radius_ratio."""
+
+    layer_ratio: float = 1.0
+    """Ghost layer thickness / kernel support radius H [-]. Scene: fluid.ghost.layer_ratio."""
+
+    sampler: str | None = None
+    """"tile" (the points of a periodic Poisson-disk tile, one launch) or "darts" (dart throwing in 3^d phases);
+    None: "darts" with persistent, else "tile" (GhostFluidSolver.default_sampler). Scene: fluid.ghost.sampler."""
+
+    attempts: int = 16
+    """Darts per background cell and round [-] (one pass of 16: as many ghosts as two passes of 8, +0.6..3.5% on the
+    same liquid, with half the dependent dart launches on a GPU: docs/notes.md). Scene: fluid.ghost.attempts."""
+
+    rounds: int = 1
+    """Passes over the 3^d phases of the background grid [-]. Scene: fluid.ghost.rounds."""
+
+    pressure_term: bool = True
+    """Ghosts (p = 0) enter the pressure force through the liquid particle's own p_i/rho_i^2 term (True), or add no
+    pressure force at all (False; the elliptical drop). Scene: fluid.ghost.pressure_term."""
+
+    density_cap: bool = False
+    """Summation density: the ghosts fill a surface particle's kernel support up to rho0 and no further (air at
+    p = 0 cannot compress the liquid). Scene: fluid.ghost.density_cap."""
+
+    persistent: bool = False
+    """Keep last step's ghosts (moved with the liquid around them) and only fill the holes; drop a ghost only past
+    looser limits than the seeding rules (hysteresis). Needs the dart sampler. Scene: fluid.ghost.persistent."""
+
+    seed: int = 1
+    """Seed of the dart streams [-]: one random stream per background cell, the same every step (unless
+    fresh_darts), so that where the liquid has not moved the ghosts come out the same."""
+
+    fresh_darts: bool = False
+    """Draw new darts every step (a new random layer each step; with a stiff EOS it heats a resting drop)."""
+
+    number_density_mass: bool = True
+    """Ghost mass from the liquid's number density (True) or the liquid particle mass."""
 
     phase_launches: bool = False
+    """On the CPU too, one dart launch per phase sized by the host bound (the GPU's pattern; tests)."""
+
     shortcuts: bool = True
+    """Skip cells without a query where every dart would fall near a ghost (False: the same ghosts, more queries;
+    tests compare both)."""
+
     parallel_darts: bool | None = None
+    """Screen every dart of every active cell in one launch, the dependent phase launches only test darts against
+    the new ghosts (the same ghosts as the serial throw; None: on CUDA, where a phase launch lasts as long as its
+    slowest thread)."""
+
     parallel_bound_max: int = 1 << 16
+    """Parallel darts without a host read while the phase bound is at most this [cells]."""
+
     graph_darts: bool = True
+    """On CUDA, a round of parallel darts sized by the host bound replays as one CUDA graph."""
+
     conflict_span: int | None = None
+    """dart_conflicts threads per (cell, cell of its 5^d block) (1) or per row of 5 (5); None: 1 in 3D (H100, 3D
+    drop 0.44 -> 0.32 ms a step), 5 in 2D."""
+
     tile_points: np.ndarray | None = None
+    """float64 (n, dim): the tile's points in cell units instead of poisson_disk_tile's (tests)."""
+
     dart_launch_size: int | None = None
+    """Parallel darts: at most this many threads along a phase's cells (tests)."""
 
 
 class GhostFluidSolver(FluidSolver):
@@ -207,8 +255,7 @@ class GhostFluidSolver(FluidSolver):
     capturable = False  # one host read a step (the ghost count)
     default_sampler = "tile"
 
-    def __init__(self, model: FluidModel, cfg=None, options: FluidOptions | None = None,
-                 ghost_options: GhostOptions | None = None):
+    def __init__(self, model: FluidModel, options: FluidOptions | None = None, ghost_options: GhostOptions | None = None):
         if options is not None and options.reorder_interval:
             raise ValueError(f"FluidOptions.reorder_interval = {options.reorder_interval}: Ghost SPH keeps the particle "
                              "order (its grid also holds the ghosts); leave it None or 0")
@@ -226,28 +273,27 @@ class GhostFluidSolver(FluidSolver):
         self.conflict_span = go.conflict_span
         self.tile_points = go.tile_points
         self.dart_launch_size = go.dart_launch_size
-        cfg = cfg or {}
         d = model.device
         dim = model.dim
-        self.threshold = float(cfg.get("surface_threshold") or DEFAULT_THRESHOLD[dim])
+        self.threshold = float(go.surface_threshold if go.surface_threshold is not None else DEFAULT_THRESHOLD[dim])
         # "darts": dart throwing in the background cells each step; "tile": the points of a periodic
         # Poisson-disk tile that pass the liquid rules (poisson_disk_tile; one launch, no phases)
-        persistent = bool(cfg.get("persistent", False))
-        name = str(cfg.get("sampler") or ("darts" if persistent else self.default_sampler))
+        persistent = bool(go.persistent)
+        name = str(go.sampler or ("darts" if persistent else self.default_sampler))
         if name not in ("darts", "tile"):
-            raise ValueError(f"fluid.ghost.sampler = {name!r}: expected 'darts' or 'tile'")
+            raise ValueError(f"GhostOptions.sampler = {name!r} (fluid.ghost.sampler): expected 'darts' or 'tile'")
         self.sampler = Sampler(name)
         if self.sampler is Sampler.TILE and persistent:
-            raise ValueError("fluid.ghost.sampler = 'tile' does not keep ghosts (persistent = true needs 'darts')")
-        self.r = float(cfg.get("sample_radius_ratio") or DEFAULT_RADIUS_RATIO[dim]) * model.spacing
-        self.layer = float(cfg.get("layer_ratio") or 1.0) * model.support_radius
+            raise ValueError("GhostOptions.sampler = 'tile' (fluid.ghost.sampler) does not keep ghosts (persistent = true "
+                             "needs 'darts')")
+        ratio = go.sample_radius_ratio if go.sample_radius_ratio is not None else DEFAULT_RADIUS_RATIO[dim]
+        self.r = float(ratio) * model.spacing
+        self.layer = float(go.layer_ratio) * model.support_radius
         # liquid particles own a cell of width dx, ghosts one of width ~r: keep the centres half of each apart
         self.r_liquid = 0.5 * (model.spacing + self.r)
-        self.number_density_mass = bool(cfg.get("number_density_mass", True))
-        # one pass over the phases with 16 darts per cell: as many ghosts as two passes of 8 (+0.6..3.5%
-        # on the same liquid) with half the dependent dart launches on a GPU (docs/notes.md)
-        self.attempts = int(cfg.get("attempts") or 16)
-        self.rounds = int(cfg.get("rounds") or 1)
+        self.number_density_mass = bool(go.number_density_mass)
+        self.attempts = int(go.attempts)
+        self.rounds = int(go.rounds)
         self.profile = False
         self.sample_seconds = 0.0
         self.n_ghost = 0
@@ -256,18 +302,12 @@ class GhostFluidSolver(FluidSolver):
         # (fresh_darts = False): where the liquid has not moved, the ghosts come out the same, so
         # the unavoidable density error of a random layer is a fixed offset instead of a new random
         # force every step (which, with a stiff EOS, heats a resting drop until it flies apart).
-        self.seed = int(cfg.get("seed") or 1)
-        self.fresh_darts = bool(cfg.get("fresh_darts", False))
-        # persistent: keep last step's ghosts (moved with their owner liquid particle) and only fill
-        # the holes; drop a ghost only past looser limits than the seeding rules (hysteresis)
-        self.persistent = bool(cfg.get("persistent", False))
-        # density_cap: in summation density the ghosts fill a surface particle's kernel support up
-        # to rho0 and no further (air at p = 0 cannot compress the liquid)
-        self.density_cap = bool(cfg.get("density_cap", False))
-        # pressure_term: ghosts (p = 0) enter the force only through the liquid particle's own
-        # p_i/rho_i^2 term (true), or add no pressure force at all (false; the elliptical drop)
-        pt = cfg.get("pressure_term")
-        self.ghost_pressure_term = True if pt is None else bool(pt)
+        self.seed = int(go.seed)
+        self.fresh_darts = bool(go.fresh_darts)
+        # persistent, density_cap, pressure_term: GhostOptions
+        self.persistent = persistent
+        self.density_cap = bool(go.density_cap)
+        self.ghost_pressure_term = bool(go.pressure_term)
         # background grid over the model domain grown by the layer
         g = gk.GhostGrid()
         cell = self.r / math.sqrt(dim)
