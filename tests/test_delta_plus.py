@@ -14,6 +14,8 @@ import warp as wp
 import rockwave
 from benchmarks import harness as H
 from benchmarks.harness import standing_wave
+from rockwave.base.solver import TimeStep
+from rockwave.build.options import fluid_parameters
 from rockwave.sph.fluid import FluidSolver, build_fluid_model
 
 from conftest import DEVICE
@@ -137,11 +139,10 @@ def test_momentum_is_kept_with_diffusion_and_shifting():
     x = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1) + np.r_[rng.normal(0, 0.1 * s, (gx.size, 2)).T,
                                                                              [np.zeros(gx.size)]].T
     v = np.c_[rng.normal(0.0, 0.3, (gx.size, 2)), np.zeros(gx.size)]
-    model = build_fluid_model(x, v, np.zeros((0, 3)), fl, 2, [0.0, 0.0, 0.0], DEVICE)
+    model = build_fluid_model(x, v, np.zeros((0, 3)), fluid_parameters(fl), 2, [0.0, 0.0, 0.0], DEVICE)
     assert model.particle_shifting > 0 and model.density_diffusion > 0
     st = model.state()
     solver = FluidSolver(model)
-    from rockwave.base.solver import TimeStep
 
     dt = wp.array([2e-4], dtype=float, device=DEVICE)
     p0 = st.v.numpy().sum(axis=0)
