@@ -9,7 +9,7 @@ from pathlib import Path
 from rockwave.app.plot import plot_gauges
 from rockwave.app.preview import PreviewError, render_preview
 from rockwave.app.sweep import cli as sweep_cli
-from rockwave.base.device import DeviceError, init_warp, quiet_warp, resolve_device
+from rockwave.base.device import DeviceError, WarpCacheError, init_warp, quiet_warp, resolve_device
 from rockwave.base.errors import SimulationError
 from rockwave.build import preflight
 from rockwave.scene.format import SceneError, load_scene, scene_format_doc
@@ -95,8 +95,15 @@ def _fail(msg: str, code: int = 2) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    try:
+        return _main(args)
+    except WarpCacheError as e:  # the folder and WARP_CACHE_PATH, one line (commands that need kernels)
+        return _fail(str(e))
+
+
+def _main(args) -> int:
     if args.command != "run" or args.quiet:
-        quiet_warp()
+        quiet_warp(init=False)  # Warp is initialised where a device or kernels are needed (resolve_device), not here
 
     if args.command == "schema":
         sys.stdout.write(scene_format_doc())

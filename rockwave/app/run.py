@@ -96,6 +96,23 @@ class _Watch:
             self.bar.update(sim.time - self.t0, sim.steps, force=True, note=self.note())
 
 
+def _finished_summary(out: Path, sim, meta: dict, duration: float) -> dict | None:
+    """``--resume`` of a run that already reached its end: the run.json it wrote (unchanged: nothing is run again,
+    no output is rewritten), after a line saying so; None when there is more to simulate (a longer duration) or no
+    readable summary of a finished run."""
+    if meta.get("reason") != "end" or meta["t0"] + duration - sim.time > 1e-9:
+        return None
+    try:
+        summary = json.loads(_summary_path(out).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(summary, dict) or summary.get("interrupted") or "steps" not in summary:
+        return None
+    print(f"nothing to resume: the run in {out} already reached its end (t = {sim.time:.6g} s); {_summary_path(out)} is "
+          f"unchanged (a longer --duration or simulation.duration_s continues it)", file=sys.stderr)
+    return summary
+
+
 def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress: bool = True,
         resume: bool = False, checkpoint_interval_s: float | None = None, force: bool = False) -> dict:
     """Run ``sim``'s scene for ``duration`` (default: the scene's), writing outputs into ``out_dir``.
@@ -123,8 +140,21 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         raise SimulationError(f"output folder {out} is not writable: {e}") from None
     duration = scene.simulation.duration_s if duration is None else duration
     fps = scene.output.frame_rate_hz
+    hazard = None
+    if scene.hazard is not None:  # [hazard]: statistics reduced on the device after each step (rockwave/output/hazard.py)
+        # made from the scene's initial state (its still levels and slide starts), then restored with the rest: a
+        # resumed run's summary is the whole run's
+        hazard = HazardMonitor(sim)
+        ckpt.register(sim, "hazard", hazard)
     if resumed is not None:
         ckpt.restore(sim, *resumed)
+        meta = resumed[1]
+        print(f"resuming {out} from frame {meta['frame']} (t = {sim.time:.6g} s, step {sim.steps})", file=sys.stderr)
+        if hazard is not None and "hazard" not in meta["groups"]:  # a checkpoint from before format 5
+            hazard = HazardMonitor(sim)
+            ckpt.register(sim, "hazard", hazard)
+            print(f"warning: the checkpoint holds no hazard statistics (written by an older rockwave): {HAZARD_FILE} "
+                  f"covers t >= {sim.time:.6g} s only", file=sys.stderr)
     else:
         ckpt.clear(out)
     n_frames = int(math.floor(duration * fps + 1e-9))
@@ -161,9 +191,11 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     t0 = sim.time
     interrupted = False
     first, steps0, block_steps0 = 0, sim.steps, sim.clock.block_steps
+    wall_before = 0.0  # wall time of the run's earlier processes (a resumed run)
     if resumed is not None:  # outputs continue where the checkpoint was taken
         meta = resumed[1]
         t0, first, escaped = meta["t0"], meta["frame"] + 1, meta["escaped"]
+        wall_before = float(meta.get("wall_s") or 0.0)
         try:
             if usd is not None:
                 usd.restore(meta["usd"])
@@ -175,12 +207,19 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
             raise ckpt.CheckpointError(f"cannot resume in {out}: {e}") from None
         if vtk is not None:
             vtk.restore(meta.get("vtk"))
+        done = _finished_summary(out, sim, meta, duration)  # (the outputs checked first: they end where it ended)
+        if done is not None:
+            for r in recorders:
+                r.close()
+            bar.close()
+            return done
     else:
         preflight.check_disk(sim, out, n_frames)
 
     interval = o.get("checkpoint_interval_s", 600.0) if checkpoint_interval_s is None else checkpoint_interval_s
     checkpointer = ckpt.RunCheckpointer(sim, out, interval, t0, lambda: {
-        "usd": usd, "escaped": escaped, "vtk": vtk, "csv": {"gauges": gauges, "blocks": blocks}})
+        "usd": usd, "escaped": escaped, "vtk": vtk, "csv": {"gauges": gauges, "blocks": blocks},
+        "wall_s": wall_before + time.perf_counter() - wall0})
 
     def check_health(f: rec.Frame) -> None:
         nonlocal escaped
@@ -197,10 +236,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     watch = _Watch(sim, bar, t0 + duration, t0, force or bool(getattr(sim, "run_length_forced", False)),
                    lambda: check_health(rec.Frame(sim, -1)))
 
-    hazard = None
-    if scene.hazard is not None:  # [hazard]: statistics reduced on the device after each step (rockwave/output/hazard.py)
-
-        hazard = HazardMonitor(sim)
+    if hazard is not None:
         watch = hazard.wrap(watch)
 
     stop = []
@@ -279,7 +315,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         "steps_limited_by": dict(sim.clock.steps_limited_by),
         "block_substeps": sim.clock.substeps if sim.clock.block_substep is not None else None,
         "block_steps": sim.clock.block_steps if sim.blocks is not None else None,
-        "wall_s": wall,
+        "wall_s": wall_before + wall,  # the whole run's (a resumed run: every process's)
+        "wall_s_this_process": wall,
         "particle_steps_per_s": nf * (sim.steps - steps0) / wall if wall > 0 and nf else None,
         "block_steps_per_s": (sim.blocks.num_blocks * (sim.clock.block_steps - block_steps0) / wall  # sub-steps counted
                               if wall > 0 and sim.blocks is not None else None),
