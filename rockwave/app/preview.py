@@ -67,6 +67,40 @@ def _hull(p: np.ndarray) -> np.ndarray:
     return np.asarray(lo[:-1] + hi[:-1])
 
 
+def _quat_rows(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) of unit quaternions (n, 4) given as (x, y, z, w), for row vectors (p @ R)."""
+    x, y, z, w = (q[:, i] for i in range(4))
+    r = np.empty((len(q), 3, 3))
+    r[:, 0, 0], r[:, 0, 1], r[:, 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)
+    r[:, 1, 0], r[:, 1, 1], r[:, 1, 2] = 2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)
+    r[:, 2, 0], r[:, 2, 1], r[:, 2, 2] = 2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)
+    return np.transpose(r, (0, 2, 1))  # column-vector matrices transposed: p_world = p @ R^T
+
+
+def _instances(prim, t) -> list:
+    """World vertices of each instance of a PointInstancer whose prototypes are meshes (positions and orientations;
+    the float ``orientationsf`` where authored, else ``orientations``)."""
+    from pxr import UsdGeom
+
+    inst = UsdGeom.PointInstancer(prim)
+    pos = inst.GetPositionsAttr().Get(t)
+    if pos is None or len(pos) == 0:
+        return []
+    pos = np.asarray(pos, np.float64).reshape(-1, 3)
+    of = prim.GetAttribute("orientationsf")
+    q = of.Get(t) if of and of.HasAuthoredValue() else inst.GetOrientationsAttr().Get(t)
+    q = np.asarray(q, np.float64).reshape(-1, 4) if q is not None and len(q) == len(pos) else np.tile([0.0, 0, 0, 1], (len(pos), 1))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    idx = np.asarray(inst.GetProtoIndicesAttr().Get(t), np.int64)
+    protos = []
+    stage = prim.GetStage()
+    for path in inst.GetPrototypesRel().GetTargets():
+        p = UsdGeom.Mesh(stage.GetPrimAtPath(path)).GetPointsAttr().Get()
+        protos.append(np.asarray(p, np.float64).reshape(-1, 3) if p is not None else np.zeros((0, 3)))
+    rot = _quat_rows(q)
+    return [protos[k] @ rot[i] + pos[i] for i, k in enumerate(idx)]
+
+
 def load_frame(run_dir: str | os.PathLike, frame: int | None = None) -> dict:
     """The data of one frame: dict with dim, spacing, frame, time_s, x (n, 3), v (n, 3),
     pressure (n,) or None, blocks (list of world vertex arrays), contour ((S, 2, 3) or None),
@@ -106,7 +140,12 @@ def load_frame(run_dir: str | os.PathLike, frame: int | None = None) -> dict:
     root = stage.GetPrimAtPath(info.get("blocks_prim") or "/World/blocks")
     if root and root.IsValid():
         cache = UsdGeom.XformCache(t)
-        for prim in Usd.PrimRange(root):
+        it = iter(Usd.PrimRange(root))
+        for prim in it:
+            if prim.IsA(UsdGeom.PointInstancer):  # many blocks: instances of prototype meshes (rockwave/output/recorders.py)
+                blocks += _instances(prim, t)
+                it.PruneChildren()  # (its prototypes are not blocks of their own)
+                continue
             if not prim.IsA(UsdGeom.Mesh):
                 continue
             p = UsdGeom.Mesh(prim).GetPointsAttr().Get(t)

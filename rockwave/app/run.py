@@ -96,6 +96,21 @@ class _Watch:
             self.bar.update(sim.time - self.t0, sim.steps, force=True, note=self.note())
 
 
+def _setup_progress(what: str, unit: str, every_s: float = WATCH_INTERVAL_S):
+    """progress(done, total) for a long set-up step: a line on stderr every ``every_s`` of wall time and at the end,
+    once it has lasted that long (a quick set-up prints nothing)."""
+    t0 = time.perf_counter()
+    last = [t0]
+
+    def progress(done: int, total: int) -> None:
+        now = time.perf_counter()
+        if now - last[0] >= every_s or (done >= total and now - t0 >= every_s):
+            last[0] = now
+            print(f"{what}: {done:,} / {total:,} {unit} ({now - t0:.0f} s)", file=sys.stderr, flush=True)
+
+    return progress
+
+
 def _finished_summary(out: Path, sim, meta: dict, duration: float) -> dict | None:
     """``--resume`` of a run that already reached its end: the run.json it wrote (unchanged: nothing is run again,
     no output is rewritten), after a line saying so; None when there is more to simulate (a longer duration) or no
@@ -178,7 +193,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     surface = None
     if nf and (o.usd or o.get("vtk")):  # the surface goes nowhere else
         surface = surf.extractor_for(scene, sim.fluid, sim.device)
-    usd = rec.UsdRecorder(sim, out / o.usd, surface) if o.usd else None
+    usd = rec.UsdRecorder(sim, out / o.usd, surface, progress=_setup_progress("USD set-up", "block prims") if progress else None) \
+        if o.usd else None
     gauges = rec.gauge_csv(out / o.gauges_csv, sim.gauge_names) if sim.gauge_names and o.gauges_csv else None
     blocks = rec.block_csv(out / o.blocks_csv, sim.blocks.names) if sim.blocks is not None and o.blocks_csv else None
     vtk = rec.VtkRecorder(sim, out / o.vtk) if o.get("vtk") else None

@@ -100,8 +100,6 @@ def init_warp(quiet: bool | None = None) -> None:
 
     if quiet is None:
         quiet = _warp_quiet(wp)
-    if getattr(getattr(wp, "_src", None), "context", None) is not None and wp._src.context.runtime is not None:
-        return  # initialised
     if not quiet:
         _wp_init(wp)
         return

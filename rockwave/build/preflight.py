@@ -21,6 +21,7 @@ import shutil
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -33,10 +34,11 @@ from rockwave.dda import geometry
 from rockwave.dda.blocks import BlockModel, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
 from rockwave.dda.geometry import GeometryError
 from rockwave.scene.format import Node, Scene, SceneError, gauge_domain_errors
-from rockwave.sph.fluid import _grid_dims, sound_speed_from_eos
+from rockwave.sph.fluid import FluidOptions, FluidSolver, _grid_dims, sound_speed_from_eos
 
 MM_SUSPECT_EXTENT_M = 100.0
 MEMORY_FRACTION = 0.9
+WARP_MAX_ARRAY = 2**31 - 1  # elements of one Warp array (32-bit shapes)
 
 # device bytes per particle: x, v (vec3 each, all particles), mass (all); rho, pressure, drho_dt,
 # accel, xsph_dv (fluid); hash grid ids/cells + sort buffers (~16 B); the frame snapshot for the
@@ -165,6 +167,7 @@ class Estimate:
     blocks: int
     device_bytes: int
     host_bytes: int
+    neighbour_entries: int = 0  # the fluid's neighbour list: n_fluid x its capacity per particle (one Warp array)
 
     def describe(self) -> str:
         parts = []
@@ -232,7 +235,11 @@ def estimate(scene: Scene, meshes: dict | None = None) -> Estimate:
 
     nblocks += sum(estimate_block_count(r, dim) for r in scene.rock_mass)
     n_all = nf + nb
+    entries = 0.0
+    if scene.fluid is not None and nf:
+        entries = nf * neighbour_capacity(scene)
     dev = n_all * (DEV_PER_PARTICLE + SNAPSHOT_PER_PARTICLE) + nf * (DEV_PER_FLUID + SNAPSHOT_PER_FLUID) + 8 * cells
+    dev += 4 * entries + 16 * nf  # the neighbour lists (indices, counts, list-build positions)
     surf = scene.output.get("surface") if scene.fluid is not None else None
     if surf and surf.get("enabled") and lo is not None:
         # rockwave/output/surface.py default_cell (not imported: it loads Warp)
@@ -242,7 +249,17 @@ def estimate(scene: Scene, meshes: dict | None = None) -> Estimate:
     if nblocks:
         dev += nblocks * (DEV_PER_BLOCK + SNAPSHOT_PER_BLOCK)
     host = n_all * HOST_PER_PARTICLE + nf * HOST_PER_FLUID + nblocks * 2000
-    return Estimate(int(nf), int(nb), nblocks, int(dev), int(host))
+    return Estimate(int(nf), int(nb), nblocks, int(dev), int(host), int(entries))
+
+
+def neighbour_capacity(scene: Scene) -> int:
+    """Neighbour-list entries per fluid particle (rockwave/sph/fluid.py FluidSolver.list_capacity at the default skin)."""
+    fl = scene.fluid
+    t = scene.tank
+    ratio = float(t.boundary_spacing_ratio) if t is not None and t.get("boundary_spacing_ratio") else 1.0
+    model = SimpleNamespace(support_radius=fl.support_radius_ratio * fl.spacing_m, spacing=fl.spacing_m,
+                            boundary_spacing=ratio * fl.spacing_m, dim=scene.dim)
+    return FluidSolver.list_capacity(model, FluidOptions().neighbour_skin)
 
 
 def available_bytes(device: str) -> tuple[int | None, int | None]:
@@ -278,6 +295,14 @@ def check_memory(scene: Scene, device: str, meshes: dict | None = None) -> Estim
     dev_free, host_free = available_bytes(device)
     key = "fluid.spacing_m" if (est.fluid_particles or est.boundary_particles) else "blocks"
     hint = ("; a larger fluid.spacing_m needs less (memory grows as spacing^-" + str(scene.dim) + ")") if key == "fluid.spacing_m" else ""
+    if est.neighbour_entries >= WARP_MAX_ARRAY:  # one Warp array holds < 2^31 elements, whatever the memory
+        cap = est.neighbour_entries // max(est.fluid_particles, 1)
+        most = WARP_MAX_ARRAY // cap
+        raise SceneError(scene.path, [("fluid.spacing_m", f"{est.fluid_particles:.3g} fluid particles need a neighbour list of "
+                                                          f"{est.neighbour_entries:.3g} entries ({cap} per particle), more than "
+                                                          f"one Warp array holds (2^31 - 1); one device takes at most about "
+                                                          f"{most:.3g} particles at this support: a larger fluid.spacing_m (the "
+                                                          f"count grows as spacing^-{scene.dim})")])
     if device == "cpu":
         need, free = est.device_bytes + est.host_bytes, dev_free
         if free is not None and need > MEMORY_FRACTION * free:
@@ -480,6 +505,7 @@ NOMINAL_PARTICLE_STEPS_PER_S = {"cpu": 2.0e6, "cuda": 1.0e9}
 NOMINAL_BLOCK_STEPS_PER_S = {"cpu": 2.0e5, "cuda": 1.0e8}
 STEP_SECONDS_FLOOR = {"cpu": 2.0e-5, "cuda": 1.0e-4}  # launch overhead of one step, whatever its size
 CONTACT_POINTS_FOR_DT = 8  # as BlockSolver(contact_points_for_dt=8) in rockwave/dda/blocks.py
+LONG_RUN_MIN_DT_S = 1.0e-6  # too many steps of at least this: the duration is blamed, not the step's key
 MIN_MACH_MARGIN = 1.0  # c0 below this x the expected flow speed: the water cannot stay weakly compressible
 
 
@@ -508,6 +534,7 @@ class RunLength:
     flow_speed: float = 0.0
     sound_speed: float | None = None
     flow_key: str = ""
+    flow_what: str = ""  # what flow_speed is made of: "sqrt(2 g H) = ... (+ the initial speed ... of fluid.regions[i])"
 
     def describe(self) -> str:
         return (f"about {self.steps:.3g} steps of {self.dt:.3g} s for {self.duration:g} s "
@@ -528,24 +555,28 @@ def _fmt_wall(s: float) -> str:
     return f"{s / (365 * 86400):.3g} years"
 
 
-def _water_height_and_speed(scene: Scene) -> tuple[float, float]:
+def _water_height_and_speed(scene: Scene) -> tuple[float, float, int | None]:
     """Height of the water column above the lowest floor (box regions and a box tank; mesh regions
-    by the mesh file's bounds are not read here: 0) and the largest initial speed."""
+    by the mesh file's bounds are not read here: 0), the largest initial speed and the index of the
+    region that has it (None: all at rest)."""
     fl, up = scene.fluid, scene.dim - 1
-    lo, hi, v0 = math.inf, -math.inf, 0.0
-    for r in fl.regions:
+    lo, hi, v0, fast = math.inf, -math.inf, 0.0, None
+    for i, r in enumerate(fl.regions):
         if r.get("box_min_m") is not None and r.get("box_max_m") is not None:
             lo, hi = min(lo, r["box_min_m"][up]), max(hi, r["box_max_m"][up])
         if r.get("velocity_m_s") is not None:
-            v0 = max(v0, math.sqrt(sum(c * c for c in r["velocity_m_s"])))
+            speed = math.sqrt(sum(c * c for c in r["velocity_m_s"]))
+            if speed > v0:
+                v0, fast = speed, i
     t = scene.tank
     if t is not None and t.get("box_min_m") is not None and hi > -math.inf:
         lo = min(lo, t.box_min_m[up])
-    return (hi - lo if hi > lo else 0.0), v0
+    return (hi - lo if hi > lo else 0.0), v0, fast
 
 
-def _fluid_step(scene: Scene) -> tuple[float, str, str, float, float, str] | None:
-    """(dt, key, why, c0, flow speed, flow key) of the fluid's step limits at the start."""
+def _fluid_step(scene: Scene) -> tuple[float, str, str, float, float, str, str] | None:
+    """(dt, key, why, c0, flow speed, flow key, what the flow speed is made of) of the fluid's step limits at the
+    start."""
 
     fl = scene.fluid
     if fl is None:
@@ -555,12 +586,17 @@ def _fluid_step(scene: Scene) -> tuple[float, str, str, float, float, str] | Non
     c_key = "fluid.eos.speed_of_sound_m_s" if eos.speed_of_sound_m_s is not None else (
         "fluid.eos.b_pa" if eos.type == "tait" else "fluid.eos.k_m2_s2")
     g = float(np.linalg.norm(scene.gravity.acceleration_m_s2))
-    H, v0 = _water_height_and_speed(scene)
-    u = math.sqrt(2.0 * g * H) + v0
+    H, v0, fast = _water_height_and_speed(scene)
+    fall = math.sqrt(2.0 * g * H)
+    u = fall + v0
+    flow_what = f"sqrt(2 g H) = {fall:.3g} m/s (H = {H:.3g} m)"
+    if fast is not None:
+        flow_what += f" + the initial speed {v0:.3g} m/s of fluid.regions[{fast}]"
     h = 0.5 * fl.support_radius_ratio * fl.spacing_m  # as fluid_dt_limit in rockwave/sph/fluid.py
     c = c0 * (1.0 + 0.6 * fl.viscosity.artificial_alpha)
     cfl = scene.simulation.cfl_number
-    flow_key = "gravity.acceleration_m_s2" if g > 100.0 else ("fluid.regions" if v0 > math.sqrt(2.0 * g * H) else c_key)
+    flow_key = "gravity.acceleration_m_s2" if g > 100.0 else (
+        f"fluid.regions[{fast}].velocity_m_s" if fast is not None and v0 > fall else c_key)
     cands = [(cfl * h / (c + u), c_key if c0 >= 100.0 * max(u, 1.0) else (flow_key if u > c0 else "fluid.spacing_m"),
               f"C h/(c0 + u_max) with h = {h:.3g} m, c0 = {c0:.3g} m/s, u_max = {u:.3g} m/s")]
     if g > 0:
@@ -570,7 +606,7 @@ def _fluid_step(scene: Scene) -> tuple[float, str, str, float, float, str] | Non
         nu = mu / fl.rest_density_kg_m3
         cands.append((0.125 * h * h / nu, "fluid.viscosity.laplacian_pa_s", f"0.125 h^2/nu with nu = {nu:.3g} m^2/s"))
     dt, key, why = min(cands)
-    return dt, key, why, c0, u, flow_key
+    return dt, key, why, c0, u, flow_key, flow_what
 
 
 def _block_entries(scene: Scene):
@@ -655,10 +691,10 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
     cands = []
     fs = _fluid_step(scene)
     c0 = u = None
-    flow_key = ""
+    flow_key = flow_what = ""
     if fs is not None:
         cands.append(fs[:3])
-        c0, u, flow_key = fs[3], fs[4], fs[5]
+        c0, u, flow_key, flow_what = fs[3], fs[4], fs[5], fs[6]
     bs = _block_step(scene) if scene.blocks or scene.rock_mass else None
     if bs is not None and (fs is None or sim.get("block_stepping", "multirate") == "single"):
         cands.append(bs)  # with water, multi-rate blocks sub-step inside the fluid's step (rockwave/sim/clock.py)
@@ -697,7 +733,7 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
         wall_key = key
     return RunLength(steps=steps, dt=step, dt_key=key, dt_why=why, duration=duration, particles=particles, blocks=est.blocks,
                      seconds_per_step=sps, measured=measured, wall_s=wall, wall_key=wall_key,
-                     flow_speed=u or 0.0, sound_speed=c0, flow_key=flow_key)
+                     flow_speed=u or 0.0, sound_speed=c0, flow_key=flow_key, flow_what=flow_what)
 
 
 def check_run_length(scene: Scene, device: str = "cpu", duration: float | None = None, seconds_per_step: float | None = None,
@@ -723,13 +759,22 @@ def check_run_length(scene: Scene, device: str = "cpu", duration: float | None =
     tail = "; or pass --yes (Python: force=True) to run it anyway"
     if rl.sound_speed is not None and rl.flow_speed > 0 and rl.sound_speed < MIN_MACH_MARGIN * rl.flow_speed:
         target = 10.0 * rl.flow_speed
-        raise SceneError(scene.path, [(rl.flow_key if rl.flow_key.startswith("gravity") else "fluid.eos.speed_of_sound_m_s",
-                                       f"the speed of sound c0 = {rl.sound_speed:.3g} m/s is below the expected flow speed "
-                                       f"u_max = sqrt(2 g H) = {rl.flow_speed:.3g} m/s: the water cannot stay weakly "
-                                       f"compressible (it leaks through walls, the step collapses or the run blows up); "
-                                       f"weakly compressible SPH wants c0 >= 10 u_max = {target:.3g} m/s "
-                                       f"(or check gravity.acceleration_m_s2){tail}")])
+        region = rl.flow_key.startswith("fluid.regions")
+        key = rl.flow_key if rl.flow_key.startswith(("gravity", "fluid.regions")) else "fluid.eos.speed_of_sound_m_s"
+        check = (f"check {rl.flow_key} (a unit mistake?) or raise fluid.eos.speed_of_sound_m_s" if region else
+                 "or check gravity.acceleration_m_s2")
+        raise SceneError(scene.path, [(key, f"the speed of sound c0 = {rl.sound_speed:.3g} m/s is below the expected flow speed "
+                                            f"u_max = {rl.flow_what or 'sqrt(2 g H)'} = {rl.flow_speed:.3g} m/s: the water cannot "
+                                            f"stay weakly compressible (it leaks through walls, the step collapses or the run "
+                                            f"blows up); weakly compressible SPH wants c0 >= 10 u_max = {target:.3g} m/s "
+                                            f"({check}){tail}")])
     if not rl.steps <= max_steps:
+        if rl.dt >= LONG_RUN_MIN_DT_S:  # a step of physical size: the duration is what is long
+            what = "simulation.duration_s (or --duration)"
+            raise SceneError(scene.path, [("simulation.duration_s", f"the run needs {rl.describe()}, more than {max_steps:.3g} "
+                                                                    f"steps: a duration of {rl.duration:.3g} s is long for the "
+                                                                    f"scene's step (set by {rl.dt_why}); check {what} (a unit "
+                                                                    f"mistake?){tail}")])
         raise SceneError(scene.path, [(rl.dt_key, f"the run needs {rl.describe()}, more than {max_steps:.3g} steps; the step is "
                                                   f"set by {rl.dt_why}: check {rl.dt_key} (a unit mistake?){tail}")])
     if not rl.wall_s <= max_wall_s:
