@@ -25,8 +25,7 @@ import numpy as np
 
 from rockwave.base.files import atomic_write
 from rockwave.output import surface as surf
-from rockwave.output import vtk
-from rockwave.output import usd
+from rockwave.output import usd, vtk
 from rockwave.output.usd import UsdFrameWriter, points_setup
 from rockwave.sim.checkpoint import csv_restore, csv_state
 
