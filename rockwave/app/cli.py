@@ -10,6 +10,7 @@ from pathlib import Path
 from rockwave.app.plot import plot_gauges
 from rockwave.app.preview import PreviewError, render_preview
 from rockwave.app.sweep import cli as sweep_cli
+from rockwave.app.validate import check_built, validate
 from rockwave.base.device import DeviceError, WarpCacheError, init_warp, quiet_warp, resolve_device
 from rockwave.base.errors import SimulationError
 from rockwave.build import preflight
@@ -205,10 +206,12 @@ def _main(args) -> int:
         return _fail(f"--device: {e}" if args.device is not None else f"{scene_path}: simulation.device: {e}")
     if args.command == "validate":
         try:
-            found = preflight.check_before_stepping(scene, device, duration=args.duration, force=args.yes)
+            found = validate(scene, device, duration=args.duration, force=args.yes)
         except SceneError as e:
             print(str(e), file=sys.stderr)
             return 2
+        except (SimulationError, ValueError, OSError) as e:  # as run reports them before its first step
+            return _fail(str(e), 1)
         rl = found["run_length"]
         print(f"{scene_path}: ok ({scene.dim}D, {len(scene.fluid.regions) if scene.fluid is not None else 0} fluid region(s), "
               f"{len(scene.blocks)} block entr{'y' if len(scene.blocks) == 1 else 'ies'}"
@@ -245,9 +248,7 @@ def _main(args) -> int:
         else:
             sim = Simulation(scene, device=device)
         sim.run_length_forced = bool(args.yes)  # --yes, for the run loop's own run-length check
-        if sim.fluid is not None and sim.fluid.n_fluid == 0:
-            raise SceneError(scene.path, [("fluid.regions", "no water particle is left after seeding (outside the tank, "
-                                                            "inside obstacles or blocks)")])
+        check_built(sim)
         if not args.quiet:
             parts = []
             if sim.fluid is not None:

@@ -88,7 +88,7 @@ class _Watch:
                 now - self.first[0] > 0.5 or sim.steps - self.first[1] >= 10 * COST_STEPS):
             per_step = (now - self.first[0]) / (sim.steps - self.first[1])
             preflight.check_run_length(sim.scene, sim.device, duration=max(self.t_end - sim.time, 0.0),
-                                       seconds_per_step=per_step, dt=sim.dt, force=self.force)
+                                       seconds_per_step=per_step, dt=sim.dt, force=self.force, setup=False)
             self.cost_checked = True
         if now - self.last >= WATCH_INTERVAL_S:
             self.last = now

@@ -505,6 +505,13 @@ NOMINAL_PARTICLE_STEPS_PER_S = {"cpu": 2.0e6, "cuda": 1.0e9}
 NOMINAL_BLOCK_STEPS_PER_S = {"cpu": 2.0e5, "cuda": 1.0e8}
 STEP_SECONDS_FLOOR = {"cpu": 2.0e-5, "cuda": 1.0e-4}  # launch overhead of one step, whatever its size
 CONTACT_POINTS_FOR_DT = 8  # as BlockSolver(contact_points_for_dt=8) in rockwave/dda/blocks.py
+# USD output of the blocks (rockwave/output/recorders.py UsdRecorder; measured on a CPU core, 20k boxes): each block a
+# mesh prim below INSTANCER_MIN_BLOCKS blocks (set-up ~1e-4 s a prim, a frame ~2e-4 s a prim with its share of the chunk
+# files), from it on the instances of one PointInstancer (two arrays a frame, ~1e-7 s a block)
+INSTANCER_MIN_BLOCKS = 10_000
+USD_SETUP_S_PER_BLOCK_PRIM = 1.0e-4
+USD_FRAME_S_PER_BLOCK_PRIM = 2.0e-4
+USD_FRAME_S_PER_INSTANCE = 1.0e-7
 LONG_RUN_MIN_DT_S = 1.0e-6  # too many steps of at least this: the duration is blamed, not the step's key
 MIN_MACH_MARGIN = 1.0  # c0 below this x the expected flow speed: the water cannot stay weakly compressible
 
@@ -534,11 +541,25 @@ class RunLength:
     flow_speed: float = 0.0
     sound_speed: float | None = None
     flow_key: str = ""
+    output_s: float = 0.0  # wall time of the USD output of the blocks (set-up and frames; usd_output_seconds), in wall_s
     flow_what: str = ""  # what flow_speed is made of: "sqrt(2 g H) = ... (+ the initial speed ... of fluid.regions[i])"
 
     def describe(self) -> str:
-        return (f"about {self.steps:.3g} steps of {self.dt:.3g} s for {self.duration:g} s "
-                f"(~{_fmt_wall(self.wall_s)} at {self.seconds_per_step:.3g} s/step{'' if self.measured else ' (nominal)'})")
+        cost = f"{self.seconds_per_step:.3g} s/step{' measured here' if self.measured else ' (nominal: a lower bound)'}"
+        if self.output_s >= 0.05 * self.wall_s and self.output_s > 1.0:
+            cost += f", {_fmt_wall(self.output_s)} of it the USD output of the blocks"
+        return f"about {self.steps:.3g} steps of {self.dt:.3g} s for {self.duration:g} s (~{_fmt_wall(self.wall_s)} at {cost})"
+
+
+def usd_output_seconds(scene: Scene, blocks: int, duration: float, setup: bool = True) -> float:
+    """Wall time of the blocks' USD output (rockwave/output/recorders.py): the set-up of their prims (``setup``) and
+    the frames of ``duration`` s; 0 without USD output."""
+    if not scene.output.usd or not blocks:
+        return 0.0
+    frames = math.floor(duration * scene.output.frame_rate_hz + 1e-9) + 1
+    if blocks >= INSTANCER_MIN_BLOCKS:
+        return frames * blocks * USD_FRAME_S_PER_INSTANCE
+    return blocks * ((USD_SETUP_S_PER_BLOCK_PRIM if setup else 0.0) + frames * USD_FRAME_S_PER_BLOCK_PRIM)
 
 
 def _fmt_wall(s: float) -> str:
@@ -677,7 +698,7 @@ def _block_step(scene: Scene) -> tuple[float, str, str] | None:
 
 
 def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | None = None,
-                        seconds_per_step: float | None = None, dt: float | None = None) -> RunLength:
+                        seconds_per_step: float | None = None, dt: float | None = None, setup: bool = True) -> RunLength:
     """Steps and wall time of a run, from the scene's stability limits alone (no allocation).
 
     The step is the smallest of: the fluid's CFL step C h/(c0 + u_max) (u_max = sqrt(2 g H) for the
@@ -685,7 +706,8 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
     0.125 h^2/nu; the blocks' critical DDA step times block_dt_safety; ``simulation.dt_s`` when the step
     is fixed; or ``dt`` when given (the step a run actually uses). ``duration`` defaults to
     simulation.duration_s. ``seconds_per_step``: the measured cost of one step (from the first steps of
-    a run); without it a nominal, optimistic cost for the device from the particle and block counts."""
+    a run); without it a nominal, optimistic cost for the device from the particle and block counts (a lower bound). The wall
+    time includes the blocks' USD output (usd_output_seconds; its set-up when ``setup``)."""
     sim = scene.simulation
     duration = sim.duration_s if duration is None else float(duration)
     cands = []
@@ -722,10 +744,11 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
         measured = False
     else:
         sps, measured = float(seconds_per_step), True
-    wall = steps * sps
+    output_s = usd_output_seconds(scene, est.blocks, duration, setup)
+    wall = steps * sps + output_s
     if particles >= 1e6 and particles / NOMINAL_PARTICLE_STEPS_PER_S[kind] >= est.blocks / NOMINAL_BLOCK_STEPS_PER_S[kind]:
         wall_key = "fluid.spacing_m"
-    elif est.blocks >= 1e5:
+    elif est.blocks >= 1e5 or output_s > 0.5 * wall:
         wall_key = "blocks"
     elif step >= 1e-4:
         wall_key = "simulation.duration_s"
@@ -733,12 +756,12 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
         wall_key = key
     return RunLength(steps=steps, dt=step, dt_key=key, dt_why=why, duration=duration, particles=particles, blocks=est.blocks,
                      seconds_per_step=sps, measured=measured, wall_s=wall, wall_key=wall_key,
-                     flow_speed=u or 0.0, sound_speed=c0, flow_key=flow_key, flow_what=flow_what)
+                     flow_speed=u or 0.0, sound_speed=c0, flow_key=flow_key, flow_what=flow_what, output_s=output_s)
 
 
 def check_run_length(scene: Scene, device: str = "cpu", duration: float | None = None, seconds_per_step: float | None = None,
                      dt: float | None = None, force: bool = False, max_steps: float | None = None,
-                     max_wall_s: float | None = None) -> RunLength:
+                     max_wall_s: float | None = None, setup: bool = True) -> RunLength:
     """Refuse, before stepping, a run that cannot work or would not end: raises SceneError naming the
     key to change (and saying that ``--yes`` / ``force=True`` runs it anyway) when
 
@@ -751,7 +774,7 @@ def check_run_length(scene: Scene, device: str = "cpu", duration: float | None =
       the ``dt`` in use) or a nominal cost otherwise.
 
     Returns the :class:`RunLength` (also when forced)."""
-    rl = estimate_run_length(scene, device, duration, seconds_per_step, dt)
+    rl = estimate_run_length(scene, device, duration, seconds_per_step, dt, setup)
     if force:
         return rl
     max_steps = MAX_STEPS if max_steps is None else max_steps

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from rockwave.base.files import atomic_write
+from rockwave.build.preflight import INSTANCER_MIN_BLOCKS
 from rockwave.output import surface as surf
 from rockwave.output import usd, vtk
 from rockwave.output.usd import UsdFrameWriter, points_setup
@@ -32,7 +33,8 @@ from rockwave.sim.checkpoint import csv_restore, csv_state
 FLUID_PRIM = "/World/fluid"
 BLOCKS_PRIM = "/World/blocks"
 INSTANCER_PRIM = "/World/blocks/instances"  # the PointInstancer of many blocks (UsdRecorder._blocks_setup)
-INSTANCER_MIN_BLOCKS = 10_000  # rigid, fixed and kinematic blocks from which they are instances, not one mesh prim each
+# INSTANCER_MIN_BLOCKS (rockwave/build/preflight.py, with the run-length estimate's cost of the USD output): rigid, fixed
+# and kinematic blocks from which they are the instances of one PointInstancer, not one mesh prim each
 BLOCK_CSV_HEADER = ["time_s", "block", "name", "x_m", "y_m", "z_m", "vx_m_s", "vy_m_s", "vz_m_s",
                     "wx_rad_s", "wy_rad_s", "wz_rad_s", "contacts"]
 
