@@ -23,6 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from rockwave.output.recorders import scene_boxes
+from rockwave.scene.format import SceneError, load_scene
+
 
 class PreviewError(ValueError):
     """The run folder or frame cannot be previewed; the message says why."""
@@ -163,10 +166,45 @@ def load_frame(run_dir: str | os.PathLike, frame: int | None = None) -> dict:
     if not spacing and len(x) > 1:
         spacing = float(np.min(np.ptp(x, axis=0)[:dim]) / max(2.0, len(x) ** (1.0 / dim)))
     return {"dim": dim, "spacing": spacing or 0.01, "frame": frame, "time_s": frame / stage.GetTimeCodesPerSecond(),
-            "x": x, "v": v, "pressure": pr, "blocks": blocks, "contour": contour, "frames": (first, last), "stage": str(path)}
+            "x": x, "v": v, "pressure": pr, "blocks": blocks, "contour": contour, "frames": (first, last), "stage": str(path),
+            "boxes": _boxes(info, dim)}
+
+
+def _boxes(info: dict, dim: int) -> list:
+    """(lo (3,), hi (3,), 'tank' | 'obstacle') of the scene's box tank and box obstacles: from the stage's layer data
+    (``boxes``, JSON written by rockwave/output/recorders.py), else from the scene file it names (older stages)."""
+    def pad(p):
+        return np.asarray(list(p) + [0.0] * (3 - len(p)), np.float64)
+
+    try:
+        boxes = json.loads(info["boxes"]) if isinstance(info.get("boxes"), str) else None
+    except ValueError:
+        boxes = None
+    if boxes is None and info.get("scene") and Path(str(info["scene"])).is_file():
+        try:
+            boxes = scene_boxes(load_scene(info["scene"]))
+        except (SceneError, OSError, ValueError):
+            boxes = None
+    return [(pad(lo), pad(hi), what) for lo, hi, what in boxes or []]
 
 
 _AXES = {"x": 0, "y": 1, "z": 2}
+PRESSURE_PERCENTILES = (2.0, 98.0)  # the colour scale of --color pressure
+
+
+def color_limits(c: np.ndarray, color: str) -> dict:
+    """{vmin, vmax} of the colour scale: for pressure the PRESSURE_PERCENTILES (a few hot particles, e.g. at a wall
+    impact, must not darken all the others); {} (the data's range) otherwise."""
+    if color != "pressure" or len(c) == 0:
+        return {}
+    lo, hi = np.percentile(c, PRESSURE_PERCENTILES)
+    return {"vmin": float(lo), "vmax": float(hi)} if hi > lo else {}
+
+
+def default_name(frame: int, dim: int, color: str, axis: str = "y", slice_at: float | None = None) -> str:
+    """preview_<frame>_<colour>[_<axis>[_at<pos>]].png: different views of one frame get different files."""
+    view = "" if dim == 2 else f"_{axis}" + ("" if slice_at is None else f"_at{slice_at:g}")
+    return f"preview_{frame:05d}_{color}{view}.png"
 
 
 def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: str = "speed", axis: str = "y",
@@ -176,7 +214,7 @@ def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: 
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Polygon
+    from matplotlib.patches import Polygon, Rectangle
 
     if color not in ("speed", "pressure"):
         raise PreviewError(f"--color {color!r}: expected speed or pressure")
@@ -207,7 +245,9 @@ def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: 
         order = np.argsort(-x[:, depth_axis])  # looking from the low side: far (high) first, near last
         x, c = x[order], c[order]
     pts2 = x[:, [a, b]]
-    allp = [pts2] + [bv[:, [a, b]] for bv in blocks]
+    boxes = [(lo_b, hi_b, what) for lo_b, hi_b, what in d.get("boxes", []) if depth_axis is None or slice_at is None
+             or lo_b[depth_axis] - h <= slice_at <= hi_b[depth_axis] + h]  # (a slice shows the obstacles it cuts)
+    allp = [pts2] + [bv[:, [a, b]] for bv in blocks] + [np.array([[lo_b[a], lo_b[b]], [hi_b[a], hi_b[b]]]) for lo_b, hi_b, _ in boxes]
     if d["contour"] is not None and len(d["contour"]):
         allp.append(d["contour"].reshape(-1, 3)[:, [a, b]])
     allp = np.concatenate([p for p in allp if len(p)]) if any(len(p) for p in allp) else np.zeros((1, 2))
@@ -223,9 +263,15 @@ def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: 
     bbox = ax.get_window_extent()
     pts_per_m = (bbox.width * 72.0 / fig.dpi) / span[0]
     size = max((h * pts_per_m) ** 2, 0.5)
-    sc = ax.scatter(pts2[:, 0], pts2[:, 1], c=c, s=size, cmap="viridis", linewidths=0, marker="o")
+    for lo_b, hi_b, what in boxes:  # the tank's walls and the obstacles (the scene's boxes)
+        ax.add_patch(Rectangle((lo_b[a], lo_b[b]), hi_b[a] - lo_b[a], hi_b[b] - lo_b[b], fill=what == "obstacle",
+                               facecolor=(0.6, 0.6, 0.6, 0.5), edgecolor="0.25", linewidth=1.5 if what == "tank" else 1.0,
+                               zorder=0 if what == "tank" else 3))
+    limits = color_limits(c, color)
+    sc = ax.scatter(pts2[:, 0], pts2[:, 1], c=c, s=size, cmap="viridis", linewidths=0, marker="o", **limits)
     if len(c):
-        fig.colorbar(sc, ax=ax, label=clabel, shrink=0.8)
+        fig.colorbar(sc, ax=ax, label=clabel + (f" ({PRESSURE_PERCENTILES[0]:g}-{PRESSURE_PERCENTILES[1]:g} percentiles)"
+                                                if limits else ""), shrink=0.8, extend="both" if limits else "neither")
     for bv in blocks:
         hull = _hull(bv[:, [a, b]])
         if len(hull) >= 3:
@@ -238,7 +284,7 @@ def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: 
     ax.set_xlabel(f"{names[a]} (m)")
     ax.set_ylabel(f"{names[b]} (m)")
     ax.set_title(f"frame {d['frame']}, t = {d['time_s']:.4g} s, {len(pts2)} particles, {len(blocks)} blocks ({view})", fontsize=9)
-    out = Path(out) if out else Path(run_dir) / f"preview_{d['frame']:05d}.png"
+    out = Path(out) if out else Path(run_dir) / default_name(d["frame"], dim, color, axis, slice_at)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.stem}.tmp.png")
     fig.savefig(tmp, dpi=dpi)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import re
 from functools import cached_property
 from pathlib import Path
@@ -156,6 +157,17 @@ def _prim_names(blocks) -> list[str]:
             for n, s in zip(blocks.names, blocks.specs)]
 
 
+def scene_boxes(scene) -> list:
+    """[lo, hi, 'tank' | 'obstacle'] of the scene's box tank and box obstacles (the preview draws them)."""
+    out = []
+    if scene.fluid is not None and scene.tank is not None and scene.tank.get("box_min_m") is not None:
+        out.append([list(scene.tank.box_min_m), list(scene.tank.box_max_m), "tank"])
+    for ob in scene.obstacles if scene.fluid is not None else []:
+        if ob.get("box_min_m") is not None:
+            out.append([list(ob.box_min_m), list(ob.box_max_m), "obstacle"])
+    return out
+
+
 class _MeshFaces:
     """Points and triangle faces of a compound block's original mesh, shaped like a ConvexPolyhedron
     for the USD setup (vertices, faces)."""
@@ -200,7 +212,7 @@ class UsdRecorder:
         scene = self.sim.scene
         info = {"dimension": self.dim, "spacing_m": self.spacing, "fluid_prim": FLUID_PRIM if self.nf else "",
                 "surface_prim": surf.SURFACE_PRIM if self.surface is not None else "", "blocks_prim": BLOCKS_PRIM,
-                "block_instancer": INSTANCER_PRIM if self.n_instanced else "",
+                "block_instancer": INSTANCER_PRIM if self.n_instanced else "", "boxes": json.dumps(scene_boxes(scene)),
                 "scene": str(Path(scene.path).resolve()) if scene.path != "<scene>" else scene.path}
         layer = stage.GetRootLayer()
         data = dict(layer.customLayerData)
