@@ -507,11 +507,11 @@ STEP_SECONDS_FLOOR = {"cpu": 2.0e-5, "cuda": 1.0e-4}  # launch overhead of one s
 CONTACT_POINTS_FOR_DT = 8  # as BlockSolver(contact_points_for_dt=8) in rockwave/dda/blocks.py
 # USD output of the blocks (rockwave/output/recorders.py UsdRecorder; measured on a CPU core, 20k boxes): each block a
 # mesh prim below INSTANCER_MIN_BLOCKS blocks (set-up ~1e-4 s a prim, a frame ~2e-4 s a prim with its share of the chunk
-# files), from it on the instances of one PointInstancer (two arrays a frame, ~1e-7 s a block)
+# files), from it on the instances of one PointInstancer (two arrays a frame, ~4e-7 s a block with the chunk files)
 INSTANCER_MIN_BLOCKS = 10_000
 USD_SETUP_S_PER_BLOCK_PRIM = 1.0e-4
 USD_FRAME_S_PER_BLOCK_PRIM = 2.0e-4
-USD_FRAME_S_PER_INSTANCE = 1.0e-7
+USD_FRAME_S_PER_INSTANCE = 4.0e-7
 LONG_RUN_MIN_DT_S = 1.0e-6  # too many steps of at least this: the duration is blamed, not the step's key
 MIN_MACH_MARGIN = 1.0  # c0 below this x the expected flow speed: the water cannot stay weakly compressible
 
