@@ -295,19 +295,12 @@ def check_memory(scene: Scene, device: str, meshes: dict | None = None) -> Estim
     dev_free, host_free = available_bytes(device)
     key = "fluid.spacing_m" if (est.fluid_particles or est.boundary_particles) else "blocks"
     hint = ("; a larger fluid.spacing_m needs less (memory grows as spacing^-" + str(scene.dim) + ")") if key == "fluid.spacing_m" else ""
-    if est.neighbour_entries >= WARP_MAX_ARRAY:  # one Warp array holds < 2^31 elements, whatever the memory
-        cap = est.neighbour_entries // max(est.fluid_particles, 1)
-        most = WARP_MAX_ARRAY // cap
-        raise SceneError(scene.path, [("fluid.spacing_m", f"{est.fluid_particles:.3g} fluid particles need a neighbour list of "
-                                                          f"{est.neighbour_entries:.3g} entries ({cap} per particle), more than "
-                                                          f"one Warp array holds (2^31 - 1); one device takes at most about "
-                                                          f"{most:.3g} particles at this support: a larger fluid.spacing_m (the "
-                                                          f"count grows as spacing^-{scene.dim})")])
     if device == "cpu":
         need, free = est.device_bytes + est.host_bytes, dev_free
         if free is not None and need > MEMORY_FRACTION * free:
             raise SceneError(scene.path, [(key, f"the scene needs about {_fmt_bytes(need)} of memory on the CPU "
                                                 f"({est.describe()}), but only {_fmt_bytes(free)} is available{hint}")])
+        _check_array_limits(scene, est)
         return est
     if dev_free is not None and est.device_bytes > MEMORY_FRACTION * dev_free:
         raise SceneError(scene.path, [(key, f"the scene needs about {_fmt_bytes(est.device_bytes)} on {device} "
@@ -315,7 +308,20 @@ def check_memory(scene: Scene, device: str, meshes: dict | None = None) -> Estim
     if host_free is not None and est.host_bytes > MEMORY_FRACTION * host_free:
         raise SceneError(scene.path, [(key, f"the scene needs about {_fmt_bytes(est.host_bytes)} of host memory to set up "
                                             f"({est.describe()}), but only {_fmt_bytes(host_free)} is available{hint}")])
+    _check_array_limits(scene, est)
     return est
+
+
+def _check_array_limits(scene: Scene, est: Estimate) -> None:
+    """The fluid's neighbour list must fit one Warp array (32-bit shapes), even where the memory would hold it."""
+    if est.neighbour_entries >= WARP_MAX_ARRAY:  # one Warp array holds < 2^31 elements, however much memory there is
+        cap = est.neighbour_entries // max(est.fluid_particles, 1)
+        most = WARP_MAX_ARRAY // cap
+        raise SceneError(scene.path, [("fluid.spacing_m", f"{est.fluid_particles:.3g} fluid particles need a neighbour list of "
+                                                          f"{est.neighbour_entries:.3g} entries ({cap} per particle), more than "
+                                                          f"one Warp array holds (2^31 - 1); one device takes at most about "
+                                                          f"{most:.3g} particles at this support: a larger fluid.spacing_m (the "
+                                                          f"count grows as spacing^-{scene.dim})")])
 
 
 def check_scene(scene: Scene, device: str, meshes: dict | None = None) -> Estimate:
