@@ -112,7 +112,7 @@ def test_wheel_holds_the_scenes_and_their_data_and_declares_the_mesh_dependencie
     shipped = {f"rockwave/scenes/{p.name}" for p in (ROOT / "scenes").glob("*.toml")}
     assert shipped and shipped <= names
     assert {"rockwave/scenes/data/spheric_test2/water_level.dat", "rockwave/scenes/data/spheric_test2/pressure.dat"} <= names
-    assert "rockwave/base/device.py" in names and "rockwave/kernels/fluid.py" in names
+    assert "rockwave/base/device.py" in names and "rockwave/kernels/sph/fluid.py" in names
     requires = [l.split(":", 1)[1].strip().lower() for l in meta.splitlines() if l.startswith("Requires-Dist:") and "extra ==" not in l]
     for dep in ("charset-normalizer", "scipy", "trimesh"):
         assert any(q.startswith(dep) for q in requires), (dep, requires)
