@@ -243,7 +243,7 @@ def test_preview_and_plot_commands_write_images(tmp_path, capsys):
     run = tmp_path / "run"
     assert main(["run", str(scene_file), "--out", str(run), "--device", DEVICE, "--quiet"]) == 0
     assert main(["preview", str(run), "--frame", "2"]) == 0
-    _png_ok(run / "preview_00002.png")
+    _png_ok(run / "preview_00002_speed.png")  # named by frame and colour (and view in 3D: issue 42)
     assert main(["preview", str(run), "--color", "pressure", "--out", str(tmp_path / "p.png")]) == 0
     _png_ok(tmp_path / "p.png")
     assert main(["plot", str(run)]) == 0

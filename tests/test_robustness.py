@@ -676,6 +676,34 @@ def test_sigkill_then_resume_is_bit_identical(tmp_path, kind):
         assert checkpoint.read_file(out / "checkpoint.npz")[0]["blocks/table/slots"].size > 0
 
 
+def test_held_contact_coupled_resume_is_bit_identical_with_the_whole_runs_hazard_and_counters(tmp_path, capsys):
+    """Issue 42: a coupled scene whose block rests on a slope (held contacts of the multi-rate stepping) resumes bit for
+    bit from a checkpoint taken between two hold checks; the resumed hazard summary and run.json's counters are the
+    whole run's; --resume of a finished run leaves its run.json as it was."""
+    scene = Path(__file__).resolve().parent.parent / "scenes" / "slide_2d_tiny.toml"
+    ref, out = tmp_path / "ref", tmp_path / "resumed"
+    whole = rockwave.Simulation(load_scene(scene), device="cpu").run(ref, duration=0.3, progress=False, checkpoint_interval_s=1e9)
+    first = rockwave.Simulation(load_scene(scene), device="cpu")
+    first.run(out, duration=0.2, progress=False, checkpoint_interval_s=1e9)
+    assert first.multirate and first.block_stepping.contacts_hold and first.clock.substeps > 1  # the held-contact path, ...
+    assert first.steps % first.clock.update_interval != 0  # ... stopped between two of its hold checks
+    capsys.readouterr()
+    resumed = rockwave.Simulation(load_scene(scene), device="cpu").run(out, duration=0.3, progress=False,
+                                                                      resume=True, checkpoint_interval_s=1e9)
+    assert f"resuming {out} from frame 6 (t = 0.2 s" in capsys.readouterr().err  # said on the console
+    _compare_runs(ref, out, [("/World/fluid", "points"), ("/World/blocks/slide", "xformOp:translate"),
+                             ("/World/blocks/slide", "xformOp:orient")])
+    assert json.loads((out / "hazard.json").read_text()) == json.loads((ref / "hazard.json").read_text()) == whole["hazard"]
+    assert whole["hazard"]["slides"]["slide"]["runout_m"] > 0.01
+    for k in ("steps", "steps_limited_by", "block_steps", "simulated_s"):
+        assert resumed[k] == whole[k], k
+    assert resumed["resumed_from_frame"] == 6 and resumed["wall_s"] > resumed["wall_s_this_process"] > 0
+    before = (out / "run.json").read_bytes()
+    again = rockwave.Simulation(load_scene(scene), device="cpu").run(out, duration=0.3, progress=False, resume=True)
+    assert "nothing to resume" in capsys.readouterr().err
+    assert (out / "run.json").read_bytes() == before and again["steps"] == whole["steps"]
+
+
 def test_ctrl_c_finishes_the_frame_closes_usd_and_resumes(tmp_path):
     from pxr import Usd, UsdGeom
 

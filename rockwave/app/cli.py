@@ -1,15 +1,17 @@
-"""Command line: ``python -m rockwave run|validate|info|schema|preview|plot|sweep``. A thin layer over the Python API."""
+"""Command line: ``python -m rockwave run|validate|scenes|info|schema|preview|plot|sweep``. A thin layer over the Python API."""
 
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
 from rockwave.app.plot import plot_gauges
 from rockwave.app.preview import PreviewError, render_preview
 from rockwave.app.sweep import cli as sweep_cli
-from rockwave.base.device import DeviceError, init_warp, quiet_warp, resolve_device
+from rockwave.app.validate import check_built, validate
+from rockwave.base.device import DeviceError, WarpCacheError, init_warp, quiet_warp, resolve_device
 from rockwave.base.errors import SimulationError
 from rockwave.build import preflight
 from rockwave.scene.format import SceneError, load_scene, scene_format_doc
@@ -34,11 +36,59 @@ def default_scene() -> Path:
     return Path(__file__).resolve().parent.parent / "scenes" / DEFAULT_SCENE_NAME
 
 
+def _shipped_dir() -> Path:
+    return default_scene().parent
+
+
+def shipped_scenes() -> list[Path]:
+    """The scenes shipped with rockwave (``rockwave.scenes``, the checkout's scenes/ folder), sorted by name."""
+    return sorted(_shipped_dir().glob("*.toml"))
+
+
+def scene_summary(path: Path) -> str:
+    """The first sentence of a scene file's leading comment (what ``python -m rockwave scenes`` lists)."""
+    lines = []
+    try:
+        with open(path, encoding="utf-8") as f:
+            for line in f:
+                if not line.startswith("#"):
+                    break
+                lines.append(line.lstrip("#").strip())
+    except (OSError, UnicodeDecodeError):
+        return ""
+    text = " ".join(l for l in lines if l)
+    for m in re.finditer(r"([A-Za-z.]*)\.\s", text):  # the first full stop that does not end an abbreviation
+        if len(m.group(1)) > 1 and not m.group(1)[0].isupper() and m.group(1).lower() not in ("al", "fig", "eq", "eqs", "vol", "e.g", "i.e", "cf", "no", "pp"):
+            text = text[: m.end(1) + 1]
+            break
+    return text if len(text) <= 160 else text[:157].rsplit(" ", 1)[0] + " ..."
+
+
+def resolve_scene(arg: str) -> str:
+    """A scene argument as given, or, when no such file exists and it is a bare name, the shipped scene of that name
+    (``dam_break_2d`` or ``dam_break_2d.toml``: found from a wheel install and from any folder)."""
+    p = Path(arg)
+    if p.exists() or len(p.parts) != 1:
+        return arg
+    name = p.name if p.suffix == ".toml" else p.name + ".toml"
+    shipped = _shipped_dir() / name
+    return str(shipped) if shipped.is_file() else arg
+
+
+def _list_scenes() -> int:
+    scenes = shipped_scenes()
+    width = max((len(p.stem) for p in scenes), default=0)
+    print(f"shipped scenes ({_shipped_dir()}); run one by name, e.g. python -m rockwave run {scenes[0].stem if scenes else 'NAME'}:")
+    for p in scenes:
+        print(f"  {p.stem:<{width}}  {scene_summary(p)}")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m rockwave", description="rockwave: rock masses and water (SPH + DDA on NVIDIA Warp)")
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="run a scene and write USD frames, gauges and run.json")
-    r.add_argument("scene", nargs="?", default=None, help=f"scene TOML file (default: the built-in {DEFAULT_SCENE_NAME})")
+    r.add_argument("scene", nargs="?", default=None, help=f"scene TOML file, or the name of a shipped scene (python -m rockwave scenes; default: the built-in {DEFAULT_SCENE_NAME})")
     r.add_argument("--device", default=None, help="auto | cpu | cuda | cuda:N (default: the scene's, normally auto)")
     r.add_argument("--out", default=None, help="output folder (default: runs/<scene name>)")
     r.add_argument("--duration", type=float, default=None, help="simulated seconds (overrides simulation.duration_s)")
@@ -52,11 +102,12 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--ranks", action="store_true", help="one scene on all ranks of the MPI job (mpiexec -n N ...; detected "
                    "without the flag when the MPI world has more than one rank; docs/mpi.md)")
     v = sub.add_parser("validate", help="check a scene file without running it: every check 'run' makes before its first step")
-    v.add_argument("scene", nargs="?", default=None, help=f"scene TOML file (default: the built-in {DEFAULT_SCENE_NAME})")
+    v.add_argument("scene", nargs="?", default=None, help=f"scene TOML file, or the name of a shipped scene (python -m rockwave scenes; default: the built-in {DEFAULT_SCENE_NAME})")
     v.add_argument("--device", default=None, help="device the memory and run-length estimates are for (default: the scene's)")
     v.add_argument("--duration", type=float, default=None, help="simulated seconds (as for run)")
     v.add_argument("--yes", action="store_true", help="do not refuse a long run (as for run)")
     sub.add_parser("info", help="Warp version and devices")
+    sub.add_parser("scenes", help="list the shipped scenes (run or validate one by its bare name, e.g. dam_break_2d)")
     sub.add_parser("schema", help="print the scene format as a Markdown table")
     pv = sub.add_parser("preview", help="draw one frame of a run as a PNG (particles coloured by speed or pressure, blocks outlined)")
     pv.add_argument("run_dir", help="a run's output folder (holds run.json and the USD stage)")
@@ -95,12 +146,21 @@ def _fail(msg: str, code: int = 2) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    try:
+        return _main(args)
+    except WarpCacheError as e:  # the folder and WARP_CACHE_PATH, one line (commands that need kernels)
+        return _fail(str(e))
+
+
+def _main(args) -> int:
     if args.command != "run" or args.quiet:
-        quiet_warp()
+        quiet_warp(init=False)  # Warp is initialised where a device or kernels are needed (resolve_device), not here
 
     if args.command == "schema":
         sys.stdout.write(scene_format_doc())
         return 0
+    if args.command == "scenes":
+        return _list_scenes()
     if args.command in ("preview", "plot"):
 
         try:
@@ -128,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
                 extra = f", {d.total_memory / 2**30:.1f} GiB, sm_{d.arch}"
             print(f"  {d.alias}: {d.name}{extra}")
         return 0
-    scene_path = args.scene if args.scene else str(default_scene())
+    scene_path = resolve_scene(args.scene) if args.scene else str(default_scene())
     try:
         scene = load_scene(scene_path)
     except SceneError as e:
@@ -145,10 +205,12 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"--device: {e}" if args.device is not None else f"{scene_path}: simulation.device: {e}")
     if args.command == "validate":
         try:
-            found = preflight.check_before_stepping(scene, device, duration=args.duration, force=args.yes)
+            found = validate(scene, device, duration=args.duration, force=args.yes)
         except SceneError as e:
             print(str(e), file=sys.stderr)
             return 2
+        except (SimulationError, ValueError, OSError) as e:  # as run reports them before its first step
+            return _fail(str(e), 1)
         rl = found["run_length"]
         print(f"{scene_path}: ok ({scene.dim}D, {len(scene.fluid.regions) if scene.fluid is not None else 0} fluid region(s), "
               f"{len(scene.blocks)} block entr{'y' if len(scene.blocks) == 1 else 'ies'}"
@@ -185,14 +247,12 @@ def main(argv: list[str] | None = None) -> int:
         else:
             sim = Simulation(scene, device=device)
         sim.run_length_forced = bool(args.yes)  # --yes, for the run loop's own run-length check
-        if sim.fluid is not None and sim.fluid.n_fluid == 0:
-            raise SceneError(scene.path, [("fluid.regions", "no water particle is left after seeding (outside the tank, "
-                                                            "inside obstacles or blocks)")])
+        check_built(sim)
         if not args.quiet:
             parts = []
             if sim.fluid is not None:
                 parts.append(f"{sim.fluid.n_fluid:,} fluid + {sim.fluid.n_boundary:,} boundary particles "
-                             f"(h = {sim.fluid.support_radius:g} m, c0 = {sim.fluid.sound_speed:.3g} m/s)")
+                             f"(support {sim.fluid.support_radius:g} m, c0 = {sim.fluid.sound_speed:.3g} m/s)")
             if sim.blocks is not None:
                 parts.append(f"{sim.blocks.num_blocks:,} blocks (critical step {sim.block_solver.critical_dt():.3g} s)")
             print(f"{scene_path}: {' and '.join(parts)} on {sim.device}, dt = {sim.dt:.3g} s", file=sys.stderr)

@@ -23,6 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from rockwave.output.recorders import scene_boxes
+from rockwave.scene.format import SceneError, load_scene
+
 
 class PreviewError(ValueError):
     """The run folder or frame cannot be previewed; the message says why."""
@@ -67,6 +70,40 @@ def _hull(p: np.ndarray) -> np.ndarray:
     return np.asarray(lo[:-1] + hi[:-1])
 
 
+def _quat_rows(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) of unit quaternions (n, 4) given as (x, y, z, w), for row vectors (p @ R)."""
+    x, y, z, w = (q[:, i] for i in range(4))
+    r = np.empty((len(q), 3, 3))
+    r[:, 0, 0], r[:, 0, 1], r[:, 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)
+    r[:, 1, 0], r[:, 1, 1], r[:, 1, 2] = 2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)
+    r[:, 2, 0], r[:, 2, 1], r[:, 2, 2] = 2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)
+    return np.transpose(r, (0, 2, 1))  # column-vector matrices transposed: p_world = p @ R^T
+
+
+def _instances(prim, t) -> list:
+    """World vertices of each instance of a PointInstancer whose prototypes are meshes (positions and orientations;
+    the float ``orientationsf`` where authored, else ``orientations``)."""
+    from pxr import UsdGeom
+
+    inst = UsdGeom.PointInstancer(prim)
+    pos = inst.GetPositionsAttr().Get(t)
+    if pos is None or len(pos) == 0:
+        return []
+    pos = np.asarray(pos, np.float64).reshape(-1, 3)
+    of = prim.GetAttribute("orientationsf")
+    q = of.Get(t) if of and of.HasAuthoredValue() else inst.GetOrientationsAttr().Get(t)
+    q = np.asarray(q, np.float64).reshape(-1, 4) if q is not None and len(q) == len(pos) else np.tile([0.0, 0, 0, 1], (len(pos), 1))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    idx = np.asarray(inst.GetProtoIndicesAttr().Get(t), np.int64)
+    protos = []
+    stage = prim.GetStage()
+    for path in inst.GetPrototypesRel().GetTargets():
+        p = UsdGeom.Mesh(stage.GetPrimAtPath(path)).GetPointsAttr().Get()
+        protos.append(np.asarray(p, np.float64).reshape(-1, 3) if p is not None else np.zeros((0, 3)))
+    rot = _quat_rows(q)
+    return [protos[k] @ rot[i] + pos[i] for i, k in enumerate(idx)]
+
+
 def load_frame(run_dir: str | os.PathLike, frame: int | None = None) -> dict:
     """The data of one frame: dict with dim, spacing, frame, time_s, x (n, 3), v (n, 3),
     pressure (n,) or None, blocks (list of world vertex arrays), contour ((S, 2, 3) or None),
@@ -106,7 +143,12 @@ def load_frame(run_dir: str | os.PathLike, frame: int | None = None) -> dict:
     root = stage.GetPrimAtPath(info.get("blocks_prim") or "/World/blocks")
     if root and root.IsValid():
         cache = UsdGeom.XformCache(t)
-        for prim in Usd.PrimRange(root):
+        it = iter(Usd.PrimRange(root))
+        for prim in it:
+            if prim.IsA(UsdGeom.PointInstancer):  # many blocks: instances of prototype meshes (rockwave/output/recorders.py)
+                blocks += _instances(prim, t)
+                it.PruneChildren()  # (its prototypes are not blocks of their own)
+                continue
             if not prim.IsA(UsdGeom.Mesh):
                 continue
             p = UsdGeom.Mesh(prim).GetPointsAttr().Get(t)
@@ -124,10 +166,45 @@ def load_frame(run_dir: str | os.PathLike, frame: int | None = None) -> dict:
     if not spacing and len(x) > 1:
         spacing = float(np.min(np.ptp(x, axis=0)[:dim]) / max(2.0, len(x) ** (1.0 / dim)))
     return {"dim": dim, "spacing": spacing or 0.01, "frame": frame, "time_s": frame / stage.GetTimeCodesPerSecond(),
-            "x": x, "v": v, "pressure": pr, "blocks": blocks, "contour": contour, "frames": (first, last), "stage": str(path)}
+            "x": x, "v": v, "pressure": pr, "blocks": blocks, "contour": contour, "frames": (first, last), "stage": str(path),
+            "boxes": _boxes(info, dim)}
+
+
+def _boxes(info: dict, dim: int) -> list:
+    """(lo (3,), hi (3,), 'tank' | 'obstacle') of the scene's box tank and box obstacles: from the stage's layer data
+    (``boxes``, JSON written by rockwave/output/recorders.py), else from the scene file it names (older stages)."""
+    def pad(p):
+        return np.asarray(list(p) + [0.0] * (3 - len(p)), np.float64)
+
+    try:
+        boxes = json.loads(info["boxes"]) if isinstance(info.get("boxes"), str) else None
+    except ValueError:
+        boxes = None
+    if boxes is None and info.get("scene") and Path(str(info["scene"])).is_file():
+        try:
+            boxes = scene_boxes(load_scene(info["scene"]))
+        except (SceneError, OSError, ValueError):
+            boxes = None
+    return [(pad(lo), pad(hi), what) for lo, hi, what in boxes or []]
 
 
 _AXES = {"x": 0, "y": 1, "z": 2}
+PRESSURE_PERCENTILES = (2.0, 98.0)  # the colour scale of --color pressure
+
+
+def color_limits(c: np.ndarray, color: str) -> dict:
+    """{vmin, vmax} of the colour scale: for pressure the PRESSURE_PERCENTILES (a few hot particles, e.g. at a wall
+    impact, must not darken all the others); {} (the data's range) otherwise."""
+    if color != "pressure" or len(c) == 0:
+        return {}
+    lo, hi = np.percentile(c, PRESSURE_PERCENTILES)
+    return {"vmin": float(lo), "vmax": float(hi)} if hi > lo else {}
+
+
+def default_name(frame: int, dim: int, color: str, axis: str = "y", slice_at: float | None = None) -> str:
+    """preview_<frame>_<colour>[_<axis>[_at<pos>]].png: different views of one frame get different files."""
+    view = "" if dim == 2 else f"_{axis}" + ("" if slice_at is None else f"_at{slice_at:g}")
+    return f"preview_{frame:05d}_{color}{view}.png"
 
 
 def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: str = "speed", axis: str = "y",
@@ -137,7 +214,7 @@ def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: 
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Polygon
+    from matplotlib.patches import Polygon, Rectangle
 
     if color not in ("speed", "pressure"):
         raise PreviewError(f"--color {color!r}: expected speed or pressure")
@@ -168,7 +245,9 @@ def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: 
         order = np.argsort(-x[:, depth_axis])  # looking from the low side: far (high) first, near last
         x, c = x[order], c[order]
     pts2 = x[:, [a, b]]
-    allp = [pts2] + [bv[:, [a, b]] for bv in blocks]
+    boxes = [(lo_b, hi_b, what) for lo_b, hi_b, what in d.get("boxes", []) if depth_axis is None or slice_at is None
+             or lo_b[depth_axis] - h <= slice_at <= hi_b[depth_axis] + h]  # (a slice shows the obstacles it cuts)
+    allp = [pts2] + [bv[:, [a, b]] for bv in blocks] + [np.array([[lo_b[a], lo_b[b]], [hi_b[a], hi_b[b]]]) for lo_b, hi_b, _ in boxes]
     if d["contour"] is not None and len(d["contour"]):
         allp.append(d["contour"].reshape(-1, 3)[:, [a, b]])
     allp = np.concatenate([p for p in allp if len(p)]) if any(len(p) for p in allp) else np.zeros((1, 2))
@@ -184,9 +263,15 @@ def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: 
     bbox = ax.get_window_extent()
     pts_per_m = (bbox.width * 72.0 / fig.dpi) / span[0]
     size = max((h * pts_per_m) ** 2, 0.5)
-    sc = ax.scatter(pts2[:, 0], pts2[:, 1], c=c, s=size, cmap="viridis", linewidths=0, marker="o")
+    for lo_b, hi_b, what in boxes:  # the tank's walls and the obstacles (the scene's boxes)
+        ax.add_patch(Rectangle((lo_b[a], lo_b[b]), hi_b[a] - lo_b[a], hi_b[b] - lo_b[b], fill=what == "obstacle",
+                               facecolor=(0.6, 0.6, 0.6, 0.5), edgecolor="0.25", linewidth=1.5 if what == "tank" else 1.0,
+                               zorder=0 if what == "tank" else 3))
+    limits = color_limits(c, color)
+    sc = ax.scatter(pts2[:, 0], pts2[:, 1], c=c, s=size, cmap="viridis", linewidths=0, marker="o", **limits)
     if len(c):
-        fig.colorbar(sc, ax=ax, label=clabel, shrink=0.8)
+        fig.colorbar(sc, ax=ax, label=clabel + (f" ({PRESSURE_PERCENTILES[0]:g}-{PRESSURE_PERCENTILES[1]:g} percentiles)"
+                                                if limits else ""), shrink=0.8, extend="both" if limits else "neither")
     for bv in blocks:
         hull = _hull(bv[:, [a, b]])
         if len(hull) >= 3:
@@ -199,7 +284,7 @@ def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: 
     ax.set_xlabel(f"{names[a]} (m)")
     ax.set_ylabel(f"{names[b]} (m)")
     ax.set_title(f"frame {d['frame']}, t = {d['time_s']:.4g} s, {len(pts2)} particles, {len(blocks)} blocks ({view})", fontsize=9)
-    out = Path(out) if out else Path(run_dir) / f"preview_{d['frame']:05d}.png"
+    out = Path(out) if out else Path(run_dir) / default_name(d["frame"], dim, color, axis, slice_at)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.stem}.tmp.png")
     fig.savefig(tmp, dpi=dpi)

@@ -88,12 +88,44 @@ class _Watch:
                 now - self.first[0] > 0.5 or sim.steps - self.first[1] >= 10 * COST_STEPS):
             per_step = (now - self.first[0]) / (sim.steps - self.first[1])
             preflight.check_run_length(sim.scene, sim.device, duration=max(self.t_end - sim.time, 0.0),
-                                       seconds_per_step=per_step, dt=sim.dt, force=self.force)
+                                       seconds_per_step=per_step, dt=sim.dt, force=self.force, setup=False)
             self.cost_checked = True
         if now - self.last >= WATCH_INTERVAL_S:
             self.last = now
             self.health()
             self.bar.update(sim.time - self.t0, sim.steps, force=True, note=self.note())
+
+
+def _setup_progress(what: str, unit: str, every_s: float = WATCH_INTERVAL_S):
+    """progress(done, total) for a long set-up step: a line on stderr every ``every_s`` of wall time and at the end,
+    once it has lasted that long (a quick set-up prints nothing)."""
+    t0 = time.perf_counter()
+    last = [t0]
+
+    def progress(done: int, total: int) -> None:
+        now = time.perf_counter()
+        if now - last[0] >= every_s or (done >= total and now - t0 >= every_s):
+            last[0] = now
+            print(f"{what}: {done:,} / {total:,} {unit} ({now - t0:.0f} s)", file=sys.stderr, flush=True)
+
+    return progress
+
+
+def _finished_summary(out: Path, sim, meta: dict, duration: float) -> dict | None:
+    """``--resume`` of a run that already reached its end: the run.json it wrote (unchanged: nothing is run again,
+    no output is rewritten), after a line saying so; None when there is more to simulate (a longer duration) or no
+    readable summary of a finished run."""
+    if meta.get("reason") != "end" or meta["t0"] + duration - sim.time > 1e-9:
+        return None
+    try:
+        summary = json.loads(_summary_path(out).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(summary, dict) or summary.get("interrupted") or "steps" not in summary:
+        return None
+    print(f"nothing to resume: the run in {out} already reached its end (t = {sim.time:.6g} s); {_summary_path(out)} is "
+          f"unchanged (a longer --duration or simulation.duration_s continues it)", file=sys.stderr)
+    return summary
 
 
 def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress: bool = True,
@@ -123,8 +155,21 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         raise SimulationError(f"output folder {out} is not writable: {e}") from None
     duration = scene.simulation.duration_s if duration is None else duration
     fps = scene.output.frame_rate_hz
+    hazard = None
+    if scene.hazard is not None:  # [hazard]: statistics reduced on the device after each step (rockwave/output/hazard.py)
+        # made from the scene's initial state (its still levels and slide starts), then restored with the rest: a
+        # resumed run's summary is the whole run's
+        hazard = HazardMonitor(sim)
+        ckpt.register(sim, "hazard", hazard)
     if resumed is not None:
         ckpt.restore(sim, *resumed)
+        meta = resumed[1]
+        print(f"resuming {out} from frame {meta['frame']} (t = {sim.time:.6g} s, step {sim.steps})", file=sys.stderr)
+        if hazard is not None and "hazard" not in meta["groups"]:  # a checkpoint from before format 5
+            hazard = HazardMonitor(sim)
+            ckpt.register(sim, "hazard", hazard)
+            print(f"warning: the checkpoint holds no hazard statistics (written by an older rockwave): {HAZARD_FILE} "
+                  f"covers t >= {sim.time:.6g} s only", file=sys.stderr)
     else:
         ckpt.clear(out)
     n_frames = int(math.floor(duration * fps + 1e-9))
@@ -148,7 +193,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     surface = None
     if nf and (o.usd or o.get("vtk")):  # the surface goes nowhere else
         surface = surf.extractor_for(scene, sim.fluid, sim.device)
-    usd = rec.UsdRecorder(sim, out / o.usd, surface) if o.usd else None
+    usd = rec.UsdRecorder(sim, out / o.usd, surface, progress=_setup_progress("USD set-up", "block prims") if progress else None) \
+        if o.usd else None
     gauges = rec.gauge_csv(out / o.gauges_csv, sim.gauge_names) if sim.gauge_names and o.gauges_csv else None
     blocks = rec.block_csv(out / o.blocks_csv, sim.blocks.names) if sim.blocks is not None and o.blocks_csv else None
     vtk = rec.VtkRecorder(sim, out / o.vtk) if o.get("vtk") else None
@@ -161,9 +207,11 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     t0 = sim.time
     interrupted = False
     first, steps0, block_steps0 = 0, sim.steps, sim.clock.block_steps
+    wall_before = 0.0  # wall time of the run's earlier processes (a resumed run)
     if resumed is not None:  # outputs continue where the checkpoint was taken
         meta = resumed[1]
         t0, first, escaped = meta["t0"], meta["frame"] + 1, meta["escaped"]
+        wall_before = float(meta.get("wall_s") or 0.0)
         try:
             if usd is not None:
                 usd.restore(meta["usd"])
@@ -175,12 +223,19 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
             raise ckpt.CheckpointError(f"cannot resume in {out}: {e}") from None
         if vtk is not None:
             vtk.restore(meta.get("vtk"))
+        done = _finished_summary(out, sim, meta, duration)  # (the outputs checked first: they end where it ended)
+        if done is not None:
+            for r in recorders:
+                r.close()
+            bar.close()
+            return done
     else:
         preflight.check_disk(sim, out, n_frames)
 
     interval = o.get("checkpoint_interval_s", 600.0) if checkpoint_interval_s is None else checkpoint_interval_s
     checkpointer = ckpt.RunCheckpointer(sim, out, interval, t0, lambda: {
-        "usd": usd, "escaped": escaped, "vtk": vtk, "csv": {"gauges": gauges, "blocks": blocks}})
+        "usd": usd, "escaped": escaped, "vtk": vtk, "csv": {"gauges": gauges, "blocks": blocks},
+        "wall_s": wall_before + time.perf_counter() - wall0})
 
     def check_health(f: rec.Frame) -> None:
         nonlocal escaped
@@ -197,10 +252,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     watch = _Watch(sim, bar, t0 + duration, t0, force or bool(getattr(sim, "run_length_forced", False)),
                    lambda: check_health(rec.Frame(sim, -1)))
 
-    hazard = None
-    if scene.hazard is not None:  # [hazard]: statistics reduced on the device after each step (rockwave/output/hazard.py)
-
-        hazard = HazardMonitor(sim)
+    if hazard is not None:
         watch = hazard.wrap(watch)
 
     stop = []
@@ -280,7 +332,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         "block_substeps": sim.clock.substeps if sim.clock.block_substep is not None else None,
         "block_steps": sim.clock.block_steps if sim.blocks is not None else None,
         "block_start": dict(sim.block_solver.start_report) if sim.block_solver is not None else None,
-        "wall_s": wall,
+        "wall_s": wall_before + wall,  # the whole run's (a resumed run: every process's)
+        "wall_s_this_process": wall,
         "particle_steps_per_s": nf * (sim.steps - steps0) / wall if wall > 0 and nf else None,
         "block_steps_per_s": (sim.blocks.num_blocks * (sim.clock.block_steps - block_steps0) / wall  # sub-steps counted
                               if wall > 0 and sim.blocks is not None else None),

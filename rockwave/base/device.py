@@ -20,6 +20,32 @@ class DeviceError(ValueError):
     """A device name that is malformed or names a device this machine does not have."""
 
 
+class WarpCacheError(RuntimeError):
+    """Warp's kernel cache folder cannot be created or written (Warp makes it in ``wp.init()``; WARP_CACHE_PATH
+    chooses it). The message names the folder and how to choose another."""
+
+
+def _cache_error(folder, why: str) -> WarpCacheError:
+    env = os.environ.get("WARP_CACHE_PATH")
+    how = (f"WARP_CACHE_PATH={env!r} chose it: set WARP_CACHE_PATH to a writable folder" if env else
+           "set WARP_CACHE_PATH to a writable folder, e.g. WARP_CACHE_PATH=/tmp/warp-cache python -m rockwave ...")
+    return WarpCacheError(f"Warp's kernel cache folder {folder} {why}; {how}")
+
+
+def _wp_init(wp) -> None:
+    """wp.init(), with a kernel cache folder that cannot be made or written reported as a WarpCacheError."""
+    try:
+        wp.init()
+    except OSError as e:
+        folder = getattr(wp.config, "kernel_cache_dir", None) or os.environ.get("WARP_CACHE_PATH")
+        if folder is None:
+            raise
+        raise _cache_error(folder, f"cannot be created ({e.strerror or e}{': ' + str(e.filename) if e.filename else ''})") from None
+    folder = getattr(wp.config, "kernel_cache_dir", None)
+    if folder and os.path.isdir(folder) and not os.access(folder, os.W_OK | os.X_OK):
+        raise _cache_error(folder, "is not writable (Warp writes the compiled kernels there)")
+
+
 def device_syntax_error(name) -> str | None:
     """Why ``name`` is not a device name (None when it is one). Needs no Warp."""
     if not isinstance(name, str):
@@ -75,7 +101,7 @@ def init_warp(quiet: bool | None = None) -> None:
     if quiet is None:
         quiet = _warp_quiet(wp)
     if not quiet:
-        wp.init()
+        _wp_init(wp)
         return
     try:
         for s in (sys.stdout, sys.stderr, sys.__stderr__):
@@ -83,13 +109,15 @@ def init_warp(quiet: bool | None = None) -> None:
                 s.flush()
         saved = os.dup(2)
     except (OSError, ValueError, AttributeError):  # no usable descriptor 2 (an embedding host): plain init
-        wp.init()
+        _wp_init(wp)
         return
     failed = False
     with tempfile.TemporaryFile() as tmp:
         os.dup2(tmp.fileno(), 2)
         try:
-            wp.init()
+            _wp_init(wp)
+        except WarpCacheError:  # (said in the error)
+            raise
         except BaseException:
             failed = True
             raise
@@ -108,14 +136,17 @@ def init_warp(quiet: bool | None = None) -> None:
                 sys.stderr.flush()
 
 
-def quiet_warp() -> None:
+def quiet_warp(init: bool = True) -> None:
     """No Warp banner, module-load lines or driver notes (set before wp.init(); Warp >= 1.19 reads
-    config.log_level, older versions config.quiet), then Warp's init with its native library's stderr held
+    config.log_level, older versions config.quiet), then (``init``) Warp's init with its native library's stderr held
     back (rockwave.base.device.init_warp: the "no CUDA driver" note that C code prints on a machine without a GPU;
-    anything else it prints, and everything when the init fails, is shown)."""
+    anything else it prints, and everything when the init fails, is shown). ``init=False``: the settings only (a
+    command that needs no kernels never initialises Warp, so never makes its kernel cache folder; resolve_device
+    initialises it quietly when a device is first needed)."""
     import warp as wp
 
     wp.config.quiet = True
     if hasattr(wp, "LOG_ERROR"):
         wp.config.log_level = wp.LOG_ERROR
-    init_warp(quiet=True)
+    if init:
+        init_warp(quiet=True)

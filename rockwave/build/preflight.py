@@ -21,6 +21,7 @@ import shutil
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -34,10 +35,19 @@ from rockwave.dda import geometry
 from rockwave.dda.blocks import BlockModel, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
 from rockwave.dda.geometry import GeometryError
 from rockwave.scene.format import Node, Scene, SceneError, gauge_domain_errors
-from rockwave.sph.fluid import SOUND_SPEED_FACTOR, _grid_dims, expected_flow_speed, fluid_step_limits, sound_speed_from_eos
+from rockwave.sph.fluid import (
+    SOUND_SPEED_FACTOR,
+    FluidOptions,
+    FluidSolver,
+    _grid_dims,
+    expected_flow_speed,
+    fluid_step_limits,
+    sound_speed_from_eos,
+)
 
 MM_SUSPECT_EXTENT_M = 100.0
 MEMORY_FRACTION = 0.9
+WARP_MAX_ARRAY = 2**31 - 1  # elements of one Warp array (32-bit shapes)
 
 # device bytes per particle: x, v (vec3 each, all particles), mass (all); rho, pressure, drho_dt,
 # accel, xsph_dv (fluid); hash grid ids/cells + sort buffers (~16 B); the frame snapshot for the
@@ -166,6 +176,7 @@ class Estimate:
     blocks: int
     device_bytes: int
     host_bytes: int
+    neighbour_entries: int = 0  # the fluid's neighbour list: n_fluid x its capacity per particle (one Warp array)
 
     def describe(self) -> str:
         parts = []
@@ -232,7 +243,11 @@ def estimate(scene: Scene, meshes: dict | None = None) -> Estimate:
 
     nblocks += sum(estimate_block_count(r, dim) for r in scene.rock_mass)
     n_all = nf + nb
+    entries = 0.0
+    if scene.fluid is not None and nf:
+        entries = nf * neighbour_capacity(scene)
     dev = n_all * (DEV_PER_PARTICLE + SNAPSHOT_PER_PARTICLE) + nf * (DEV_PER_FLUID + SNAPSHOT_PER_FLUID) + 8 * cells
+    dev += 4 * entries + 16 * nf  # the neighbour lists (indices, counts, list-build positions)
     surf = scene.output.get("surface") if scene.fluid is not None else None
     if surf and surf.get("enabled") and lo is not None:
         # rockwave/output/surface.py default_cell (not imported: it loads Warp)
@@ -242,7 +257,17 @@ def estimate(scene: Scene, meshes: dict | None = None) -> Estimate:
     if nblocks:
         dev += nblocks * (DEV_PER_BLOCK + SNAPSHOT_PER_BLOCK)
     host = n_all * HOST_PER_PARTICLE + nf * HOST_PER_FLUID + nblocks * 2000
-    return Estimate(int(nf), int(nb), nblocks, int(dev), int(host))
+    return Estimate(int(nf), int(nb), nblocks, int(dev), int(host), int(entries))
+
+
+def neighbour_capacity(scene: Scene) -> int:
+    """Neighbour-list entries per fluid particle (rockwave/sph/fluid.py FluidSolver.list_capacity at the default skin)."""
+    fl = scene.fluid
+    t = scene.tank
+    ratio = float(t.boundary_spacing_ratio) if t is not None and t.get("boundary_spacing_ratio") else 1.0
+    model = SimpleNamespace(support_radius=fl.support_radius_ratio * fl.spacing_m, spacing=fl.spacing_m,
+                            boundary_spacing=ratio * fl.spacing_m, dim=scene.dim)
+    return FluidSolver.list_capacity(model, FluidOptions().neighbour_skin)
 
 
 def available_bytes(device: str) -> tuple[int | None, int | None]:
@@ -283,6 +308,7 @@ def check_memory(scene: Scene, device: str, meshes: dict | None = None) -> Estim
         if free is not None and need > MEMORY_FRACTION * free:
             raise SceneError(scene.path, [(key, f"the scene needs about {_fmt_bytes(need)} of memory on the CPU "
                                                 f"({est.describe()}), but only {_fmt_bytes(free)} is available{hint}")])
+        _check_array_limits(scene, est)
         return est
     if dev_free is not None and est.device_bytes > MEMORY_FRACTION * dev_free:
         raise SceneError(scene.path, [(key, f"the scene needs about {_fmt_bytes(est.device_bytes)} on {device} "
@@ -290,7 +316,20 @@ def check_memory(scene: Scene, device: str, meshes: dict | None = None) -> Estim
     if host_free is not None and est.host_bytes > MEMORY_FRACTION * host_free:
         raise SceneError(scene.path, [(key, f"the scene needs about {_fmt_bytes(est.host_bytes)} of host memory to set up "
                                             f"({est.describe()}), but only {_fmt_bytes(host_free)} is available{hint}")])
+    _check_array_limits(scene, est)
     return est
+
+
+def _check_array_limits(scene: Scene, est: Estimate) -> None:
+    """The fluid's neighbour list must fit one Warp array (32-bit shapes), even where the memory would hold it."""
+    if est.neighbour_entries >= WARP_MAX_ARRAY:  # one Warp array holds < 2^31 elements, however much memory there is
+        cap = est.neighbour_entries // max(est.fluid_particles, 1)
+        most = WARP_MAX_ARRAY // cap
+        raise SceneError(scene.path, [("fluid.spacing_m", f"{est.fluid_particles:.3g} fluid particles need a neighbour list of "
+                                                          f"{est.neighbour_entries:.3g} entries ({cap} per particle), more than "
+                                                          f"one Warp array holds (2^31 - 1); one device takes at most about "
+                                                          f"{most:.3g} particles at this support: a larger fluid.spacing_m (the "
+                                                          f"count grows as spacing^-{scene.dim})")])
 
 
 def check_scene(scene: Scene, device: str, meshes: dict | None = None) -> Estimate:
@@ -479,6 +518,14 @@ NOMINAL_PARTICLE_STEPS_PER_S = {"cpu": 2.0e6, "cuda": 1.0e9}
 NOMINAL_BLOCK_STEPS_PER_S = {"cpu": 2.0e5, "cuda": 1.0e8}
 STEP_SECONDS_FLOOR = {"cpu": 2.0e-5, "cuda": 1.0e-4}  # launch overhead of one step, whatever its size
 CONTACT_POINTS_FOR_DT = 8  # as BlockSolver(contact_points_for_dt=8) in rockwave/dda/blocks.py
+# USD output of the blocks (rockwave/output/recorders.py UsdRecorder; measured on a CPU core, 20k boxes): each block a
+# mesh prim below INSTANCER_MIN_BLOCKS blocks (set-up ~1e-4 s a prim, a frame ~2e-4 s a prim with its share of the chunk
+# files), from it on the instances of one PointInstancer (two arrays a frame, ~4e-7 s a block with the chunk files)
+INSTANCER_MIN_BLOCKS = 10_000
+USD_SETUP_S_PER_BLOCK_PRIM = 1.0e-4
+USD_FRAME_S_PER_BLOCK_PRIM = 2.0e-4
+USD_FRAME_S_PER_INSTANCE = 4.0e-7
+LONG_RUN_MIN_DT_S = 1.0e-6  # too many steps of at least this: the duration is blamed, not the step's key
 MIN_MACH_MARGIN = 1.0  # c0 below this x the expected flow speed: the water cannot stay weakly compressible
 
 
@@ -507,10 +554,25 @@ class RunLength:
     flow_speed: float = 0.0
     sound_speed: float | None = None
     flow_key: str = ""
+    output_s: float = 0.0  # wall time of the USD output of the blocks (set-up and frames; usd_output_seconds), in wall_s
+    flow_what: str = ""  # what flow_speed is made of: "sqrt(2 g H) = ... (+ the initial speed ... of fluid.regions[i])"
 
     def describe(self) -> str:
-        return (f"about {self.steps:.3g} steps of {self.dt:.3g} s for {self.duration:g} s "
-                f"(~{_fmt_wall(self.wall_s)} at {self.seconds_per_step:.3g} s/step{'' if self.measured else ' (nominal)'})")
+        cost = f"{self.seconds_per_step:.3g} s/step{' measured here' if self.measured else ' (nominal: a lower bound)'}"
+        if self.output_s >= 0.05 * self.wall_s and self.output_s > 1.0:
+            cost += f", {_fmt_wall(self.output_s)} of it the USD output of the blocks"
+        return f"about {self.steps:.3g} steps of {self.dt:.3g} s for {self.duration:g} s (~{_fmt_wall(self.wall_s)} at {cost})"
+
+
+def usd_output_seconds(scene: Scene, blocks: int, duration: float, setup: bool = True) -> float:
+    """Wall time of the blocks' USD output (rockwave/output/recorders.py): the set-up of their prims (``setup``) and
+    the frames of ``duration`` s; 0 without USD output."""
+    if not scene.output.usd or not blocks:
+        return 0.0
+    frames = math.floor(duration * scene.output.frame_rate_hz + 1e-9) + 1
+    if blocks >= INSTANCER_MIN_BLOCKS:
+        return frames * blocks * USD_FRAME_S_PER_INSTANCE
+    return blocks * ((USD_SETUP_S_PER_BLOCK_PRIM if setup else 0.0) + frames * USD_FRAME_S_PER_BLOCK_PRIM)
 
 
 def _fmt_wall(s: float) -> str:
@@ -527,24 +589,28 @@ def _fmt_wall(s: float) -> str:
     return f"{s / (365 * 86400):.3g} years"
 
 
-def _water_height_and_speed(scene: Scene) -> tuple[float, float]:
+def _water_height_and_speed(scene: Scene) -> tuple[float, float, int | None]:
     """Height of the water column above the lowest floor (box regions and a box tank; mesh regions
-    by the mesh file's bounds are not read here: 0) and the largest initial speed."""
+    by the mesh file's bounds are not read here: 0), the largest initial speed and the index of the
+    region that has it (None: all at rest)."""
     fl, up = scene.fluid, scene.dim - 1
-    lo, hi, v0 = math.inf, -math.inf, 0.0
-    for r in fl.regions:
+    lo, hi, v0, fast = math.inf, -math.inf, 0.0, None
+    for i, r in enumerate(fl.regions):
         if r.get("box_min_m") is not None and r.get("box_max_m") is not None:
             lo, hi = min(lo, r["box_min_m"][up]), max(hi, r["box_max_m"][up])
         if r.get("velocity_m_s") is not None:
-            v0 = max(v0, math.sqrt(sum(c * c for c in r["velocity_m_s"])))
+            speed = math.sqrt(sum(c * c for c in r["velocity_m_s"]))
+            if speed > v0:
+                v0, fast = speed, i
     t = scene.tank
     if t is not None and t.get("box_min_m") is not None and hi > -math.inf:
         lo = min(lo, t.box_min_m[up])
-    return (hi - lo if hi > lo else 0.0), v0
+    return (hi - lo if hi > lo else 0.0), v0, fast
 
 
-def _fluid_step(scene: Scene) -> tuple[float, str, str, float, float, str] | None:
-    """(dt, key, why, c0, flow speed, flow key) of the fluid's step limits at the start."""
+def _fluid_step(scene: Scene) -> tuple[float, str, str, float, float, str, str] | None:
+    """(dt, key, why, c0, flow speed, flow key, what the flow speed is made of) of the fluid's step limits at the
+    start."""
 
     fl = scene.fluid
     if fl is None:
@@ -554,20 +620,25 @@ def _fluid_step(scene: Scene) -> tuple[float, str, str, float, float, str] | Non
     c_key = "fluid.eos.speed_of_sound_m_s" if fp.eos_speed_of_sound_m_s is not None else (
         "fluid.eos.b_pa" if fp.eos_type == "tait" else "fluid.eos.k_m2_s2")
     g = gravity_norm(scene)
-    H, v0 = _water_height_and_speed(scene)
+    H, v0, fast = _water_height_and_speed(scene)
+    fall = math.sqrt(2.0 * g * H)
     u = expected_flow_speed(g, H, v0)
+    flow_what = f"sqrt(2 g H) = {fall:.3g} m/s (H = {H:.3g} m)"
+    if fast is not None:
+        flow_what += f" + the initial speed {v0:.3g} m/s of fluid.regions[{fast}]"
     h = 0.5 * fp.support_radius_m
     nu = fp.laplacian_viscosity_pa_s / fp.rest_density_kg_m3
     # the solver's rule at the start's speed u and acceleration |g| (rockwave/sph/fluid.py fluid_step_limits)
     limits = fluid_step_limits(fp.support_radius_m, c0, fp.artificial_alpha, nu, scene.simulation.cfl_number, u, g)
-    flow_key = "gravity.acceleration_m_s2" if g > 100.0 else ("fluid.regions" if v0 > math.sqrt(2.0 * g * H) else c_key)
+    flow_key = "gravity.acceleration_m_s2" if g > 100.0 else (
+        f"fluid.regions[{fast}].velocity_m_s" if fast is not None and v0 > fall else c_key)
     why = {"courant": (c_key if c0 >= 100.0 * max(u, 1.0) else (flow_key if u > c0 else "fluid.spacing_m"),
                        f"C h/(c0 + u_max) with h = {h:.3g} m, c0 = {c0:.3g} m/s, u_max = {u:.3g} m/s"),
            "force": ("gravity.acceleration_m_s2", f"0.25 sqrt(h/|g|) with |g| = {g:.3g} m/s^2"),
            "viscous": ("fluid.viscosity.laplacian_pa_s", f"0.125 h^2/nu with nu = {nu:.3g} m^2/s")}
     cands = [(dt, *why[name]) for name, dt in limits.items()]
     dt, key, why = min(cands)
-    return dt, key, why, c0, u, flow_key
+    return dt, key, why, c0, u, flow_key, flow_what
 
 
 def _block_entries(scene: Scene):
@@ -638,7 +709,7 @@ def _block_step(scene: Scene) -> tuple[float, str, str] | None:
 
 
 def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | None = None,
-                        seconds_per_step: float | None = None, dt: float | None = None) -> RunLength:
+                        seconds_per_step: float | None = None, dt: float | None = None, setup: bool = True) -> RunLength:
     """Steps and wall time of a run, from the scene's stability limits alone (no allocation).
 
     The step is the smallest of: the fluid's CFL step C h/(c0 + u_max) (u_max = sqrt(2 g H) for the
@@ -646,16 +717,17 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
     0.125 h^2/nu; the blocks' critical DDA step times block_dt_safety; ``simulation.dt_s`` when the step
     is fixed; or ``dt`` when given (the step a run actually uses). ``duration`` defaults to
     simulation.duration_s. ``seconds_per_step``: the measured cost of one step (from the first steps of
-    a run); without it a nominal, optimistic cost for the device from the particle and block counts."""
+    a run); without it a nominal, optimistic cost for the device from the particle and block counts (a lower bound). The wall
+    time includes the blocks' USD output (usd_output_seconds; its set-up when ``setup``)."""
     sim = scene.simulation
     duration = sim.duration_s if duration is None else float(duration)
     cands = []
     fs = _fluid_step(scene)
     c0 = u = None
-    flow_key = ""
+    flow_key = flow_what = ""
     if fs is not None:
         cands.append(fs[:3])
-        c0, u, flow_key = fs[3], fs[4], fs[5]
+        c0, u, flow_key, flow_what = fs[3], fs[4], fs[5], fs[6]
     bs = _block_step(scene) if scene.blocks or scene.rock_mass else None
     if bs is not None and (fs is None or sim.get("block_stepping") == "single"):
         cands.append(bs)  # with water, multi-rate blocks sub-step inside the fluid's step (rockwave/sim/clock.py)
@@ -683,10 +755,11 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
         measured = False
     else:
         sps, measured = float(seconds_per_step), True
-    wall = steps * sps
+    output_s = usd_output_seconds(scene, est.blocks, duration, setup)
+    wall = steps * sps + output_s
     if particles >= 1e6 and particles / NOMINAL_PARTICLE_STEPS_PER_S[kind] >= est.blocks / NOMINAL_BLOCK_STEPS_PER_S[kind]:
         wall_key = "fluid.spacing_m"
-    elif est.blocks >= 1e5:
+    elif est.blocks >= 1e5 or output_s > 0.5 * wall:
         wall_key = "blocks"
     elif step >= 1e-4:
         wall_key = "simulation.duration_s"
@@ -694,12 +767,12 @@ def estimate_run_length(scene: Scene, device: str = "cpu", duration: float | Non
         wall_key = key
     return RunLength(steps=steps, dt=step, dt_key=key, dt_why=why, duration=duration, particles=particles, blocks=est.blocks,
                      seconds_per_step=sps, measured=measured, wall_s=wall, wall_key=wall_key,
-                     flow_speed=u or 0.0, sound_speed=c0, flow_key=flow_key)
+                     flow_speed=u or 0.0, sound_speed=c0, flow_key=flow_key, flow_what=flow_what, output_s=output_s)
 
 
 def check_run_length(scene: Scene, device: str = "cpu", duration: float | None = None, seconds_per_step: float | None = None,
                      dt: float | None = None, force: bool = False, max_steps: float | None = None,
-                     max_wall_s: float | None = None) -> RunLength:
+                     max_wall_s: float | None = None, setup: bool = True) -> RunLength:
     """Refuse, before stepping, a run that cannot work or would not end: raises SceneError naming the
     key to change (and saying that ``--yes`` / ``force=True`` runs it anyway) when
 
@@ -712,7 +785,7 @@ def check_run_length(scene: Scene, device: str = "cpu", duration: float | None =
       the ``dt`` in use) or a nominal cost otherwise.
 
     Returns the :class:`RunLength` (also when forced)."""
-    rl = estimate_run_length(scene, device, duration, seconds_per_step, dt)
+    rl = estimate_run_length(scene, device, duration, seconds_per_step, dt, setup)
     if force:
         return rl
     max_steps = MAX_STEPS if max_steps is None else max_steps
@@ -720,13 +793,22 @@ def check_run_length(scene: Scene, device: str = "cpu", duration: float | None =
     tail = "; or pass --yes (Python: force=True) to run it anyway"
     if rl.sound_speed is not None and rl.flow_speed > 0 and rl.sound_speed < MIN_MACH_MARGIN * rl.flow_speed:
         target = SOUND_SPEED_FACTOR * rl.flow_speed
-        raise SceneError(scene.path, [(rl.flow_key if rl.flow_key.startswith("gravity") else "fluid.eos.speed_of_sound_m_s",
-                                       f"the speed of sound c0 = {rl.sound_speed:.3g} m/s is below the expected flow speed "
-                                       f"u_max = sqrt(2 g H) = {rl.flow_speed:.3g} m/s: the water cannot stay weakly "
-                                       f"compressible (it leaks through walls, the step collapses or the run blows up); "
-                                       f"weakly compressible SPH wants c0 >= 10 u_max = {target:.3g} m/s "
-                                       f"(or check gravity.acceleration_m_s2){tail}")])
+        region = rl.flow_key.startswith("fluid.regions")
+        key = rl.flow_key if rl.flow_key.startswith(("gravity", "fluid.regions")) else "fluid.eos.speed_of_sound_m_s"
+        check = (f"check {rl.flow_key} (a unit mistake?) or raise fluid.eos.speed_of_sound_m_s" if region else
+                 "or check gravity.acceleration_m_s2")
+        raise SceneError(scene.path, [(key, f"the speed of sound c0 = {rl.sound_speed:.3g} m/s is below the expected flow speed "
+                                            f"u_max = {rl.flow_what or 'sqrt(2 g H)'} = {rl.flow_speed:.3g} m/s: the water cannot "
+                                            f"stay weakly compressible (it leaks through walls, the step collapses or the run "
+                                            f"blows up); weakly compressible SPH wants c0 >= 10 u_max = {target:.3g} m/s "
+                                            f"({check}){tail}")])
     if not rl.steps <= max_steps:
+        if rl.dt >= LONG_RUN_MIN_DT_S:  # a step of physical size: the duration is what is long
+            what = "simulation.duration_s (or --duration)"
+            raise SceneError(scene.path, [("simulation.duration_s", f"the run needs {rl.describe()}, more than {max_steps:.3g} "
+                                                                    f"steps: a duration of {rl.duration:.3g} s is long for the "
+                                                                    f"scene's step (set by {rl.dt_why}); check {what} (a unit "
+                                                                    f"mistake?){tail}")])
         raise SceneError(scene.path, [(rl.dt_key, f"the run needs {rl.describe()}, more than {max_steps:.3g} steps; the step is "
                                                   f"set by {rl.dt_why}: check {rl.dt_key} (a unit mistake?){tail}")])
     if not rl.wall_s <= max_wall_s:

@@ -23,8 +23,10 @@ reduced on the device while the run goes, never from stored frames.
 
 Gauges, run-up columns and crossings are sampled every ``hazard.sample_interval_s`` of simulated time (at the
 first step end at or after each sample time: the recorded time is that step's). The statistics stay on the
-device; ``result()`` reads them to the host once. A run resumed from a checkpoint starts its statistics at
-the resumed time (``t_start_s`` in the result).
+device; ``result()`` reads them to the host once. The monitor is a checkpoint provider (group ``hazard``,
+rockwave/sim/checkpoint.py: its statistics, still levels, sample count and rhythm), so a run resumed from a
+checkpoint reports the whole run's summary, the same as without the interruption (a checkpoint written before
+checkpoint format 5 has no such group: the summary then starts at the resumed time, ``t_start_s`` in the result).
 
 Python API::
 
@@ -45,6 +47,7 @@ import warp as wp
 from rockwave.base.maths import pad3
 from rockwave.kernels.sim import readers as gauge_k
 from rockwave.scene.format import DEFAULT_MAX_COLUMNS, DEFAULT_SAMPLE_INTERVAL_S, SceneError
+from rockwave.sim.checkpoint import CheckpointError
 from rockwave.sim.readers import Gauges
 
 
@@ -226,6 +229,43 @@ class HazardMonitor:
                       outputs=[self.cross_stats], device=d)
         self.samples += 1
         self.last_sample_t = t
+
+    # ------------------------------------------------------------------------------------------------
+    # checkpoint provider (rockwave/sim/checkpoint.py register): the statistics and the sampling rhythm
+    def _arrays(self) -> dict:
+        out = {"wave_stats": self.wave_stats, "cross_stats": self.cross_stats}
+        out.update({f"col_stats_{i}": a for i, a in enumerate(self.col_stats)})
+        if self.slide_index:
+            out["slide_stats"] = self.slide_stats
+        return out
+
+    def capture(self):
+        meta = {"t_start": self.t_start, "next_t": self.next_t, "last_sample_t": self.last_sample_t,
+                "samples": self.samples, "still": [float(x) for x in self.still],
+                "runup_still": [float(x) for x in self.runup_still]}
+        host = {"slide_start": np.array(self.slide_start)} if self.slide_index else {}
+        return {k: wp.clone(a) for k, a in self._arrays().items()}, host, meta
+
+    def pack(self, captured):
+        arrays, host, meta = captured
+        out = {k: a.numpy() for k, a in arrays.items()}
+        out.update(host)
+        return out, _clean(dict(meta))
+
+    def restore(self, arrays: dict, meta: dict) -> None:
+        mine = self._arrays()
+        if set(arrays) - {"slide_start"} != set(mine):
+            raise CheckpointError(f"the checkpoint's hazard statistics ({sorted(arrays)}) do not match the scene's [hazard] "
+                                  f"({sorted(mine)})")
+        for k, a in mine.items():
+            a.assign(arrays[k])
+        self.t_start, self.next_t, self.samples = float(meta["t_start"]), float(meta["next_t"]), int(meta["samples"])
+        self.last_sample_t = None if meta["last_sample_t"] is None else float(meta["last_sample_t"])
+        self.still = [math.nan if x is None else float(x) for x in meta["still"]]
+        self.runup_still = [math.nan if x is None else float(x) for x in meta["runup_still"]]
+        self.still_d.assign(np.asarray(self.still or [0.0], np.float32))
+        if self.slide_index:
+            self.slide_start = np.array(arrays["slide_start"])
 
     def wrap(self, watch):
         """Simulation.advance's watch with after_step called first."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import re
 from functools import cached_property
 from pathlib import Path
@@ -24,13 +25,17 @@ from pathlib import Path
 import numpy as np
 
 from rockwave.base.files import atomic_write
+from rockwave.build.preflight import INSTANCER_MIN_BLOCKS
 from rockwave.output import surface as surf
-from rockwave.output import vtk
+from rockwave.output import usd, vtk
 from rockwave.output.usd import UsdFrameWriter, points_setup
 from rockwave.sim.checkpoint import csv_restore, csv_state
 
 FLUID_PRIM = "/World/fluid"
 BLOCKS_PRIM = "/World/blocks"
+INSTANCER_PRIM = "/World/blocks/instances"  # the PointInstancer of many blocks (UsdRecorder._blocks_setup)
+# INSTANCER_MIN_BLOCKS (rockwave/build/preflight.py, with the run-length estimate's cost of the USD output): rigid, fixed
+# and kinematic blocks from which they are the instances of one PointInstancer, not one mesh prim each
 BLOCK_CSV_HEADER = ["time_s", "block", "name", "x_m", "y_m", "z_m", "vx_m_s", "vy_m_s", "vz_m_s",
                     "wx_rad_s", "wy_rad_s", "wz_rad_s", "contacts"]
 
@@ -130,9 +135,9 @@ def block_csv(path: Path, names: list[str]) -> CsvRecorder:
     return CsvRecorder(path, BLOCK_CSV_HEADER, rows)
 
 
-def block_prim_paths(names: list[str]) -> list[str]:
-    """Valid, unique USD prim paths /World/blocks/<name> for block names."""
-    out, seen = [], set()
+def block_prim_paths(names: list[str], reserved=()) -> list[str]:
+    """Valid, unique USD prim paths /World/blocks/<name> for block names (none of them one of the ``reserved`` names)."""
+    out, seen = [], set(reserved)
     for n in names:
         p = re.sub(r"[^A-Za-z0-9_]", "_", n) or "block"
         if p[0].isdigit():
@@ -152,6 +157,17 @@ def _prim_names(blocks) -> list[str]:
             for n, s in zip(blocks.names, blocks.specs)]
 
 
+def scene_boxes(scene) -> list:
+    """[lo, hi, 'tank' | 'obstacle'] of the scene's box tank and box obstacles (the preview draws them)."""
+    out = []
+    if scene.fluid is not None and scene.tank is not None and scene.tank.get("box_min_m") is not None:
+        out.append([list(scene.tank.box_min_m), list(scene.tank.box_max_m), "tank"])
+    for ob in scene.obstacles if scene.fluid is not None else []:
+        if ob.get("box_min_m") is not None:
+            out.append([list(ob.box_min_m), list(ob.box_max_m), "obstacle"])
+    return out
+
+
 class _MeshFaces:
     """Points and triangle faces of a compound block's original mesh, shaped like a ConvexPolyhedron
     for the USD setup (vertices, faces)."""
@@ -164,7 +180,7 @@ class _MeshFaces:
 class UsdRecorder:
     """The run's USD stage: particles, blocks and the fluid surface (rockwave/output/usd.py)."""
 
-    def __init__(self, sim, path: Path, surface=None):
+    def __init__(self, sim, path: Path, surface=None, progress=None):
         scene = sim.scene
         self.sim = sim
         self.dim = scene.dim
@@ -172,10 +188,19 @@ class UsdRecorder:
         self.spacing = float(sim.fluid.spacing) if sim.fluid is not None else 0.0
         self.surface = surface
         self.blocks = sim.blocks
-        self.prims = block_prim_paths(_prim_names(sim.blocks)) if sim.blocks is not None else []
         self.deformable = [s.kind == "deformable" for s in sim.blocks.specs] if sim.blocks is not None else []
         # compound (non-convex) blocks: one prim, named after the body, for the first part; the others skipped
         self.skip = [s.compound is not None and s.compound.part != 0 for s in sim.blocks.specs] if sim.blocks is not None else []
+        # many blocks: the rigid, fixed and kinematic ones (not compound) are instances of one PointInstancer
+        can = [s.kind != "deformable" and s.compound is None for s in sim.blocks.specs] if sim.blocks is not None else []
+        many = sum(can) >= INSTANCER_MIN_BLOCKS
+        self.instanced = [c and many for c in can]
+        self._instanced_index = np.nonzero(self.instanced)[0]
+        self.n_instanced = len(self._instanced_index)
+        self._orient_attr = usd.instancer_orientation_attr()
+        reserved = [INSTANCER_PRIM.rsplit("/", 1)[1]] if self.n_instanced else []
+        self.prims = block_prim_paths(_prim_names(sim.blocks), reserved) if sim.blocks is not None else []
+        self.progress = progress  # progress(done, total) of the set-up's block prims (the run loop's line)
         self.writer = UsdFrameWriter(path, scene.output.frame_rate_hz, "Z" if self.dim == 3 else "Y", self._setup,
                                      scene.output.chunk_frames)
 
@@ -185,6 +210,7 @@ class UsdRecorder:
         scene = self.sim.scene
         info = {"dimension": self.dim, "spacing_m": self.spacing, "fluid_prim": FLUID_PRIM if self.nf else "",
                 "surface_prim": surf.SURFACE_PRIM if self.surface is not None else "", "blocks_prim": BLOCKS_PRIM,
+                "block_instancer": INSTANCER_PRIM if self.n_instanced else "", "boxes": json.dumps(scene_boxes(scene)),
                 "scene": str(Path(scene.path).resolve()) if scene.path != "<scene>" else scene.path}
         layer = stage.GetRootLayer()
         data = dict(layer.customLayerData)
@@ -203,25 +229,41 @@ class UsdRecorder:
 
     def _blocks_setup(self, stage) -> None:
         """Static part of the block meshes: body-frame points and polygon faces; rigid, fixed and
-        kinematic blocks move by time-sampled translate + orient ops, deformable ones by their points."""
-        from pxr import UsdGeom, Vt
-
-        UsdGeom.Scope.Define(stage, BLOCKS_PRIM)
-        for spec, prim in zip(self.blocks.specs, self.prims):
+        kinematic blocks move by time-sampled translate + orient ops, deformable ones by their points.
+        Authored as Sdf specs in batches (rockwave/output/usd.py define_meshes: the set-up grows linearly with the
+        block count). From INSTANCER_MIN_BLOCKS blocks on, the rigid, fixed and kinematic ones (not compound) are
+        the instances of one PointInstancer (INSTANCER_PRIM) whose prototypes are their distinct geometries, posed
+        by two arrays per frame (positions, orientations) instead of two time samples per block."""
+        layer = stage.GetRootLayer()
+        meshes, keys = [], {}
+        for b, (spec, prim) in enumerate(zip(self.blocks.specs, self.prims)):
+            if self.skip[b] or self.instanced[b]:
+                continue
             geo = spec.geometry
-            if spec.compound is not None:
-                if spec.compound.part != 0:
-                    continue  # a compound block is one prim: its original mesh, posed by its first part
+            if spec.compound is not None:  # a compound block is one prim: its original mesh, posed by its first part
                 geo = _MeshFaces(spec.compound.body.mesh_vertices, spec.compound.body.mesh_triangles)
-            mesh = UsdGeom.Mesh.Define(stage, prim)
-            if spec.kind != "deformable":  # a deformable block's points come from the clips (a default would hide them)
-                mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(geo.vertices, dtype=np.float32)))
-            mesh.CreateFaceVertexCountsAttr(Vt.IntArray([len(f) for f in geo.faces]))
-            mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([int(i) for f in geo.faces for i in f]))
-            mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-            if spec.kind != "deformable":
-                mesh.AddTranslateOp()
-                mesh.AddOrientOp()
+            key = keys.setdefault(id(geo), len(keys))
+            deformable = spec.kind == "deformable"  # its points come from the clips (a default would hide them)
+            meshes.append((prim.rsplit("/", 1)[1], key, None if deformable else geo.vertices, geo.faces, not deformable))
+        total = len(meshes) + (1 if self.n_instanced else 0)
+        usd.define_meshes(layer, BLOCKS_PRIM, meshes, progress=self._progress_of(total))
+        if self.n_instanced:
+            protos, index, by_geo = [], [], {}
+            for b, spec in enumerate(self.blocks.specs):
+                if self.instanced[b]:
+                    k = by_geo.get(id(spec.geometry))
+                    if k is None:
+                        k = by_geo[id(spec.geometry)] = len(protos)
+                        protos.append((spec.geometry.vertices, spec.geometry.faces))
+                    index.append(k)
+            usd.define_instancer(layer, INSTANCER_PRIM, protos, np.asarray(index), np.nonzero(self.instanced)[0])
+            if self.progress is not None:
+                self.progress(total, total)
+
+    def _progress_of(self, total: int):
+        if self.progress is None:
+            return None
+        return lambda done, _: self.progress(done, total)
 
     def frame(self, f: Frame) -> None:
         from pxr import Gf
@@ -236,8 +278,12 @@ class UsdRecorder:
         if self.blocks is not None:
             b = f.blocks
             verts = f.block_vertices if any(self.deformable) else None
+            if self.n_instanced:
+                inst = self._instanced_index
+                samples[(INSTANCER_PRIM, "positions", "point3f[]")] = b["x"][inst]
+                samples[(INSTANCER_PRIM, *self._orient_attr)] = b["q"][inst]  # (x, y, z, w): Gf.Quatf's memory order
             for i, prim in enumerate(self.prims):
-                if self.skip[i]:
+                if self.skip[i] or self.instanced[i]:
                     continue
                 if self.deformable[i]:
                     samples[(prim, "points", "point3f[]")] = verts[i]

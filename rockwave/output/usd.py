@@ -46,6 +46,9 @@ _VALUE_TYPES = {
     "int[]": (Sdf.ValueTypeNames.IntArray, lambda a: Vt.IntArray.FromNumpy(np.ascontiguousarray(a, dtype=np.int32))),
     "float3[]": (Sdf.ValueTypeNames.Float3Array, lambda a: Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float32))),
     "normal3f[]": (Sdf.ValueTypeNames.Normal3fArray, lambda a: Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float32))),
+    # (n, 4) as (x, y, z, w): Gf.Quatf's memory order (imaginary part, then real)
+    "quatf[]": (Sdf.ValueTypeNames.QuatfArray, lambda a: Vt.QuatfArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float32))),
+    "quath[]": (Sdf.ValueTypeNames.QuathArray, lambda a: Vt.QuathArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float16))),
 }
 
 
@@ -78,7 +81,7 @@ class UsdFrameWriter:
         self._chunk_first = 0
         self._last_frame = -1
         self._attrs: dict[tuple[str, str], str] = {}
-        self._manifest_written = False
+        self._manifest_attrs: dict | None = None  # the attributes the manifest on disk lists (rewritten when they change)
 
     # -- frames -------------------------------------------------------------------------------
     def write_frame(self, frame: int, samples: dict) -> None:
@@ -86,6 +89,13 @@ class UsdFrameWriter:
             self._chunk = Sdf.Layer.CreateAnonymous(".usdc")
             self._chunk_first = frame
         layer = self._chunk
+        with Sdf.ChangeBlock():  # one change notice for the frame's samples
+            self._write_samples(layer, frame, samples)
+        self._last_frame = frame
+        if frame - self._chunk_first + 1 >= self.chunk_size(len(self.chunks)):
+            self.flush()
+
+    def _write_samples(self, layer: Sdf.Layer, frame: int, samples: dict) -> None:
         for (prim_path, name, type_name), value in samples.items():
             prim = layer.GetPrimAtPath(prim_path) or Sdf.CreatePrimInLayer(layer, prim_path)
             prim.specifier = Sdf.SpecifierOver
@@ -95,9 +105,6 @@ class UsdFrameWriter:
             conv = _VALUE_TYPES[type_name][1]
             layer.SetTimeSample(attr_path, float(frame), conv(value) if conv else value)
             self._attrs[(prim_path, name)] = type_name
-        self._last_frame = frame
-        if frame - self._chunk_first + 1 >= self.chunk_size(len(self.chunks)):
-            self.flush()
 
     def chunk_size(self, index: int) -> int:
         """Frames in chunk ``index``: 1, 2, 4, ... up to chunk_frames, so the stage on disk holds the first
@@ -160,12 +167,15 @@ class UsdFrameWriter:
 
     # -- layers -------------------------------------------------------------------------------
     def _write_manifest(self) -> None:
+        if self._manifest_attrs == self._attrs and (self.clip_dir / f"manifest{self.ext}").is_file():
+            return  # unchanged (with many blocks rewriting it at every chunk cost seconds)
         m = Sdf.Layer.CreateAnonymous(".usdc")
         for (prim_path, name), type_name in self._attrs.items():
             prim = m.GetPrimAtPath(prim_path) or Sdf.CreatePrimInLayer(m, prim_path)
             prim.specifier = Sdf.SpecifierOver
             Sdf.AttributeSpec(prim, name, _VALUE_TYPES[type_name][0])
         _atomic_export(m, self.clip_dir / f"manifest{self.ext}")
+        self._manifest_attrs = dict(self._attrs)
 
     def _write_root(self) -> None:
         st = self.stage
@@ -196,3 +206,84 @@ def points_setup(prim_path: str, n: int, width: float, ids: np.ndarray | None = 
         pts.CreateIdsAttr(Vt.Int64Array.FromNumpy(i))
 
     return setup
+
+
+# ------------------------------------------------------------------------------------------------
+# many prims at once: Sdf specs authored straight into a layer
+# ------------------------------------------------------------------------------------------------
+
+AUTHOR_BATCH = 5000  # prims per Sdf.ChangeBlock (and between two progress calls)
+
+
+def _def_prim(layer: Sdf.Layer, path: str, type_name: str) -> Sdf.PrimSpec:
+    spec = layer.GetPrimAtPath(path) or Sdf.CreatePrimInLayer(layer, path)
+    spec.specifier = Sdf.SpecifierDef
+    spec.typeName = type_name
+    return spec
+
+
+def define_meshes(layer: Sdf.Layer, parent: str, meshes, progress=None, parent_type: str = "Scope") -> None:
+    """``def Mesh`` prims under ``parent`` (made a ``def <parent_type>``), authored as Sdf specs straight into
+    ``layer`` (a stage's root layer) in Sdf.ChangeBlocks of AUTHOR_BATCH prims: what UsdGeom.Mesh.Define and its
+    Create*Attr / AddTranslateOp / AddOrientOp author, without the stage recomposing after each prim (which made
+    set-up time grow as the square of the block count). Identical geometry shares its converted arrays.
+
+    ``meshes``: a list of (name, key, points, faces, posed): ``key`` names the geometry (equal keys: equal points and
+    faces); ``points`` (k, 3) or None (time-sampled elsewhere); ``faces`` lists of vertex indices; ``posed``: a
+    ``double3 xformOp:translate`` and ``quatf xformOp:orient`` op, time-sampled elsewhere. ``progress(done, total)``
+    is called after each batch."""
+    top = _def_prim(layer, parent, parent_type)
+    cache: dict = {}
+    order = Vt.TokenArray(["xformOp:translate", "xformOp:orient"])
+    names = Sdf.ValueTypeNames
+    total = len(meshes)
+    for lo in range(0, total, AUTHOR_BATCH):
+        with Sdf.ChangeBlock():
+            for name, key, points, faces, posed in meshes[lo:lo + AUTHOR_BATCH]:
+                arrays = cache.get(key)
+                if arrays is None:
+                    pts = None if points is None else Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32))
+                    arrays = cache[key] = (pts, Vt.IntArray([len(f) for f in faces]), Vt.IntArray([int(i) for f in faces for i in f]))
+                pts, counts, indices = arrays
+                spec = Sdf.PrimSpec(top, name, Sdf.SpecifierDef, "Mesh")
+                Sdf.AttributeSpec(spec, "faceVertexCounts", names.IntArray).default = counts
+                Sdf.AttributeSpec(spec, "faceVertexIndices", names.IntArray).default = indices
+                if pts is not None:
+                    Sdf.AttributeSpec(spec, "points", names.Point3fArray).default = pts
+                Sdf.AttributeSpec(spec, "subdivisionScheme", names.Token, Sdf.VariabilityUniform).default = "none"
+                if posed:
+                    Sdf.AttributeSpec(spec, "xformOp:translate", names.Double3)
+                    Sdf.AttributeSpec(spec, "xformOp:orient", names.Quatf)
+                    Sdf.AttributeSpec(spec, "xformOpOrder", names.TokenArray, Sdf.VariabilityUniform).default = order
+        if progress is not None:
+            progress(min(lo + AUTHOR_BATCH, total), total)
+
+
+def instancer_orientation_attr() -> tuple[str, str]:
+    """(attribute, type) of a PointInstancer's orientations: float precision (``orientationsf``, USD >= 24.11) where the
+    schema has it, else the half-precision ``orientations``."""
+    if "orientationsf" in UsdGeom.PointInstancer.GetSchemaAttributeNames():
+        return "orientationsf", "quatf[]"
+    return "orientations", "quath[]"
+
+
+def define_instancer(layer: Sdf.Layer, path: str, prototypes, proto_indices: np.ndarray, ids: np.ndarray) -> None:
+    """A ``def PointInstancer`` at ``path`` with its prototypes (``def Mesh`` prims under ``path/prototypes``, in body
+    coordinates: a list of (points, faces)), ``protoIndices`` and ``ids``; ``positions`` and the orientations
+    (instancer_orientation_attr) are time-sampled per frame."""
+    _def_prim(layer, path, "PointInstancer")
+    protos = f"{path}/prototypes"
+    define_meshes(layer, protos, [(f"p_{k}", k, pts, faces, False) for k, (pts, faces) in enumerate(prototypes)],
+                  parent_type="Scope")
+    names = Sdf.ValueTypeNames
+    with Sdf.ChangeBlock():
+        spec = layer.GetPrimAtPath(path)
+        rel = Sdf.RelationshipSpec(spec, "prototypes", custom=False)
+        for k in range(len(prototypes)):
+            rel.targetPathList.explicitItems.append(Sdf.Path(f"{protos}/p_{k}"))
+        Sdf.AttributeSpec(spec, "protoIndices", names.IntArray).default = Vt.IntArray.FromNumpy(
+            np.ascontiguousarray(proto_indices, dtype=np.int32))
+        Sdf.AttributeSpec(spec, "ids", names.Int64Array).default = Vt.Int64Array.FromNumpy(np.ascontiguousarray(ids, dtype=np.int64))
+        Sdf.AttributeSpec(spec, "positions", names.Point3fArray)
+        name, type_name = instancer_orientation_attr()
+        Sdf.AttributeSpec(spec, name, _VALUE_TYPES[type_name][0])

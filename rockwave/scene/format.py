@@ -450,6 +450,10 @@ class _Validator:
                 return self._bad(path, f"expected a list of {n} numbers, got {v!r}")
             if len(v) != n:
                 what = f" (the scene is {self.dim}D)" if key.length == "dim" else ""
+                if key.length == 3 and self.dim == 2 and len(v) == 2 and path.startswith(("blocks", "rock_mass")):
+                    return self._bad(path, "expected 3 numbers, got 2: blocks are 3D in a 2D scene too (a 2D block is a prism "
+                                           "with a depth along z, moving in the x-y plane); give x, y and z, e.g. size_m = "
+                                           "[w, h, depth], position_m = [x, y, 0]")
                 return self._bad(path, f"expected {n} numbers{what}, got {len(v)}")
             if not all(math.isfinite(c) for c in v):
                 return self._bad(path, f"expected finite numbers, got {v!r}")
@@ -462,7 +466,15 @@ class _Validator:
             if lo_bad or hi_bad:
                 return self._bad(path, f"{v!r} is out of range; allowed: {key.allowed()}")
         if t == "path":
-            p = (self.base_dir / v).resolve()
+            try:
+                p = (self.base_dir / v).resolve()
+                p.stat()
+            except (RuntimeError, OSError) as e:  # a symlink loop (RuntimeError before Python 3.13), a path too long
+                if isinstance(e, FileNotFoundError):
+                    return self._bad(path, f"file not found: {self.base_dir / v}")
+                why = "a symbolic link loop" if isinstance(e, RuntimeError) or getattr(e, "errno", None) == 40 else \
+                    (getattr(e, "strerror", None) or str(e))
+                return self._bad(path, f"{v!r} cannot be read: {why} ({self.base_dir / v})")
             if not p.is_file():
                 return self._bad(path, f"file not found: {p}")
             return str(p)
@@ -514,6 +526,7 @@ def _cross_checks(v: _Validator, s: Node) -> None:
             v.err("fluid", "the scene has neither water ([fluid] with [[fluid.regions]]) nor [[blocks]]")
         if s["tank"] is not None or s["obstacles"]:
             v.err("tank", "a tank or obstacles need water: add a [fluid] section or remove them")
+        _check_gauges(v, s)  # (gauges read the water)
         return
     apply_fidelity(v, fl, s["tank"])
     if fl.get("method") == "ghost" and "cfl_number" not in (getattr(v, "raw_simulation", {}) or {}):
@@ -607,7 +620,7 @@ def _check_blocks(v: _Validator, s: Node) -> None:
         for other in ("size_m", "vertices_m", "mesh"):
             if other != need and b.get(other) is not None:
                 v.err(f"{path}.{other}", f"does not apply to shape = {b['shape']!r}")
-        if b["shape"] == "box" and b["position_m"] is None:
+        if b["shape"] == "box" and b["position_m"] is None and not any(e[0] == f"{path}.position_m" for e in v.errors):
             v.err(f"{path}.position_m", "required for a box")
         if b["shape"] == "prism" and b.get("vertices_m") and len(b["vertices_m"]) < 4:
             v.err(f"{path}.vertices_m", "a prism needs at least 4 points spanning a volume")
@@ -867,6 +880,10 @@ def _check_gauges(v: _Validator, s: Node) -> None:
         else:
             seen[n] = i
     t, fl = s["tank"], s["fluid"]
+    if fl is None and gauges:
+        v.err("output.gauges", "needs water: the scene has no [fluid] section and gauges read the water (height and "
+                               "pressure); remove the [[output.gauges]] entries or add water")
+        return
     box = _box_of(t) if t is not None else None
     if box is None or fl is None or not fl.get("spacing_m") or not gauges:
         return  # mesh tanks: rockwave/build/preflight.py checks against the mesh's bounds

@@ -47,10 +47,14 @@ from rockwave.base.files import atomic_write, file_sha256
 # 3: block centroids carry their float32 compensation (blocks/x_lo, blocks/world_verts_arm); 4: no
 # blocks/world_verts (the world vertices are x + arm, not stored) and the narrow phase's reference as a pose
 # (blocks/q_ref, x_lo_ref, strain_ref), not as vertices (blocks/wv_ref); 5: block orientations carry their
-# float32 compensation too (blocks/q_lo, issue 36)
+# float32 compensation too (blocks/q_lo, issue 36); the block solver's pair list (blocks/pairs/*) and the
+# held-contact decision of the multi-rate stepping (its meta "hold"), so a run with held contacts resumes bit for
+# bit; the clock's counters of the whole run (steps_limited_by, block_steps); the hazard monitor's statistics
+# (group "hazard", rockwave/output/hazard.py)
 FORMAT_VERSION = 5
 READABLE_FORMATS = (2, 3, 4, 5)  # 2: read with zero compensation (the centroids as saved); 2, 3: world_verts dropped;
-# 2-4: q_lo = 0 (the orientations as saved)
+# 2-4: q_lo = 0 (the orientations as saved) and no pair list (the first step after the resume runs its own broad
+# phase and hold check: not bit for bit)
 FILE_NAME = "checkpoint.npz"
 
 
@@ -157,25 +161,51 @@ class FluidProvider:
 
 
 _SLOT_FIELDS = ("keys", "normal", "gapb", "nc", "pstart")  # per pair slot; the other table fields are per point
+# the broad phase's pair list (BlockSolver.pair_list: the pairs, their history slots and gaps, the screened lists) and
+# the boxes it was built in (lo_bp, hi_bp: a kept list is rebuilt once a block leaves them)
+_PAIR_FIELDS = ("pairs", "pair_gap", "pair_slot", "pair_oslot", "active", "active_big")
+
+
+def _hold_decision(sim) -> list | None:
+    """The multi-rate stepping's last hold-check verdicts (rockwave/sim/stepping.py), None before the first."""
+    bs = getattr(sim, "block_stepping", None)
+    if bs is None or bs.pairs_hold is None:
+        return None
+    return [bool(bs.pairs_hold), bool(bs.contacts_hold)]
 
 
 class BlockProvider:
-    """BlockState arrays + time, the contact history (tables[0], occupied slots) and solver capacities."""
+    """BlockState arrays + time, the contact history (tables[0], occupied slots), solver capacities, and what the
+    next step reads from the last one outside the BlockState: the pair list of the last broad phase (a kept list
+    serves later steps; the hold check of the multi-rate stepping reads its pairs, gaps and slots) and the held-
+    contact decision of the multi-rate stepping (rockwave/sim/stepping.py BlockSubstepping.pairs_hold, contacts_hold: taken every
+    dt_update_interval steps and used until the next check; a resume between two checks must use the same)."""
 
     def __init__(self, sim):
         self.sim = sim
 
     def capture(self):
-        st, sol = self.sim.block_state, self.sim.block_solver
+        sim = self.sim
+        st, sol = sim.block_state, sim.block_solver
         arrays = {n: wp.clone(a) for n, a in _wp_arrays(st).items()}
         table = {k: wp.clone(a) for k, a in st.tables[0].items()}
+        pairs = {n: wp.clone(getattr(sol, n)) for n in _PAIR_FIELDS + ("counters", "lo_bp", "hi_bp")}
         meta = {"time": st.time, "table_cap": st.table_cap, "point_cap": st.point_cap, "entry_cap": sol.entry_cap,
-                "large_cap": int(sol.large_list.shape[0]), "pair_cap": sol.pair_cap}
-        return arrays, table, meta
+                "large_cap": int(sol.large_list.shape[0]), "pair_cap": sol.pair_cap,
+                "pair_count": int(sol._pair_count), "narrow_phases": int(sol.narrow_phases),
+                "hold": _hold_decision(sim)}
+        return arrays, table, pairs, meta
 
     def pack(self, captured):
-        arrays, table, meta = captured
+        arrays, table, pairs, meta = captured
         out = {n: a.numpy() for n, a in arrays.items()}
+        counters = pairs["counters"].numpy()
+        live = min(int(counters[0]), int(meta["pair_cap"]))  # the pairs the last broad phase wrote
+        out["pairs/counters"] = counters
+        for n in ("lo_bp", "hi_bp"):
+            out[f"pairs/{n}"] = pairs[n].numpy()
+        for n in _PAIR_FIELDS:
+            out[f"pairs/{n}"] = pairs[n].numpy()[:live]
         keys = table["keys"].numpy()
         occ = np.nonzero(keys >= 0)[0]
         used = int(table["pcount"].numpy()[0])
@@ -191,7 +221,8 @@ class BlockProvider:
         return out, dict(meta)
 
     def restore(self, arrays, meta):
-        st, sol = self.sim.block_state, self.sim.block_solver
+        sim = self.sim
+        st, sol = sim.block_state, sim.block_solver
         if sol.entry_cap != meta["entry_cap"]:
             sol._alloc_entries(int(meta["entry_cap"]))
         if sol.large_list.shape[0] != meta["large_cap"]:
@@ -213,9 +244,24 @@ class BlockProvider:
             else:
                 h[: saved.shape[0]] = saved
             a.assign(h)
-        plain = {n: a for n, a in arrays.items() if not n.startswith("table/")}
+        plain = {n: a for n, a in arrays.items() if not n.startswith(("table/", "pairs/"))}
         ArrayGroup(lambda: st).restore(plain, {})
         st.time = float(meta["time"])
+        if "pairs/counters" in arrays:  # format 5: the pair list and the held-contact decision
+            for n in ("counters", "lo_bp", "hi_bp") + _PAIR_FIELDS:
+                a, saved = getattr(sol, n), arrays[f"pairs/{n}"]
+                h = a.numpy()
+                h[: saved.shape[0]] = saved
+                a.assign(h)
+            sol._pair_count = int(meta["pair_count"])
+            sol.narrow_phases = max(sol.narrow_phases, int(meta["narrow_phases"]))  # (hold_checks: after a narrow phase)
+            if meta.get("hold") is not None and getattr(sim, "block_stepping", None) is not None:
+                sim.block_stepping.pairs_hold, sim.block_stepping.contacts_hold = (bool(x) for x in meta["hold"])
+
+
+# groups a checkpoint written before they were saved may lack (the caller handles their absence: the run loop
+# restarts the hazard statistics at the resumed time)
+OPTIONAL_GROUPS = ("hazard",)
 
 
 def register(sim, name: str, provider) -> None:
@@ -360,7 +406,7 @@ def restore(sim, arrays: dict, meta: dict) -> None:
         pre = f"{name}/"
         provs[name].restore({k[len(pre):]: v for k, v in arrays.items() if k.startswith(pre)}, meta["groups"][name])
     for name in provs:
-        if name not in meta["groups"]:
+        if name not in meta["groups"] and name not in OPTIONAL_GROUPS:
             raise CheckpointError(f"the checkpoint lacks state group {name!r}")
     if ident["time_step"] != now["time_step"]:
         # the scene's step settings changed (e.g. a smaller cfl_number after a blow-up): use them now
@@ -436,7 +482,7 @@ class RunCheckpointer:
         usd = o.get("usd")
         meta = {"format": FORMAT_VERSION, "frame": self.frame, "t0": self.t0, "reason": reason,
                 "written_unix_s": time.time(), "scene": scene_identity(self.sim), "groups": groups,
-                "escaped": int(o.get("escaped", 0)),
+                "escaped": int(o.get("escaped", 0)), "wall_s": float(o.get("wall_s", 0.0)),
                 "usd": usd.checkpoint_state(tag) if usd is not None else None,
                 "csv": {name: r.checkpoint_state(tag) for name, r in o.get("csv", {}).items() if r is not None},
                 "vtk": o["vtk"].checkpoint_state(tag) if o.get("vtk") is not None else None}

@@ -42,7 +42,8 @@ class Clock:
     limiting (name of the limit that set ``target``), fixed (a scene-given constant step).
     ``dt_array``: wp.array(float, 1) holding dt on the device (kernels and CUDA graphs read it).
     ``substeps``: block sub-steps per step (1 unless ``block_substep`` is given), ``block_dt`` [s] their length;
-    ``steps_limited_by`` (limit name -> steps it set) and ``block_steps`` count what this process stepped.
+    ``steps_limited_by`` (limit name -> steps it set) and ``block_steps`` count the whole run's steps (a resumed
+    run's clock restores them with the time and the step count).
 
     ``block_substep`` (multi-rate): (stable block step [s], f(n, dt) -> the SceneError to raise when
     the count n for a step dt is above MAX_BLOCK_SUBSTEPS); the blocks' limit is then not among ``limits``."""
@@ -55,8 +56,8 @@ class Clock:
         self.limits = limits  # name -> f(initial) = stable step of that solver now [s]
         self.block_substep = block_substep
         self.substeps = 1
-        self.steps_limited_by: dict[str, int] = {}  # limit name -> steps it set (this process; run.json)
-        self.block_steps = 0  # block (sub-)steps taken (this process)
+        self.steps_limited_by: dict[str, int] = {}  # limit name -> steps it set (the whole run; run.json)
+        self.block_steps = 0  # block (sub-)steps taken (the whole run)
         self.fixed = sim.time_step == "fixed"
         self.update_interval = int(sim.dt_update_interval)
         self.time = 0.0
@@ -138,13 +139,18 @@ class Clock:
 
     # checkpoint (rockwave/sim/checkpoint.py)
     def capture(self) -> dict:
-        return {"time": self.time, "steps": self.steps, "dt": self.dt, "_dt_target": self.target}
+        return {"time": self.time, "steps": self.steps, "dt": self.dt, "_dt_target": self.target, "limiting": self.limiting,
+                "steps_limited_by": dict(self.steps_limited_by), "block_steps": self.block_steps}
 
     def restore(self, meta: dict) -> None:
         self.time = float(meta["time"])
         self.steps = int(meta["steps"])
         self.target = float(meta["_dt_target"])
         self.dt = float(meta["dt"])
+        if "steps_limited_by" in meta:  # (checkpoint format 5; before: the counters start from the resume)
+            self.limiting = str(meta["limiting"])
+            self.steps_limited_by = {str(k): int(v) for k, v in meta["steps_limited_by"].items()}
+            self.block_steps = int(meta["block_steps"])
         self._count_substeps()
         self.dt_array.fill_(self.dt)
 
