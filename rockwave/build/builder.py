@@ -20,7 +20,7 @@ import warp as wp
 
 from rockwave.base.maths import pad3, quat_to_matrix
 from rockwave.build import sampling
-from rockwave.build.rocks import block_specs, compound_bodies
+from rockwave.build.rocks import block_specs, compound_bodies, tank_overlap_hint
 from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance
 from rockwave.coupling.walls import BlockWalls
 from rockwave.dda.blocks import BlockModel, BlockOptions, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
@@ -93,7 +93,7 @@ def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: f
     dim = scene.dim
     if parts.blocks is None or len(fluid_x) == 0:
         return np.zeros((0, 3))
-    specs = [s for s in parts.blocks.specs if s.kind == "fixed"]
+    specs = [s for s in parts.blocks.specs if s.kind == "fixed" and not s.tank]  # the [tank] has its own particles
     if not specs:
         return np.zeros((0, 3))
     lo_f, hi_f = fluid_x.min(axis=0), fluid_x.max(axis=0)
@@ -351,7 +351,7 @@ def build_blocks(scene: Scene, device: str, parts: Parts, options=None) -> None:
         if not host_check:
             check_initial_overlap_on_device(solver, state)
     except (BlockOverlapError, GeometryError, ValueError) as e:
-        raise SceneError(scene.path, [("blocks", str(e))]) from None
+        raise SceneError(scene.path, [("blocks", tank_overlap_hint(str(e)))]) from None
     parts.blocks, parts.block_state, parts.block_solver = blocks, state, solver
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from rockwave.build import sampling
 from rockwave.build.rockmass import estimate_block_count
-from rockwave.build.rocks import block_specs, decomposition_of
+from rockwave.build.rocks import block_specs, decomposition_of, tank_overlap_hint
 from rockwave.coupling.penalty import DEFAULT_D0_RATIO, block_signed_distance
 from rockwave.dda import blocks as B
 from rockwave.dda import geometry
@@ -427,7 +427,7 @@ def _block_model(scene: Scene, check_overlap: bool = True):
 
             check_initial_overlap_on_device(BlockSolver(model), model.state())
     except (BlockOverlapError, GeometryError, ValueError, TypeError) as e:
-        raise SceneError(scene.path, [("blocks", str(e))]) from None
+        raise SceneError(scene.path, [("blocks", tank_overlap_hint(str(e)))]) from None
     return model
 
 
