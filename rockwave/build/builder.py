@@ -13,6 +13,7 @@ Nothing here steps or writes; bad input becomes a :class:`rockwave.scene.format.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -20,7 +21,7 @@ import warp as wp
 
 from rockwave.base.maths import pad3, quat_to_matrix
 from rockwave.build import sampling
-from rockwave.build.rocks import block_specs, compound_bodies, tank_overlap_hint
+from rockwave.build.rocks import block_specs, compound_bodies, inside_blocks_message, tank_overlap_hint
 from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance
 from rockwave.coupling.walls import BlockWalls
 from rockwave.dda.blocks import BlockModel, BlockOptions, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
@@ -362,8 +363,11 @@ def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options=None
     ratio = coupling_options(scene, options).contact_distance_ratio
     dist, _ = block_signed_distance(parts.blocks, parts.block_state, xf)
     keep = dist >= 0.5 * ratio * scene.fluid.spacing_m
-    parts.removed_inside_blocks = int((~keep).sum())
+    parts.removed_inside_blocks = n = int((~keep).sum())
+    if n:
+        warnings.warn(inside_blocks_message(n, len(keep)), stacklevel=2)
     return xf[keep], vf[keep], depth[keep]
+
 
 
 def build_coupling(scene: Scene, parts: Parts, options=None) -> None:

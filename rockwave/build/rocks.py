@@ -198,6 +198,13 @@ def tank_specs(scene: Scene, specs: list[BlockSpec]) -> list[BlockSpec]:
     return out
 
 
+def inside_blocks_message(n: int, total: int, where: str = "fluid.regions") -> str:
+    """The one-line warning of water seeded inside blocks (the run and ``validate``)."""
+    return (f"{where}: {n:,} of {total:,} water particles ({100.0 * n / max(total, 1):.3g}%) lie inside blocks or within "
+            f"half the contact distance of their faces and are not seeded (removed_inside_blocks in run.json); shrink "
+            f"the region or move the blocks if that water was meant to be there")
+
+
 def tank_overlap_hint(message: str) -> str:
     """An initial-overlap message that names a block of the tank (tank_specs) says what that block is."""
     if "'tank." in message or "'obstacle." in message:

@@ -28,6 +28,7 @@ from rockwave.output import surface as surf
 from rockwave.output import vtk
 from rockwave.output.usd import UsdFrameWriter, points_setup
 from rockwave.sim.checkpoint import csv_restore, csv_state
+from rockwave.sim.energy import COLUMNS
 
 FLUID_PRIM = "/World/fluid"
 BLOCKS_PRIM = "/World/blocks"
@@ -136,15 +137,11 @@ class EnergyRecorder(CsvRecorder):
     Without a file (energy_csv = '') it still measures and checks."""
 
     def __init__(self, sim, path: Path | None):
-        from rockwave.sim.energy import COLUMNS
-
         self.sim = sim
         self.write = path is not None
         super().__init__(path if path is not None else Path(), COLUMNS, self._rows)
 
     def _rows(self, f: Frame) -> list[list]:
-        from rockwave.sim.energy import COLUMNS
-
         sim = self.sim
         if sim.n_fluid:
             row = sim.energy.measure(f.x, f.v, f.rho)
@@ -166,8 +163,6 @@ class EnergyRecorder(CsvRecorder):
         if self.write:
             super().restore(state)
             if self.rows:  # the budget goes on from the run's start and input work, not the resumed frame's
-                from rockwave.sim.energy import COLUMNS
-
                 self.sim.energy.resume([float(c) for c in self.rows[0]], [float(c) for c in self.rows[-1]], COLUMNS)
 
     def summary(self) -> dict:

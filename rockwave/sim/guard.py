@@ -26,8 +26,11 @@ cure a too-compressible fluid); otherwise a smaller time step (cfl_number, block
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
+
+from rockwave.sim.energy import fmt_growth
 
 SPEED_FACTOR = 5.0
 ESCAPE_FRACTION = 0.5
@@ -209,16 +212,12 @@ class HealthGuard:
         mode = self.sim.scene.simulation.get("energy_check", "warn")
         if mode == "off" or not budget.exceeded(row):
             return True
-        from rockwave.sim.energy import fmt_growth
-
         what = fmt_growth(budget, row)
         if mode == "error":
             err = BlowUpError(f"energy created at step {self.sim.steps}, {what} (simulation.energy_check = 'error')")
             err.step, err.time, err.suggested_dt, err.key = self.sim.steps, self.sim.time, None, "simulation.energy_check"
             raise err
         if not getattr(self, "warned_energy", False):
-            import warnings
-
             warnings.warn(f"{what}; not fatal (simulation.energy_check = 'error' stops the run)", stacklevel=2)
             self.warned_energy = True
         return False
