@@ -82,6 +82,7 @@ class CouplingParams:
     inv_s: float  # 1 / broad-phase cell size
     track_walls: int  # 1: sum the forces of fixed/kinematic blocks on the water (diagnostics)
     squeeze_gap: float  # gap w_s between two opposing solid faces below which pinched water is squeezed out (0: off)
+    squeeze_speed: float  # closing speed above which a pinch is an impact, not squeezed: sqrt(|g| d0) [m/s]
 
 
 @wp.struct
@@ -110,8 +111,8 @@ class CouplingGrid:
 
 @wp.struct
 class BlockFaces:
-    """World face planes n . x = d of the blocks (face_planes), each block's range of faces, its kind
-    and its z-extent (2D: forces per metre of depth times it; 3D: 1)."""
+    """World face planes n . x = d of the blocks (face_planes), each block's range of faces, its kind,
+    its z-extent (2D: forces per metre of depth times it; 3D: 1) and whether it is a wall only (the tank)."""
 
     face_start: wp.array(dtype=int)
     face_count: wp.array(dtype=int)
@@ -119,6 +120,8 @@ class BlockFaces:
     plane_d: wp.array(dtype=float)
     kinds: wp.array(dtype=int)
     depth_scale: wp.array(dtype=float)
+    wall_only: wp.array(dtype=int)  # 1: a block of the [tank] (its boundary particles hold the water): no penalty force,
+    # only the opposing face of a squeeze-out pinch
 
 
 @wp.func
@@ -301,9 +304,12 @@ def block_contact(
     bodies: BlockBodies,
     loads: BlockLoads,
     wall_force: wp.array(dtype=wp.vec3),
+    wall_work: wp.array(dtype=float),
+    dt: float,
 ):
     """Penalty force of block b on a particle at xi moving at vi; ``squeeze`` (lambda t, zero outside
-    a pinch) turns the force to n + lambda t: the squeeze-out push along the gap (module docstring)."""
+    a pinch) turns the force to n + lambda t: the squeeze-out push along the gap (module docstring). A kinematic
+    block's work on the particle over the step, dt f . v_surface, is added to wall_work[0] (the energy budget)."""
     dist, n = block_distance(b, xi, faces.face_start, faces.face_count, faces.plane_n, faces.plane_d)
     f = wp.vec3(0.0)
     if dist < p.d0:
@@ -319,9 +325,40 @@ def block_contact(
                 fb = -faces.depth_scale[b] * f
                 wp.atomic_add(loads.ext_force, b, fb)
                 wp.atomic_add(loads.ext_torque, b, wp.cross(xc - c, fb))
-            elif p.track_walls != 0:
-                wp.atomic_add(wall_force, 0, f)
+            else:
+                if p.track_walls != 0:
+                    wp.atomic_add(wall_force, 0, f)
+                if kind == KIND_KINEMATIC:
+                    wp.atomic_add(wall_work, 0, dt * wp.dot(f, vs))
     return f
+
+
+@wp.func
+def surface_velocity(b: int, xi: wp.vec3, kinds: wp.array(dtype=int), bodies: BlockBodies):
+    """Velocity of block b's rigid motion at xi (zero for a fixed block)."""
+    if kinds[b] == KIND_FIXED:
+        return wp.vec3(0.0)
+    return bodies.v[b] + wp.cross(bodies.w[b], xi - bodies.x[b])
+
+
+@wp.func
+def pinch_force(dist: float, vn: float, p: CouplingParams):
+    """Magnitude of the penalty force of a face at distance dist on a particle approaching it at -vn."""
+    return wp.max(p.k_s * (p.d0 - dist) - p.k_d * vn, 0.0)
+
+
+@wp.kernel
+def squeeze_energy(sq_power: wp.array(dtype=wp.vec2), sq_scale: wp.array(dtype=float)):
+    """Per block, after a step's forces: the scale of next step's squeeze-out push, the ratio of the power the
+    closing gaps took from the block (pinch force x closing speed, summed over its pinched particles) to the power
+    the push gave the water along the gaps (push x the particles' speed out), at most 1; then the sums are cleared."""
+    b = wp.tid()
+    pw = sq_power[b]
+    s = float(1.0)
+    if pw[1] > 0.0:
+        s = wp.min(1.0, pw[0] / pw[1])
+    sq_scale[b] = s
+    sq_power[b] = wp.vec2(0.0, 0.0)
 
 
 @wp.kernel
@@ -336,6 +373,9 @@ def particle_block_forces(
     bodies: BlockBodies,
     loads: BlockLoads,
     wall_force: wp.array(dtype=wp.vec3),
+    wall_work: wp.array(dtype=float),
+    sq_power: wp.array(dtype=wp.vec2),
+    sq_scale: wp.array(dtype=float),
     dv: wp.array(dtype=wp.vec3),
 ):
     """Penalty force of every nearby block on fluid particle i, stored as the velocity change
@@ -368,9 +408,12 @@ def particle_block_forces(
     ba = int(-1)
     da = float(BIG)
     na = wp.vec3(0.0)
+    wall_only = faces.wall_only
     for e in range(s, s + bucket_count[h]):
         if entry_cell[e] == c:
             b = entry_block[e]
+            if wall_only[b] != 0:
+                continue
             d, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
             if d < da:
                 ba = b
@@ -378,7 +421,7 @@ def particle_block_forces(
                 na = n
     for k in range(counters[1]):
         b = large[k]
-        if not in_box(xi, box_lo[b], box_hi[b]):  # farther than reach from b
+        if wall_only[b] != 0 or not in_box(xi, box_lo[b], box_hi[b]):  # a tank wall, or farther than reach from b
             continue
         d, n = block_distance(b, xi, face_start, face_count, plane_n, plane_d)
         if d < da:
@@ -414,12 +457,29 @@ def particle_block_forces(
         if bb >= 0:
             # the block that moves sets the way out (the nearest edge of its face); two walls: none
             t = wp.vec3(0.0)
+            bm = int(-1)
             if kinds[ba] != KIND_FIXED:
                 t = exit_direction(ba, xi, na, face_start, face_count, plane_n, plane_d)
+                bm = ba
             elif kinds[bb] != KIND_FIXED:
                 t = exit_direction(bb, xi, nb, face_start, face_count, plane_n, plane_d)
+                bm = bb
             w = wp.max(da + db, 2.0 * p.d0)
             lam = wp.min(1.0, (p.squeeze_gap - w) / wp.max(p.squeeze_gap - 2.0 * p.d0, 1.0e-12))
+            if bm >= 0:
+                # energy: the push along the gap may give the water only what the closing gap takes from the block
+                # that moves (squeeze_energy: last step's ratio of the two powers, per block)
+                va = surface_velocity(ba, xi, kinds, bodies)
+                vb = surface_velocity(bb, xi, kinds, bodies)
+                mag = pinch_force(da, wp.dot(vi - va, na), p)
+                if wall_only[bb] == 0:
+                    mag += pinch_force(db, wp.dot(vi - vb, nb), p)
+                closing = wp.dot(va - vb, na)  # the gap's closing speed (the faces' normals oppose)
+                u = wp.dot(vi - surface_velocity(bm, xi, kinds, bodies), t)  # the particle's speed out of the gap
+                # an impact (the gap closing faster than a fall through d0 gives) is left to the water's own pressure
+                lam = lam * wp.max(0.0, 1.0 - closing / p.squeeze_speed)
+                wp.atomic_add(sq_power, bm, wp.vec2(mag * wp.max(closing, 0.0), lam * mag * wp.max(u, 0.0)))
+                lam = lam * sq_scale[bm]
             squeeze = lam * t
     # pass 3: forces
     f = wp.vec3(0.0)
@@ -427,18 +487,20 @@ def particle_block_forces(
     for e in range(s, s + bucket_count[h]):
         if entry_cell[e] == c:
             b = entry_block[e]
+            if wall_only[b] != 0:
+                continue
             sq = zero
             if b == ba or b == bb:  # only the two faces of the pinch push along the gap
                 sq = squeeze
-            f += block_contact(b, xi, vi, p, sq, faces, bodies, loads, wall_force)
+            f += block_contact(b, xi, vi, p, sq, faces, bodies, loads, wall_force, wall_work, dt[0])
     for k in range(counters[1]):
         b = large[k]
-        if not in_box(xi, box_lo[b], box_hi[b]):
+        if wall_only[b] != 0 or not in_box(xi, box_lo[b], box_hi[b]):
             continue
         sq = zero
         if b == ba or b == bb:
             sq = squeeze
-        f += block_contact(b, xi, vi, p, sq, faces, bodies, loads, wall_force)
+        f += block_contact(b, xi, vi, p, sq, faces, bodies, loads, wall_force, wall_work, dt[0])
     dv[i] = (dt[0] / particle_mass[i]) * f
 
 

@@ -9,7 +9,7 @@ particle feels from them is summed back, equal and opposite, onto the block.
 
 import warp as wp
 
-from rockwave.kernels.coupling.penalty import KIND_DEFORMABLE, KIND_RIGID
+from rockwave.kernels.coupling.penalty import KIND_DEFORMABLE, KIND_KINEMATIC, KIND_RIGID
 from rockwave.kernels.dda.blocks import BlockBodies, BlockLoads
 from rockwave.kernels.sph import fluid as sph
 
@@ -135,3 +135,22 @@ def block_wall_reactions(
     if kind == KIND_RIGID or kind == KIND_DEFORMABLE:
         wp.atomic_add(loads.ext_force, blk, fb)
         wp.atomic_add(loads.ext_torque, blk, tb)
+
+
+@wp.kernel
+def kinematic_wall_work(
+    kinds: wp.array(dtype=int),
+    bodies: BlockBodies,
+    water_force: wp.array(dtype=wp.vec3),
+    water_torque: wp.array(dtype=wp.vec3),
+    depth_scale: wp.array(dtype=float),
+    dt: wp.array(dtype=float),
+    wall_work: wp.array(dtype=float),
+):
+    """The work of a kinematic block's wall particles on the water over the step, -dt (F . v + T . w) / depth (F, T:
+    the water's force and torque on the block, block_wall_reactions; per metre of depth in 2D), into wall_work[0]."""
+    b = wp.tid()
+    if kinds[b] != KIND_KINEMATIC:
+        return
+    p = wp.dot(water_force[b], bodies.v[b]) + wp.dot(water_torque[b], bodies.w[b])
+    wp.atomic_add(wall_work, 0, -dt[0] * p / depth_scale[b])

@@ -203,6 +203,9 @@ def _main(args) -> int:
         device = resolve_device(args.device if args.device is not None else scene.simulation.device)
     except DeviceError as e:
         return _fail(f"--device: {e}" if args.device is not None else f"{scene_path}: simulation.device: {e}")
+    import warnings
+
+    warnings.formatwarning = lambda msg, *a, **k: f"warning: {msg}\n"
     if args.command == "validate":
         try:
             found = validate(scene, device, duration=args.duration, force=args.yes)
@@ -226,9 +229,6 @@ def _main(args) -> int:
         preflight.check_run_length(scene, device, duration=args.duration, force=args.yes)
     except SceneError as e:
         return _fail(e.one_line())
-    import warnings
-
-    warnings.formatwarning = lambda msg, *a, **k: f"warning: {msg}\n"
 
     if args.checkpoint_every is not None and not (0 <= args.checkpoint_every < float("inf")):
         return _fail(f"--checkpoint-every must be a number of seconds >= 0, got {args.checkpoint_every}")

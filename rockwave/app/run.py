@@ -187,6 +187,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
             names.append(o.gauges_csv)
         if sim.blocks is not None and o.blocks_csv:
             names.append(o.blocks_csv)
+        if o.get("energy_csv"):
+            names.append(o.energy_csv)
         if o.get("vtk"):
             names.append(o.vtk)
         _replace_previous_outputs(out, names)
@@ -198,7 +200,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     gauges = rec.gauge_csv(out / o.gauges_csv, sim.gauge_names) if sim.gauge_names and o.gauges_csv else None
     blocks = rec.block_csv(out / o.blocks_csv, sim.blocks.names) if sim.blocks is not None and o.blocks_csv else None
     vtk = rec.VtkRecorder(sim, out / o.vtk) if o.get("vtk") else None
-    recorders = [r for r in (usd, vtk, blocks, gauges) if r is not None]
+    energy = rec.EnergyRecorder(sim, out / o.energy_csv if o.get("energy_csv") else None)  # the budget, checked each frame
+    recorders = [r for r in (usd, vtk, blocks, gauges, energy) if r is not None]
 
     bar = Progress(duration, nf if nf else (sim.blocks.num_blocks if sim.blocks is not None else 0), enabled=progress,
                    unit="particles" if nf else "blocks")
@@ -219,6 +222,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
                 gauges.restore(meta["csv"].get("gauges"))
             if blocks is not None:
                 blocks.restore(meta["csv"].get("blocks"))
+            energy.restore(meta["csv"].get("energy"))
         except (OSError, ValueError) as e:
             raise ckpt.CheckpointError(f"cannot resume in {out}: {e}") from None
         if vtk is not None:
@@ -234,7 +238,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
 
     interval = o.get("checkpoint_interval_s", 600.0) if checkpoint_interval_s is None else checkpoint_interval_s
     checkpointer = ckpt.RunCheckpointer(sim, out, interval, t0, lambda: {
-        "usd": usd, "escaped": escaped, "vtk": vtk, "csv": {"gauges": gauges, "blocks": blocks},
+        "usd": usd, "escaped": escaped, "vtk": vtk, "csv": {"gauges": gauges, "blocks": blocks, "energy": energy},
         "wall_s": wall_before + time.perf_counter() - wall0})
 
     def check_health(f: rec.Frame) -> None:
@@ -343,6 +347,7 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         "resumed_from_frame": resumed[1]["frame"] if resumed is not None else None,
         "checkpoint": str(checkpointer.path) if checkpointer.written_frame is not None else None,
     }
+    summary["energy"] = energy.summary()
     if hazard is not None:
         summary["hazard"] = hazard.result()
         atomic_write_text(out / HAZARD_FILE, json.dumps(summary["hazard"], indent=2))

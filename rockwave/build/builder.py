@@ -12,6 +12,7 @@ Nothing here steps or writes; bad input becomes a :class:`rockwave.scene.format.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,7 +32,7 @@ from rockwave.build.options import (
     sph_params,
     warn_unstable_step,
 )
-from rockwave.build.rocks import block_specs, compound_bodies
+from rockwave.build.rocks import block_specs, compound_bodies, inside_blocks_message, tank_overlap_hint
 from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance, seed_clearance_m
 from rockwave.coupling.walls import BlockWalls
 from rockwave.dda.blocks import (
@@ -99,7 +100,7 @@ def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: f
     dim = scene.dim
     if parts.blocks is None or len(fluid_x) == 0:
         return np.zeros((0, 3))
-    specs = [s for s in parts.blocks.specs if s.kind == "fixed"]
+    specs = [s for s in parts.blocks.specs if s.kind == "fixed" and not s.tank]  # the [tank] has its own particles
     if not specs:
         return np.zeros((0, 3))
     lo_f, hi_f = fluid_x.min(axis=0), fluid_x.max(axis=0)
@@ -370,7 +371,7 @@ def build_blocks(scene: Scene, device: str, parts: Parts, options: SolverOptions
         if not host_check:
             check_initial_overlap_on_device(solver, state)
     except (BlockOverlapError, GeometryError, ValueError) as e:
-        raise SceneError(scene.path, [("blocks", str(e))]) from None
+        raise SceneError(scene.path, [("blocks", tank_overlap_hint(str(e)))]) from None
     if solver.options.start == "settled":  # simulation.start: the blocks at rest start in equilibrium
         solver.settle(state)
     parts.blocks, parts.block_state, parts.block_solver = blocks, state, solver
@@ -383,7 +384,9 @@ def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options: Sol
     ratio = solver_coupling_options(scene, options).contact_distance_ratio
     dist, _ = block_signed_distance(parts.blocks, parts.block_state, xf)
     keep = dist >= seed_clearance_m(ratio, scene.fluid.spacing_m)
-    parts.removed_inside_blocks = int((~keep).sum())
+    parts.removed_inside_blocks = n = int((~keep).sum())
+    if n:
+        warnings.warn(inside_blocks_message(n, len(keep)), stacklevel=2)
     return xf[keep], vf[keep], depth[keep]
 
 

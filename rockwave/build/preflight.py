@@ -28,7 +28,7 @@ import numpy as np
 from rockwave.build import sampling
 from rockwave.build.options import boundary_lattice, coupling_options, fluid_parameters, gravity_norm, support_radius_m
 from rockwave.build.rockmass import estimate_block_count
-from rockwave.build.rocks import block_specs, decomposition_of
+from rockwave.build.rocks import block_specs, decomposition_of, inside_blocks_message, tank_overlap_hint
 from rockwave.coupling.penalty import block_signed_distance, seed_clearance_m
 from rockwave.dda import blocks as B
 from rockwave.dda import geometry
@@ -422,12 +422,14 @@ def check_regions_hold_water(scene: Scene, meshes: dict, device: str = "cpu") ->
         raise SceneError(scene.path, errors)
 
 
-def check_water_outside_blocks(scene: Scene, meshes: dict | None = None, model=None) -> None:
+def check_water_outside_blocks(scene: Scene, meshes: dict | None = None, model=None, warn: bool = False) -> int:
     """A fluid region all of whose particles lie inside blocks, or closer to their faces than half
-    the contact distance (removed at seeding, rockwave/sim/simulation.py _remove_inside_blocks), is an
-    error naming the region. Builds the block model on the CPU when none is given."""
+    the contact distance (removed at seeding, rockwave/build/builder.py remove_inside_blocks), is an
+    error naming the region. Builds the block model on the CPU when none is given. ``warn``: a region that
+    loses some of its particles so is a one-line warning with the count (as the run prints it). Returns the
+    particles that seeding will drop (per region, before a later region's overlap)."""
     if scene.fluid is None or not (scene.blocks or scene.rock_mass):
-        return
+        return 0
 
     if meshes is None:
         meshes = check_meshes(scene)
@@ -436,16 +438,23 @@ def check_water_outside_blocks(scene: Scene, meshes: dict | None = None, model=N
     state = model.state()
     ratio = coupling_options(scene).contact_distance_ratio
     errors = []
+    dropped = 0
     for _, key, x, _ in _region_points(scene, meshes):
         if len(x) == 0:
             continue
         dist, _ = block_signed_distance(model, state, x)
-        if not (dist >= seed_clearance_m(ratio, scene.fluid.spacing_m)).any():
+        clearance = seed_clearance_m(ratio, scene.fluid.spacing_m)
+        inside = int((dist < clearance).sum())
+        dropped += inside
+        if warn and 0 < inside < len(x):
+            warnings.warn(inside_blocks_message(inside, len(x), key), stacklevel=2)
+        if not (dist >= clearance).any():
             errors.append((key, f"seeds no water particle: every lattice point at spacing {scene.fluid.spacing_m:g} m "
                                 f"(fluid.spacing_m) is inside a block or within half the contact distance of one; "
                                 f"move the blocks or the region, or make the spacing finer"))
     if errors:
         raise SceneError(scene.path, errors)
+    return dropped
 
 
 # --------------------------------------------------------------------------------------------
@@ -465,7 +474,7 @@ def _block_model(scene: Scene, check_overlap: bool = True):
 
             check_initial_overlap_on_device(BlockSolver(model), model.state())
     except (BlockOverlapError, GeometryError, ValueError, TypeError) as e:
-        raise SceneError(scene.path, [("blocks", str(e))]) from None
+        raise SceneError(scene.path, [("blocks", tank_overlap_hint(str(e)))]) from None
     return model
 
 
@@ -476,7 +485,7 @@ def check_blocks(scene: Scene) -> int:
     if not (scene.blocks or scene.rock_mass):
         return 0
     model = _block_model(scene)
-    check_water_outside_blocks(scene, model=model)
+    check_water_outside_blocks(scene, model=model, warn=True)
     return model.num_blocks
 
 

@@ -6,6 +6,7 @@ are consecutive BlockSpecs marked with :class:`rockwave.dda.blocks.CompoundPart`
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -102,6 +103,7 @@ def block_specs(scene: Scene) -> list[BlockSpec]:
     from collections import Counter
 
     specs += rock_mass_specs(scene)  # [[rock_mass]]: blocks cut by joint sets
+    specs += tank_specs(scene, specs)  # the [tank] and box obstacles, solid to the blocks (after the scene's own)
     dup = {n for n, c in Counter(s.name for s in specs).items() if c > 1}
     if dup:
         # unique names for USD prims and the CSV
@@ -111,6 +113,104 @@ def block_specs(scene: Scene) -> list[BlockSpec]:
                 seen[s.name] = seen.get(s.name, -1) + 1
                 s.name = f"{s.name}_{seen[s.name]}"
     return specs
+
+
+def _world_vertices(spec: BlockSpec) -> np.ndarray:
+    return np.asarray(spec.geometry.vertices, float) @ quat_to_matrix(np.asarray(spec.orientation, float)).T + np.asarray(
+        spec.position, float)
+
+
+def _fixed_box(lo, hi, name: str) -> BlockSpec:
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    return BlockSpec(geometry=geometry.box(hi - lo, name=name), position=tuple(0.5 * (lo + hi)), kind="fixed", name=name,
+                     material=ContactMaterial(), tank=True)
+
+
+def tank_specs(scene: Scene, specs: list[BlockSpec]) -> list[BlockSpec]:
+    """The box ``[tank]``'s floor, walls (and lid when its top is closed) and each box obstacle as fixed blocks for
+    contact with the scene's blocks (``tank.block_contact``, default on; docs/coupling.md "Tanks and blocks"):
+    the boundary particles are walls for the water only, and a block would fall through them.
+
+    Built only when ``specs`` has a rigid or deformable block (fixed and kinematic blocks never touch fixed
+    ones). Boxes outside the tank's inner box, ``T`` = the largest moving block's bounding diameter thick
+    (nothing tunnels through that), the floor under the walls, the walls between floor and top (their
+    corners not overlapping); the default material of a fixed block (friction 30 deg, restitution 0.5,
+    k_n = 0.1 E L: a pair uses the softer k_n, so the block's own). 2D: prisms whose z-extent covers every
+    block's, grown by half of it each side. Marked ``BlockSpec.tank``: the coupling gives them no penalty
+    faces and they get no fixed-block wall particles (the water has the tank's boundary particles there). A
+    mesh tank or obstacle is not built (a warning: build its walls of fixed blocks)."""
+    t = scene.tank
+    moving = [s for s in specs if s.kind in ("rigid", "deformable")]
+    if not moving or (t is None and not scene.obstacles):
+        return []
+    if t is not None and t.get("block_contact") is False:
+        return []
+    dim = scene.dim
+    verts = np.concatenate([_world_vertices(s) for s in specs])
+    T = max(2.0 * float(s.geometry.bounding_radius) for s in moving)
+    if dim == 2:
+        z0, z1 = float(verts[:, 2].min()), float(verts[:, 2].max())
+        dz = max(z1 - z0, 1e-3)
+        zr = (z0 - 0.5 * dz, z1 + 0.5 * dz)
+
+    def box(lo, hi, name):  # lo, hi: scene coordinates (dim components)
+        lo, hi = list(lo), list(hi)
+        if dim == 2:
+            lo, hi = lo + [zr[0]], hi + [zr[1]]
+        return _fixed_box(lo, hi, name)
+
+    out = []
+    if t is not None and t.get("box_min_m") is not None:
+        lo, hi = np.asarray(t.box_min_m, float), np.asarray(t.box_max_m, float)
+        up = dim - 1
+        side = [a for a in range(dim) if a != up]
+        g_lo, g_hi = lo - T, hi + T  # grown by the thickness
+        f_lo, f_hi = g_lo.copy(), g_hi.copy()
+        f_hi[up] = lo[up]
+        out.append(box(f_lo, f_hi, "tank.floor"))
+        if not t.open_top:
+            c_lo, c_hi = g_lo.copy(), g_hi.copy()
+            c_lo[up] = hi[up]
+            out.append(box(c_lo, c_hi, "tank.lid"))
+        for k, a in enumerate(side):  # walls normal to axis a; the first side axis' walls cover the corners
+            for end, name in ((0, "min"), (1, "max")):
+                w_lo, w_hi = lo.copy(), hi.copy()
+                for b in side:
+                    if b != a:
+                        w_lo[b], w_hi[b] = (g_lo[b], g_hi[b]) if side.index(b) > k else (lo[b], hi[b])
+                if end == 0:
+                    w_lo[a], w_hi[a] = g_lo[a], lo[a]
+                else:
+                    w_lo[a], w_hi[a] = hi[a], g_hi[a]
+                out.append(box(w_lo, w_hi, f"tank.wall_{'xyz'[a]}{name}"))
+    elif t is not None:
+        warnings.warn("the mesh [tank] is not solid to blocks (only a box tank is): a block reaching its walls falls "
+                      "through them; build the walls a block can reach of fixed [[blocks]]", stacklevel=2)
+    skipped = 0
+    for i, ob in enumerate(scene.obstacles):
+        if ob.get("box_min_m") is not None:
+            out.append(box(ob.box_min_m, ob.box_max_m, f"obstacle.{i}"))
+        else:
+            skipped += 1
+    if skipped:
+        warnings.warn(f"{skipped} mesh obstacle(s) are not solid to blocks (only box obstacles are): a block reaching "
+                      f"one passes through it; build it of fixed [[blocks]]", stacklevel=2)
+    return out
+
+
+def inside_blocks_message(n: int, total: int, where: str = "fluid.regions") -> str:
+    """The one-line warning of water seeded inside blocks (the run and ``validate``)."""
+    return (f"{where}: {n:,} of {total:,} water particles ({100.0 * n / max(total, 1):.3g}%) lie inside blocks or within "
+            f"half the contact distance of their faces and are not seeded (removed_inside_blocks in run.json); shrink "
+            f"the region or move the blocks if that water was meant to be there")
+
+
+def tank_overlap_hint(message: str) -> str:
+    """An initial-overlap message that names a block of the tank (tank_specs) says what that block is."""
+    if "'tank." in message or "'obstacle." in message:
+        message += (" (blocks named tank.* and obstacle.* are the [tank]'s walls and the box obstacles, solid to blocks: "
+                    "place the blocks inside the tank, or set tank.block_contact = false)")
+    return message
 
 
 def scanned_rock_mesh(radius_m: float = 0.5, subdivisions: int = 3, roughness: float = 0.15, bumps: int = 24,

@@ -231,6 +231,10 @@ class Coupling:
         self.faces.face_start, self.faces.face_count = blocks.face_start, blocks.face_count
         self.faces.plane_n, self.faces.plane_d = self.plane_n, self.plane_d
         self.faces.kinds, self.faces.depth_scale = blocks.kinds, self.depth_scale
+        # blocks of the [tank] (BlockSpec.tank: solid to blocks; the water has the tank's boundary particles there):
+        # no penalty force, only the opposing face of a squeeze-out pinch
+        tank = np.array([bool(getattr(spec, "tank", False)) for spec in blocks.specs], np.int32)
+        self.faces.wall_only = wp.array(tank, dtype=int, device=d)
         g = self.grid = penalty_k.CouplingGrid()
         g.cell_lo, g.cell_hi, g.ncell, g.cell_offset = self.cell_lo, self.cell_hi, self.ncell, self.cell_offset
         g.large, g.counters, g.box_lo, g.box_hi = self.large, self.counters, self.box_lo, self.box_hi
@@ -240,6 +244,8 @@ class Coupling:
         p.inv_s = 1.0 / self.cell
         p.track_walls = 1 if opt.track_walls else 0
         p.squeeze_gap = self.squeeze_gap
+        g = float(np.linalg.norm(blocks.gravity))
+        p.squeeze_speed = max(math.sqrt(g * self.d0), 1e-6)
         # Few blocks: every particle tests every block's grown box (no hash). Up to 2^20 possible entries
         # (blocks x max_cells): the entry capacity is allocated whole and the step reads nothing back (the
         # GPU never waits for the host). More: it grows on a counter read. The path is chosen here, once.
@@ -249,6 +255,13 @@ class Coupling:
         self._hash_blocks = self._hash_none if self.direct else self._hash_sync_free if self.sync_free else self._hash_counted
         self.dv = wp.zeros(fluid.n_fluid, dtype=wp.vec3, device=d)
         self.wall_force = wp.zeros(1, dtype=wp.vec3, device=d)
+        # work of the kinematic blocks on the water since the last take_wall_work() [J; J/m in 2D] (the energy budget)
+        self.wall_work = wp.zeros(1, dtype=float, device=d)
+        self.has_kinematic = bool(np.any(blocks.np["kinds"] == 3))
+        # squeeze-out energy (kernels/coupling/penalty.py squeeze_energy): per block, this step's (power taken by the
+        # closing gaps, power given by the push) and the push's scale for the next step
+        self.sq_power = wp.zeros(nb, dtype=wp.vec2, device=d)
+        self.sq_scale = wp.ones(nb, dtype=float, device=d)
         self.wall_impulse = np.zeros(3)  # sum of dt x (force of fixed/kinematic blocks on the water), when tracked
         self.active_blocks = 0  # blocks near water in the last step (host copy, diagnostics)
         self.walls = None  # BlockWalls: Adami wall particles of the moving blocks (rockwave/build/builder.py sets it)
@@ -362,17 +375,31 @@ class Coupling:
             self.wall_force.zero_()
         wp.launch(penalty_k.particle_block_forces, dim=nf,
                   inputs=[fluid_state.x, fluid_state.v, self.fluid.particle_mass, ts.dt_array, self.params, self.grid,
-                          self.faces, block_state.bodies, block_state.loads, self.wall_force],
+                          self.faces, block_state.bodies, block_state.loads, self.wall_force, self.wall_work, self.sq_power,
+                          self.sq_scale],
                   outputs=[self.dv], device=self.device)
+        if self.squeeze_gap > 0.0:
+            wp.launch(penalty_k.squeeze_energy, dim=self.blocks.num_blocks, inputs=[self.sq_power, self.sq_scale],
+                      device=self.device)
         if self.track_walls:
             self.wall_impulse += float(ts.dt_array.numpy()[0]) * self.wall_force.numpy()[0].astype(np.float64)
 
     def apply(self, fluid_state, ts: TimeStep) -> None:
         """Add the impulses of the last compute to the fluid after its step (x += dt dv, v += dv)."""
         nf = self.fluid.n_fluid
+        if nf and self.walls is not None and self.has_kinematic:  # the work of kinematic blocks' wall particles
+            self.walls.add_wall_work(self.wall_work, ts)
         if nf == 0 or self._nothing_near():
             return
         wp.launch(penalty_k.apply_dv, dim=nf, inputs=[self.dv, ts.dt_array], outputs=[fluid_state.x, fluid_state.v], device=self.device)
+
+    def take_wall_work(self) -> float:
+        """The work of the kinematic blocks on the water since the last call [J; J/m in 2D] (one host read)."""
+        if not self.has_kinematic:
+            return 0.0
+        w = float(self.wall_work.numpy()[0])
+        self.wall_work.zero_()
+        return w
 
     def candidate_blocks(self) -> set[int]:
         """Blocks that the last compute tested against particles (near water): in the (block, cell)

@@ -92,6 +92,14 @@ class BlockWalls:
                           m.params, bs.bodies, self.blocks.kinds, self.depth_scale, bs.loads],
                   outputs=[self.water_force, self.water_torque], device=self.device)
 
+    def add_wall_work(self, wall_work: wp.array, ts: TimeStep) -> None:
+        """Add the kinematic blocks' work on the water through their wall particles over the step to wall_work[0]
+        (the energy budget; the forces of the step's react pass, the blocks' velocities at its start)."""
+        bs = self._block_state
+        wp.launch(walls_k.kinematic_wall_work, dim=self.blocks.num_blocks,
+                  inputs=[self.blocks.kinds, bs.bodies, self.water_force, self.water_torque, self.depth_scale, ts.dt_array],
+                  outputs=[wall_work], device=self.device)
+
     def checkpoint_arrays(self) -> dict:
         """What the walls keep between steps: the blocks' velocities of the last step and its length (the
         acceleration estimate); the positions are in the fluid state."""

@@ -192,7 +192,9 @@ class BlockSpec:
     kind: "rigid" | "deformable" | "fixed" | "kinematic".  youngs_modulus Pa (None -> 10 GPa),
     poisson_ratio.  motion: KinematicMotion (kinematic only).  strain_damping_ratio: damping of the
     deformable block's strain modes.  compound: CompoundPart when this block is one convex part of a
-    rigid compound (non-convex) block, else None.
+    rigid compound (non-convex) block, else None. tank: a fixed block built from the scene's [tank] (or a box
+    obstacle) so that the tank is solid to blocks (rockwave/build/rocks.py tank_specs); the water already has the
+    tank's boundary particles there, so the coupling gives it no penalty faces and it gets no wall particles.
     """
 
     geometry: ConvexPolyhedron
@@ -209,6 +211,7 @@ class BlockSpec:
     name: str = ""
     strain_damping_ratio: float = 0.05
     compound: CompoundPart | None = None
+    tank: bool = False
 
 
 def _compound_ranges(specs: list) -> tuple[np.ndarray, list]:

@@ -30,6 +30,7 @@ from rockwave.output import surface as surf
 from rockwave.output import usd, vtk
 from rockwave.output.usd import UsdFrameWriter, points_setup
 from rockwave.sim.checkpoint import csv_restore, csv_state
+from rockwave.sim.energy import COLUMNS
 
 FLUID_PRIM = "/World/fluid"
 BLOCKS_PRIM = "/World/blocks"
@@ -133,6 +134,44 @@ def block_csv(path: Path, names: list[str]) -> CsvRecorder:
                 for i, n in enumerate(names)]
 
     return CsvRecorder(path, BLOCK_CSV_HEADER, rows)
+
+
+class EnergyRecorder(CsvRecorder):
+    """energy.csv (``output.energy_csv``; rockwave/sim/energy.py COLUMNS): the energy budget each frame, checked by
+    the guard (a warning, or a stop with simulation.energy_check = 'error'); run.json's "energy" from ``summary()``.
+    Without a file (energy_csv = '') it still measures and checks."""
+
+    def __init__(self, sim, path: Path | None):
+        self.sim = sim
+        self.write = path is not None
+        super().__init__(path if path is not None else Path(), COLUMNS, self._rows)
+
+    def _rows(self, f: Frame) -> list[list]:
+        sim = self.sim
+        if sim.n_fluid:
+            row = sim.energy.measure(f.x, f.v, f.rho)
+        else:
+            row = sim.energy.measure()
+        sim.check_energy(row)
+        return [[float(row[k]) for k in COLUMNS]]
+
+    def frame(self, f: Frame) -> None:
+        if self.write:
+            super().frame(f)
+        else:
+            self.rows = self._rows(f)[-1:]
+
+    def checkpoint_state(self, tag: str) -> dict | None:
+        return super().checkpoint_state(tag) if self.write else None
+
+    def restore(self, state: dict | None) -> None:
+        if self.write:
+            super().restore(state)
+            if self.rows:  # the budget goes on from the run's start and input work, not the resumed frame's
+                self.sim.energy.resume([float(c) for c in self.rows[0]], [float(c) for c in self.rows[-1]], COLUMNS)
+
+    def summary(self) -> dict:
+        return self.sim.energy.summary()
 
 
 def block_prim_paths(names: list[str], reserved=()) -> list[str]:

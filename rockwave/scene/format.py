@@ -144,6 +144,7 @@ SCHEMA: dict[str, Key] = {
         dt_s=Key("float", "fixed time step (time_step = 'fixed'); refused if above the stability limit", min=0, min_open=True),
         block_dt_safety=Key("float", "block step = this fraction of the critical DDA step 2/omega_max", default=BlockOptions.dt_safety, min=0.0, max=1.0, min_open=True),
         dt_update_interval=Key("int", "steps between adaptive time-step updates (one host read each)", default=10, min=1, max=10000),
+        energy_check=Key("str", "the energy budget's check (rockwave/sim/energy.py): the total energy of water and rock growing beyond the input work of kinematic blocks by more than 1% of the scene's releasable energy is a 'warn'ing, an 'error' (the run stops as on a blow-up) or not checked ('off')", default="warn", choices=("warn", "error", "off")),
         block_contacts=Key("str", "multi-rate block sub-steps: 'held': a fluid step's first sub-step finds the contacts, the others carry them (points moved, depths advanced by the blocks' motion; while every pair out of contact stays farther apart than it can close in the step); 'found': every sub-step runs the narrow phase (docs/coupling.md 'Multi-rate stepping')", default="held" if BlockOptions.hold_contacts else "found", choices=("held", "found")),
         block_stepping=Key("str", "with water and blocks: 'multirate': the water's limits set the step and the blocks sub-step inside it at their own (the water's load held over the step; at most 1000 sub-steps); 'single': one step for both at the smallest limit (docs/coupling.md 'Multi-rate stepping')", default="multirate", choices=("multirate", "single")),
         device=Key("str", "'auto' (first GPU if any, else CPU), 'cpu', 'cuda' or 'cuda:N'; the CLI --device overrides", default="auto"),
@@ -210,6 +211,7 @@ SCHEMA: dict[str, Key] = {
         mesh=_REGION_KEYS["mesh"], mesh_scale=_REGION_KEYS["mesh_scale"], mesh_offset_m=_REGION_KEYS["mesh_offset_m"],
         boundary_spacing_ratio=Key("float", "boundary particle spacing / fluid spacing", default=1.0, min=0.25, max=2.0),
         layers=Key("int", "boundary particle layers (default: enough to cover the kernel support)", min=1, max=10),
+        block_contact=Key("bool", "a box tank (and every box obstacle) is also solid to rock blocks: its floor, walls (and lid when the top is closed) become fixed DDA blocks outside the box, with a fixed block's default material, built when the scene has rigid or deformable blocks (docs/coupling.md 'Tanks and blocks'); a mesh tank or obstacle is not (a warning): build its walls of fixed blocks", default=True),
     ),
     "obstacles": _list("solid obstacles inside the tank, made of boundary particles (box or closed mesh)", **_REGION_KEYS),
     "blocks": _list(
@@ -290,6 +292,7 @@ SCHEMA: dict[str, Key] = {
         chunk_frames=Key("int", "frames per USD clip file (a long run is a stage of value clips; the first clips hold 1, 2, 4, ... frames so the stage is readable from the first frame)", default=50, min=1),
         gauges_csv=Key("str", "CSV of gauge readings per frame (a file name in the output folder); '' to skip", default="gauges.csv"),
         blocks_csv=Key("str", "CSV of block position, velocity, spin and contact count per frame (a file name in the output folder); '' to skip", default="blocks.csv"),
+        energy_csv=Key("str", "CSV of the energy budget per frame: kinetic, potential and elastic energy of water and rock, the penalty springs, the work of kinematic blocks, total and growth (docs/outputs.md 'The energy budget'); '' to skip (run.json keeps the summary)", default="energy.csv"),
         checkpoint_interval_s=Key("float", "wall-clock seconds between checkpoints (checkpoint.npz; 'run --resume' continues from it); 0: only on Ctrl-C or a blow-up", default=600.0, min=0.0),
         gauges=_list("probes read every frame",
                      name=Key("str", "column name in the CSV", required=True),
@@ -825,7 +828,7 @@ def _check_outputs(v: _Validator, s: Node) -> None:
     """Output names are plain file names in the output folder, distinct from each other."""
     out = s["output"]
     seen: dict[str, str] = {}
-    for key in ("usd", "gauges_csv", "blocks_csv", "vtk"):
+    for key in ("usd", "gauges_csv", "blocks_csv", "energy_csv", "vtk"):
         name = out.get(key)
         if not isinstance(name, str) or name == "":
             continue

@@ -26,11 +26,13 @@ cure a too-compressible fluid); otherwise a smaller time step (cfl_number, block
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
 from rockwave.build.options import boundary_lattice, gravity_norm
 from rockwave.dda.blocks import DEFAULT_YOUNGS_MODULUS
+from rockwave.sim.energy import fmt_growth
 from rockwave.sph.fluid import SOUND_SPEED_FACTOR, expected_flow_speed
 
 SPEED_FACTOR = 5.0
@@ -203,6 +205,23 @@ class HealthGuard:
                         f"t = {sim.time:.6g} s (step {sim.steps}; more than {100 * LEAK_FRACTION:g}% is fatal): {advice}")
         err.step, err.time, err.suggested_dt, err.key = sim.steps, sim.time, None, key
         raise err
+
+    def check_energy(self, budget, row: dict) -> bool:
+        """The energy budget's check (rockwave/sim/energy.py) on a frame's row: growth beyond the input work by more
+        than ENERGY_GROWTH_LIMIT of the scene's releasable energy warns once (``simulation.energy_check = "warn"``,
+        the default) or stops the run as a blow-up (``"error"``). Returns whether the row is within the bound."""
+        mode = self.sim.scene.simulation.get("energy_check", "warn")
+        if mode == "off" or not budget.exceeded(row):
+            return True
+        what = fmt_growth(budget, row)
+        if mode == "error":
+            err = BlowUpError(f"energy created at step {self.sim.steps}, {what} (simulation.energy_check = 'error')")
+            err.step, err.time, err.suggested_dt, err.key = self.sim.steps, self.sim.time, None, "simulation.energy_check"
+            raise err
+        if not getattr(self, "warned_energy", False):
+            warnings.warn(f"{what}; not fatal (simulation.energy_check = 'error' stops the run)", stacklevel=2)
+            self.warned_energy = True
+        return False
 
     def check(self, x: np.ndarray, v: np.ndarray) -> int:
         """Raise on a blow-up; return the number of fluid particles outside the domain."""

@@ -83,7 +83,7 @@ class Gauges:
             wp.launch(gauge_k.gauge_solid_profile, dim=(nb, n), inputs=[xb, fluid.particle_mass, nf, self.pos, self.is_height,
                                                                    up, self.z0, self.dz, fluid.params],
                       outputs=[self.phi_s], device=device)
-        if any(heights) and blocks is not None and any(spec.kind == "fixed" for spec in blocks.specs):
+        if any(heights) and blocks is not None and any(spec.kind == "fixed" and not spec.tank for spec in blocks.specs):
             self._add_fixed_blocks(blocks, block_state, heights)
         self.out = wp.zeros(rows, dtype=float, device=device)
         self.sums = wp.zeros((rows, 2), dtype=float, device=device)
@@ -100,7 +100,7 @@ class Gauges:
         z = self.z0 + self.dz * np.arange(self.n_samples)
         pos = self.pos.numpy().astype(np.float64)
         phi_s = self.phi_s.numpy()
-        fixed = np.array([spec.kind == "fixed" for spec in blocks.specs])
+        fixed = np.array([spec.kind == "fixed" and not spec.tank for spec in blocks.specs])  # the [tank]: its particles
         for gi, is_h in enumerate(heights):
             if not is_h:
                 continue

@@ -39,6 +39,7 @@ from rockwave.dda.blocks import BlockOptions
 from rockwave.scene.format import Scene, SceneError, load_scene
 from rockwave.sim import checkpoint
 from rockwave.sim.clock import MAX_BLOCK_SUBSTEPS, Clock, gravity_norm
+from rockwave.sim.energy import EnergyBudget
 from rockwave.sim.guard import BlowUpError, HealthGuard
 from rockwave.sim.readers import Readers
 from rockwave.sim.stepping import BlockSubstepping
@@ -346,6 +347,26 @@ class Simulation:
             self._guard = HealthGuard(self)
         try:
             return self._guard.check(x, v)
+        except BlowUpError as e:
+            err = SimulationError(str(e))
+            err.__dict__.update(e.__dict__)
+            raise err from None
+
+    @property
+    def energy(self):
+        """The run's energy budget (rockwave/sim/energy.py EnergyBudget): ``sim.energy.measure()`` reads one row
+        (the first call sets the start every later row is compared with)."""
+        if getattr(self, "_energy", None) is None:
+            self._energy = EnergyBudget(self)
+        return self._energy
+
+    def check_energy(self, row: dict) -> bool:
+        """The guard's energy check on a budget row (rockwave/sim/guard.py check_energy): a warning, or a
+        SimulationError with simulation.energy_check = 'error'; False when the growth is beyond the bound."""
+        if getattr(self, "_guard", None) is None:
+            self._guard = HealthGuard(self)
+        try:
+            return self._guard.check_energy(self.energy, row)
         except BlowUpError as e:
             err = SimulationError(str(e))
             err.__dict__.update(e.__dict__)

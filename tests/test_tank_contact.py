@@ -1,0 +1,225 @@
+"""Rock meets water and tank (issue 37): the [tank] is solid to blocks, water seeded inside a block is reported, a
+block landing under water puts in no energy it did not bring, and every run keeps an energy budget
+(rockwave/build/rocks.py tank_specs, rockwave/sim/energy.py, docs/coupling.md "Tanks and blocks" and "Landing under
+water", docs/outputs.md "The energy budget")."""
+
+import csv
+import json
+import re
+import tomllib
+import warnings
+
+import numpy as np
+import pytest
+
+from rockwave import Simulation, SimulationError
+from rockwave.build import preflight
+from rockwave.build.rocks import block_specs
+from rockwave.scene.format import parse_scene
+from rockwave.sim.energy import COLUMNS, eos_energy
+from tests.helpers import ROOT, with_changes
+
+
+def _drop_2d(**changes):
+    """A 0.1 m rock (2.6 kg over its 0.1 m depth, soft contact k_n = 5e5 N/m for few block sub-steps) above a 2D
+    [tank] with no floor block; a little water in the far corner (a tank needs water)."""
+    d = {"simulation": {"dimension": 2, "duration_s": 1.0},
+         "fluid": {"spacing_m": 0.02, "eos": {"speed_of_sound_m_s": 15.0}, "viscosity": {"artificial_alpha": 0.05},
+                   "regions": [{"box_min_m": [0.5, 0.0], "box_max_m": [0.6, 0.06]}]},
+         "tank": {"box_min_m": [0.0, 0.0], "box_max_m": [0.6, 0.8]},
+         "blocks": [{"name": "rock", "shape": "box", "size_m": [0.1, 0.1, 0.1], "position_m": [0.2, 0.08, 0.0],
+                     "density_kg_m3": 2600.0, "material": {"normal_stiffness_n_m": 5.0e5}}]}
+    return with_changes(d, **changes)
+
+
+def _drop_3d(**changes):
+    d = {"simulation": {"dimension": 3, "duration_s": 1.0},
+         "fluid": {"spacing_m": 0.04, "eos": {"speed_of_sound_m_s": 15.0}, "viscosity": {"artificial_alpha": 0.05},
+                   "regions": [{"box_min_m": [0.32, 0.32, 0.0], "box_max_m": [0.4, 0.4, 0.08]}]},
+         "tank": {"box_min_m": [0.0, 0.0, 0.0], "box_max_m": [0.4, 0.4, 0.6]},
+         "blocks": [{"name": "rock", "shape": "box", "size_m": [0.1, 0.1, 0.1], "position_m": [0.15, 0.15, 0.08],
+                     "orientation_deg": [0.0, 0.0, 20.0], "density_kg_m3": 2600.0,
+                     "material": {"normal_stiffness_n_m": 5.0e5}}]}
+    return with_changes(d, **changes)
+
+
+def _landing(dim: int, squeeze: bool, stepping: str = "single"):
+    """The issue's landing under water at CPU size: a 0.1 m rock (density 2600, k_n 5e5 N/m) released 0.05 m above
+    0.3 m (2D) / 0.15 m (3D) of water in a [tank], landing on the tank floor."""
+    if dim == 2:
+        d = {"simulation": {"dimension": 2, "duration_s": 1.0},
+             "fluid": {"spacing_m": 0.02, "eos": {"speed_of_sound_m_s": 15.0}, "viscosity": {"artificial_alpha": 0.05},
+                       "regions": [{"box_min_m": [0.0, 0.0], "box_max_m": [0.6, 0.3]}]},
+             "tank": {"box_min_m": [0.0, 0.0], "box_max_m": [0.6, 0.6]},
+             "blocks": [{"name": "rock", "shape": "box", "size_m": [0.1, 0.1, 0.1], "position_m": [0.3, 0.4, 0.0],
+                         "density_kg_m3": 2600.0, "material": {"normal_stiffness_n_m": 5.0e5}}]}
+    else:
+        d = {"simulation": {"dimension": 3, "duration_s": 1.0},
+             "fluid": {"spacing_m": 0.025, "eos": {"speed_of_sound_m_s": 15.0}, "viscosity": {"artificial_alpha": 0.05},
+                       "regions": [{"box_min_m": [0.0, 0.0, 0.0], "box_max_m": [0.3, 0.3, 0.15]}]},
+             "tank": {"box_min_m": [0.0, 0.0, 0.0], "box_max_m": [0.3, 0.3, 0.4]},
+             "blocks": [{"name": "rock", "shape": "box", "size_m": [0.1, 0.1, 0.1], "position_m": [0.15, 0.15, 0.25],
+                         "density_kg_m3": 2600.0, "material": {"normal_stiffness_n_m": 5.0e5}}]}
+    d["coupling"] = {"squeeze_out": squeeze}
+    d["simulation"]["block_stepping"] = stepping
+    return parse_scene(d)
+
+
+def test_tank_blocks_are_built_for_moving_blocks_only():
+    """The box tank's floor and walls (lid when closed) and box obstacles become fixed blocks marked ``tank``, outside
+    the tank's box and not overlapping each other; none without a rigid block or with tank.block_contact = false."""
+    specs = block_specs(parse_scene(_drop_2d()))
+    names = [s.name for s in specs]
+    assert names == ["rock", "tank.floor", "tank.wall_xmin", "tank.wall_xmax"]
+    tank = [s for s in specs if s.tank]
+    assert all(s.kind == "fixed" for s in tank) and not specs[0].tank
+    floor = tank[0]
+    top = np.asarray(floor.geometry.vertices) + np.asarray(floor.position)
+    assert top[:, 1].max() == pytest.approx(0.0) and top[:, 1].min() < -0.1 + 1e-9  # under the floor, >= a block thick
+    z = top[:, 2]
+    assert z.min() < -0.05 and z.max() > 0.05  # 2D: covers the rock's depth
+    closed = block_specs(parse_scene(_drop_3d(**{"tank.open_top": False}, obstacles=[
+        {"box_min_m": [0.0, 0.3, 0.0], "box_max_m": [0.1, 0.4, 0.1]}])))
+    assert [s.name for s in closed if s.tank] == ["tank.floor", "tank.lid", "tank.wall_xmin", "tank.wall_xmax",
+                                                  "tank.wall_ymin", "tank.wall_ymax", "obstacle.0"]
+    assert not [s for s in block_specs(parse_scene(_drop_2d(**{"tank.block_contact": False}))) if s.tank]
+    assert not [s for s in block_specs(parse_scene(_drop_2d(**{"blocks": [dict(_drop_2d()["blocks"][0], kind="fixed")]})))
+                if s.tank]
+    # a rock placed through the tank wall: the overlap names the tank's block and the key
+    with pytest.raises(Exception, match=r"tank.wall_xmin.*tank.block_contact"):
+        preflight.check_blocks(parse_scene(_drop_2d(**{"blocks": [dict(_drop_2d()["blocks"][0], position_m=[0.0, 0.3, 0.0])]})))
+
+
+def test_tank_blocks_get_no_penalty_faces_or_wall_particles():
+    sim = Simulation(parse_scene(_drop_2d()), device="cpu")
+    tank = [s.tank for s in sim.blocks.specs]
+    assert sim.coupling.faces.wall_only.numpy().tolist() == [int(t) for t in tank]
+    assert sim.fluid.n_boundary == Simulation(parse_scene(_drop_2d(**{"tank.block_contact": False})), device="cpu").fluid.n_boundary
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_block_rests_on_the_tank_floor(dim):
+    """A block dropped into a [tank] with no floor block lands on the tank floor and rests there within its elastic
+    penetration m g / (n k_n) (k_n the softer of the pair: the rock's 5e5 N/m); 3D turned 20 deg about z."""
+    sim = Simulation(parse_scene(_drop_2d() if dim == 2 else _drop_3d()), device="cpu")
+    up = dim - 1
+    sim.advance(0.4)
+    x, v = sim.block_positions()[0], sim.block_velocities()[0]
+    n = 2 if dim == 2 else 4  # contact points of a face on the floor: the prism's 2D corners, the cube's 4
+    elastic = sim.blocks.np["mass"][0] * 9.81 / (n * 5.0e5)
+    bottom = x[up] - 0.05
+    assert -3.0 * elastic < bottom < 1e-6, (bottom, elastic)
+    assert abs(v[up]) < 0.02 and np.linalg.norm(v) < 0.05
+
+
+def test_readme_example_boulder_lands_on_the_floor():
+    """The complete example of docs/scenes.md (3D dam break, a box obstacle, a 0.2 m boulder) at a coarse spacing:
+    the boulder lands on the tank floor and stays (before issue 37 it fell through: z = -1.30 m after 1 s)."""
+    text = (ROOT / "docs" / "scenes.md").read_text()
+    d = tomllib.loads(re.search(r"```toml\n(.*?)```", text, re.S).group(1))
+    d = with_changes(d, **{"fluid.spacing_m": 0.1, "blocks": [dict(d["blocks"][0], position_m=[1.5, 0.5, 0.15])]})
+    d.pop("output", None)
+    sim = Simulation(parse_scene(d), device="cpu")
+    assert "tank.floor" in sim.blocks.names and "obstacle.0" in sim.blocks.names
+    sim.advance(0.4)
+    z, vz = sim.block_positions()[0][2], sim.block_velocities()[0][2]
+    assert abs(z - 0.1) < 1e-3 and abs(vz) < 0.05, (z, vz)
+
+
+def test_water_seeded_inside_a_block_is_reported():
+    """A region overlapping a block loses the particles inside it: a one-line warning with the count at the run and in
+    validate (preflight.check_blocks), removed_inside_blocks as before."""
+    d = _drop_2d(**{"fluid.regions": [{"box_min_m": [0.0, 0.0], "box_max_m": [0.6, 0.1]}]})
+    d["blocks"][0]["position_m"] = [0.2, 0.06, 0.0]  # its lower part in the water
+    scene = parse_scene(d)
+    with pytest.warns(UserWarning, match=r"fluid.regions: (\d+) of 150 water particles .* not seeded") as rec:
+        sim = Simulation(scene, device="cpu")
+    n = int(re.search(r": (\d+) of", str(rec[0].message)).group(1))
+    assert n == sim.removed_inside_blocks > 0
+    with pytest.warns(UserWarning, match=rf"fluid.regions\[0\]: {n} of 150 water particles"):
+        preflight.check_blocks(scene)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Simulation(parse_scene(_drop_2d()), device="cpu")  # no overlap: no warning
+
+
+def test_eos_energy_is_the_integral_of_p_over_rho_squared():
+    sim = Simulation(parse_scene(_drop_2d()), device="cpu")
+    p = sim.fluid.params
+    rho = np.array([990.0, 1000.0, 1005.0, 1020.0])
+    rho0 = p.rest_density
+    for r in rho:
+        s = np.linspace(rho0, r, 20001)
+        pr = p.eos_b * ((s / rho0) ** p.eos_gamma - 1.0)
+        if p.clamp_negative:
+            pr = np.maximum(pr, 0.0)
+        expect = np.trapezoid(pr / s ** 2, s)
+        assert eos_energy(np.array([r]), p)[0] == pytest.approx(expect, rel=1e-6, abs=1e-12)
+
+
+def test_energy_budget_in_run_outputs(tmp_path):
+    """Every run writes energy.csv (the components per frame) and run.json's "energy" (start, end, input work,
+    dissipation, the largest growth and the check)."""
+    sim = Simulation(parse_scene(_drop_2d(**{"output.frame_rate_hz": 50.0})), device="cpu")
+    summary = sim.run(tmp_path, duration=0.06, progress=False)  # the rock lands at 0.077 s
+    rows = list(csv.reader((tmp_path / "energy.csv").open()))
+    assert rows[0] == COLUMNS and len(rows) == 1 + 4
+    e = json.loads((tmp_path / "run.json").read_text())["energy"]
+    assert e == json.loads(json.dumps(summary["energy"]))
+    assert e["units"] == "J/m" and e["check"] == "ok" and e["input_work_j"] == 0.0
+    # the rock falls in air (its potential energy becomes kinetic), the corner's water collapses (artificial viscosity
+    # dissipates a little: 0.3% of the scale measured)
+    assert e["end"]["rock_kinetic_j"] > 0.0 and 0.0 <= e["dissipated_j"] < 0.01 * e["scale_j"]
+    assert e["max_growth_j"] <= 1e-6 * e["scale_j"]
+
+
+def test_energy_check_warns_or_stops():
+    sim = Simulation(parse_scene(_drop_2d()), device="cpu")
+    row = dict(sim.energy.measure())
+    row["growth_j"] = 0.05 * sim.energy.scale
+    with pytest.warns(UserWarning, match="energy budget grew"):
+        assert sim.check_energy(row) is False
+    sim = Simulation(parse_scene(_drop_2d(**{"simulation.energy_check": "error"})), device="cpu")
+    row = dict(sim.energy.measure())
+    row["growth_j"] = 0.05 * sim.energy.scale
+    with pytest.raises(SimulationError, match="energy created"):
+        sim.check_energy(row)
+
+
+@pytest.mark.parametrize("dim,squeeze,stepping", [
+    (2, True, "single"), (2, False, "single"), (3, True, "single"),
+    pytest.param(2, False, "multirate", marks=pytest.mark.xfail(strict=True, reason=(
+        "issue 37, open: with multi-rate stepping the water's load is held over the block sub-steps of a fluid step in "
+        "which the rock hits the floor and bounces; the held push does work on the rebound that the water never gave "
+        "(+3.8 J/m here, 4x the bound; single-rate +0.36 J/m); docs/coupling.md 'Landing under water'")))])
+def test_landing_under_water_creates_no_energy(dim, squeeze, stepping):
+    """A rock landing on the tank floor under water (issue 37's scenes at CPU size). Bounds tested:
+    - the total energy of water and rock (the budget, read every 0.01 s) never rises above its lowest value so far by
+      more than 1% of the rock's potential energy above the floor (before the fix: +18.9 J in the 2D scene at 0.01 m,
+      16x the bound);
+    - the water's speed after the landing stays below 3x the rock's arrival speed plus the water's fastest before it
+      (the squeeze flow out of a gap of one spacing under a 0.1 m face: (L/2)/s = 2.5 spacings here; before the fix
+      11.3 m/s from an arrival at 1.05 m/s);
+    - the rock rests on the floor within its elastic penetration.
+    With block_stepping = "single" (one step for water and rock): multi-rate's held load is the open part (xfail)."""
+    sim = Simulation(_landing(dim, squeeze, stepping), device="cpu")
+    up = dim - 1
+    b = sim.energy
+    b.measure()
+    depth = 0.1 if dim == 2 else 1.0  # 2D: the budget is per metre of depth
+    pe_floor = sim.blocks.np["mass"][0] / depth * 9.81 * (sim.block_positions()[0][up] - 0.05)  # its fall to the floor
+    low, rise, v_before, v_after, arrival = None, 0.0, 0.0, 0.0, 0.0
+    while sim.time < (0.52 if dim == 2 else 0.46):
+        sim.advance(0.01)
+        r = b.measure()
+        low = r["total_j"] if low is None else min(low, r["total_j"])
+        rise = max(rise, r["total_j"] - low)
+        speed = float(np.linalg.norm(sim.velocities(), axis=1).max())
+        xb, vb = sim.block_positions()[0], sim.block_velocities()[0]
+        if xb[up] - 0.05 > 0.02:
+            arrival, v_before = max(arrival, -vb[up]), max(v_before, speed)
+        else:
+            v_after = max(v_after, speed)
+    assert xb[up] - 0.05 < 1e-3 and abs(vb[up]) < 0.05, (xb, vb)  # landed, at rest
+    assert rise < 0.01 * pe_floor, (rise, pe_floor)
+    assert v_after < v_before + 3.0 * arrival, (v_after, v_before, arrival)
