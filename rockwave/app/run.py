@@ -26,6 +26,7 @@ from rockwave.build import preflight
 from rockwave.output import recorders as rec
 from rockwave.output import surface as surf
 from rockwave.output.hazard import HazardMonitor
+from rockwave.scene.format import SCHEMA
 from rockwave.sim import checkpoint as ckpt
 
 WATCH_INTERVAL_S = 2.0  # wall seconds between progress lines and health checks inside a frame
@@ -236,7 +237,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     else:
         preflight.check_disk(sim, out, n_frames)
 
-    interval = o.get("checkpoint_interval_s", 600.0) if checkpoint_interval_s is None else checkpoint_interval_s
+    default_interval = SCHEMA["output"].children["checkpoint_interval_s"].default  # its one home: the scene schema
+    interval = o.get("checkpoint_interval_s", default_interval) if checkpoint_interval_s is None else checkpoint_interval_s
     checkpointer = ckpt.RunCheckpointer(sim, out, interval, t0, lambda: {
         "usd": usd, "escaped": escaped, "vtk": vtk, "csv": {"gauges": gauges, "blocks": blocks, "energy": energy},
         "wall_s": wall_before + time.perf_counter() - wall0})

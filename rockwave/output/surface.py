@@ -31,6 +31,10 @@ import numpy as np
 import warp as wp
 
 from rockwave.kernels.output import surface as surface_k
+from rockwave.scene.format import SCHEMA
+
+# the defaults of [output.surface], whose one home is the scene schema (rockwave/scene/format.py)
+_SURFACE = {k: v.default for k, v in SCHEMA["output"].children["surface"].children.items()}
 
 SURFACE_PRIM = "/World/fluid_surface"
 
@@ -95,7 +99,8 @@ class SurfaceExtractor:
     """
 
     def __init__(self, dim: int, spacing: float, mass: float, device, resolution_m: float | None = None,
-                 radius_ratio: float = 2.0, iso_level: float = 0.5, field: str = "colour", max_grid_nodes: int = 20_000_000):
+                 radius_ratio: float = _SURFACE["radius_ratio"], iso_level: float = _SURFACE["iso_level"],
+                 field: str = _SURFACE["field"], max_grid_nodes: int = _SURFACE["max_grid_nodes"]):
         if field not in ("colour", "metaball"):
             raise ValueError(f"surface field {field!r}: expected 'colour' or 'metaball'")
         self.dim = int(dim)
@@ -239,8 +244,7 @@ def extractor_for(scene, model, device) -> SurfaceExtractor | None:
     if not s or not s.get("enabled", False) or model.n_fluid == 0:
         return None
     return SurfaceExtractor(scene.dim, model.spacing, model.fluid_mass, device, resolution_m=s.get("resolution_m"),
-                            radius_ratio=s.get("radius_ratio", 2.0), iso_level=s.get("iso_level", 0.5),
-                            field=s.get("field", "colour"), max_grid_nodes=s.get("max_grid_nodes", 20_000_000))
+                            **{k: s.get(k, _SURFACE[k]) for k in ("radius_ratio", "iso_level", "field", "max_grid_nodes")})
 
 
 # ------------------------------------------------------------------------------------------ USD

@@ -455,7 +455,7 @@ class DistributedSimulation(Simulation):
         df.migrate()
         t = _lap(tm, "exchange", t)
         if self.block_solver is not None:  # replicated: identical loads, identical steps on every rank
-            self.block_stepping.advance(self.block_state, ts)
+            self.block_stepping.advance(self.block_solver, self.block_state, ts)
 
     def _coupled_compute(self, state, local, ts) -> None:
         """The coupling over the owned particles only (they come first); the block loads summed over ranks."""

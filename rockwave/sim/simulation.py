@@ -25,7 +25,6 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from rockwave.app.run import run
 from rockwave.base.device import resolve_device  # noqa: F401  (rockwave/base/device.py; re-exported)
 from rockwave.base.errors import SimulationError
 from rockwave.base.maths import pad3
@@ -95,7 +94,7 @@ class Simulation:
         self.removed_inside_blocks = parts.removed_inside_blocks
         self.gravity = np.asarray(pad3(scene.gravity.acceleration_m_s2))
         self.clock = Clock(scene, self.device, self._limits(), self._stability_bounds(), self._block_substep())
-        self.block_stepping = BlockSubstepping(self.block_solver, self.clock) if self.block_solver is not None else None
+        self.block_stepping = BlockSubstepping(self.clock) if self.block_solver is not None else None
         self.gauge_names = [g.name for g in scene.output.gauges]
         if self.coupling is not None and self.coupling.walls is not None:  # the walls' acceleration estimate
             walls = self.coupling.walls
@@ -200,7 +199,7 @@ class Simulation:
         if self.coupling is not None:
             self.coupling.apply(self.state, ts)
         if self.block_solver is not None:  # 2D: with the planar constraint
-            self.block_stepping.advance(self.block_state, ts)
+            self.block_stepping.advance(self.block_solver, self.block_state, ts)
 
     # Chunks (step_many; advance on a GPU): a reorder of the fluid by cell, then reorder_interval
     # steps. A fluid-only scene on a GPU replays a chunk as one CUDA graph (dt is read from the device
@@ -376,6 +375,7 @@ class Simulation:
     def run(self, out_dir: str | os.PathLike, duration: float | None = None, progress: bool = True,
             resume: bool = False, checkpoint_interval_s: float | None = None, force: bool = False) -> dict:
         """Run the scene with outputs into ``out_dir``; see rockwave.app.run.run."""
+        from rockwave.app.run import run  # the one upward import (tests/test_layers.py EXCEPTIONS): the run loop
 
         return run(self, out_dir, duration=duration, progress=progress, resume=resume,
                    checkpoint_interval_s=checkpoint_interval_s, force=force)

@@ -23,16 +23,16 @@ from rockwave.sim.clock import Clock
 
 @dataclass
 class BlockSubstepping:
-    """Advances the blocks through one fluid step: ``clock.substeps`` sub-steps of ``ts.dt / substeps``."""
+    """Advances the blocks through one fluid step: ``clock.substeps`` sub-steps of ``ts.dt / substeps``. The solver is
+    passed with each step (a Simulation's block solver may be replaced, e.g. with other BlockOptions)."""
 
-    solver: BlockSolver
     clock: Clock
     pairs_hold: bool | None = None  # the last hold check's verdicts; None: not checked yet in this run
     contacts_hold: bool | None = None
 
-    def advance(self, state: BlockState, ts: TimeStep) -> None:
+    def advance(self, solver: BlockSolver, state: BlockState, ts: TimeStep) -> None:
         n = self.clock.substeps
         if n > 1 and (self.clock.steps % self.clock.update_interval == 0 or self.pairs_hold is None):
-            self.pairs_hold, self.contacts_hold = self.solver.hold_checks(state, ts.dt, self.clock.update_interval + 1)
-        self.solver.substeps(state, ts, n, keep_pairs=n > 1 and bool(self.pairs_hold),
+            self.pairs_hold, self.contacts_hold = solver.hold_checks(state, ts.dt, self.clock.update_interval + 1)
+        solver.substeps(state, ts, n, keep_pairs=n > 1 and bool(self.pairs_hold),
                              hold_contacts=n > 1 and bool(self.contacts_hold))  # the water's load held
