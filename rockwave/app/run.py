@@ -199,7 +199,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     usd = rec.UsdRecorder(sim, out / o.usd, surface, progress=_setup_progress("USD set-up", "block prims") if progress else None) \
         if o.usd else None
     gauges = rec.gauge_csv(out / o.gauges_csv, sim.gauge_names) if sim.gauge_names and o.gauges_csv else None
-    blocks = rec.block_csv(out / o.blocks_csv, sim.blocks.names) if sim.blocks is not None and o.blocks_csv else None
+    blocks = (rec.block_csv(out / o.blocks_csv, sim.blocks.names, skip=[i for i, sp in enumerate(sim.blocks.specs) if sp.tank])
+              if sim.blocks is not None and o.blocks_csv else None)
     vtk = rec.VtkRecorder(sim, out / o.vtk) if o.get("vtk") else None
     energy = rec.EnergyRecorder(sim, out / o.energy_csv if o.get("energy_csv") else None)  # the budget, checked each frame
     recorders = [r for r in (usd, vtk, blocks, gauges, energy) if r is not None]

@@ -127,11 +127,14 @@ def gauge_csv(path: Path, names: list[str]) -> CsvRecorder:
     return CsvRecorder(path, ["time_s"] + names, lambda f: [[f.time] + [f.gauges[n] for n in names]])
 
 
-def block_csv(path: Path, names: list[str]) -> CsvRecorder:
+def block_csv(path: Path, names: list[str], skip=()) -> CsvRecorder:
+    """blocks.csv: one row per block and frame; the blocks of ``skip`` (indices: the tank's own fixed blocks) left out."""
+    keep = [(i, n) for i, n in enumerate(names) if i not in set(skip)]
+
     def rows(f: Frame):
         b = f.blocks
         return [[f.time, i, n, *map(float, b["x"][i]), *map(float, b["v"][i]), *map(float, b["w"][i]), int(b["contacts"][i])]
-                for i, n in enumerate(names)]
+                for i, n in keep]
 
     return CsvRecorder(path, BLOCK_CSV_HEADER, rows)
 
