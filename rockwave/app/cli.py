@@ -33,7 +33,7 @@ def default_scene() -> Path:
             return Path(str(p))
     except (ImportError, OSError, TypeError):
         pass
-    return Path(__file__).resolve().parent.parent / "scenes" / DEFAULT_SCENE_NAME
+    return Path(__file__).resolve().parents[2] / "scenes" / DEFAULT_SCENE_NAME  # the checkout's scenes/ folder
 
 
 def _shipped_dir() -> Path:
