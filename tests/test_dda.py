@@ -349,9 +349,7 @@ def test_separation_screen_agrees_with_full_narrow_phase():
         if k % 40 != 39:
             continue
         # screened narrow phase at the current poses (as the next step would run it), then the full one
-        solver._prepare(state)
-        solver._broad_phase()
-        solver._narrow_phase(state, dt, screen=True)
+        solver.detect(state, screen=True, dt=dt)
         step_cs = {c["blocks"]: c for c in solver.contacts(state)}
         solver.detect(state)  # also clears the forces of the screened pass
         full_cs = {c["blocks"]: c for c in solver.contacts(state)}

@@ -99,9 +99,7 @@ def test_shifting_keeps_mass_moves_nothing_across_the_free_surface_or_into_a_wal
     sim = _sloshing()
     solver = sim.fluid_solver
     with wp.ScopedDevice(DEVICE):
-        solver.build_cells(sim.state)
-        solver.build_neighbour_lists(sim.state)
-        solver._lists_built()
+        solver.build_lists(sim.state)
         solver.particle_shift(sim.state)
     x = sim.state.x.numpy()[: sim.n_fluid]
     dr = solver.shift_displacements.numpy()

@@ -15,6 +15,7 @@ import warp as wp
 
 import rockwave
 from rockwave.build.options import coupling_options
+from rockwave.dda.blocks import BlockOptions
 from rockwave.scene.format import SceneError, parse_scene
 from rockwave.sim.clock import MAX_BLOCK_SUBSTEPS
 from rockwave.sim.simulation import SimulationOptions
@@ -156,9 +157,7 @@ def test_substep_graphs_replay_the_launched_substeps():
     are atomic sums, whose order on a GPU is not fixed), and the graphs were used."""
     runs = []
     for graphs in (True, False):
-        sim = _sim(_slide_dict())
-        if not graphs:
-            sim.block_solver._substep_graphs = None
+        sim = _sim(_slide_dict(), options=None if graphs else SimulationOptions(blocks=BlockOptions(substep_graphs=False)))
         sim.advance(0.05)
         assert sim.clock.substeps > 1
         runs.append((sim.block_positions(), sim.block_velocities(), sim.block_solver.graph_substeps,

@@ -360,7 +360,7 @@ def test_relative_skin_check_keeps_every_neighbour_and_rebuilds_less():
     for mode in ("relative", "absolute"):
         sim = _dam_break("continuity", skin_check=mode, relative_min_particles_cuda=0)  # (GPU: on at any size)
         fs = sim.fluid_solver
-        assert (fs._check is not None) == (mode == "relative")
+        assert fs.relative_skin_check == (mode == "relative")
         H = sim.fluid.support_radius
         n = sim.n_fluid
         count = _BuildCounter(fs)  # (list_builds counts host-decided builds only: the CPU's)

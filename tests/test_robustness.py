@@ -541,7 +541,7 @@ def test_particles_leaving_the_domain_are_counted_not_fatal(tmp_path):
     with pytest.warns(UserWarning, match=r"have left the tank so far \(0 through the tank walls, \d thrown over the open top\)"):
         summary = sim.run(tmp_path, progress=False, checkpoint_interval_s=0)
     assert 0 < summary["particles_outside_domain"] <= 4
-    assert summary["particles_outside_domain"] == sim._guard.left == int(sim._guard.left_top.sum())
+    assert summary["particles_outside_domain"] == sim.guard.left == int(sim.guard.left_top.sum())
 
 
 # --------------------------------------------------------------------------------------------

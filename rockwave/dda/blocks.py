@@ -1327,12 +1327,14 @@ class BlockSolver:
         if m.planar:
             wp.launch(dda_k.planar_blocks, dim=m.num_blocks, inputs=[m.planar_z, m.kinds, state.bodies], device=d)
 
-    def detect(self, state: BlockState):
-        """Collision detection only (world vertices, broad + narrow phase), forces discarded."""
-        self._set_clock(0.0, 0.0)
+    def detect(self, state: BlockState, screen: bool = False, dt: float = 0.0):
+        """Collision detection only (world vertices, broad + narrow phase), forces discarded. ``screen``: as a step
+        runs it (pairs whose warm-start plane already separates them by more than they can close in ``dt`` are
+        skipped, kernels/dda/blocks.py); False: every candidate pair through the full FCP search."""
+        self._set_clock(0.0, dt)
         self._prepare(state)
         self._broad_phase(force=True)
-        self._narrow_phase(state, 0.0, screen=False)
+        self._narrow_phase(state, dt, screen=screen)
         wp.launch(dda_k.clear_forces, dim=self.model.num_blocks, inputs=[state.loads], device=self.device)
 
     def settle(self, state: BlockState) -> dict:

@@ -341,15 +341,20 @@ class Simulation:
         """Blow-up guard (rockwave/sim/guard.py): raise SimulationError on NaN/inf, runaway speed, the water
         flying apart or an energy jump (the message gives step, time, where and a suggested time step);
         return the count of fluid particles outside the domain (not fatal)."""
-
-        if getattr(self, "_guard", None) is None:
-            self._guard = HealthGuard(self)
         try:
-            return self._guard.check(x, v)
+            return self.guard.check(x, v)
         except BlowUpError as e:
             err = SimulationError(str(e))
             err.__dict__.update(e.__dict__)
             raise err from None
+
+    @property
+    def guard(self) -> HealthGuard:
+        """The blow-up guard of this run (rockwave/sim/guard.py HealthGuard): made at its first check; its counters
+        (``left``: fluid particles outside the domain, ``left_top``) are the run's."""
+        if getattr(self, "_guard", None) is None:
+            self._guard = HealthGuard(self)
+        return self._guard
 
     @property
     def energy(self):
@@ -362,10 +367,8 @@ class Simulation:
     def check_energy(self, row: dict) -> bool:
         """The guard's energy check on a budget row (rockwave/sim/guard.py check_energy): a warning, or a
         SimulationError with simulation.energy_check = 'error'; False when the growth is beyond the bound."""
-        if getattr(self, "_guard", None) is None:
-            self._guard = HealthGuard(self)
         try:
-            return self._guard.check_energy(self.energy, row)
+            return self.guard.check_energy(self.energy, row)
         except BlowUpError as e:
             err = SimulationError(str(e))
             err.__dict__.update(e.__dict__)

@@ -826,6 +826,8 @@ class FluidSolver:
     list_build_positions = property(lambda self: self._x_build, doc="wp.array(vec3): positions at the last list build [m]")
     rebuild_flag = property(lambda self: self._rebuild, doc="wp.array(int, 1): 1 when the next step rebuilds the lists")
     cell_order = property(lambda self: self._cell_order, doc="wp.array(int): particle index of each cell-sorted slot")
+    relative_skin_check = property(lambda self: self._check is not None,
+                                   doc="bool: the Verlet lists' skin is checked pairwise ('relative'), not per particle")
     diffusion_rate = property(lambda self: getattr(self, "_diff_rate", None),
                               doc="wp.array(float, n_fluid) or None: the last density-diffusion rate [kg/m^3/s]")
     shift_displacements = property(lambda self: getattr(self, "_shift_dr", None),
@@ -942,15 +944,20 @@ class FluidSolver:
                       m.params],
                      [state.accel, state.xsph_dv])
 
+    def build_lists(self, state: FluidState) -> None:
+        """The cell grid and the neighbour lists of the current positions, outside a step (diagnostics, tests)."""
+        with wp.ScopedDevice(self.model.device):
+            self.build_cells(state)
+            self.build_neighbour_lists(state)
+            self._lists_built()
+
     def pair_accelerations(self, state: FluidState, lists_built: bool = False) -> None:
         """The step's pair forces for the current density and pressure, without moving a particle: lists built
         (unless ``lists_built``), wall pressure extrapolated, then state.accel (pressure + viscosity + gravity) and
         state.xsph_dv."""
         with wp.ScopedDevice(self.model.device):
             if not lists_built:
-                self.build_cells(state)
-                self.build_neighbour_lists(state)
-                self._lists_built()
+                self.build_lists(state)
             self.wall_pressure(state)
             self._pair_forces_pass(state, None)
 
