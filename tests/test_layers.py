@@ -16,11 +16,7 @@ PHYSICS = ("base", "sph", "dda", "coupling")
 EXCEPTIONS = {
     ("rockwave.sim.simulation", "rockwave.app.run"): "Simulation.run hands a simulation over to the run loop",
 }
-# third-party packages that may be imported inside functions (optional or slow to import)
-OPTIONAL = {"pxr", "mpi4py", "ray", "pyarrow", "coacd", "matplotlib", "warp", "trimesh", "scipy", "itertools",
-            "tomllib", "hashlib", "subprocess", "resource", "ctypes", "signal", "shutil", "platform", "importlib",
-            "multiprocessing", "concurrent", "tempfile", "nccl4py", "cupy", "fcntl", "textwrap", "traceback", "io",
-            "json", "csv", "time", "sys", "os", "glob", "pyarrow.parquet"}
+
 
 
 def _modules() -> dict[str, pathlib.Path]:
