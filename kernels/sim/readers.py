@@ -86,6 +86,44 @@ def water_fraction(fluid: wp.array2d(dtype=float), solid: wp.array2d(dtype=float
     return fluid[g, k] / open_
 
 
+@wp.func
+def column_top(fluid: wp.array2d(dtype=float), solid: wp.array2d(dtype=float), g: int, n: int, z0: float, dz: float,
+               reach: int) -> float:
+    """The top of the continuous water column on line g, sampled at z0 + k dz for k < n (gauge_level)."""
+    level = float(wp.nan)
+    bed = int(-1)
+    wet = int(0)
+    top = int(-1)  # the sample of the last crossing (-1: none yet)
+    prev = float(0.0)
+    for k in range(n):
+        f = water_fraction(fluid, solid, g, k)
+        inside = 1.0 - solid[g, k] < SOLID_CUTOFF
+        if inside:
+            bed = -1  # inside a wall: the bed is above
+            wet = 0
+            top = -1  # a wall on top of the column: it may go on above the wall
+        elif bed < 0:
+            bed = k
+        if top >= 0 and k - top > reach:
+            return level  # air above the column and no wall: done
+        if not inside:
+            if wet == 0:
+                if f >= 0.5:
+                    if bed >= n or k - bed > reach:
+                        return level  # water resting on nothing (or overhead, with air between)
+                    wet = 1
+                    top = -1
+            elif f < 0.5:
+                level = z0 + (float(k - 1) + (prev - 0.5) / (prev - f)) * dz
+                wet = 0
+                top = k
+                bed = 2 * n  # no new bed in the air: only above a wall
+        prev = f
+    if wet == 1:
+        level = z0 + float(n - 1) * dz
+    return level
+
+
 @wp.kernel
 def gauge_level(
     fluid: wp.array2d(dtype=float),
@@ -107,41 +145,7 @@ def gauge_level(
     g = wp.tid()
     if is_height[g] == 0:
         return
-    n = fluid.shape[1]
-    level = float(wp.nan)
-    bed = int(-1)
-    wet = int(0)
-    top = int(-1)  # the sample of the last crossing (-1: none yet)
-    prev = float(0.0)
-    for k in range(n):
-        f = water_fraction(fluid, solid, g, k)
-        inside = 1.0 - solid[g, k] < SOLID_CUTOFF
-        if inside:
-            bed = -1  # inside a wall: the bed is above
-            wet = 0
-            top = -1  # a wall on top of the column: it may go on above the wall
-        elif bed < 0:
-            bed = k
-        if top >= 0 and k - top > reach:
-            out[g] = level  # air above the column and no wall: done
-            return
-        if not inside:
-            if wet == 0:
-                if f >= 0.5:
-                    if bed >= n or k - bed > reach:
-                        out[g] = level  # water resting on nothing (or overhead, with air between)
-                        return
-                    wet = 1
-                    top = -1
-            elif f < 0.5:
-                level = z0 + (float(k - 1) + (prev - 0.5) / (prev - f)) * dz
-                wet = 0
-                top = k
-                bed = 2 * n  # no new bed in the air: only above a wall
-        prev = f
-    if wet == 1:
-        level = z0 + float(n - 1) * dz
-    out[g] = level
+    out[g] = column_top(fluid, solid, g, fluid.shape[1], z0, dz, reach)
 
 
 @wp.kernel

@@ -312,7 +312,33 @@ def build(scene: Scene, device: str, options: SolverOptions | None = None) -> Pa
     return parts
 
 
-def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None) -> None:
+@dataclass
+class FluidSeeds:
+    """The host arrays a fluid model is made from (:func:`seed_fluid`): positions (n, 3) [m] in the scene's frame."""
+
+    fluid: np.ndarray
+    """Fluid positions after the removal inside blocks and the packed start."""
+
+    velocities: np.ndarray
+    """Fluid velocities [m/s]."""
+
+    depth: np.ndarray
+    """Depth of each fluid particle below its region's top [m] (the hydrostatic start)."""
+
+    boundary: np.ndarray
+    """Static boundary particles: the tank's and obstacles' layers, the fixed blocks' Adami walls."""
+
+    moving: np.ndarray | None = None
+    """Wall particles of the moving blocks (None: none asked for)."""
+
+    moving_blocks: np.ndarray | None = None
+    """int64 block index of each moving wall particle."""
+
+
+def seed_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None) -> FluidSeeds:
+    """Every particle of the scene's water and walls on the host, as :func:`build_fluid` places them (``parts``: the
+    blocks already built; its ``removed_inside_blocks`` is set). rockwave/sim/batch.py seeds each scenario of a batch
+    with it, in the scenario's own frame, before moving it to its tile."""
     xf, vf, depth, xb = seed_particles(scene, device)
     if parts.blocks is not None:
         xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth, options)
@@ -327,12 +353,22 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions 
         xw = fixed_block_walls(scene, parts, xf, bstep, layers)
         if len(xw):
             xb = np.concatenate([xb, xw]) if len(xb) else xw
-    xm = None
+    xm = mb = None
     if parts.blocks is not None and block_walls_on(scene, options):
-        xm, parts.moving_wall_blocks = moving_block_walls(scene, parts, xf, bstep, layers)
+        xm, mb = moving_block_walls(scene, parts, xf, bstep, layers)
         if len(xm):
-            print(f"moving blocks: {len(xm)} Adami wall particles on "
-                  f"{len(np.unique(parts.moving_wall_blocks))} blocks", flush=True)
+            print(f"moving blocks: {len(xm)} Adami wall particles on {len(np.unique(mb))} blocks", flush=True)
+    return FluidSeeds(xf, vf, depth, xb, xm, mb)
+
+
+def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None,
+                seeds: FluidSeeds | None = None) -> None:
+    """The fluid model, its start state and solver (``seeds``: given, e.g. a batch's tiles; None: :func:`seed_fluid`)."""
+    if seeds is None:
+        seeds = seed_fluid(scene, device, parts, options)
+    parts.moving_wall_blocks = seeds.moving_blocks
+    xf, vf, depth, xb, xm = seeds.fluid, seeds.velocities, seeds.depth, seeds.boundary, seeds.moving
+    bstep, layers = boundary_lattice(scene)
     fluid = build_fluid_model(xf, vf, xb, fluid_parameters(scene.fluid), scene.dim, scene.gravity.acceleration_m_s2, device,
                               bstep, layers, moving_wall_positions=xm)
     fopts = fluid_options(scene, _given(options, "fluid", FluidOptions))  # the Courant number from the scene
@@ -356,8 +392,11 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions 
     parts.fluid, parts.state, parts.fluid_solver = fluid, state, solver
 
 
-def build_blocks(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None) -> None:
-    specs = block_specs(scene)
+def build_blocks(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None,
+                 specs: list | None = None) -> None:
+    """The block model, its state and solver (``specs``: given, e.g. a batch's tiles; None: the scene's)."""
+    if specs is None:
+        specs = block_specs(scene)
 
     for name, body in compound_bodies(specs):  # what each non-convex mesh became
         print(f"block '{name}': non-convex mesh -> {body.summary()}", flush=True)

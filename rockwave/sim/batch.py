@@ -1,0 +1,382 @@
+"""Many small scenarios stepped as one: spatial batching (issue 40).
+
+A hazard study runs hundreds of scenarios of a few thousand particles each; one of them alone leaves a GPU idle
+between kernel launches. :class:`BatchSimulation` places the scenarios of a batch side by side in one set of
+arrays, each in its own tile of space, so that one set of launches steps them all:
+
+- **Seeding in the scenario's own frame.** Each scenario is seeded exactly as it would be alone
+  (rockwave/build/builder.py seed_fluid: its regions, its tank and obstacle layers, the removal inside its
+  blocks, its packed start, its fixed and moving blocks' Adami walls, all anchored to its own water) and then
+  moved by its tile's offset; its blocks (rockwave/build/rocks.py block_specs) move by the same offset and are
+  renamed ``<k>/<name>``. One fluid model, one block model and one coupling are built from the union.
+- **Tiles** form a grid in the horizontal-vertical plane (2D: x and y; 3D: x and y, z up), as square as the
+  tiles allow so that the coordinates stay small (float32 positions: the round-off of a position grows with
+  its size, ulp(32 m) = 3.8e-6 m against 2.4e-7 m at 3 m). Neighbouring tiles are ``gap`` apart (default:
+  8 H and the blocks' broad-phase margin, or more), so no neighbour search, water-block coupling or block contact
+  ever pairs two scenarios: every pair term is cut off at H (1 + skin) or the contact distance, all smaller.
+- **One clock, a shared step**: the step is the smallest of all scenarios' limits (the fluid's CFL, force and
+  viscous limits over all particles, the coupling spring; the blocks' sub-step from the stiffest block), so each
+  scenario steps within its own limits, at a step no longer than it would take alone. With a fixed step
+  (``simulation.time_step = 'fixed'``) and the same block sub-step the batch takes each scenario's solo steps and
+  the results are those of the solo runs within float32 round-off (tests/test_batch.py); with the adaptive step
+  a scenario in a batch takes the batch's (shorter or equal) steps, and its results differ from the solo run's
+  by the time-discretisation error of the two step sequences (docs/hazard_and_sweeps.md states the measured
+  difference).
+- **Scenarios share the template**: dimension, the [simulation], [gravity], [fluid] (its regions aside),
+  [coupling] sections, the boundary lattice and the hazard sampling rhythm; anything else may differ (geometry,
+  particle counts, blocks, materials, gauges). A batch of scenes that do not share it is a SceneError naming the
+  key.
+- **Per-scenario guard** (:meth:`BatchSimulation.check`): NaN/inf, a fluid particle faster than 5 c0 (plus free
+  fall outside its domain, as rockwave/sim/guard.py), more than half of its water outside its domain, or a
+  particle that left its tile (it could reach a neighbour) fails that scenario alone (:class:`ScenarioFailed`);
+  rockwave/app/batch.py then runs the batch again without it, so a blow-up never changes the others' results.
+
+Python API::
+
+    from rockwave.sim.batch import BatchSimulation
+    b = BatchSimulation([scene_a, scene_b, scene_c], device="cuda:0")
+    b.advance(1.0)
+    x_b = b.positions(1)        # scenario 1's fluid positions in its own frame
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+import warp as wp
+
+from rockwave.base.device import resolve_device
+from rockwave.base.maths import pad3, quat_to_matrix
+from rockwave.build import builder
+from rockwave.build.options import boundary_lattice, gravity_norm, support_radius_m
+from rockwave.build.rocks import block_specs
+from rockwave.scene.format import DEFAULT_SAMPLE_INTERVAL_S, Scene, SceneError
+from rockwave.sim.clock import Clock
+from rockwave.sim.guard import ESCAPE_FRACTION, SPEED_FACTOR
+from rockwave.sim.simulation import Simulation, SimulationOptions
+from rockwave.sim.stepping import BlockSubstepping
+
+NAME_SEP = "/"  # a batch's block names: "<scenario>/<name>"
+
+
+class ScenarioFailed(RuntimeError):
+    """Scenario ``index`` of a batch blew up (or left its tile); the others are unharmed so far."""
+
+    def __init__(self, index: int, message: str):
+        super().__init__(f"scenario {index} of the batch: {message}")
+        self.index, self.message = index, message
+
+
+# ------------------------------------------------------------------------------------------- template ----
+def hazard_interval(scene: Scene) -> float:
+    """The hazard sampling interval of a scene [s] (rockwave/output/hazard.py's rule)."""
+    hz = scene.hazard or {}
+    v = hz.get("sample_interval_s")
+    return float(v) if v is not None else min(DEFAULT_SAMPLE_INTERVAL_S, 1.0 / scene.output.frame_rate_hz)
+
+
+def _without(node, *keys) -> dict:
+    return {k: v for k, v in dict(node or {}).items() if k not in keys}
+
+
+def template_of(scene: Scene) -> dict:
+    """What the scenarios of a batch must share (section -> value): everything but geometry, particle counts,
+    blocks, materials and gauges."""
+    out = {"simulation.dimension": scene.dim,
+           "simulation": _without(scene.simulation, "device"),
+           "gravity.acceleration_m_s2": list(pad3(scene.gravity.acceleration_m_s2)),
+           "fluid": _without(scene.fluid, "regions") if scene.fluid is not None else None,
+           "coupling": dict(scene.coupling or {}),
+           "hazard.sample_interval_s": hazard_interval(scene)}
+    if scene.fluid is not None:
+        out["tank (boundary lattice: spacing, layers)"] = list(boundary_lattice(scene))
+    return out
+
+
+def check_template(scenes: list[Scene]) -> None:
+    """SceneError (naming the first scene that differs and the key) unless every scene shares the first's
+    template."""
+    if not scenes:
+        raise ValueError("a batch needs at least one scene")
+    t0 = template_of(scenes[0])
+    for k, s in enumerate(scenes[1:], 1):
+        t = template_of(s)
+        for key, v in t0.items():
+            if t[key] != v:
+                detail = ""
+                if isinstance(v, dict) and isinstance(t[key], dict):
+                    diff = sorted(x for x in set(v) | set(t[key]) if v.get(x) != t[key].get(x))
+                    detail = f" ({', '.join(f'{key}.{x}' for x in diff)})"
+                raise SceneError(s.path, [(key, f"scenario {k} of the batch differs from scenario 0 in {key}{detail}: "
+                                                f"the scenarios of a batch share the dimension, the methods and the "
+                                                f"simulation, gravity, fluid (regions aside) and coupling settings; "
+                                                f"run it in another batch")])
+    if scenes[0].fluid is None:
+        raise SceneError(scenes[0].path, [("fluid", "a batch steps scenarios of water (and blocks); this scene has no "
+                                                    "[fluid]: run it alone")])
+
+
+# ------------------------------------------------------------------------------------------- tiles ------
+@dataclass
+class Tile:
+    """One scenario's place in the batch."""
+
+    offset: np.ndarray
+    """float64 (3,): added to the scenario's coordinates [m]."""
+
+    lo: np.ndarray
+    """float64 (3,): lower corner of the scenario's own extent (its particles +- H and its blocks), own frame [m]."""
+
+    hi: np.ndarray
+    """float64 (3,): upper corner [m]."""
+
+    domain_lo: np.ndarray
+    """float64 (3,): its particle domain alone (the box of its particles grown by H, as build_fluid_model) [m]."""
+
+    domain_hi: np.ndarray
+    fluid: tuple[int, int] = (0, 0)
+    """Its fluid particles' range in the batch's seeded order."""
+
+    boundary: tuple[int, int] = (0, 0)
+    """Its static boundary particles' range in the seeded (pre-sort) order."""
+
+    blocks: tuple[int, int] = (0, 0)
+    """Its blocks' range in the batch's block model."""
+
+
+def tile_offsets(sizes: np.ndarray, gap: float, dim: int) -> np.ndarray:
+    """Offsets of the lower corners of tiles of ``sizes`` (n, 2: width, height in the x-(dim-1) plane) on a grid of
+    rows, as square as the tiles allow, centred on the origin: columns = ceil(sqrt(n H / W))."""
+    n = len(sizes)
+    w, h = float(sizes[:, 0].max()) + gap, float(sizes[:, 1].max()) + gap
+    cols = max(1, min(n, int(math.ceil(math.sqrt(n * h / w)))))
+    rows = int(math.ceil(n / cols))
+    out = np.zeros((n, 2))
+    for k in range(n):
+        out[k] = ((k % cols) - 0.5 * cols) * w, ((k // cols) - 0.5 * rows) * h
+    return out
+
+
+# ------------------------------------------------------------------------------------------- the batch --
+class BatchSimulation(Simulation):
+    """Scenarios (Scenes sharing a template) stepped together in one set of arrays; see the module's doc.
+
+    Attributes beyond Simulation's: ``scenes``, ``tiles`` (list of Tile), ``n_scenarios``, ``gap`` [m],
+    ``seeds`` (the per-scenario seeds in their own frames), ``removed_inside`` (per scenario). ``scene`` is the
+    first scenario's (the template: the clock and the solvers read only its shared sections)."""
+
+    def __init__(self, scenes: list[Scene], device: str | None = None, options: SimulationOptions | None = None,
+                 gap: float | None = None):
+        check_template(scenes)
+        self.scenes = list(scenes)
+        self.n_scenarios = len(scenes)
+        scene = self.scene = scenes[0]
+        self.options = options or SimulationOptions()
+        self.device = resolve_device(device if device is not None else scene.simulation.device)
+        dim, up = scene.dim, scene.dim - 1
+        with wp.ScopedDevice(self.device):
+            # 1. each scenario alone, in its own frame: blocks (for the seeding), then the particles
+            own_specs, own_parts, seeds = [], [], []
+            for s in scenes:
+                p = builder.Parts()
+                specs = block_specs(s) if (s.blocks or s.rock_mass) else []
+                if specs:
+                    builder.build_blocks(s, self.device, p, self.options, specs=specs)
+                seeds.append(builder.seed_fluid(s, self.device, p, self.options))
+                own_specs.append(specs)
+                own_parts.append(p)
+            H = float(support_radius_m(scene))
+            # 2. the tiles: each scenario's extent (particles +- H, blocks' vertices), then a grid of them
+            self.tiles = []
+            for s, sd, specs, p in zip(scenes, seeds, own_specs, own_parts):
+                pts = [a for a in (sd.fluid, sd.boundary, sd.moving) if a is not None and len(a)]
+                x = np.concatenate(pts) if pts else np.zeros((1, 3))
+                dlo, dhi = x.min(axis=0) - H, x.max(axis=0) + H
+                lo, hi = dlo.copy(), dhi.copy()
+                if specs:
+                    xs, qs = p.block_state.x.numpy().astype(np.float64), p.block_state.q.numpy().astype(np.float64)
+                    for b, spec in enumerate(specs):
+                        v = np.asarray(spec.geometry.vertices, float) @ quat_to_matrix(qs[b]).T + xs[b]
+                        lo, hi = np.minimum(lo, v.min(axis=0)), np.maximum(hi, v.max(axis=0))
+                self.tiles.append(Tile(np.zeros(3), lo, hi, dlo, dhi))
+            margin = 0.0
+            if any(own_specs):
+                d50 = [p.block_solver.margin for p in own_parts if p.block_solver is not None]
+                margin = max(d50) if d50 else 0.0
+            skin = 1.0  # the neighbour list's radius is at most 2 H (skin <= 1)
+            self.gap = float(gap) if gap is not None else max(8.0 * H, 2.0 * (H * (1 + skin) + margin))
+            sizes = np.array([[t.hi[0] - t.lo[0], t.hi[up] - t.lo[up]] for t in self.tiles])
+            corner = tile_offsets(sizes, self.gap, dim)
+            for t, c in zip(self.tiles, corner):
+                t.offset = np.zeros(3)
+                t.offset[0] = c[0] - t.lo[0]
+                t.offset[up] = c[1] - t.lo[up]
+            # 3. the union, moved to the tiles
+            xf, vf, depth, xb, xm, mblk, specs_all = [], [], [], [], [], [], []
+            nf = nb = nblk = 0
+            for k, (t, sd, specs) in enumerate(zip(self.tiles, seeds, own_specs)):
+                o = t.offset
+                t.fluid = (nf, nf + len(sd.fluid))
+                t.boundary = (nb, nb + len(sd.boundary))
+                t.blocks = (nblk, nblk + len(specs))
+                nf, nb = t.fluid[1], t.boundary[1]
+                xf.append(sd.fluid + o)
+                vf.append(sd.velocities)
+                depth.append(sd.depth)
+                if len(sd.boundary):
+                    xb.append(sd.boundary + o)
+                if sd.moving is not None and len(sd.moving):
+                    xm.append(sd.moving + o)
+                    mblk.append(sd.moving_blocks + nblk)
+                for spec in specs:  # (a kinematic block's motion is a displacement from its position)
+                    specs_all.append(replace(spec, name=f"{k}{NAME_SEP}{spec.name}",
+                                             position=tuple(np.asarray(spec.position, float) + o)))
+                nblk = t.blocks[1]
+            self.removed_inside = [p.removed_inside_blocks for p in own_parts]
+            self.seeds = seeds
+            union = builder.FluidSeeds(np.concatenate(xf), np.concatenate(vf), np.concatenate(depth),
+                                       np.concatenate(xb) if xb else np.zeros((0, 3)),
+                                       np.concatenate(xm) if xm else None,
+                                       np.concatenate(mblk) if mblk else None)
+            parts = builder.Parts()
+            if specs_all:
+                builder.build_blocks(scene, self.device, parts, self.options, specs=specs_all)
+            builder.build_fluid(scene, self.device, parts, self.options, seeds=union)
+            if parts.blocks is not None and parts.fluid.n_fluid:
+                builder.build_coupling(scene, parts, self.options)
+            del own_parts
+        self.estimate = None
+        self.fluid, self.state, self.fluid_solver = parts.fluid, parts.state, parts.fluid_solver
+        self.blocks, self.block_state, self.block_solver = parts.blocks, parts.block_state, parts.block_solver
+        self.coupling = parts.coupling
+        self.removed_inside_blocks = sum(self.removed_inside)
+        self.gravity = np.asarray(pad3(scene.gravity.acceleration_m_s2))
+        self.clock = Clock(scene, self.device, self._limits(), self._stability_bounds(), self._block_substep())
+        self.block_stepping = BlockSubstepping(self.clock) if self.block_solver is not None else None
+        self.gauge_names = []
+        self._readers = None
+        self._graphs: dict = {}
+        self._graphs_failed = False
+        self._plain_runs: set = set()
+        self.failed: dict[int, str] = {}
+        self._g = gravity_norm(scene)
+
+    # ---------------------------------------------------------------- per scenario -------------
+    def scenario_blocks(self, k: int) -> list[str]:
+        """Scenario k's block names as in its scene (without the batch's prefix)."""
+        a, b = self.tiles[k].blocks
+        return [n.split(NAME_SEP, 1)[1] for n in self.blocks.names[a:b]] if self.blocks is not None else []
+
+    def _own(self, k: int, x: np.ndarray) -> np.ndarray:
+        return x - self.tiles[k].offset[: x.shape[1]]
+
+    def positions(self, k: int | None = None) -> np.ndarray:
+        """Fluid positions (n, dim) [m]: scenario k's in its own frame, or all in the batch's (k None)."""
+        x = super().positions()
+        if k is None:
+            return x
+        a, b = self.tiles[k].fluid
+        return self._own(k, x[a:b])
+
+    def velocities(self, k: int | None = None) -> np.ndarray:
+        v = super().velocities()
+        if k is None:
+            return v
+        a, b = self.tiles[k].fluid
+        return v[a:b]
+
+    def densities(self, k: int | None = None) -> np.ndarray:
+        r = super().densities()
+        if k is None:
+            return r
+        a, b = self.tiles[k].fluid
+        return r[a:b]
+
+    def block_positions(self, k: int | None = None) -> np.ndarray:
+        x = super().block_positions()
+        if k is None or self.blocks is None:
+            return x
+        a, b = self.tiles[k].blocks
+        return x[a:b] - self.tiles[k].offset
+
+    def block_velocities(self, k: int | None = None) -> np.ndarray:
+        v = super().block_velocities()
+        if k is None or self.blocks is None:
+            return v
+        a, b = self.tiles[k].blocks
+        return v[a:b]
+
+    def cross_pairs(self) -> int:
+        """Neighbour-list pairs that join particles of two scenarios (0 by construction; a check for tests):
+        each particle's scenario from its tile, over the lists of the current positions."""
+        owner = self.particle_owner()
+        x = np.asarray(self.fluid.initial_positions, float).copy()
+        nf = self.fluid.n_fluid
+        x[:nf, : self.scene.dim] = self.positions()
+        H = self.fluid.support_radius
+        from scipy.spatial import cKDTree  # noqa: PLC0415  (tests only)
+
+        pairs = cKDTree(x[:, : self.scene.dim]).query_pairs(2.0 * H, output_type="ndarray")
+        return int((owner[pairs[:, 0]] != owner[pairs[:, 1]]).sum())
+
+    def particle_owner(self) -> np.ndarray:
+        """int (n_fluid + n_boundary,): each particle's scenario, from the tile its start position lies in."""
+        x = np.asarray(self.fluid.initial_positions, float)
+        owner = np.full(len(x), -1)
+        for k, t in enumerate(self.tiles):
+            lo, hi = t.lo + t.offset - 1e-9, t.hi + t.offset + 1e-9
+            inside = np.all((x >= lo) & (x <= hi), axis=1)
+            owner[inside] = k
+        return owner
+
+    # ---------------------------------------------------------------- guard ----------------------
+    def check(self, live: list[int] | None = None) -> list[int]:
+        """The per-scenario blow-up guard (one host read of positions and velocities): raise ScenarioFailed for
+        the first scenario (of ``live``, default all) that has a NaN/inf, a fluid particle faster than
+        SPEED_FACTOR c0 (plus the free fall gained below its domain's top, outside it), more than
+        ESCAPE_FRACTION of its water outside its domain (grown by 2H), a particle outside its tile grown by
+        half the gap (it could reach a neighbour), or a block with a NaN/inf state. Returns each scenario's count
+        of fluid particles outside its domain."""
+        x, v = self.positions(), self.velocities()
+        d = x.shape[1]
+        H = self.fluid.support_radius
+        c_lim = SPEED_FACTOR * self.fluid.sound_speed
+        xb = self.block_state.positions_numpy() if self.blocks is not None else None
+        vb = self.block_state.velocities_numpy() if self.blocks is not None else None
+        counts = []
+        for k, t in enumerate(self.tiles):
+            if live is not None and k not in live:
+                counts.append(0)
+                continue
+            a, b = t.fluid
+            xk, vk = x[a:b] - t.offset[:d], v[a:b]
+            bad = ~(np.isfinite(xk).all(1) & np.isfinite(vk).all(1))
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise ScenarioFailed(k, f"fluid particle {i} at {xk[i].tolist()} has a NaN/inf position or velocity")
+            if xb is not None:
+                ba, bb = t.blocks
+                okb = np.isfinite(xb[ba:bb]).all() and np.isfinite(vb[ba:bb]).all()
+                if not okb:
+                    raise ScenarioFailed(k, "a block has a NaN/inf position or velocity")
+            lo, hi = t.domain_lo[:d] - 2 * H, t.domain_hi[:d] + 2 * H
+            inside = np.all((xk >= lo) & (xk <= hi), axis=1)
+            speed = np.linalg.norm(vk, axis=1)
+            allowed = c_lim + np.where(inside, 0.0, np.sqrt(2.0 * self._g * np.maximum(0.0, hi[d - 1] - xk[:, d - 1])))
+            if (speed > allowed).any():
+                i = int(np.argmax(speed - allowed))
+                raise ScenarioFailed(k, f"fluid particle {i} at {xk[i].tolist()} moves at {speed[i]:.3g} m/s "
+                                        f"(> {SPEED_FACTOR:g} c0 = {c_lim:.3g} m/s)")
+            out = int((~inside).sum())
+            if out > ESCAPE_FRACTION * max(len(xk), 1):
+                raise ScenarioFailed(k, f"{out} of {len(xk)} fluid particles left the domain")
+            tl, th = t.lo[:d] - 0.5 * self.gap + H, t.hi[:d] + 0.5 * self.gap - H
+            away = ~np.all((xk >= tl) & (xk <= th), axis=1)
+            if away.any():
+                i = int(np.argmax(away))
+                raise ScenarioFailed(k, f"fluid particle {i} at {xk[i].tolist()} left the scenario's tile of the batch "
+                                        f"(its extent grown by {0.5 * self.gap - H:.3g} m): it could reach a neighbour")
+            counts.append(out)
+        return counts
