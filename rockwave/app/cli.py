@@ -132,6 +132,9 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--retry-failed", action="store_true", help="run the failed scenarios again (finished ones are skipped)")
     sw.add_argument("--only", type=int, action="append", default=None, metavar="INDEX", help="run only this scenario "
                     "(a Slurm array task); repeatable")
+    sw.add_argument("--batch", type=int, default=1, metavar="N", help="step N scenarios of one template together on one "
+                    "device (rockwave/app/batch.py; 0: as many as a particle budget fills, 1 (default): one at a time); "
+                    "each still writes its own result and hazard summary")
     sw.add_argument("--collect", action="store_true", help="run nothing: write the table and plots from the results so far")
     sw.add_argument("--slurm", action="store_true", help="write RESULTS/sweep.sbatch (a job array, one task per scenario) and stop")
     sw.add_argument("--list", action="store_true", help="validate the study and list its scenarios; run nothing")

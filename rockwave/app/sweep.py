@@ -48,6 +48,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from rockwave.app import batch as batching
 from rockwave.base.device import device_syntax_error, init_warp, quiet_warp
 from rockwave.base.files import atomic_write, atomic_write_text
 from rockwave.output.hazard import flat_metrics
@@ -370,6 +371,8 @@ def run_scenario(config: dict) -> dict:
     config['out_dir']. Returns the summary {id, index, params, status 'ok' | 'failed', error, metrics (the hazard
     summary as flat columns), wall_s, steps}; written atomically as out_dir/result.json. Never raises for a
     scenario that fails (bad scene, blow-up, unwritable output): the error is in the summary."""
+    if "batch" in config:  # scenarios stepped together (rockwave/app/batch.py): a list of summaries
+        return batching.run_batch(config["batch"], run_scenario)
     t0 = time.perf_counter()
     out = Path(config["out_dir"])
     try:
@@ -527,11 +530,13 @@ def run_local(configs: list[dict], slots: list[str], on_result, fn=None) -> None
                     broken.append(c)
                     continue
                 except Exception as e:  # the call itself failed (unpicklable result ...)
-                    res = _failed(c, f"{type(e).__name__}: {e}")
-                on_result(res, min(running, n_workers))
+                    res = [_failed(m, f"{type(e).__name__}: {e}") for m in c.get("batch", [c])]
+                for r in res if isinstance(res, list) else [res]:
+                    on_result(r, min(running, n_workers))
         return broken
 
     broken = pool_run(configs, max(1, min(len(slots), len(configs))), slots)
+    broken = [m for c in broken for m in c.get("batch", [c])]  # a broken batch: its scenarios alone
     for c in broken:  # one at a time: the one whose worker dies is the culprit
         again = pool_run([c], 1, slots)
         if again:
@@ -564,8 +569,10 @@ def run_ray(configs: list[dict], address: str | None, on_result, gpus_per_scenar
             try:
                 res = ray.get(r)
             except Exception as e:  # RayTaskError, WorkerCrashedError, ...
-                res = _failed(c, f"the Ray task failed: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}")
-            on_result(res, min(len(refs), total_cpus))
+                why = f"the Ray task failed: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+                res = [_failed(m, why) for m in c.get("batch", [c])]
+            for x in res if isinstance(res, list) else [res]:
+                on_result(x, min(len(refs), total_cpus))
 
 
 # ------------------------------------------------------------------------------------------------ table ----
@@ -680,13 +687,23 @@ def write_plots(study: Study, rows: list[dict]) -> list[Path]:
 
 
 # ----------------------------------------------------------------------------------------------- driver ----
-def slurm_script(study: Study, gpus: int = 1, cpus: int = 4, time_limit: str = "04:00:00") -> Path:
-    """A Slurm job array for sites without Ray: one array task per scenario (``sweep --only INDEX``), then
+def slurm_script(study: Study, gpus: int = 1, cpus: int = 4, time_limit: str = "04:00:00", batch: int = 1) -> Path:
+    """A Slurm job array for sites without Ray: one array task per scenario (``sweep --only INDEX``), or with
+    ``batch`` > 1 per batch of that many scenarios (``--only`` each of its indices, ``--batch``), then
     ``sweep --collect`` for the table and plots. Written to RESULTS/sweep.sbatch."""
-    n = len(study.scenarios)
     res = study.results.resolve()
+    if batch > 1:
+        groups = batching.batches([scenario_config(study, sc) for sc in study.scenarios], batch)
+        lists = " ".join('"' + " ".join(f"--only {c['index']}" for c in g) + '"' for g in groups)
+        n = len(groups)
+        select = f"TASKS=({lists})\nONLY=${{TASKS[$SLURM_ARRAY_TASK_ID]}}"
+        run = f'python -m rockwave sweep {study.path} --out {res} $ONLY --batch {batch} --quiet'
+    else:
+        n = len(study.scenarios)
+        select = ""
+        run = f'python -m rockwave sweep {study.path} --out {res} --only "$SLURM_ARRAY_TASK_ID" --quiet'
     text = f"""#!/bin/bash
-# Scenario study {study.path.name}: {n} scenarios, one per array task (python -m rockwave sweep --slurm).
+# Scenario study {study.path.name}: {len(study.scenarios)} scenarios in {n} array tasks (python -m rockwave sweep --slurm).
 # Submit:   sbatch {res}/sweep.sbatch
 # Then:     python -m rockwave sweep {study.path} --out {res} --collect   (table and plots)
 #SBATCH --job-name=rockwave-sweep
@@ -696,7 +713,8 @@ def slurm_script(study: Study, gpus: int = 1, cpus: int = 4, time_limit: str = "
 #SBATCH --time={time_limit}
 #SBATCH --output={res}/slurm-%A_%a.out
 set -euo pipefail
-python -m rockwave sweep {study.path} --out {res} --only "$SLURM_ARRAY_TASK_ID" --quiet
+{select}
+{run}
 """
     study.results.mkdir(parents=True, exist_ok=True)
     p = study.results / "sweep.sbatch"
@@ -766,11 +784,12 @@ class StudyResult:
 def run_study(study: Study | str | os.PathLike, out: str | os.PathLike | None = None, executor: str = "local",
               workers: int | None = None, ray_address: str | None = None, ray_init: dict | None = None,
               gpus_per_scenario: float | None = None, retry_failed: bool = False, only: list[int] | None = None,
-              progress: bool = True, plots: bool = True, fn=None) -> StudyResult:
+              progress: bool = True, plots: bool = True, fn=None, batch: int = 1) -> StudyResult:
     """Run the scenarios without a result yet (and the failed ones with retry_failed), then write the table and
     plots. executor: 'local' (process pool; ``workers`` slots, default one per GPU or the CPU count), 'ray'
     (``ray_address``; None with ``ray_init`` starts a local instance) or 'inline' (this process, one at a time).
-    only: scenario indices to run (a Slurm array task)."""
+    only: scenario indices to run (a Slurm array task). batch: scenarios stepped together per task
+    (rockwave/app/batch.py; 1: one at a time, 0: sized to the device)."""
     if not isinstance(study, Study):
         study = load_study(study, out)
     elif out is not None:
@@ -786,6 +805,7 @@ def run_study(study: Study | str | os.PathLike, out: str | os.PathLike | None = 
             continue
         todo.append(scenario_config(study, sc))
     total = len(study.scenarios) if only is None else len(todo) + skipped
+    todo = batch_configs(study, todo, batch)
     if executor == "local":
         slots = local_slots(study.device, workers if workers is not None else study.workers, study.workers_per_gpu)
         parallel = len(slots)
@@ -831,6 +851,28 @@ def run_study(study: Study | str | os.PathLike, out: str | os.PathLike | None = 
     return StudyResult(rows, paths, pics, len(todo), skipped, failed, wall)
 
 
+def batch_configs(study: Study, todo: list[dict], size: int) -> list[dict]:
+    """The configs packed into batch configs {"batch": [configs]} of one template (rockwave/app/batch.py) of at most
+    ``size`` scenarios (0: batching.auto_batch_size of the first scenario's water on the study's device); a batch of
+    one stays a plain config."""
+    if size == 1 or len(todo) < 2:
+        return todo
+    kept = [o for o in OUTPUT_KEYS if any((c["scene"].get("output") or {}).get(o) for c in todo)]
+    if kept:
+        print(f"sweep: study.keep = {kept}: a batch writes run.json and hazard.json only, so the scenarios run one at a time",
+              file=sys.stderr)
+        return todo
+    if size == 0:
+        from rockwave.build.builder import seed_particles
+
+        c = todo[0]
+        scene = parse_scene(copy.deepcopy(c["scene"]), c["scene_path"], Path(c["scene_path"]).parent)
+        dev = "cpu" if study.device == "cpu" or not local_slots(study.device, 0, 1)[0].startswith("cuda") else "cuda"
+        size = batching.auto_batch_size(len(seed_particles(scene, "cpu")[0]), dev)
+    return [g[0] if len(g) == 1 else {"batch": g, "id": g[0]["id"], "index": g[0]["index"]}
+            for g in batching.batches(todo, size)]
+
+
 def _execute(todo, executor, slots, on_result, fn, study, gpus_per_scenario, ray_address, ray_init) -> None:
     if not todo:
         return
@@ -841,7 +883,9 @@ def _execute(todo, executor, slots, on_result, fn, study, gpus_per_scenario, ray
         run_ray(todo, ray_address, on_result, gps, ray_init)
     elif executor == "inline":
         for c in todo:
-            on_result((fn or run_scenario)(c), 0)
+            res = (fn or run_scenario)(c)
+            for r in res if isinstance(res, list) else [res]:
+                on_result(r, 0)
     else:
         raise ValueError(f"executor {executor!r}: expected 'local', 'ray' or 'inline'")
 
@@ -861,7 +905,7 @@ def cli(args) -> int:
         print(f"{study.path}: ok, {len(study.scenarios)} scenarios; results in {study.results}")
         return 0
     if args.slurm:
-        print(slurm_script(study))
+        print(slurm_script(study, batch=max(1, getattr(args, 'batch', 1))))
         return 0
     if args.collect:
         rows = study_rows(study)
@@ -887,7 +931,8 @@ def cli(args) -> int:
         gps = 1.0 if ray.cluster_resources().get("GPU", 0) > 0 else 0.0
     try:
         res = run_study(study, executor=executor, workers=args.workers, ray_address=address, ray_init=init,
-                        gpus_per_scenario=gps, retry_failed=args.retry_failed, only=args.only, progress=not args.quiet)
+                        gpus_per_scenario=gps, retry_failed=args.retry_failed, only=args.only, progress=not args.quiet,
+                        batch=getattr(args, "batch", 1))
     except KeyboardInterrupt:
         print(f"interrupted: finished scenarios are kept in {study.results}/scenarios; run again to finish the rest",
               file=sys.stderr)

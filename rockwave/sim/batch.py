@@ -23,7 +23,7 @@ arrays, each in its own tile of space, so that one set of launches steps them al
   by the time-discretisation error of the two step sequences (docs/hazard_and_sweeps.md states the measured
   difference).
 - **Scenarios share the template**: dimension, the [simulation], [gravity], [fluid] (its regions aside),
-  [coupling] sections, the boundary lattice and the hazard sampling rhythm; anything else may differ (geometry,
+  [coupling] sections, the boundary lattice, the frame rate and the hazard sampling rhythm; anything else may differ (geometry,
   particle counts, blocks, materials, gauges). A batch of scenes that do not share it is a SceneError naming the
   key.
 - **Per-scenario guard** (:meth:`BatchSimulation.check`): NaN/inf, a fluid particle faster than 5 c0 (plus free
@@ -62,11 +62,13 @@ NAME_SEP = "/"  # a batch's block names: "<scenario>/<name>"
 
 
 class ScenarioFailed(RuntimeError):
-    """Scenario ``index`` of a batch blew up (or left its tile); the others are unharmed so far."""
+    """Scenarios of a batch blew up or left their tiles: ``failures`` {index: message} (every scenario that
+    failed the check: a blow-up that reached a neighbour's tile within a frame fails both; the caller runs
+    the batch again without them and each of them alone)."""
 
-    def __init__(self, index: int, message: str):
-        super().__init__(f"scenario {index} of the batch: {message}")
-        self.index, self.message = index, message
+    def __init__(self, failures: dict[int, str]):
+        super().__init__("; ".join(f"scenario {k} of the batch: {m}" for k, m in failures.items()))
+        self.failures = failures
 
 
 # ------------------------------------------------------------------------------------------- template ----
@@ -89,7 +91,8 @@ def template_of(scene: Scene) -> dict:
            "gravity.acceleration_m_s2": list(pad3(scene.gravity.acceleration_m_s2)),
            "fluid": _without(scene.fluid, "regions") if scene.fluid is not None else None,
            "coupling": dict(scene.coupling or {}),
-           "hazard.sample_interval_s": hazard_interval(scene)}
+           "hazard.sample_interval_s": hazard_interval(scene),
+           "output.frame_rate_hz": float(scene.output.frame_rate_hz)}  # the run loop lands on each frame
     if scene.fluid is not None:
         out["tank (boundary lattice: spacing, layers)"] = list(boundary_lattice(scene))
     return out
@@ -333,8 +336,8 @@ class BatchSimulation(Simulation):
 
     # ---------------------------------------------------------------- guard ----------------------
     def check(self, live: list[int] | None = None) -> list[int]:
-        """The per-scenario blow-up guard (one host read of positions and velocities): raise ScenarioFailed for
-        the first scenario (of ``live``, default all) that has a NaN/inf, a fluid particle faster than
+        """The per-scenario blow-up guard (one host read of positions and velocities): raise ScenarioFailed
+        naming every scenario (of ``live``, default all) that has a NaN/inf, a fluid particle faster than
         SPEED_FACTOR c0 (plus the free fall gained below its domain's top, outside it), more than
         ESCAPE_FRACTION of its water outside its domain (grown by 2H), a particle outside its tile grown by
         half the gap (it could reach a neighbour), or a block with a NaN/inf state. Returns each scenario's count
@@ -345,38 +348,46 @@ class BatchSimulation(Simulation):
         c_lim = SPEED_FACTOR * self.fluid.sound_speed
         xb = self.block_state.positions_numpy() if self.blocks is not None else None
         vb = self.block_state.velocities_numpy() if self.blocks is not None else None
-        counts = []
+        counts, failures = [], {}
         for k, t in enumerate(self.tiles):
             if live is not None and k not in live:
                 counts.append(0)
                 continue
-            a, b = t.fluid
-            xk, vk = x[a:b] - t.offset[:d], v[a:b]
-            bad = ~(np.isfinite(xk).all(1) & np.isfinite(vk).all(1))
-            if bad.any():
-                i = int(np.argmax(bad))
-                raise ScenarioFailed(k, f"fluid particle {i} at {xk[i].tolist()} has a NaN/inf position or velocity")
-            if xb is not None:
-                ba, bb = t.blocks
-                okb = np.isfinite(xb[ba:bb]).all() and np.isfinite(vb[ba:bb]).all()
-                if not okb:
-                    raise ScenarioFailed(k, "a block has a NaN/inf position or velocity")
-            lo, hi = t.domain_lo[:d] - 2 * H, t.domain_hi[:d] + 2 * H
-            inside = np.all((xk >= lo) & (xk <= hi), axis=1)
-            speed = np.linalg.norm(vk, axis=1)
-            allowed = c_lim + np.where(inside, 0.0, np.sqrt(2.0 * self._g * np.maximum(0.0, hi[d - 1] - xk[:, d - 1])))
-            if (speed > allowed).any():
-                i = int(np.argmax(speed - allowed))
-                raise ScenarioFailed(k, f"fluid particle {i} at {xk[i].tolist()} moves at {speed[i]:.3g} m/s "
-                                        f"(> {SPEED_FACTOR:g} c0 = {c_lim:.3g} m/s)")
-            out = int((~inside).sum())
-            if out > ESCAPE_FRACTION * max(len(xk), 1):
-                raise ScenarioFailed(k, f"{out} of {len(xk)} fluid particles left the domain")
-            tl, th = t.lo[:d] - 0.5 * self.gap + H, t.hi[:d] + 0.5 * self.gap - H
-            away = ~np.all((xk >= tl) & (xk <= th), axis=1)
-            if away.any():
-                i = int(np.argmax(away))
-                raise ScenarioFailed(k, f"fluid particle {i} at {xk[i].tolist()} left the scenario's tile of the batch "
-                                        f"(its extent grown by {0.5 * self.gap - H:.3g} m): it could reach a neighbour")
+            why, out = self._check_one(k, t, x, v, xb, vb, d, H, c_lim)
+            if why:
+                failures[k] = why
             counts.append(out)
+        if failures:
+            raise ScenarioFailed(failures)
         return counts
+
+    def _check_one(self, k, t, x, v, xb, vb, d, H, c_lim) -> tuple[str, int]:
+        """(why scenario k fails, '' if it does not; its fluid particles outside its domain)."""
+        a, b = t.fluid
+        xk, vk = x[a:b] - t.offset[:d], v[a:b]
+        bad = ~(np.isfinite(xk).all(1) & np.isfinite(vk).all(1))
+        if bad.any():
+            i = int(np.argmax(bad))
+            return f"fluid particle {i} at {xk[i].tolist()} has a NaN/inf position or velocity", 0
+        if xb is not None:
+            ba, bb = t.blocks
+            if not (np.isfinite(xb[ba:bb]).all() and np.isfinite(vb[ba:bb]).all()):
+                return "a block has a NaN/inf position or velocity", 0
+        lo, hi = t.domain_lo[:d] - 2 * H, t.domain_hi[:d] + 2 * H
+        inside = np.all((xk >= lo) & (xk <= hi), axis=1)
+        out = int((~inside).sum())
+        speed = np.linalg.norm(vk, axis=1)
+        allowed = c_lim + np.where(inside, 0.0, np.sqrt(2.0 * self._g * np.maximum(0.0, hi[d - 1] - xk[:, d - 1])))
+        if (speed > allowed).any():
+            i = int(np.argmax(speed - allowed))
+            return (f"fluid particle {i} at {xk[i].tolist()} moves at {speed[i]:.3g} m/s "
+                    f"(> {SPEED_FACTOR:g} c0 = {c_lim:.3g} m/s)"), out
+        if out > ESCAPE_FRACTION * max(len(xk), 1):
+            return f"{out} of {len(xk)} fluid particles left the domain", out
+        tl, th = t.lo[:d] - 0.5 * self.gap + H, t.hi[:d] + 0.5 * self.gap - H
+        away = ~np.all((xk >= tl) & (xk <= th), axis=1)
+        if away.any():
+            i = int(np.argmax(away))
+            return (f"fluid particle {i} at {xk[i].tolist()} left the scenario's tile of the batch (its extent grown "
+                    f"by {0.5 * self.gap - H:.3g} m): it could reach a neighbour"), out
+        return "", out

@@ -1,0 +1,166 @@
+"""Batched scenarios (rockwave/sim/batch.py, rockwave/output/batch.py, rockwave/app/batch.py; issue 40): a batch of
+slide_2d_tiny variants (different friction, water depth and so particle count, slide position) stepped together
+gives each scenario's solo trajectory and hazard summary within float32 round-off when the step is the same
+(a fixed step; the block sub-step is the same: the varied keys leave the stiffest block's step alone); no
+neighbour pair or block contact joins two scenarios; a scenario that blows up in a batch fails alone; the sweep
+packs scenarios into batches."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import tomllib
+
+import numpy as np
+import pytest
+from conftest import DEVICE
+from helpers import ROOT
+
+from rockwave.app import batch as batching
+from rockwave.app import sweep
+from rockwave.output.batch import BatchHazard
+from rockwave.output.hazard import HazardMonitor, flat_metrics
+from rockwave.scene.format import SceneError, parse_scene
+from rockwave.sim.batch import BatchSimulation, check_template
+from rockwave.sim.simulation import Simulation
+
+SCENE = ROOT / "scenes" / "slide_2d_tiny.toml"
+T = 0.04  # 100 fixed steps of 4e-4 s
+DT = 4e-4
+
+
+def _variant(friction=15.0, depth=None, slide_dx=0.0, **sim) -> dict:
+    d = tomllib.loads(SCENE.read_text())
+    d["simulation"].update({"time_step": "fixed", "dt_s": DT, "duration_s": T, **sim})
+    for b in d["blocks"]:
+        if b["name"] == "slide":
+            b["material"]["friction_angle_deg"] = friction
+            b["position_m"][0] += slide_dx
+    if depth is not None:
+        d["fluid"]["regions"][0]["box_max_m"][1] = depth
+    return d
+
+
+def _scene(d: dict):
+    return parse_scene(copy.deepcopy(d), SCENE, SCENE.parent)
+
+
+VARIANTS = [_variant(), _variant(friction=22.0, depth=0.2), _variant(friction=10.0, slide_dx=0.05)]
+
+
+@pytest.fixture(scope="module")
+def batch_run():
+    b = BatchSimulation([_scene(d) for d in VARIANTS], device=DEVICE)
+    hz = BatchHazard(b)
+    b.advance(T, watch=hz.after_step)
+    return b, hz.results()
+
+
+def test_batch_equals_solo_within_round_off(batch_run):
+    b, summaries = batch_run
+    assert len({b.tiles[k].fluid[1] - b.tiles[k].fluid[0] for k in range(3)}) >= 2  # particle counts differ
+    spacing = 0.025
+    for k, d in enumerate(VARIANTS):
+        sim = Simulation(_scene(d), device=DEVICE)
+        hz = HazardMonitor(sim)
+        sim.advance(T, watch=hz.after_step)
+        assert sim.steps == b.steps and sim.clock.substeps == b.clock.substeps
+        dx = np.abs(sim.positions() - b.positions(k))
+        # float32 positions at the tile's offset (a few metres) round by an ulp, ~5e-7 m, a step: after 100 steps
+        # of a slide entering water the typical particle differs by about that much, the largest by < 1% of the
+        # spacing
+        ulp = float(np.spacing(np.float32(np.abs(b.positions()).max())))
+        assert dx.max() < 0.01 * spacing and np.median(dx) < 4 * ulp
+        assert np.abs(sim.block_positions() - b.block_positions(k)).max() < 1e-6
+        solo, mine = flat_metrics(hz.result()), flat_metrics(summaries[k])
+        assert solo.keys() == mine.keys()
+        for key, v in solo.items():
+            w = mine[key]
+            if key.endswith("_time_s") and not key.endswith("arrival_time_s"):
+                continue  # the time of an extreme may jump between near-equal samples
+            if v is None or (isinstance(v, float) and math.isnan(v)):
+                assert w is None or math.isnan(w), key
+            else:
+                assert abs(v - w) < 2e-5, (key, v, w)
+
+
+def test_tiles_never_pair_two_scenarios(batch_run):
+    b, _ = batch_run
+    assert b.cross_pairs() == 0  # no two particles of different scenarios within 2 H (the largest list radius)
+    for t1, t2 in zip(b.tiles[:-1], b.tiles[1:]):
+        lo1, hi1, lo2, hi2 = t1.lo + t1.offset, t1.hi + t1.offset, t2.lo + t2.offset, t2.hi + t2.offset
+        sep = np.maximum(lo2 - hi1, lo1 - hi2)[:2].max()
+        assert sep >= b.gap - 1e-9
+    owner = {}
+    for k, t in enumerate(b.tiles):
+        for i in range(*t.blocks):
+            owner[i] = k
+    pairs = b.block_solver.contacts(b.block_state)
+    assert pairs  # the slides rest on their planes
+    for c in pairs:  # the broad phase's candidates (AABBs grown by the margin) never join two scenarios
+        i, j = c["blocks"]
+        assert owner[i] == owner[j]
+
+
+def test_template_mismatch_is_a_scene_error():
+    a, c = _scene(_variant()), _variant()
+    c["fluid"]["eos"]["speed_of_sound_m_s"] = 20.0
+    with pytest.raises(SceneError, match="fluid.eos"):
+        check_template([a, _scene(c)])
+
+
+def _configs(tmp_path, variants):
+    return [{"id": f"{i:04d}-x", "index": i, "params": {"i": i}, "scene": d, "scene_path": str(SCENE),
+             "out_dir": str(tmp_path / f"s{i}"), "device": DEVICE} for i, d in enumerate(variants)]
+
+
+def test_a_blow_up_fails_its_scenario_alone(tmp_path):
+    bad = _variant(duration_s=0.04)
+    # straight up at > 5 c0 (c0 = 15 m/s: the guard's runaway speed) from the bottom right of the 2 x 2 tile grid,
+    # where no tile lies above: its water reaches no other scenario
+    bad["fluid"]["regions"][0]["velocity_m_s"] = [0.0, 80.0]
+    variants = [_variant(), bad, _variant(friction=22.0)]
+    alone = []
+
+    def solo(c):
+        alone.append(c["index"])
+        return sweep.run_scenario(c)
+
+    res = batching.run_batch(_configs(tmp_path, variants), solo)
+    assert [r["status"] for r in res] == ["ok", "failed", "ok"]
+    assert alone == [1] and "m/s" in res[1]["error"]  # its solo run's verdict
+    assert res[0]["batch_size"] == res[2]["batch_size"] == 2  # the others again, from the start, without it
+    for i in (0, 2):
+        saved = json.loads((tmp_path / f"s{i}" / "result.json").read_text())
+        assert saved["status"] == "ok" and saved["metrics"] == res[i]["metrics"]
+        assert (tmp_path / f"s{i}" / "hazard.json").is_file()
+
+
+def test_sweep_packs_batches(tmp_path, capsys):
+    study = tmp_path / "study.toml"
+    study.write_text(f"""
+[study]
+scene = "{SCENE}"
+results = "out"
+duration_s = 0.04
+device = "{DEVICE}"
+[[vary]]
+key = "blocks[slide].material.friction_angle_deg"
+values = [10.0, 20.0, 25.0]
+""")
+    st = sweep.load_study(study)
+    todo = [sweep.scenario_config(st, sc) for sc in st.scenarios]
+    packed = sweep.batch_configs(st, todo, 2)
+    assert [len(c.get("batch", [c])) for c in packed] == [2, 1]
+    res = sweep.run_study(st, executor="inline", batch=0, plots=False, progress=False)  # auto: all 3 in one
+    assert res.failed == 0 and [r["status"] for r in res.rows] == ["ok"] * 3
+    for sc in st.scenarios:
+        r = sweep.read_result(st, sc)
+        assert r["batch_size"] == 3 and r["metrics"]["g0.2.max_crest_m"] is not None
+    assert (st.results / "study.csv").is_file()
+    from rockwave.app.cli import main
+
+    assert main(["sweep", str(study), "--slurm", "--batch", "2"]) == 0
+    text = (st.results / "sweep.sbatch").read_text()
+    assert "--array=0-1" in text and "--only 0 --only 1" in text and "--batch 2" in text
