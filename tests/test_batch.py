@@ -14,8 +14,6 @@ import tomllib
 
 import numpy as np
 import pytest
-from conftest import DEVICE
-from helpers import ROOT
 
 from rockwave.app import batch as batching
 from rockwave.app import sweep
@@ -24,6 +22,9 @@ from rockwave.output.hazard import HazardMonitor, flat_metrics
 from rockwave.scene.format import SceneError, parse_scene
 from rockwave.sim.batch import BatchSimulation, check_template
 from rockwave.sim.simulation import Simulation
+
+from conftest import DEVICE
+from helpers import ROOT
 
 SCENE = ROOT / "scenes" / "slide_2d_tiny.toml"
 T = 0.04  # 100 fixed steps of 4e-4 s

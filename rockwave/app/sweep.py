@@ -51,6 +51,7 @@ from pathlib import Path
 from rockwave.app import batch as batching
 from rockwave.base.device import device_syntax_error, init_warp, quiet_warp
 from rockwave.base.files import atomic_write, atomic_write_text
+from rockwave.build.builder import seed_particles
 from rockwave.output.hazard import flat_metrics
 from rockwave.scene.format import SceneError, parse_scene
 from rockwave.sim.simulation import Simulation
@@ -863,8 +864,6 @@ def batch_configs(study: Study, todo: list[dict], size: int) -> list[dict]:
               file=sys.stderr)
         return todo
     if size == 0:
-        from rockwave.build.builder import seed_particles
-
         c = todo[0]
         scene = parse_scene(copy.deepcopy(c["scene"]), c["scene_path"], Path(c["scene_path"]).parent)
         dev = "cpu" if study.device == "cpu" or not local_slots(study.device, 0, 1)[0].startswith("cuda") else "cuda"

@@ -43,7 +43,8 @@ class BatchHazard:
         self.sim = sim = batch
         self.device = d = sim.device
         scene = sim.scene
-        self.dim, self.up = dim, up = scene.dim, scene.dim - 1
+        self.dim, self.up = scene.dim, scene.dim - 1
+        up = self.up
         fluid = sim.fluid
         self.interval = hazard_interval(scene)
         spacing = float(scene.fluid.spacing_m)
