@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 CONFIG = {
-    "quick": dict(bs_scene="slide_2d_tiny.toml", bs_duration_s=0.05, bs_solo=2, bs_workers=2, bs_solo_workers_n=2,
+    "quick": dict(bs_scene="slide_2d_tiny.toml", bs_duration_s=0.1, bs_solo=2, bs_workers=2, bs_solo_workers_n=2,
                   bs_batches=[2, 4]),
     "full": dict(bs_scene="slide_2d.toml", bs_duration_s=3.0, bs_solo=2, bs_workers=4, bs_solo_workers_n=4,
                  bs_batches=[16, 64, 256]),
@@ -58,11 +58,13 @@ range = [10.0, 20.0]
 
 
 def _configs(study, tag: str, indices):
+    import copy
+
     from rockwave.app import sweep
 
     out = []
     for sc in [study.scenarios[i] for i in indices]:
-        c = sweep.scenario_config(study, sc)
+        c = copy.deepcopy(sweep.scenario_config(study, sc))
         c["out_dir"] = str(study.results / tag / sc.id)
         out.append(c)
     return out

@@ -393,27 +393,47 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions 
 
 
 def build_blocks(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None,
-                 specs: list | None = None) -> None:
-    """The block model, its state and solver (``specs``: given, e.g. a batch's tiles; None: the scene's)."""
+                 specs: list | None = None, check_overlap: bool = True) -> None:
+    """The block model, its state and solver (``specs``: given, e.g. a batch's tiles, each checked for overlaps
+    alone: ``check_overlap`` False; None: the scene's)."""
     if specs is None:
         specs = block_specs(scene)
 
     for name, body in compound_bodies(specs):  # what each non-convex mesh became
         print(f"block '{name}': non-convex mesh -> {body.summary()}", flush=True)
-    host_check = len(specs) <= 2000  # exact host test for small sets; device FCP for large ones
+    host_check = check_overlap and len(specs) <= 2000  # exact host test for small sets; device FCP for large ones
     try:
         # 2D: extruded prisms moving in the x-y plane (planar: the block step keeps them there)
         blocks = BlockModel(specs, device=device, gravity=pad3(scene.gravity.acceleration_m_s2), check_overlap=host_check,
                             planar=scene.dim == 2)
         solver = BlockSolver(blocks, options=_given(options, "blocks", BlockOptions) or block_options(scene))
         state = blocks.state()
-        if not host_check:
+        if check_overlap and not host_check:
             check_initial_overlap_on_device(solver, state)
     except (BlockOverlapError, GeometryError, ValueError) as e:
         raise SceneError(scene.path, [("blocks", tank_overlap_hint(str(e)))]) from None
     if solver.options.start == "settled":  # simulation.start: the blocks at rest start in equilibrium
         solver.settle(state)
     parts.blocks, parts.block_state, parts.block_solver = blocks, state, solver
+
+
+def block_model(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None,
+                specs: list | None = None) -> None:
+    """The blocks at their start for seeding the water around them (rockwave/sim/batch.py seeds each scenario of a
+    batch so): the model and its state, checked for overlaps; the solver only when the blocks start settled
+    (simulation.start = 'settled': the seeding sees them after the settling, as build_blocks leaves them)."""
+    if specs is None:
+        specs = block_specs(scene)
+    opts = _given(options, "blocks", BlockOptions) or block_options(scene)
+    if opts.start == "settled" or len(specs) > 2000:
+        build_blocks(scene, device, parts, options, specs=specs)
+        return
+    try:
+        blocks = BlockModel(specs, device=device, gravity=pad3(scene.gravity.acceleration_m_s2), check_overlap=True,
+                            planar=scene.dim == 2)
+    except (BlockOverlapError, GeometryError, ValueError) as e:
+        raise SceneError(scene.path, [("blocks", tank_overlap_hint(str(e)))]) from None
+    parts.blocks, parts.block_state = blocks, blocks.state()
 
 
 def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options: SolverOptions | None = None):

@@ -237,18 +237,23 @@ class BatchHazard:
         qs = sim.block_state.orientations_numpy()[a:b]
         z = gauges.z0 + gauges.dz * np.arange(gauges.n_samples)
         pos = gauges.pos.numpy().astype(np.float64)
+        pts = np.repeat(pos[:, None, :], len(z), axis=1)  # (lines, samples, 3)
+        pts[:, :, gauges.up] = z[None, :]
+        pts = pts.reshape(-1, 3)
         fixed = np.array([s.kind == "fixed" and not s.tank for s in specs])
-        for gi in range(len(pos)):
-            pts = np.repeat(pos[gi][None, :], len(z), axis=0)
-            pts[:, gauges.up] = z
-            dist = np.full((len(specs), len(z)), np.inf)
-            for j, spec in enumerate(specs):
-                R = quat_to_matrix(qs[j])
-                n = np.asarray(spec.geometry.face_normals, float) @ R.T
-                off = np.asarray(spec.geometry.face_offsets, float) + n @ xs[j]
-                dist[j] = (pts @ n.T - off).max(axis=1)
-            which = dist.argmin(axis=0)
-            phi_s[gi, (dist.min(axis=0) < 0.0) & fixed[which]] = 1.0
+        best = np.full(len(pts), np.inf)
+        which = np.zeros(len(pts), np.int64)
+        for j, spec in enumerate(specs):
+            R = quat_to_matrix(qs[j])
+            n = np.asarray(spec.geometry.face_normals, float) @ R.T
+            off = np.asarray(spec.geometry.face_offsets, float) + n @ xs[j]
+            dist = np.full(len(pts), -np.inf)
+            for f in range(len(n)):  # max over the face planes (a 1D pass each: no small-axis reduce)
+                np.maximum(dist, pts[:, 0] * n[f, 0] + pts[:, 1] * n[f, 1] + pts[:, 2] * n[f, 2] - off[f], out=dist)
+            closer = dist < best
+            best[closer], which[closer] = dist[closer], j
+        inside = ((best < 0.0) & fixed[which]).reshape(len(pos), len(z))
+        phi_s[:, : len(z)][inside] = 1.0
 
     # ------------------------------------------------------------------------------------------------
     def after_step(self) -> None:

@@ -50,7 +50,7 @@ import warp as wp
 from rockwave.base.device import resolve_device
 from rockwave.base.maths import pad3, quat_to_matrix
 from rockwave.build import builder
-from rockwave.build.options import boundary_lattice, gravity_norm, support_radius_m
+from rockwave.build.options import block_options, boundary_lattice, gravity_norm, support_radius_m
 from rockwave.build.rocks import block_specs
 from rockwave.scene.format import DEFAULT_SAMPLE_INTERVAL_S, Scene, SceneError
 from rockwave.sim.clock import Clock
@@ -186,7 +186,7 @@ class BatchSimulation(Simulation):
                 p = builder.Parts()
                 specs = block_specs(s) if (s.blocks or s.rock_mass) else []
                 if specs:
-                    builder.build_blocks(s, self.device, p, self.options, specs=specs)
+                    builder.block_model(s, self.device, p, self.options, specs=specs)
                 seeds.append(builder.seed_fluid(s, self.device, p, self.options))
                 own_specs.append(specs)
                 own_parts.append(p)
@@ -204,10 +204,10 @@ class BatchSimulation(Simulation):
                         v = np.asarray(spec.geometry.vertices, float) @ quat_to_matrix(qs[b]).T + xs[b]
                         lo, hi = np.minimum(lo, v.min(axis=0)), np.maximum(hi, v.max(axis=0))
                 self.tiles.append(Tile(np.zeros(3), lo, hi, dlo, dhi))
-            margin = 0.0
+            margin = 0.0  # the broad phase's AABB margin (rockwave/dda/blocks.py BlockSolver.margin: 0.05 D50)
             if any(own_specs):
-                d50 = [p.block_solver.margin for p in own_parts if p.block_solver is not None]
-                margin = max(d50) if d50 else 0.0
+                given = (self.options.blocks or block_options(scene)).aabb_margin_m
+                margin = max(0.05 * p.blocks.d50 if given is None else given for p in own_parts if p.blocks is not None)
             skin = 1.0  # the neighbour list's radius is at most 2 H (skin <= 1)
             self.gap = float(gap) if gap is not None else max(8.0 * H, 2.0 * (H * (1 + skin) + margin))
             sizes = np.array([[t.hi[0] - t.lo[0], t.hi[up] - t.lo[up]] for t in self.tiles])
@@ -245,7 +245,7 @@ class BatchSimulation(Simulation):
                                        np.concatenate(mblk) if mblk else None)
             parts = builder.Parts()
             if specs_all:
-                builder.build_blocks(scene, self.device, parts, self.options, specs=specs_all)
+                builder.build_blocks(scene, self.device, parts, self.options, specs=specs_all, check_overlap=False)
             builder.build_fluid(scene, self.device, parts, self.options, seeds=union)
             if parts.blocks is not None and parts.fluid.n_fluid:
                 builder.build_coupling(scene, parts, self.options)
