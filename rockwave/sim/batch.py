@@ -52,7 +52,7 @@ from rockwave.base.maths import pad3, quat_to_matrix
 from rockwave.build import builder
 from rockwave.build.options import block_options, boundary_lattice, gravity_norm, support_radius_m
 from rockwave.build.rocks import block_specs
-from rockwave.scene.format import DEFAULT_SAMPLE_INTERVAL_S, Scene, SceneError
+from rockwave.scene.format import DEFAULT_SAMPLE_INTERVAL_S, Node, Scene, SceneError
 from rockwave.sim.clock import Clock
 from rockwave.sim.guard import ESCAPE_FRACTION, SPEED_FACTOR
 from rockwave.sim.simulation import Simulation, SimulationOptions
@@ -168,14 +168,24 @@ class BatchSimulation(Simulation):
 
     Attributes beyond Simulation's: ``scenes``, ``tiles`` (list of Tile), ``n_scenarios``, ``gap`` [m],
     ``seeds`` (the per-scenario seeds in their own frames), ``removed_inside`` (per scenario). ``scene`` is the
-    first scenario's (the template: the clock and the solvers read only its shared sections)."""
+    first scenario's without its gauges and hazard entries (the template: the clock and the solvers read only its
+    shared sections).
+
+    Shared by the batch besides the step: the multi-rate block sub-step count (from the stiffest block of the
+    batch) and the decisions to keep the broad phase's pairs and to carry contacts through the sub-steps
+    (rockwave/sim/stepping.py: held only while they hold for every block of the batch); a batch of more than
+    BlockOptions.sync_free_max_blocks blocks runs the block solver's counter-read path. Neither changes the
+    contact law, only how often the narrow phase runs."""
 
     def __init__(self, scenes: list[Scene], device: str | None = None, options: SimulationOptions | None = None,
                  gap: float | None = None):
         check_template(scenes)
         self.scenes = list(scenes)
         self.n_scenarios = len(scenes)
-        scene = self.scene = scenes[0]
+        scene = scenes[0]
+        # the template: scenario 0's shared sections, without its gauges and hazard entries (each scenario's own are
+        # read in its own frame by rockwave/output/batch.py; the batch's readers have no gauges of their own)
+        self.scene = replace(scene, output=Node({**scene.output, "gauges": []}), hazard=None)
         self.options = options or SimulationOptions()
         self.device = resolve_device(device if device is not None else scene.simulation.device)
         dim, up = scene.dim, scene.dim - 1
