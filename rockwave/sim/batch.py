@@ -273,7 +273,6 @@ class BatchSimulation(Simulation):
         self._graphs: dict = {}
         self._graphs_failed = False
         self._plain_runs: set = set()
-        self.failed: dict[int, str] = {}
         self._g = gravity_norm(scene)
 
     # ---------------------------------------------------------------- per scenario -------------
@@ -350,7 +349,8 @@ class BatchSimulation(Simulation):
         naming every scenario (of ``live``, default all) that has a NaN/inf, a fluid particle faster than
         SPEED_FACTOR c0 (plus the free fall gained below its domain's top, outside it), more than
         ESCAPE_FRACTION of its water outside its domain (grown by 2H), a particle outside its tile grown by
-        half the gap (it could reach a neighbour), or a block with a NaN/inf state. Returns each scenario's count
+        half the gap less H (it could reach a neighbour), a block with a NaN/inf state or its centroid outside
+        its tile grown by half the gap. Returns each scenario's count
         of fluid particles outside its domain."""
         x, v = self.positions(), self.velocities()
         d = x.shape[1]
@@ -383,6 +383,12 @@ class BatchSimulation(Simulation):
             ba, bb = t.blocks
             if not (np.isfinite(xb[ba:bb]).all() and np.isfinite(vb[ba:bb]).all()):
                 return "a block has a NaN/inf position or velocity", 0
+            own = xb[ba:bb] - t.offset
+            off = np.any((own < t.lo - 0.5 * self.gap) | (own > t.hi + 0.5 * self.gap), axis=1)
+            if off.any():
+                i = int(np.argmax(off))
+                return (f"block {self.scenario_blocks(k)[i]!r} at {own[i].tolist()} left the scenario's tile of the "
+                        f"batch: it could reach a neighbour"), 0
         lo, hi = t.domain_lo[:d] - 2 * H, t.domain_hi[:d] + 2 * H
         inside = np.all((xk >= lo) & (xk <= hi), axis=1)
         out = int((~inside).sum())
