@@ -366,9 +366,10 @@ class _OwnState:
     def __init__(self, sim, k: int):
         a, b = sim.tiles[k].fluid
         d = sim.device
-        x = sim.state.x.numpy()
-        rho = sim.state.rho.numpy()
-        ids = sim.state.ids.numpy()
+        nf = sim.fluid.n_fluid
+        x = sim.state.x.numpy()[:nf]
+        rho = sim.state.rho.numpy()[:nf]
+        ids = sim.state.ids.numpy()[:nf]
         sel = (ids >= a) & (ids < b)
         order = np.argsort(ids[sel])
         xk = x[sel][order].astype(np.float64) - sim.tiles[k].offset
