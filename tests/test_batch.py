@@ -162,6 +162,12 @@ values = [10.0, 20.0, 25.0]
     assert (st.results / "study.csv").is_file()
     from rockwave.app.cli import main
 
+    out = tmp_path / "cli"  # the command line: one array task's scenarios, stepped as one batch
+    assert main(["sweep", str(study), "--out", str(out), "--only", "0", "--only", "2", "--batch", "2", "--quiet"]) == 0
+    st2 = sweep.load_study(study, out)
+    got = {sc.index: sweep.read_result(st2, sc) for sc in st2.scenarios}
+    assert got[1] is None and got[0]["batch_size"] == got[2]["batch_size"] == 2
+    assert abs(got[0]["metrics"]["slide.runout_m"] - sweep.read_result(st, st.scenarios[0])["metrics"]["slide.runout_m"]) < 1e-6
     assert main(["sweep", str(study), "--slurm", "--batch", "2"]) == 0
     text = (st.results / "sweep.sbatch").read_text()
     assert "--array=0-1" in text and "--only 0 --only 1" in text and "--batch 2" in text
