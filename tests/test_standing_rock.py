@@ -73,11 +73,11 @@ def step_record(solver, state, t_end, read, samples=400):
 # ----------------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("kn, t_end", [(1.0e7, 4.0), (None, 3.0)])
+@pytest.mark.parametrize("kn, t_end", [(1.0e7, 4.0), (None, 2.0)])
 def test_wedge_above_its_limit_does_not_creep(kn, t_end):
     # the asymmetric wedge of tests/test_rock_verification.py (limit 21.48 deg; 390 kg) 0.5 deg above its limit, on
-    # soft joints (1e7 N/m per point) for 4 s and at the default stiffness for 3 s: < 1 um/s over the last second
-    # (measured 1e-4 um/s on both; the wedge sits 0.96 mm / 0.017 mm down its line, its elastic deflection, from
+    # soft joints (1e7 N/m per point) for 4 s and at the default stiffness for 2 s: < 1 um/s over the last second
+    # (measured 1e-4 um/s on both, also over 4 s; the wedge sits 0.96 mm / 0.017 mm down its line, its elastic deflection, from
     # 0.5 s on). Before issue 36's fix (float32 orientations) such a wedge crept at a steady rate
     psi, da, db = WEDGE
     k, lim = wedge_limit(psi, da, db)
@@ -217,12 +217,12 @@ def mass_record(sim, t_end, every=0.1):
 def test_jointed_mass_2_deg_above_its_limit_stands_and_2_deg_below_fails():
     # 16 blocks (4 x 2 x 2 of 0.5 m) on the 20 deg basal plane. Friction 60 deg everywhere (every point sticks) gives
     # the elastic deflection of the stack (measured: largest 0.144 mm, the top blocks); at 22 deg (2 deg above what
-    # the bedding and the base need) the largest displacement after 2.5 s stays within that + 1 mm (measured equal to
+    # the bedding and the base need) the largest displacement after 2 s stays within that + 1 mm (measured equal to
     # it within 1e-4 mm), no block creeps (< 1 um/s over the last second: measured < 0.1 um/s) and the kinetic
     # energy stays at the contacts' vibration (measured 2e-8 - 1e-7 J; 1e-4 J is one block at 0.8 mm/s); at 18 deg the mass slides: every block moves > 50 mm in 1 s (measured 183 mm; g (sin 20 - cos 20 tan 18) t^2 / 2 =
     # 0.18 m)
-    locked = mass_record(jointed_slab(60.0), 1.0)[1][-1]
-    ts, ds, ke = mass_record(jointed_slab(22.0), 2.5)
+    locked = mass_record(jointed_slab(60.0), 0.5)[1][-1]
+    ts, ds, ke = mass_record(jointed_slab(22.0), 2.0)
     assert ds.shape[1] == 17  # the basal plane and 16 blocks
     assert ds[-1].max() <= locked.max() + 1.0e-3, (ds[-1].max(), locked.max())
     assert np.abs(ds[-1] - locked).max() < 1.0e-3
@@ -231,6 +231,51 @@ def test_jointed_mass_2_deg_above_its_limit_stands_and_2_deg_below_fails():
         assert abs(creep_rate(ts, ds[:, b])) < AT_REST, (b, creep_rate(ts, ds[:, b]))
     assert_at_rest(ts, ds[:, worst])
     assert ke[-1] < 1.0e-4, ke[-1]
-    ts, ds, ke = mass_record(jointed_slab(18.0), 1.0)
-    assert (ds[-1][1:] > 0.05).all(), ds[-1]
+    ts, ds, ke = mass_record(jointed_slab(18.0), 0.5)
+    assert (ds[-1][1:] > 0.02).all(), ds[-1]
     assert ke[-1] > 10.0, ke[-1]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# a block resting under water
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def test_block_under_water_holds_at_a_half_degree_margin():
+    """A 0.1 m rock (2D, 2600 kg/m3) resting on a slab dipping 20 deg in a tank of water 0.35 m deep (the rock ~0.09 m
+    under the surface), friction 20.5 deg (benchmarks/submerged_block.py). A fully submerged block on a plane in
+    hydrostatic water carries the buoyancy rho_w g V straight up, so the load on its contact is the buoyant weight,
+    vertical, and the limit is tan(phi) = tan(slope) as in air: 0.5 deg above the slope it must hold. Where the water
+    does not reach the contact face (no uplift under the base, as in the SPH-block coupling: the water seeded within
+    the contact distance of the faces is removed and none enters a closed joint), the normal force is larger by the
+    base's pressure times its area and the block holds with more margin (measured: it holds at 19.5 deg too; it slides
+    at 7 deg, below the 8.8 deg that the buoyant weight plus the base's missing uplift give).
+
+    Measured (0.025 m spacing, 260 particles): the seeded water is not at rest around the blocks and its start
+    pushes the rock ~2 mm down the dip in the first 0.3 s (the dry rock: 3.5 um, its elastic deflection); after that
+    it holds, moving a few um/s while the water sloshes (its kinetic energy falls from 3.5 J/m at the start). The
+    issue's target (< 1 um/s, beyond elastic < 0.1 mm) needs still water: benchmarks/submerged_block.py runs it long
+    enough for the sloshing to die out (docs/notes.md 'Verification cases that stand')."""
+    import warnings
+
+    from benchmarks.submerged_block import submerged_scene
+    from rockwave.scene.format import parse_scene
+
+    scene, down = submerged_scene(0.5, spacing=0.025)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the water seeded inside the slab and the rock is reported, and expected
+        sim = rockwave.Simulation(parse_scene(scene), device=DEVICE)
+    ib = [s.name for s in sim.blocks.specs].index("rock")
+    x0 = sim.block_positions()[ib].copy()
+    ts, ds = [0.0], [0.0]
+    for _ in range(12):
+        sim.advance(0.1)
+        ts.append(ts[-1] + 0.1)
+        ds.append(float((sim.block_positions()[ib] - x0) @ down))
+    print("under water: displacement down the dip [um]", np.round(1e6 * np.array(ds), 2).tolist())
+    rate = creep_rate(ts, ds, window=0.5)
+    # held (measured 2.04 mm, all of it in the first 0.4 s; dry, 0.5 deg below the limit, it would slide
+    # g (sin a - cos a tan phi) t^2 / 2 = 65 mm in 1.2 s), and moving < 20 um/s over the last 0.5 s (measured -9 um/s:
+    # the sloshing water's push; not the issue's 1 um/s, which this short run cannot show)
+    assert ds[-1] < 5.0e-3, ds
+    assert abs(rate) < 2.0e-5, rate
