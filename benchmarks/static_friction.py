@@ -54,7 +54,7 @@ CONFIG = {
     "full": dict(widths=[0.2, 1.0, 5.0, 20.0], aspects=[0.5, 1.0, "0.9topple"], slopes=[10.0, 35.0, 60.0],
                  margins=[0.1, 1.0], stiffness=["default", *JOINT, "1e6/pt", "1e8/pt", "1e10/pt"], point_max_width=1.0,
                  duration=60.0, creep_window=10.0),
-    # what fits one ~8 minute GPU call at 60 s (with ~2 min of kernel builds; --estimate: 270k steps per start, 448
+    # what fits one ~8 minute GPU call at 60 s (with ~2 min of kernel builds; --estimate: 270k steps per start, 320
     # rows, ~5-6 min at 0.5 ms per step plus the settling): every width, slope, aspect, margin and both starts, on
     # the joint stiffnesses whose step is large enough; the small blocks on stiff joints and the defaults (their step
     # is 20-120 us: 0.5-2.5 M steps per 60 s) are the full subset's
