@@ -79,8 +79,12 @@ def blocks(device: str, count: int, steps: int, settle: int = 300) -> dict:
     t = timed(lambda: [sim.step() for _ in range(steps)], device)
     n = sim.blocks.num_blocks
     mem = sim.block_solver.device_bytes(sim.block_state)  # the whole block solver's arrays, after the steps
+    # cost per contact point (issue 36's target: within 1.2x of the record before it): the step's wall time over the
+    # points of the pairs (contact_counts counts each point for both of its blocks: n x contacts / 2 points)
+    points = 0.5 * n * contacts
     return {"blocks": n, "contacts_per_block": contacts, "steps": steps, "seconds": t, "steps_per_s": steps / t,
-            "block_steps_per_s": n * steps / t, "dt_s": sim.dt, "device_bytes_per_block": mem["per_block"],
+            "block_steps_per_s": n * steps / t, "dt_s": sim.dt, "contact_points": points,
+            "ns_per_contact_point": 1e9 * t / steps / max(points, 1.0), "device_bytes_per_block": mem["per_block"],
             "history_bytes_per_block": mem["history"] / n}
 
 
@@ -161,7 +165,7 @@ def run(dev: str, cfg: dict) -> dict:
         r = blocks(dev, c, cfg["block_steps"], cfg["block_settle"])
         out["blocks"].append(r)
         log(f"  blocks {r['blocks']}: {r['contacts_per_block']:.2f} contacts/block, {r['block_steps_per_s']:.3g} block-steps/s, "
-            f"{r['device_bytes_per_block']:.0f} B/block")
+            f"{r['ns_per_contact_point']:.1f} ns per contact point, {r['device_bytes_per_block']:.0f} B/block")
     for sc in cfg["coupled"]:
         for s in cfg["coupled_scale"]:
             try:

@@ -2,9 +2,17 @@
 
 Each case is a width x width x (aspect x width) block (2600 kg/m3) resting in contact, with no gap and no pre-set
 penetration, on a fixed slab dipping ``slope`` degrees, friction angle slope + margin, normal = shear stiffness k
-per contact point (None: the solver's defaults, k_n = 0.1 E L, k_s = k_n / 2.5), gravity from t = 0, run for
-``duration`` s at the solver's stable step, once from the plain start and once from the settled one
-(BlockOptions.start; BlockSolver.settle). Measured at the centre of the block's base, along the dip:
+per contact point, gravity from t = 0, run for ``duration`` s at the solver's stable step, once from the plain start
+and once from the settled one (BlockOptions.start; BlockSolver.settle). The stiffness axis (``stiffness``) takes:
+
+- ``"default"``: the solver's defaults, k_n = 0.1 E L, k_s = k_n / 2.5;
+- ``"<K>Pa/m"``: a joint stiffness K [Pa/m] (the issue's 1 MPa/m - 10 GPa/m), k = K w^2 / 4 per point: the block's
+  base face w x w shared by its four corner points (a 20 m block on 1e6 Pa/m gets 1e8 N/m per point, a 0.2 m block
+  1e4 N/m per point);
+- ``"<k>/pt"``: k [N/m] per contact point whatever the block (the issue's first matrix); run only for widths up to
+  ``point_max_width`` (1e6 N/m per point under a 20 m block is m g / (4 k) = metres of penetration: no contact).
+
+Measured at the centre of the block's base, along the dip:
 
 - ``beyond_elastic_mm``: displacement from where it was placed minus the elastic shear deflection with the load
   shared by the four base corners, m g sin(slope) / (4 k_s) (the issue's measure);
@@ -17,13 +25,17 @@ per contact point (None: the solver's defaults, k_n = 0.1 E L, k_s = k_n / 2.5),
 
 Targets (issue 36): from the settled start beyond_elastic <= 0.1 mm after 60 s; from either start creep < 1 um/s.
 Cases whose aspect is beyond the toppling limit h/w = 1 / tan(slope) are not run (they topple). Blocks of a
-(width, k, start) share one model (one block and its slab per case, 3 slab lengths apart), stepped at the
-stiffest case's step, so the GPU runs ~16 models per start instead of ~300.
+(width, stiffness, start) share one model (one block and its slab per case, 3 slab lengths apart), stepped at the
+stiffest case's step: the cost is the groups' steps (duration / dt + the settling), not the rows. On a GPU a step of
+these small models costs ~0.5 ms whatever its size (launch-bound: 0.41-0.56 ms per step on the H200 in
+benchmarks/results/2026-11-28-cuda0-static-friction-20s.json), so ``--estimate`` prints each group's steps and the
+estimated wall time at ``--step-cost-us`` without running anything.
 
-    python -m benchmarks.static_friction --device cuda --duration 60            # the matrix, 60 s (GPU)
-    python -m benchmarks.static_friction --device cpu --subset quick --duration 6   # a small CPU subset
+    python -m benchmarks.static_friction --device cuda:0 --subset h200 --duration 60   # ~6-8 min on an H200
+    python -m benchmarks.static_friction --subset full --duration 60 --estimate        # rows, steps, minutes
+    python -m benchmarks.static_friction --device cpu --subset quick --duration 6      # a small CPU subset
 
-The table goes to benchmarks/results/static_friction-<device>.md (and .json).
+The table goes to benchmarks/results/static_friction-<device>[-<subset>].md (and .json).
 """
 
 from __future__ import annotations
@@ -34,11 +46,23 @@ import time
 
 import numpy as np
 
+JOINT = ["1e6Pa/m", "1e8Pa/m", "1e10Pa/m"]
 CONFIG = {
-    "quick": dict(widths=[1.0, 8.0], aspects=[1.0], slopes=[35.0], margins=[0.1], stiffness=[None, 1.0e8],
-                  duration=6.0, creep_window=1.0),
+    "quick": dict(widths=[1.0, 8.0], aspects=[1.0], slopes=[35.0], margins=[0.1], stiffness=["default", "1e8/pt", "1e8Pa/m"],
+                  point_max_width=1.0, duration=6.0, creep_window=1.0),
+    # the issue's matrix: 22 (width, stiffness) groups, 352 cases, 704 rows; ~3.4 h on an H200 at 60 s (--estimate)
     "full": dict(widths=[0.2, 1.0, 5.0, 20.0], aspects=[0.5, 1.0, "0.9topple"], slopes=[10.0, 35.0, 60.0],
-                 margins=[0.1, 1.0], stiffness=[None, 1.0e6, 1.0e8, 1.0e10], duration=60.0, creep_window=10.0),
+                 margins=[0.1, 1.0], stiffness=["default", *JOINT, "1e6/pt", "1e8/pt", "1e10/pt"], point_max_width=1.0,
+                 duration=60.0, creep_window=10.0),
+    # what fits one ~8 minute GPU call at 60 s (with ~2 min of kernel builds; --estimate: 270k steps per start, 320
+    # rows, ~5-6 min at 0.5 ms per step plus the settling): every width, slope, aspect, margin and both starts, on
+    # the joint stiffnesses whose step is large enough; the small blocks on stiff joints and the defaults (their step
+    # is 20-120 us: 0.5-2.5 M steps per 60 s) are the full subset's
+    "h200": dict(widths=[0.2, 1.0, 5.0, 20.0], aspects=[0.5, 1.0, "0.9topple"], slopes=[10.0, 35.0, 60.0],
+                 margins=[0.1, 1.0], stiffness=["default", "1e6Pa/m", "1e7Pa/m", "1e8Pa/m", "1e9Pa/m"],
+                 groups=[[0.2, "1e6Pa/m"], [0.2, "1e7Pa/m"], [1.0, "1e6Pa/m"], [1.0, "1e8Pa/m"], [5.0, "1e6Pa/m"],
+                         [5.0, "1e8Pa/m"], [20.0, "1e6Pa/m"], [20.0, "1e8Pa/m"], [20.0, "1e9Pa/m"], [20.0, "default"]],
+                 duration=60.0, creep_window=10.0),
 }
 RHO = 2600.0
 
@@ -54,11 +78,28 @@ def _quat(m: np.ndarray) -> tuple:
     return (0.0, math.copysign(math.sqrt(max(0.0, 1 - m[0, 0] + m[1, 1] - m[2, 2])) / 2, m[0, 2] - m[2, 0]), 0.0, w)
 
 
+def k_point(width: float, spec) -> float | None:
+    """Per-point stiffness [N/m] of a stiffness spec for a block of base width x width (None: the solver's default)."""
+    if spec in (None, "default"):
+        return None
+    spec = str(spec)
+    if spec.endswith("Pa/m"):  # joint stiffness x the base face's area shared by its 4 corner points
+        return float(spec[:-4]) * width * width / 4.0
+    if spec.endswith("/pt"):
+        return float(spec[:-3])
+    return float(spec)  # a bare number: N/m per point (the records of 2026-11-28)
+
+
 def cases(cfg: dict) -> list:
-    """(width, aspect, slope, margin, k) of the matrix, toppling aspects left out."""
+    """(width, aspect, slope, margin, stiffness spec) of the matrix, toppling aspects left out, per-point stiffnesses
+    for widths up to point_max_width only."""
     out = []
     for w in cfg["widths"]:
         for k in cfg["stiffness"]:
+            if str(k).endswith("/pt") and w > cfg.get("point_max_width", float("inf")):
+                continue
+            if cfg.get("groups") and [float(w), str(k)] not in [[float(g[0]), str(g[1])] for g in cfg["groups"]]:
+                continue
             for s in cfg["slopes"]:
                 limit = 1.0 / math.tan(math.radians(s))
                 for a in cfg["aspects"]:
@@ -70,13 +111,11 @@ def cases(cfg: dict) -> list:
     return out
 
 
-def run_group(device: str, group: list, start: str, duration: float, window: float) -> list:
-    """One model for the cases of ``group`` (same width and k): each block and its slab; returns a row per case."""
-    import warp as wp
-
-    from rockwave.base.solver import TimeStep
+def group_model(device: str, group: list):
+    """One model for the cases of ``group`` (same width and stiffness): each block and its slab, side by side.
+    Returns (model, frames: (R, n, d, h) per case)."""
     from rockwave.dda import geometry as G
-    from rockwave.dda.blocks import BlockModel, BlockOptions, BlockSolver, BlockSpec, ContactMaterial
+    from rockwave.dda.blocks import BlockModel, BlockSpec, ContactMaterial
 
     specs, frames = [], []
     for i, (w, asp, s, mg, k) in enumerate(group):
@@ -85,13 +124,35 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
         h = asp * w
         slab = (6 * w, 3 * w, w / 2)
         origin = np.array([0.0, 4.0 * w * i, 0.0])  # cases side by side along y, 1 slab width apart
-        mat = ContactMaterial(friction_angle_deg=s + mg, normal_stiffness=k, shear_stiffness=k)
+        kp = k_point(w, k)
+        mat = ContactMaterial(friction_angle_deg=s + mg, normal_stiffness=kp, shear_stiffness=kp)
         specs.append(BlockSpec(G.box(slab), kind="fixed", orientation=_quat(R), position=tuple(origin), material=mat,
                                name=f"slab{i}"))
         specs.append(BlockSpec(G.box((w, w, h)), position=tuple(origin + (slab[2] + h) / 2 * n), orientation=_quat(R),
                                density=RHO, material=mat, name=f"block{i}"))
         frames.append((R, n, d, h))
-    model = BlockModel(specs, device=device, check_overlap=False)
+    return BlockModel(specs, device=device, check_overlap=False), frames
+
+
+def group_steps(group: list, duration: float) -> tuple[int, float]:
+    """(steps of ``duration`` s, the step [s]) of a group's model, from the solver's stable step (built on the CPU,
+    nothing stepped)."""
+    from rockwave.dda.blocks import BlockSolver
+
+    model, _ = group_model("cpu", group)
+    dt = BlockSolver(model).stable_dt(model.state())
+    return int(round(duration / dt)), dt
+
+
+def run_group(device: str, group: list, start: str, duration: float, window: float) -> list:
+    """One model for the cases of ``group`` (same width and stiffness): each block and its slab; a row per case."""
+    import warp as wp
+
+    from rockwave.base.solver import TimeStep
+    from rockwave.dda import geometry as G
+    from rockwave.dda.blocks import BlockOptions, BlockSolver
+
+    model, frames = group_model(device, group)
     state = model.state()
     solver = BlockSolver(model, options=BlockOptions(start=start))
     t0 = time.perf_counter()
@@ -142,8 +203,9 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
         R = frames[c][0]
         Rq = G.quat_to_matrix(q[c])
         tilt = math.acos(min(1.0, (float(np.trace(Rq @ R.T)) - 1.0) / 2.0))
-        rows.append(dict(width_m=w, aspect=round(asp, 3), slope_deg=s, margin_deg=mg, k_n_m=k if k is not None else "default",
-                         k_s=float(ks[b]), start=start, duration_s=steps * dt, steps=steps, dt_s=dt,
+        kp = float(model.np["k_n"][b])
+        rows.append(dict(width_m=w, aspect=round(asp, 3), slope_deg=s, margin_deg=mg, stiffness=str(k or "default"),
+                         k_n_m=kp, k_joint_pa_m=4.0 * kp / (w * w), k_s=float(ks[b]), start=start, duration_s=steps * dt, steps=steps, dt_s=dt,
                          disp_mm=1e3 * d_end[c], elastic_mm=1e3 * elastic, beyond_elastic_mm=1e3 * (d_end[c] - elastic),
                          slip_mm=1e3 * (d_end[c] - ext[b] / ks[b]),
                          creep_um_s=1e6 * (d_end[c] - d_window[c]) / max(window, 1e-12),
@@ -153,34 +215,64 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
     return rows
 
 
+def groups_of(cfg: dict) -> dict:
+    """{(width, stiffness spec): [cases]} of the matrix."""
+    groups: dict = {}
+    for c in cases(cfg):
+        groups.setdefault((c[0], c[4]), []).append(c)
+    return groups
+
+
+def estimate(cfg: dict, step_cost_us: float = 500.0, settle_steps: int = 5000) -> dict:
+    """Each group's steps for cfg's duration (both starts; the settled start's settling taken as ``settle_steps``,
+    typical of the 2026-11-28 record: 2,700-5,500, up to 20,000 where it does not converge) and the wall time at
+    ``step_cost_us`` per step; groups over cfg's max_group_steps are marked skipped (run() leaves them out)."""
+    out, total, rows = [], 0.0, 0
+    for (w, k), group in groups_of(cfg).items():
+        steps, dt = group_steps(group, float(cfg["duration"]))
+        skip = steps > cfg.get("max_group_steps", float("inf"))
+        wall = 1e-6 * step_cost_us * (2 * steps + settle_steps)
+        if not skip:
+            total += wall
+            rows += 2 * len(group)
+        out.append(dict(width_m=w, stiffness=str(k or "default"), cases=len(group), dt_s=dt, steps=steps,
+                        est_wall_s=wall, skipped=skip))
+    return {"groups": out, "rows": rows, "est_wall_s": total}
+
+
 def run(device: str, cfg: dict) -> dict:
-    """The matrix of cfg (CONFIG's keys); returns {"rows": [...]} (one row per case and start)."""
+    """The matrix of cfg (CONFIG's keys); returns {"rows": [...], "skipped": [...]} (one row per case and start;
+    the groups whose step count exceeds cfg's max_group_steps are skipped and listed)."""
     from benchmarks.common import log
 
-    allc = cases(cfg)
-    groups: dict = {}
-    for c in allc:
-        groups.setdefault((c[0], c[4]), []).append(c)
-    rows = []
-    for (w, k), group in groups.items():
+    rows, skipped = [], []
+    for (w, k), group in groups_of(cfg).items():
+        if "max_group_steps" in cfg:
+            steps, dt = group_steps(group, float(cfg["duration"]))
+            if steps > cfg["max_group_steps"]:
+                skipped.append(dict(width_m=w, stiffness=str(k or "default"), steps=steps, dt_s=dt))
+                log(f"  w {w:g} {k}: {steps} steps of {dt:.3g} s > {cfg['max_group_steps']}: skipped")
+                continue
         for start in ("plain", "settled"):
             r = run_group(device, group, start, float(cfg["duration"]), float(cfg["creep_window"]))
             for row in r:
                 log(f"  w {row['width_m']:g} h/w {row['aspect']:g} slope {row['slope_deg']:g} +{row['margin_deg']:g} "
-                    f"k {row['k_n_m']} {start}: beyond elastic {row['beyond_elastic_mm']:.4f} mm, slip "
+                    f"k {row['stiffness']} ({row['k_n_m']:.3g} N/m) {start}: beyond elastic {row['beyond_elastic_mm']:.4f} mm, slip "
                     f"{row['slip_mm']:.4f} mm, creep {row['creep_um_s']:.4f} um/s ({row['steps']} steps, "
                     f"{row['wall_s']:.0f} s)")
             rows.extend(r)
-    return {"rows": rows}
+    return {"rows": rows, "skipped": skipped}
 
 
 def table(rows: list) -> str:
     """Markdown: one line per case, the plain start's numbers beside the settled start's."""
     by = {}
     for r in rows:
-        by.setdefault((r["width_m"], r["aspect"], r["slope_deg"], r["margin_deg"], str(r["k_n_m"])), {})[r["start"]] = r
-    head = ("| width m | h/w | slope deg | margin deg | k N/m | settled: beyond elastic mm | slip mm | creep um/s | "
-            "plain: beyond elastic mm | slip mm | creep um/s | steps | settle steps |\n|" + "---|" * 13 + "\n")
+        k = r.get("stiffness", r["k_n_m"])  # records before the stiffness axis: k_n_m was the spec
+        kp = r["k_n_m"] if isinstance(r["k_n_m"], float) and "stiffness" in r else None
+        by.setdefault((r["width_m"], r["aspect"], r["slope_deg"], r["margin_deg"], str(k), kp), {})[r["start"]] = r
+    head = ("| width m | h/w | slope deg | margin deg | stiffness | k N/m per point | settled: beyond elastic mm | slip mm | creep um/s | "
+            "plain: beyond elastic mm | slip mm | creep um/s | steps | settle steps |\n|" + "---|" * 14 + "\n")
     lines = []
     for key, d in by.items():
         s, p = d.get("settled", {}), d.get("plain", {})
@@ -188,7 +280,8 @@ def table(rows: list) -> str:
         def f(r, k, fmt):
             return format(r[k], fmt) if k in r else "-"
 
-        lines.append(f"| {key[0]:g} | {key[1]:g} | {key[2]:g} | {key[3]:g} | {key[4]} | {f(s, 'beyond_elastic_mm', '.4f')} | "
+        kp = "-" if key[5] is None else f"{key[5]:.3g}"
+        lines.append(f"| {key[0]:g} | {key[1]:g} | {key[2]:g} | {key[3]:g} | {key[4]} | {kp} | {f(s, 'beyond_elastic_mm', '.4f')} | "
                      f"{f(s, 'slip_mm', '.4f')} | {f(s, 'creep_um_s', '.4f')} | {f(p, 'beyond_elastic_mm', '.4f')} | "
                      f"{f(p, 'slip_mm', '.4f')} | {f(p, 'creep_um_s', '.4f')} | {s.get('steps', p.get('steps', '-'))} | "
                      f"{s.get('settle_steps', '-')}{' (floor)' if s.get('floor') else ''} |")
@@ -198,9 +291,15 @@ def table(rows: list) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.static_friction", description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--subset", choices=sorted(CONFIG), default="full", help="the matrix (full) or a small CPU one (quick)")
+    ap.add_argument("--subset", choices=sorted(CONFIG), default="full",
+                    help="the matrix (full), what fits ~8 min on an H200 at 60 s (h200) or a small CPU one (quick)")
     ap.add_argument("--duration", type=float, default=None, help="simulated seconds per case (default: the subset's)")
-    ap.add_argument("--creep-window", type=float, default=None, help="creep over the last this many s (default: duration/6)")
+    ap.add_argument("--creep-window", type=float, default=None,
+                    help="creep over the last this many s (default: 10 s, or duration/6 where that is less)")
+    ap.add_argument("--stiffness", nargs="+", default=None, help="stiffness specs: default, <K>Pa/m, <k>/pt")
+    ap.add_argument("--max-group-steps", type=int, default=None, help="skip groups needing more steps than this")
+    ap.add_argument("--estimate", action="store_true", help="print each group's steps and the estimated wall time; run nothing")
+    ap.add_argument("--step-cost-us", type=float, default=500.0, help="GPU cost of a step for --estimate (H200: ~500 us)")
     ap.add_argument("--widths", type=float, nargs="+", default=None)
     ap.add_argument("--slopes", type=float, nargs="+", default=None)
     ap.add_argument("--out", default=None, help="result stem (default benchmarks/results/static_friction-<device>)")
@@ -213,18 +312,35 @@ def main() -> None:
     cfg = dict(CONFIG[a.subset])
     if a.duration is not None:
         cfg["duration"] = a.duration
-        cfg["creep_window"] = a.duration / 6.0
+        cfg["creep_window"] = min(10.0, a.duration / 6.0)
     if a.creep_window is not None:
         cfg["creep_window"] = a.creep_window
     if a.widths:
         cfg["widths"] = a.widths
+        cfg.pop("groups", None)
     if a.slopes:
         cfg["slopes"] = a.slopes
+    if a.stiffness:
+        cfg["stiffness"] = a.stiffness
+        cfg.pop("groups", None)
+    if a.max_group_steps is not None:
+        cfg["max_group_steps"] = a.max_group_steps
+    if a.estimate:
+        est = estimate(cfg, a.step_cost_us)
+        for g in est["groups"]:
+            print(f"  w {g['width_m']:g} {g['stiffness']}: {g['cases']} cases, dt {g['dt_s']:.3g} s, {g['steps']} steps, "
+                  f"~{g['est_wall_s']:.0f} s for both starts{' (skipped)' if g['skipped'] else ''}")
+        print(f"{a.subset}, {cfg['duration']:g} s: {est['rows']} rows, ~{est['est_wall_s'] / 60:.1f} min at "
+              f"{a.step_cost_us:g} us per step")
+        return
     res = run(a.device, cfg)
-    stem = a.out or str(RESULTS / f"static_friction-{a.device.replace(':', '')}")
+    stem = a.out or str(RESULTS / f"static_friction-{a.device.replace(':', '')}-{a.subset}")
     head = (f"# Static friction (issue 36): {device_name(a.device)}, commit {commit()}, {cfg['duration']:g} s per case, "
             f"creep over the last {cfg['creep_window']:g} s\n\n")
     md = head + table(res["rows"])
+    if res["skipped"]:
+        md += "\nSkipped (step count over max_group_steps): " + ", ".join(
+            f"w {g['width_m']:g} m {g['stiffness']} ({g['steps']} steps)" for g in res["skipped"]) + "\n"
     with open(stem + ".md", "w") as f:
         f.write(md)
     write_json(dict(res, config=cfg, device=a.device, commit=commit()), stem + ".json")
