@@ -7,7 +7,9 @@ density 2000-3000 kg/m^3 and friction angle 10-20 degrees, as the issue 22 study
 - ``solo_4``: four worker processes sharing the device (sweep.run_local, as ``sweep --workers 4``);
 - ``batch_N``: N scenarios stepped together (rockwave/app/batch.py run_batch, as ``sweep --batch N``).
 
-Each row: scenarios, wall seconds (build, run and writing included; the kernels are loaded before the first row),
+Rows that would overrun ``bs_budget_s`` (from the start of the solo rows; the last batch's time scaled by its
+size) are skipped and say so: ``--batches 256`` alone runs the largest in a call of its own. Each row: scenarios,
+wall seconds (build, run and writing included; the kernels are loaded before the first row),
 scenarios per hour, and the step count. Agreement: the hazard metrics of the scenarios that ran both solo and in a
 batch (the batches start with the solo rows' scenarios): the largest difference of each kind (crest heights and
 run-up [m], arrival times [s], runout [m], volumes [m^3/m]). The batch steps at the smallest limit of its
@@ -27,9 +29,9 @@ from pathlib import Path
 
 CONFIG = {
     "quick": dict(bs_scene="slide_2d_tiny.toml", bs_duration_s=0.1, bs_solo=2, bs_workers=2, bs_solo_workers_n=2,
-                  bs_batches=[2, 4]),
+                  bs_batches=[2, 4], bs_budget_s=600.0),
     "full": dict(bs_scene="slide_2d.toml", bs_duration_s=3.0, bs_solo=2, bs_workers=4, bs_solo_workers_n=4,
-                 bs_batches=[16, 64, 256]),
+                 bs_batches=[16, 64, 256], bs_budget_s=480.0),
 }
 
 
@@ -113,7 +115,7 @@ def run(device: str, cfg: dict) -> dict:
             rows.append(row)
             return row
 
-        t0 = time.perf_counter()
+        t0 = t0_all = time.perf_counter()
         res = [sweep.run_scenario(c) for c in _configs(study, "solo_1", range(cfg["bs_solo"]))]
         record("solo_1", len(res), time.perf_counter() - t0, res)
         solo_metrics = {r["id"]: r["metrics"] for r in res if r["status"] == "ok"}
@@ -127,6 +129,13 @@ def run(device: str, cfg: dict) -> dict:
 
         agreement = {}
         for n in cfg["bs_batches"]:
+            if rows and rows[-1]["mode"].startswith("batch_"):  # a batch of n takes about as long as the last one
+                last = rows[-1]        # scaled by its particles (launch-bound below, so this overestimates)
+                guess = last["wall_s"] * n / last["scenarios"]
+                if time.perf_counter() - t0_all + guess > cfg["bs_budget_s"]:
+                    rows.append({"mode": f"batch_{n}", "scenarios": n, "skipped": f"over the {cfg['bs_budget_s']:.0f} s "
+                                 f"budget (estimated {guess:.0f} s)"})
+                    continue
             cs = _configs(study, f"batch_{n}", range(n))
             t0 = time.perf_counter()
             res = batching.run_batch(cs, sweep.run_scenario)
@@ -135,7 +144,8 @@ def run(device: str, cfg: dict) -> dict:
             agreement[f"batch_{n}"] = _agreement(solo_metrics, {r["id"]: r["metrics"] for r in res if r["status"] == "ok"})
     base = next(r for r in rows if r["mode"] == "solo_1")["scenarios_per_hour"]
     for r in rows:
-        r["ratio_to_solo_1"] = r["scenarios_per_hour"] / base
+        if "scenarios_per_hour" in r:
+            r["ratio_to_solo_1"] = r["scenarios_per_hour"] / base
     return {"rows": rows, "agreement_with_solo": agreement, "scene": cfg["bs_scene"], "duration_s": cfg["bs_duration_s"],
             "reference": "issue 22: 228 scenarios/h with 4 workers on an H100 (slide_2d, 3 s)"}
 
@@ -144,6 +154,9 @@ def markdown(res: dict) -> str:
     part = res.get("batched_sweep", res)
     lines = ["| mode | scenarios | wall s | scenarios/h | x solo_1 | steps | failed |", "|---|---|---|---|---|---|---|"]
     for r in part["rows"]:
+        if "skipped" in r:
+            lines.append(f"| {r['mode']} | {r['scenarios']} | skipped: {r['skipped']} | | | | |")
+            continue
         lines.append(f"| {r['mode']} | {r['scenarios']} | {r['wall_s']:.1f} | {r['scenarios_per_hour']:.0f} | "
                      f"{r['ratio_to_solo_1']:.2f} | {r['steps_max']} | {r['failed']} |")
     lines.append("")
