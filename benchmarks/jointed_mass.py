@@ -50,7 +50,10 @@ def jointed_sim(device: str, phi: float, size=(100, 50, 2), kn: float | None = 5
     rm = scene.rock_mass[0]
     resize_box_region(rm, [0.5 * nx, 0.5 * ny, 0.5 * nz])
     rm["region"]["box_min_m"][1], rm["region"]["box_max_m"][1] = -0.25 * ny, 0.25 * ny
-    scene.blocks[0]["size_m"] = [max(40.0, 0.5 * nx + 25.0), max(16.0, 0.5 * ny + 4.0), 1.0]
+    # the basal plane (centred on the origin) covers the mass, which starts 10 m up the dip from the origin, with
+    # 2.5 m to spare down the dip: a mass hanging over its edge falls off (measured: 100 x 50 x 2 on a 75 m plane)
+    half = max(20.0, 0.5 * nx - 10.0 + 2.5)
+    scene.blocks[0]["size_m"] = [2.0 * half, max(16.0, 0.5 * ny + 4.0), 1.0]
     n = np.array([math.sin(math.radians(SLOPE)), 0.0, math.cos(math.radians(SLOPE))])
     top = 0.5 * scene.blocks[0]["size_m"][2]
     b = block_specs(scene)[1]
