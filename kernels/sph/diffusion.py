@@ -102,3 +102,122 @@ def apply_density_diffusion(
     r = rho[i] + dt[0] * rate[i]
     drho_dt[i] = drho_dt[i] + rate[i]
     store_density(i, r, p, rho, pressure, pr2)
+
+
+# The renormalised gradient's weight ramps from 0 to 1 as the smallest eigenvalue of B_i rises from RENORM_LAMBDA_NONE
+# to RENORM_LAMBDA_FULL: the matrix of a half support (free surface, wall: lambda ~ 0.5) and of a quarter (a corner,
+# ~0.1-0.2 in 2D) is inverted; a splash particle's (a few neighbours, nearly singular) is not, its gradient is 0
+RENORM_LAMBDA_NONE = wp.constant(0.05)
+RENORM_LAMBDA_FULL = wp.constant(0.15)
+
+
+@wp.kernel
+def renormalised_gradients(
+    count: wp.array(dtype=int),
+    nbr: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    p: SPHParams,
+    lmat: wp.array(dtype=wp.mat33),
+    grad_rho: wp.array(dtype=wp.vec3),
+    grad_v: wp.array(dtype=wp.mat33),
+):
+    """The renormalised (first-order consistent) gradients of density and velocity over the FLUID neighbours
+    (Randles & Libersky 1996; Antuono et al. 2010 eq. (6)), V_j = m/rho0:
+
+        B_i = sum_j V_j grad_i W_ij (x) (x_j - x_i),  L_i = B_i^-1,
+        <grad rho>_i^L = L_i sum_j (rho_j - rho_i) grad_i W_ij V_j,   <grad v>_i^L (a row per component, likewise).
+
+    Exact for a linear field whatever part of the support is filled (the free surface, a wall, a corner), which
+    is what the renormalised diffusion (density_diffusion_rate_renormalised) needs. The weight w of the module
+    constants RENORM_LAMBDA_* scales them (lmat_i = w L_i): splash particles get none. A particle whose list
+    overflowed gets none. grad_v[i][a] = d v_a / dx (rows: components)."""
+    i = wp.tid()
+    n = count.shape[0]
+    c = count[i]
+    if c > nbr.shape[0] // n:
+        lmat[i] = wp.mat33(0.0)
+        grad_rho[i] = wp.vec3(0.0)
+        grad_v[i] = wp.mat33(0.0)
+        return
+    xi = x[i]
+    vi = v[i]
+    ri = rho[i]
+    H2 = p.H * p.H
+    vol = p.fluid_mass / p.rest_density
+    b = wp.mat33(0.0)
+    gr = wp.vec3(0.0)
+    gv = wp.mat33(0.0)
+    for k in range(c):
+        j = nbr[k * n + i]
+        if j < p.n_fluid:
+            rij = xi - x[j]
+            r2 = wp.length_sq(rij)
+            if r2 < H2 and r2 > 0.0:
+                g = vol * kernel_grad(rij, wp.sqrt(r2), p)
+                b += wp.outer(g, -rij)
+                gr += (rho[j] - ri) * g
+                gv += wp.outer(v[j] - vi, g)
+    if p.dim == 2:
+        b[2, 2] = 1.0
+    bs = 0.5 * (b + wp.transpose(b))
+    q, d = wp.eig3(bs)
+    lam = wp.min(wp.min(d[0], d[1]), d[2])
+    w = wp.clamp((lam - RENORM_LAMBDA_NONE) / (RENORM_LAMBDA_FULL - RENORM_LAMBDA_NONE), 0.0, 1.0)
+    if w > 0.0:
+        # (B is symmetric up to round-off: grad_i W_ij lies along x_ji; the eigenvalues are those of its symmetric part)
+        L = w * wp.inverse(b)
+        if p.dim == 2:
+            L[2, 2] = 0.0
+        lmat[i] = L
+        grad_rho[i] = L * gr  # sum_j (G.x_ji) grad W_ij V_j = B G
+        grad_v[i] = gv * wp.transpose(L)  # sum_j (v_j - v_i) (x) grad W_ij V_j = G_v B^T
+    else:
+        lmat[i] = wp.mat33(0.0)
+        grad_rho[i] = wp.vec3(0.0)
+        grad_v[i] = wp.mat33(0.0)
+
+
+@wp.kernel
+def density_diffusion_rate_renormalised(
+    count: wp.array(dtype=int),
+    nbr: wp.array(dtype=int),
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    grad_rho: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    delta: float,
+    out: wp.array(dtype=float),
+):
+    """Antuono et al. (2010) eq. (5)-(6), the delta-SPH diffusion with the renormalised correction:
+
+        out_i = delta h c0 sum_j psi_ij . grad_i W_ij V_j,
+        psi_ij = 2 (rho_j - rho_i) x_ji/|x_ji|^2 - (<grad rho>_i^L + <grad rho>_j^L),   x_ji = x_j - x_i,
+
+    over the FLUID neighbours, V_j = m/rho0, h = H/2. For a linear field rho_j - rho_i = G . x_ji the two parts of
+    psi_ij . grad_i W_ij cancel pair by pair (grad_i W_ij = c x_ji: 2 (G.x_ji)(x_ji.gW)/r^2 = 2 G.gW), so whatever part of the support is filled the term diffuses only the second-order (and the noise)
+    part of the density: no hydrostatic correction is needed, and no flux through a wall or the free surface
+    (the one-sided difference ~ delta c0 d rho/dn of the plain form is gone), which is why the wall particles stay
+    out of the sum. psi_ij = psi_ji and grad_j W_ji = -grad_i W_ij: with equal volumes sum_i V_i out_i = 0."""
+    i = wp.tid()
+    n = count.shape[0]
+    c = count[i]
+    if c > nbr.shape[0] // n:
+        out[i] = 0.0
+        return
+    xi = x[i]
+    ri = rho[i]
+    gi = grad_rho[i]
+    H2 = p.H * p.H
+    vol = p.fluid_mass / p.rest_density
+    s = float(0.0)
+    for k in range(c):
+        j = nbr[k * n + i]
+        if j < p.n_fluid:
+            xji = x[j] - xi
+            r2 = wp.length_sq(xji)
+            if r2 < H2 and r2 > 0.0:
+                g = kernel_grad(-xji, wp.sqrt(r2), p)
+                s += (2.0 * (rho[j] - ri) * wp.dot(xji, g) / r2 - wp.dot(gi + grad_rho[j], g)) * vol
+    out[i] = delta * 0.5 * p.H * p.sound_speed * s

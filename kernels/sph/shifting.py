@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from rockwave.kernels.sph.fluid import SPHParams, kernel_grad, kernel_w
+from rockwave.kernels.sph.fluid import SPHParams, kernel_grad, kernel_w, store_density
 
 wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
 
@@ -177,3 +177,30 @@ def apply_shift(dr: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3)):
     """x_i += dr_i (after the step's integration: dr_i was found at the step's start positions)."""
     i = wp.tid()
     x[i] = x[i] + dr[i]
+
+
+@wp.kernel
+def apply_shift_corrected(
+    dr: wp.array(dtype=wp.vec3),
+    grad_rho: wp.array(dtype=wp.vec3),
+    grad_v: wp.array(dtype=wp.mat33),
+    p: SPHParams,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    pr2: wp.array(dtype=float),
+):
+    """x_i += dr_i with the particle's velocity and density carried to its new place by a first-order Taylor
+    expansion (Xu, Stansby & Laurence 2009; Lind et al. 2012, their correction of the hydrodynamic variables):
+
+        v_i <- v_i + <grad v>_i^L dr_i,   rho_i <- rho_i + <grad rho>_i^L . dr_i,
+
+    the renormalised gradients of this step (kernels/sph/diffusion.py renormalised_gradients, zero for splash);
+    without it a shifted particle keeps the velocity of where it was, an O(|dr|) smoothing of the velocity field
+    that damps waves in proportion to the shift (docs/notes.md 'delta-plus'). Then p_i = EOS(rho_i)."""
+    i = wp.tid()
+    d = dr[i]
+    x[i] = x[i] + d
+    v[i] = v[i] + grad_v[i] * d
+    store_density(i, rho[i] + wp.dot(grad_rho[i], d), p, rho, pressure, pr2)

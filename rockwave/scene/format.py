@@ -119,19 +119,20 @@ _REGION_KEYS = dict(
 FIDELITY = {
     "draft": dict(kernel="muller", support_radius_ratio=2.0, density_diffusion=0.0, boundary="akinci", artificial_alpha=0.0,
                   density_floor=False, gradient_correction=False, packed_start=False, wall_volume="mass",
-                  particle_shifting=0.0),
+                  particle_shifting=0.0, density_diffusion_form="hydrostatic", shifting_correction="none"),
     "standard": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
                      density_floor=False, gradient_correction=False, packed_start=True, wall_volume="geometric",
-                     particle_shifting=0.0),
+                     particle_shifting=0.0, density_diffusion_form="hydrostatic", shifting_correction="none"),
     "high": dict(kernel="wendland", support_radius_ratio=4.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
                  density_floor=False, gradient_correction=False, packed_start=True, wall_volume="geometric",
-                 particle_shifting=0.0),
+                 particle_shifting=0.0, density_diffusion_form="hydrostatic", shifting_correction="none"),
     "waves": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
                   density_floor=True, gradient_correction=True, packed_start=True, wall_volume="geometric",
-                  particle_shifting=0.0),
+                  particle_shifting=0.0, density_diffusion_form="hydrostatic", shifting_correction="none"),
     "delta_plus": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.1, boundary="adami",
                        artificial_alpha=0.0, density_floor=False, gradient_correction=False, packed_start=True,
-                       wall_volume="geometric", particle_shifting=0.1),
+                       wall_volume="geometric", particle_shifting=0.1, density_diffusion_form="hydrostatic",
+                       shifting_correction="none"),
 }
 
 SCHEMA: dict[str, Key] = {
@@ -172,6 +173,8 @@ SCHEMA: dict[str, Key] = {
         gradient_correction=Key("bool", "kernel-gradient correction in the continuity and pressure terms: G_ij = (L_i + L_j)/2 grad W_ij, L_i the inverse of sum_j V_j grad W_ij (x) (x_j - x_i) (Bonet & Lok 1999; symmetrised, so momentum and the pressure's energy exchange are kept), blended to the plain gradient where the support is short of neighbours (smallest eigenvalue of the matrix below 0.75: the free surface and splash, Marrone et al. 2010; kernels/sph/fluid.py gradient_correction_matrix); pairs with wall particles keep the plain gradient. Use with density_floor in violent flows (docs/notes.md 'Kernel-gradient correction'); basic method only (default: from fidelity, true for 'waves')"),
         density_diffusion=Key("float", "delta of the delta-SPH density diffusion with continuity density (Molteni & Colagrossi 2009, hydrostatic part removed as Fourtakas et al. 2019): d rho_i/dt += delta (H/2) c0 sum_j 2 (rho_j - rho_i - rho0 g.x_ji/c0^2) x_ji.grad_i W_ij/r^2 V_j; 0.1 typical, 0 = off; continuity density only (kernels/sph/diffusion.py; default: from fidelity, 0 with summation density)", min=0.0, max=1.0),
         particle_shifting=Key("float", "K of the particle shifting (delta-plus-SPH, Sun et al. 2017; Lind et al. 2012): each step a particle moves by dr_i = -K Ma H^2 sum_j [1 + 0.2 (W_ij/W(dx))^4] grad W_ij V_j, Ma = max speed / c0, walls counted as water; only along the free surface for particles within one kernel support of it (Marrone et al. 2010's indicator), not at all for splash; at most a quarter spacing a step (kernels/sph/shifting.py); 0 = off; basic method only (default: from fidelity, 0.1 for 'delta_plus', 0 otherwise)", min=0.0, max=5.0),
+        density_diffusion_form=Key("str", "the density diffusion's correction of the truncated support: 'hydrostatic': the hydrostatic part rho0 g.x_ji/c0^2 taken out of the difference (Fourtakas et al. 2019) and the Adami wall particles in the sum with the density of their extrapolated pressure; 'renormalised': Antuono et al. (2010), psi_ij = 2 (rho_j - rho_i) x_ji/r^2 - (<grad rho>_i^L + <grad rho>_j^L) with the renormalised density gradients, over the fluid only (exact for any linear density field at walls and the free surface; one more neighbour pass) (kernels/sph/diffusion.py; default: from fidelity)", choices=("hydrostatic", "renormalised")),
+        shifting_correction=Key("str", "with particle_shifting: 'none': a shifted particle keeps its velocity and density (Sun et al. 2017); 'taylor': both carried to its new place, v += <grad v>^L dr, rho += <grad rho>^L . dr (Xu et al. 2009, Lind et al. 2012; the renormalised gradients of the diffusion pass) (kernels/sph/shifting.py; default: from fidelity)", choices=("none", "taylor")),
         method=Key("str", "'basic': WCSPH as above; 'ghost': Ghost SPH free surface (Schechter & Bridson 2012), ghost air particles seeded each step around the free surface ([fluid.ghost])", default="basic", choices=("basic", "ghost")),
         ghost=_sec(
             "Ghost SPH settings (used when method = 'ghost')",
@@ -699,7 +702,8 @@ def apply_fidelity(v: _Validator, fl: Node, tank: Node | None) -> None:
     """Fill the formulation keys the scene leaves out from fluid.fidelity (FIDELITY), then check what the chosen
     formulation cannot do: Adami walls need boundary layers as thick as the kernel support."""
     level = FIDELITY.get(fl.get("fidelity")) or FIDELITY["standard"]
-    for k in ("kernel", "support_radius_ratio", "boundary", "density_floor", "gradient_correction", "particle_shifting"):
+    for k in ("kernel", "support_radius_ratio", "boundary", "density_floor", "gradient_correction", "particle_shifting",
+              "density_diffusion_form", "shifting_correction"):
         if fl.get(k) is None:
             fl[k] = level[k]
             # a level's density floor and gradient correction are for basic WCSPH with continuity density and
