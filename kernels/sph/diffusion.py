@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from rockwave.kernels.sph.fluid import BOUNDARY_ADAMI, SPHParams, kernel_grad, store_density
+from rockwave.kernels.sph.fluid import BOUNDARY_ADAMI, CellGrid, SPHParams, cell_of, kernel_grad, kernel_w, slot_range, store_density
 
 wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
 
@@ -49,6 +49,7 @@ def density_diffusion_rate(
     walls: int,
     p: SPHParams,
     delta: float,
+    pressure_density: int,
     out: wp.array(dtype=float),
 ):
     """out_i = delta h c0 sum_j 2 (rho_j - rho_i - rho0 g.(x_j - x_i)/c0^2) ((x_j - x_i) . grad_i W_ij)/|x_ij|^2 V_j
@@ -63,6 +64,11 @@ def density_diffusion_rate(
         return
     xi = x[i]
     ri = rho[i]
+    # pressure_density = 1 (fluid.density_diffusion_form = 'pressure', with clipped negative pressure): the density
+    # of the pressure, max(rho, rho0), is what is diffused (module docstring)
+    clip = pressure_density != 0 and p.clamp_negative != 0
+    if clip:
+        ri = wp.max(ri, p.rest_density)
     H2 = p.H * p.H
     c2 = p.sound_speed * p.sound_speed
     with_walls = walls != 0 and p.boundary == BOUNDARY_ADAMI
@@ -73,6 +79,8 @@ def density_diffusion_rate(
         vj = float(0.0)
         if j < p.n_fluid:
             rj = rho[j]
+            if clip:
+                rj = wp.max(rj, p.rest_density)
             vj = p.fluid_mass / p.rest_density
         elif with_walls:
             rj = p.rest_density * wall_pr2[j - p.n_fluid][1]
@@ -104,11 +112,19 @@ def apply_density_diffusion(
     store_density(i, r, p, rho, pressure, pr2)
 
 
-# The renormalised gradient's weight ramps from 0 to 1 as the smallest eigenvalue of B_i rises from RENORM_LAMBDA_NONE
-# to RENORM_LAMBDA_FULL: the matrix of a half support (free surface, wall: lambda ~ 0.5) and of a quarter (a corner,
-# ~0.1-0.2 in 2D) is inverted; a splash particle's (a few neighbours, nearly singular) is not, its gradient is 0
-RENORM_LAMBDA_NONE = wp.constant(0.05)
-RENORM_LAMBDA_FULL = wp.constant(0.15)
+# The renormalised gradient's weight w ramps from 0 to 1 as the smallest eigenvalue lambda of B_i (fluid neighbours
+# only) rises from RENORM_LAMBDA_NONE to RENORM_LAMBDA_FULL. On the lattice at 3 spacings lambda is 1 inside, 0.5 in
+# the first row at a wall or a flat free surface (w = 1 there), 0.85 in the second, 0.25 at a corner (w ~ 0.25); a
+# jet one or two particles thick and splash fall below (w = 0: there the inverse of a nearly singular B amplified
+# the gradient's error, and the diffusion drove densities negative in a 2D dam break into a wall, docs/notes.md)
+RENORM_LAMBDA_NONE = wp.constant(0.2)
+RENORM_LAMBDA_FULL = wp.constant(0.4)
+
+
+@wp.func
+def dynamic_difference(rj: float, ri: float, xji: wp.vec3, p: SPHParams) -> float:
+    """(rho_j - rho_i) less its hydrostatic part rho0 g.(x_j - x_i)/c0^2 (Fourtakas et al. 2019; the linearised EOS)."""
+    return rj - ri - p.rest_density * wp.dot(p.gravity, xji) / (p.sound_speed * p.sound_speed)
 
 
 @wp.kernel
@@ -123,16 +139,15 @@ def renormalised_gradients(
     grad_rho: wp.array(dtype=wp.vec3),
     grad_v: wp.array(dtype=wp.mat33),
 ):
-    """The renormalised (first-order consistent) gradients of density and velocity over the FLUID neighbours
-    (Randles & Libersky 1996; Antuono et al. 2010 eq. (6)), V_j = m/rho0:
+    """The renormalised (first-order consistent) gradients over the FLUID neighbours (Randles & Libersky 1996;
+    Antuono et al. 2010), V_j = m/rho0:
 
-        B_i = sum_j V_j grad_i W_ij (x) (x_j - x_i),  L_i = B_i^-1,
-        <grad rho>_i^L = L_i sum_j (rho_j - rho_i) grad_i W_ij V_j,   <grad v>_i^L (a row per component, likewise).
+        B_i = sum_j V_j grad_i W_ij (x) (x_j - x_i),  L_i = w_i B_i^-1,
+        grad_rho_i = L_i sum_j (rho_j - rho_i - rho0 g.x_ji/c0^2) grad_i W_ij V_j   (the dynamic density's gradient),
+        grad_v_i: the same for each velocity component (rows: components, grad_v[i][a] = d v_a / dx),
 
-    Exact for a linear field whatever part of the support is filled (the free surface, a wall, a corner), which
-    is what the renormalised diffusion (density_diffusion_rate_renormalised) needs. The weight w of the module
-    constants RENORM_LAMBDA_* scales them (lmat_i = w L_i): splash particles get none. A particle whose list
-    overflowed gets none. grad_v[i][a] = d v_a / dx (rows: components)."""
+    exact for a linear field whatever part of the support is filled where w_i = 1 (the weight of the module
+    constants RENORM_LAMBDA_*; 0 for splash and thin jets). A particle whose list overflowed gets none."""
     i = wp.tid()
     n = count.shape[0]
     c = count[i]
@@ -152,21 +167,20 @@ def renormalised_gradients(
     for k in range(c):
         j = nbr[k * n + i]
         if j < p.n_fluid:
-            rij = xi - x[j]
-            r2 = wp.length_sq(rij)
+            xji = x[j] - xi
+            r2 = wp.length_sq(xji)
             if r2 < H2 and r2 > 0.0:
-                g = vol * kernel_grad(rij, wp.sqrt(r2), p)
-                b += wp.outer(g, -rij)
-                gr += (rho[j] - ri) * g
+                g = vol * kernel_grad(-xji, wp.sqrt(r2), p)
+                b += wp.outer(g, xji)
+                gr += dynamic_difference(rho[j], ri, xji, p) * g
                 gv += wp.outer(v[j] - vi, g)
     if p.dim == 2:
         b[2, 2] = 1.0
-    bs = 0.5 * (b + wp.transpose(b))
-    q, d = wp.eig3(bs)
+    # (B is symmetric up to round-off: grad_i W_ij lies along x_ji; the eigenvalues are those of its symmetric part)
+    q, d = wp.eig3(0.5 * (b + wp.transpose(b)))
     lam = wp.min(wp.min(d[0], d[1]), d[2])
     w = wp.clamp((lam - RENORM_LAMBDA_NONE) / (RENORM_LAMBDA_FULL - RENORM_LAMBDA_NONE), 0.0, 1.0)
     if w > 0.0:
-        # (B is symmetric up to round-off: grad_i W_ij lies along x_ji; the eigenvalues are those of its symmetric part)
         L = w * wp.inverse(b)
         if p.dim == 2:
             L[2, 2] = 0.0
@@ -190,16 +204,19 @@ def density_diffusion_rate_renormalised(
     delta: float,
     out: wp.array(dtype=float),
 ):
-    """Antuono et al. (2010) eq. (5)-(6), the delta-SPH diffusion with the renormalised correction:
+    """Antuono et al. (2010) eq. (5)-(6), the delta-SPH diffusion with the renormalised correction, written for the
+    dynamic density rho - rho^H (rho^H the hydrostatic density, as Fourtakas et al. 2019):
 
-        out_i = delta h c0 sum_j psi_ij . grad_i W_ij V_j,
-        psi_ij = 2 (rho_j - rho_i) x_ji/|x_ji|^2 - (<grad rho>_i^L + <grad rho>_j^L),   x_ji = x_j - x_i,
+        out_i = delta h c0 sum_j psi_ij . grad_i W_ij V_j,   x_ji = x_j - x_i,  h = H/2,  V_j = m/rho0,
+        psi_ij = 2 (rho_j - rho_i - rho0 g.x_ji/c0^2) x_ji/|x_ji|^2 - (<grad rho>_i^L + <grad rho>_j^L),
 
-    over the FLUID neighbours, V_j = m/rho0, h = H/2. For a linear field rho_j - rho_i = G . x_ji the two parts of
-    psi_ij . grad_i W_ij cancel pair by pair (grad_i W_ij = c x_ji: 2 (G.x_ji)(x_ji.gW)/r^2 = 2 G.gW), so whatever part of the support is filled the term diffuses only the second-order (and the noise)
-    part of the density: no hydrostatic correction is needed, and no flux through a wall or the free surface
-    (the one-sided difference ~ delta c0 d rho/dn of the plain form is gone), which is why the wall particles stay
-    out of the sum. psi_ij = psi_ji and grad_j W_ji = -grad_i W_ij: with equal volumes sum_i V_i out_i = 0."""
+    over the FLUID neighbours. For a linear dynamic field the two parts of psi_ij . grad_i W_ij cancel pair by pair
+    (grad_i W_ij = c x_ji: 2 (G.x_ji)(x_ji.gW)/r^2 = 2 G.gW) wherever the weights are 1, whatever part of the
+    support is filled: the term diffuses the second-order part and the particle-scale noise of the density, and
+    no flux leaves through a wall or the free surface (the one-sided difference ~ delta c0 d rho/dn of the plain
+    form is gone), so the wall particles stay out of the sum. Where the weight is below 1 (corners, thin jets,
+    splash) the hydrostatic part is still exact. psi_ij = psi_ji and grad_j W_ji = -grad_i W_ij: with equal volumes
+    sum_i V_i out_i = 0."""
     i = wp.tid()
     n = count.shape[0]
     c = count[i]
@@ -219,5 +236,58 @@ def density_diffusion_rate_renormalised(
             r2 = wp.length_sq(xji)
             if r2 < H2 and r2 > 0.0:
                 g = kernel_grad(-xji, wp.sqrt(r2), p)
-                s += (2.0 * (rho[j] - ri) * wp.dot(xji, g) / r2 - wp.dot(gi + grad_rho[j], g)) * vol
+                s += (2.0 * dynamic_difference(rho[j], ri, xji, p) * wp.dot(xji, g) / r2 - wp.dot(gi + grad_rho[j], g)) * vol
     out[i] = delta * 0.5 * p.H * p.sound_speed * s
+
+
+@wp.kernel
+def wall_density_extrapolated(
+    g: CellGrid,
+    r_lo: int,
+    r_hi: int,
+    R: float,
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    grad_rho: wp.array(dtype=wp.vec3),
+    xq: wp.array(dtype=wp.vec3),
+    q_off: int,
+    p: SPHParams,
+    wall_rho: wp.array(dtype=wp.vec2),
+):
+    """The density of each boundary particle b for the diffusion (fluid.density_diffusion_form = 'extrapolated'),
+    the fluid's field continued linearly to x_b (a first-order Taylor expansion about each fluid particle f within
+    H, Shepard-weighted):
+
+        rho_b = sum_f [rho_f + (<grad rho>_f^L + rho0 g/c0^2) . (x_b - x_f)] W_bf / sum_f W_bf,
+
+    <grad rho>_f^L the renormalised gradient of the dynamic density (renormalised_gradients) and rho0 g/c0^2 the
+    hydrostatic one. The Adami density (wall_pressure_adami: the Shepard average of the fluid's pressure plus the
+    hydrostatic part) is lower than the water pressed against the wall whenever the density rises towards the wall
+    (an impact, a run-up): with it in the sum the diffusion drained that water's compression (docs/notes.md
+    'delta-plus'); continued linearly, a density field linear across the wall gives no flux through it. wall_rho[b]
+    = (0, rho_b / rho0) (the layout density_diffusion_rate reads); rho0 where no fluid is within H. The cell query
+    as wall_pressure_adami's (R the list radius, centred at xq[q_off + t])."""
+    t = wp.tid()
+    b = t + p.n_fluid
+    xb = x[b]
+    gh = p.rest_density / (p.sound_speed * p.sound_speed) * p.gravity
+    sw = float(0.0)
+    sr = float(0.0)
+    H2 = p.H * p.H
+    xc = xq[q_off + t]
+    ix, iy, iz = cell_of(g, xc)
+    for r in range(r_lo, r_hi):
+        s0, e0 = slot_range(g, xc, R, iy, iz, r)
+        for k in range(s0, e0):
+            f = g.order[k]
+            if f < p.n_fluid:
+                d = xb - x[f]
+                r2 = wp.length_sq(d)
+                if r2 < H2:
+                    w = kernel_w(r2, p)
+                    sw += w
+                    sr += w * (rho[f] + wp.dot(grad_rho[f] + gh, d))
+    rb = p.rest_density
+    if sw > 0.0:
+        rb = wp.max(sr / sw, 1.0e-3 * p.rest_density)
+    wall_rho[t] = wp.vec2(0.0, rb / p.rest_density)

@@ -855,6 +855,10 @@ class FluidSolver:
                                    doc="bool: the Verlet lists' skin is checked pairwise ('relative'), not per particle")
     diffusion_rate = property(lambda self: getattr(self, "_diff_rate", None),
                               doc="wp.array(float, n_fluid) or None: the last density-diffusion rate [kg/m^3/s]")
+    density_gradients = property(lambda self: getattr(self, "_grad_rho", None),
+                                 doc="wp.array(vec3, n_fluid) or None: the last renormalised density gradients [kg/m^4]")
+    velocity_gradients = property(lambda self: getattr(self, "_grad_v", None),
+                                  doc="wp.array(mat33, n_fluid) or None: the last renormalised velocity gradients [1/s]")
     shift_displacements = property(lambda self: getattr(self, "_shift_dr", None),
                                    doc="wp.array(vec3, n_fluid) or None: the last step's particle shifts [m]")
     surface_indicator = property(lambda self: getattr(self, "_shift_lam", None),
@@ -917,7 +921,7 @@ class FluidSolver:
 
     def _density_diffusion_pass(self, state: FluidState, dt: wp.array) -> None:
         m = self.model
-        if m.renormalised_diffusion or m.shift_taylor:
+        if m.renormalised_diffusion or m.shift_taylor or (m.density_diffusion > 0.0 and m.density_diffusion_form == "extrapolated"):
             self.renormalised_gradients(state)
         if m.density_diffusion > 0.0 and m.density is Density.CONTINUITY:
             self._density_diffusion(state, dt)
@@ -1084,11 +1088,21 @@ class FluidSolver:
                          [state.drho_dt, state.rho, state.pressure, self._pr2])
             return
         walls = int(m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary > 0)
-        if walls:
+        wall_rho = self._wall_pr2
+        if walls and m.density_diffusion_form == "extrapolated":
+            # the wall's density continued linearly from the fluid (kernels/sph/diffusion.py wall_density_extrapolated)
+            if getattr(self, "_wall_rho_diff", None) is None:
+                self._wall_rho_diff = wp.zeros(m.n_boundary, dtype=wp.vec2, device=m.device)
+            xq, q_off = (state.x, m.n_fluid) if self._xq is None else (self._xq, 0)
+            self._launch(diffusion.wall_density_extrapolated, m.n_boundary,
+                         [self.cells, *self._slot_ranges, self.list_radius, state.x, state.rho, self._grad_rho, xq,
+                          q_off, m.params], [self._wall_rho_diff])
+            wall_rho = self._wall_rho_diff
+        elif walls:
             self.wall_pressure(state)
         self._launch(diffusion.density_diffusion_rate, m.n_fluid,
-                     [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, self._wall_pr2, walls, m.params,
-                      m.density_diffusion], [self._diff_rate])
+                     [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, wall_rho, walls, m.params,
+                      m.density_diffusion, int(m.density_diffusion_form == "pressure")], [self._diff_rate])
         self._launch(diffusion.apply_density_diffusion, m.n_fluid, [self._diff_rate, dt, m.params],
                      [state.drho_dt, state.rho, state.pressure, self._pr2])
 
