@@ -26,32 +26,27 @@ import numpy as np
 from benchmarks import harness as H
 from benchmarks.common import log
 
-# the variants: the levels and the candidates of issue 38 (docs/notes.md 'delta-plus, renormalised')
-DP = {"fluid.fidelity": "delta_plus"}
+# the variants: the levels and the steps between the level as first shipped (2026-11-28) and as it is now
+# (docs/notes.md 'delta-plus, second round'); the first round's other candidates (Antuono et al.'s renormalised
+# diffusion over the fluid, the wall density extrapolated with the renormalised gradient, the shift's Taylor
+# correction) were measured with this part at commit eb4b419 and left out
+OLD = {"fluid.fidelity": "delta_plus", "fluid.density_diffusion_form": "hydrostatic", "fluid.gradient_correction": False,
+       "fluid.particle_shifting": 0.1}
 VARIANTS = {
     "standard": {"fluid.fidelity": "standard"},
     "waves": {"fluid.fidelity": "waves"},
-    "delta_plus": dict(DP),  # the level as it is (hydrostatic diffusion with the walls, K 0.1, no correction)
-    "dp_renorm": DP | {"fluid.density_diffusion_form": "renormalised"},
-    "dp_renorm_taylor": DP | {"fluid.density_diffusion_form": "renormalised", "fluid.shifting_correction": "taylor"},
-    "dp_renorm_K0": DP | {"fluid.density_diffusion_form": "renormalised", "fluid.particle_shifting": 0.0},
-    # with the kernel-gradient correction of `waves` (no density floor: the diffusion keeps the density field smooth)
-    "dp_extra": DP | {"fluid.density_diffusion_form": "extrapolated"},
-    "dp_extra_kgc": DP | {"fluid.density_diffusion_form": "extrapolated", "fluid.gradient_correction": True},
-    "dp_extra_kgc_K0": DP | {"fluid.density_diffusion_form": "extrapolated", "fluid.gradient_correction": True,
-                             "fluid.particle_shifting": 0.0},
-    "dp_pres": DP | {"fluid.density_diffusion_form": "pressure"},
-    "dp_pres_kgc": DP | {"fluid.density_diffusion_form": "pressure", "fluid.gradient_correction": True},
-    "dp_pres_kgc_K0": DP | {"fluid.density_diffusion_form": "pressure", "fluid.gradient_correction": True,
-                            "fluid.particle_shifting": 0.0},
-    "dp_kgc": DP | {"fluid.gradient_correction": True},
-    "dp_kgc_K0": DP | {"fluid.gradient_correction": True, "fluid.particle_shifting": 0.0},
-    "dp_renorm_kgc": DP | {"fluid.gradient_correction": True, "fluid.density_diffusion_form": "renormalised"},
+    "delta_plus_1128": dict(OLD),  # the level as the 2026-11-28 H200 chart ran it
+    "old+pressure": OLD | {"fluid.density_diffusion_form": "pressure"},
+    "old+kgc": OLD | {"fluid.gradient_correction": True},
+    "old+kgc+K0": OLD | {"fluid.gradient_correction": True, "fluid.particle_shifting": 0.0},
+    "delta_plus": {"fluid.fidelity": "delta_plus"},  # the level now: pressure + kgc + K 0.02
+    "delta_plus_K0": {"fluid.fidelity": "delta_plus", "fluid.particle_shifting": 0.0},
+    "delta_plus_K0.1": {"fluid.fidelity": "delta_plus", "fluid.particle_shifting": 0.1},
 }
 CONFIG = {
-    "quick": dict(dp_variants=list(VARIANTS), dp_standing_ppd=12, dp_standing_periods=2.0, dp_dam_n=20,
+    "quick": dict(dp_variants=["standard", "delta_plus_1128", "delta_plus", "delta_plus_K0"], dp_standing_ppd=12, dp_standing_periods=2.0, dp_dam_n=20,
                   dp_dam_t_end=0.6, dp_rest_layers=20, dp_rest_t=0.5, dp_parts=["standing", "wall", "rest"]),
-    "full": dict(dp_variants=list(VARIANTS), dp_standing_ppd=50, dp_standing_periods=2.0, dp_dam_n=80,
+    "full": dict(dp_variants=["standard", "waves", "delta_plus_1128", "delta_plus", "delta_plus_K0"], dp_standing_ppd=50, dp_standing_periods=2.0, dp_dam_n=80,
                  dp_dam_t_end=0.6, dp_rest_layers=100, dp_rest_t=2.0, dp_parts=["standing", "wall", "rest"]),
 }
 WALL_X = 0.35  # the shortened tank's end wall [m]

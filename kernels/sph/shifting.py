@@ -15,7 +15,7 @@ Sources (equations written out here; no code copied):
   (the bracket is Monaghan's (2000) anti-clumping term: two particles closer than the lattice push apart harder),
   applied in full inside the water, with its normal component removed, delta r_i <- (I - n n) delta r_i, for the
   particles at the free surface and within one kernel support of it, and not at all for splash. Their K is the
-  Courant number; here K = fluid.particle_shifting (default 0.5), (2h)^2 = H^2 (our H is the support radius 2h).
+  Courant number; here K = fluid.particle_shifting (0.02 at `delta_plus`), (2h)^2 = H^2 (our H is the support radius 2h).
 - Free-surface detection: Marrone, Colagrossi, Le Touze & Graziani (2010), J. Comput. Phys. 229, 3652-3663:
   lambda_i = the smallest eigenvalue of B_i = sum_j V_j grad_i W_ij (x) (x_j - x_i) (the renormalisation matrix
   of Randles & Libersky 1996; 1 in full support, ~0.5 at a flat free surface); lambda_i < FS_LAMBDA marks a
@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from rockwave.kernels.sph.fluid import SPHParams, kernel_grad, kernel_w, store_density
+from rockwave.kernels.sph.fluid import SPHParams, kernel_grad, kernel_w
 
 wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
 
@@ -177,30 +177,3 @@ def apply_shift(dr: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3)):
     """x_i += dr_i (after the step's integration: dr_i was found at the step's start positions)."""
     i = wp.tid()
     x[i] = x[i] + dr[i]
-
-
-@wp.kernel
-def apply_shift_corrected(
-    dr: wp.array(dtype=wp.vec3),
-    grad_rho: wp.array(dtype=wp.vec3),
-    grad_v: wp.array(dtype=wp.mat33),
-    p: SPHParams,
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    rho: wp.array(dtype=float),
-    pressure: wp.array(dtype=float),
-    pr2: wp.array(dtype=float),
-):
-    """x_i += dr_i with the particle's velocity and density carried to its new place by a first-order Taylor
-    expansion (Xu, Stansby & Laurence 2009; Lind et al. 2012, their correction of the hydrodynamic variables):
-
-        v_i <- v_i + <grad v>_i^L dr_i,   rho_i <- rho_i + <grad rho>_i^L . dr_i,
-
-    the renormalised gradients of this step (kernels/sph/diffusion.py renormalised_gradients, zero for splash);
-    without it a shifted particle keeps the velocity of where it was, an O(|dr|) smoothing of the velocity field
-    that damps waves in proportion to the shift (docs/notes.md 'delta-plus'). Then p_i = EOS(rho_i)."""
-    i = wp.tid()
-    d = dr[i]
-    x[i] = x[i] + d
-    v[i] = v[i] + grad_v[i] * d
-    store_density(i, rho[i] + wp.dot(grad_rho[i], d), p, rho, pressure, pr2)

@@ -72,7 +72,6 @@ def fluid_parameters(fluid: Node | dict) -> FluidParameters:
         density_diffusion=float(fluid.get("density_diffusion", 0.0) or 0.0),
         particle_shifting=float(fluid.get("particle_shifting", 0.0) or 0.0),
         density_diffusion_form=fluid.get("density_diffusion_form") or "hydrostatic",
-        shifting_correction=fluid.get("shifting_correction") or "none",
     )
 
 

@@ -149,9 +149,9 @@ class DistributedFluid:
         # supports of halo (module doc): 1, +1 with Adami walls (a wall particle within H of a particle extrapolates
         # the fluid within H of itself), +1 with delta-SPH diffusion (it reads the neighbours' densities before
         # the halo's come from their owners; +1 with particle shifting: a particle's shift reads its neighbours'
-        # free-surface indicators; +1 with the renormalised diffusion: it reads the neighbours' density gradients)
+        # free-surface indicators)
         depth = 1 + int(m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary > 0) + int(m.density_diffusion > 0.0) \
-            + int(m.particle_shifting > 0.0) + int(m.renormalised_diffusion)
+            + int(m.particle_shifting > 0.0)
         self.dec = SlabDecomposition(m.initial_positions[: m.n_fluid], self.size, m.dim, m.support_radius, depth)
         mass = m.particle_mass.numpy()
         self.fluid_mass = float(mass[0])

@@ -167,12 +167,9 @@ class FluidParameters:
     """K of the particle shifting [-] (0: off; kernels/sph/shifting.py)."""
 
     density_diffusion_form: str = "hydrostatic"
-    """"hydrostatic" (Molteni & Colagrossi's term, hydrostatic part removed (Fourtakas et al. 2019), Adami walls in
-    the sum) or "renormalised" (Antuono et al. 2010: the renormalised density gradients removed, fluid only)."""
-
-    shifting_correction: str = "none"
-    """"none" (a shifted particle keeps its velocity and density) or "taylor" (both carried to the new place by the
-    renormalised gradients; kernels/sph/shifting.py apply_shift_corrected)."""
+    """"hydrostatic" (the continuity density diffused, hydrostatic part removed (Fourtakas et al. 2019), Adami walls
+    in the sum) or "pressure" (the same for the density of the pressure, max(rho, rho0) with clipped negative
+    pressure; kernels/sph/diffusion.py)."""
 
     @property
     def support_radius_m(self) -> float:
@@ -295,21 +292,7 @@ class FluidModel:
     """K of the particle shifting [-] (kernels/sph/shifting.py); 0: off."""
 
     density_diffusion_form: str = "hydrostatic"
-    """FluidParameters.density_diffusion_form: "hydrostatic" or "renormalised" (kernels/sph/diffusion.py)."""
-
-    shifting_correction: str = "none"
-    """FluidParameters.shifting_correction: "none" or "taylor" (kernels/sph/shifting.py apply_shift_corrected)."""
-
-    @property
-    def renormalised_diffusion(self) -> bool:
-        """Antuono et al.'s (2010) renormalised diffusion is on (continuity density, delta > 0)."""
-        return (self.density_diffusion > 0.0 and self.density is Density.CONTINUITY
-                and self.density_diffusion_form == "renormalised")
-
-    @property
-    def shift_taylor(self) -> bool:
-        """Shifting with the Taylor correction of velocity and density is on."""
-        return self.particle_shifting > 0.0 and self.shifting_correction == "taylor"
+    """FluidParameters.density_diffusion_form: "hydrostatic" or "pressure" (kernels/sph/diffusion.py)."""
 
     @property
     def n_static_boundary(self) -> int:
@@ -855,10 +838,6 @@ class FluidSolver:
                                    doc="bool: the Verlet lists' skin is checked pairwise ('relative'), not per particle")
     diffusion_rate = property(lambda self: getattr(self, "_diff_rate", None),
                               doc="wp.array(float, n_fluid) or None: the last density-diffusion rate [kg/m^3/s]")
-    density_gradients = property(lambda self: getattr(self, "_grad_rho", None),
-                                 doc="wp.array(vec3, n_fluid) or None: the last renormalised density gradients [kg/m^4]")
-    velocity_gradients = property(lambda self: getattr(self, "_grad_v", None),
-                                  doc="wp.array(mat33, n_fluid) or None: the last renormalised velocity gradients [1/s]")
     shift_displacements = property(lambda self: getattr(self, "_shift_dr", None),
                                    doc="wp.array(vec3, n_fluid) or None: the last step's particle shifts [m]")
     surface_indicator = property(lambda self: getattr(self, "_shift_lam", None),
@@ -921,24 +900,8 @@ class FluidSolver:
 
     def _density_diffusion_pass(self, state: FluidState, dt: wp.array) -> None:
         m = self.model
-        if m.renormalised_diffusion or m.shift_taylor or (m.density_diffusion > 0.0 and m.density_diffusion_form == "extrapolated"):
-            self.renormalised_gradients(state)
         if m.density_diffusion > 0.0 and m.density is Density.CONTINUITY:
             self._density_diffusion(state, dt)
-
-    def renormalised_gradients(self, state: FluidState) -> None:
-        """The renormalised density and velocity gradients of this step's density (after the continuity pass) and
-        velocity (the step's start) over the fluid neighbours (kernels/sph/diffusion.py renormalised_gradients):
-        for the renormalised diffusion and the shift's Taylor correction. The lists must be current."""
-        m = self.model
-        if getattr(self, "_grad_rho", None) is None:
-            nf, d = m.n_fluid, m.device
-            self._renorm_l = wp.zeros(nf, dtype=wp.mat33, device=d)
-            self._grad_rho = wp.zeros(nf, dtype=wp.vec3, device=d)
-            self._grad_v = wp.zeros(nf, dtype=wp.mat33, device=d)
-        self._launch(diffusion.renormalised_gradients, m.n_fluid,
-                     [self._nbr_count, self._nbr, state.x, state.v, state.rho, m.params],
-                     [self._renorm_l, self._grad_rho, self._grad_v])
 
     def _wall_pressure_pass(self, state: FluidState, dt: wp.array) -> None:
         self.wall_pressure(state)
@@ -951,12 +914,8 @@ class FluidSolver:
             self.particle_shift(state)
 
     def _shift_pass(self, state: FluidState, dt: wp.array) -> None:
-        m = self.model
-        if m.shift_taylor:
-            self._launch(shifting.apply_shift_corrected, m.n_fluid, [self._shift_dr, self._grad_rho, self._grad_v, m.params],
-                         [state.x, state.v, state.rho, state.pressure, self._pr2])
-        elif m.particle_shifting > 0.0:
-            self._launch(shifting.apply_shift, m.n_fluid, [self._shift_dr, state.x])
+        if self.model.particle_shifting > 0.0:
+            self._launch(shifting.apply_shift, self.model.n_fluid, [self._shift_dr, state.x])
 
     def particle_shift(self, state: FluidState) -> None:
         """The shifts of this step into ``shift_displacements`` (positions unchanged; the lists must be current)."""
@@ -1080,28 +1039,11 @@ class FluidSolver:
         # Adami walls take part with the density of their pressure extrapolated from this step's density (the
         # root of the blow-up after an impact, kernels/sph/diffusion.py); the wall_pressure pass then extrapolates
         # again from the diffused density
-        if m.renormalised_diffusion:  # Antuono et al. (2010): fluid only, no hydrostatic term (kernels/sph/diffusion.py)
-            self._launch(diffusion.density_diffusion_rate_renormalised, m.n_fluid,
-                         [self._nbr_count, self._nbr, state.x, state.rho, self._grad_rho, m.params, m.density_diffusion],
-                         [self._diff_rate])
-            self._launch(diffusion.apply_density_diffusion, m.n_fluid, [self._diff_rate, dt, m.params],
-                         [state.drho_dt, state.rho, state.pressure, self._pr2])
-            return
         walls = int(m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary > 0)
-        wall_rho = self._wall_pr2
-        if walls and m.density_diffusion_form == "extrapolated":
-            # the wall's density continued linearly from the fluid (kernels/sph/diffusion.py wall_density_extrapolated)
-            if getattr(self, "_wall_rho_diff", None) is None:
-                self._wall_rho_diff = wp.zeros(m.n_boundary, dtype=wp.vec2, device=m.device)
-            xq, q_off = (state.x, m.n_fluid) if self._xq is None else (self._xq, 0)
-            self._launch(diffusion.wall_density_extrapolated, m.n_boundary,
-                         [self.cells, *self._slot_ranges, self.list_radius, state.x, state.rho, self._grad_rho, xq,
-                          q_off, m.params], [self._wall_rho_diff])
-            wall_rho = self._wall_rho_diff
-        elif walls:
+        if walls:
             self.wall_pressure(state)
         self._launch(diffusion.density_diffusion_rate, m.n_fluid,
-                     [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, wall_rho, walls, m.params,
+                     [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, self._wall_pr2, walls, m.params,
                       m.density_diffusion, int(m.density_diffusion_form == "pressure")], [self._diff_rate])
         self._launch(diffusion.apply_density_diffusion, m.n_fluid, [self._diff_rate, dt, m.params],
                      [state.drho_dt, state.rho, state.pressure, self._pr2])
@@ -1261,7 +1203,7 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
         density_diffusion=float(fp.density_diffusion),
         boundary_spacing=float(bstep) if nb else 0.0, n_moving_walls=n_moving,
         particle_shifting=float(fp.particle_shifting),
-        density_diffusion_form=fp.density_diffusion_form, shifting_correction=fp.shifting_correction,
+        density_diffusion_form=fp.density_diffusion_form,
     )
     if nb and full_support:
         mb = calibrate_lattice(params, bstep, dim, device)[0]
