@@ -51,8 +51,14 @@ FORMULATIONS: dict[str, dict] = {
     # fidelity 'waves': standard with the kernel-gradient correction and the density floor (docs/notes.md
     # 'Kernel-gradient correction'); the 2026-11-28 H200 record calls it standard+kgc
     "waves": {"fluid.fidelity": "waves"},
-    # fidelity 'delta_plus' (issue 38): standard with delta-SPH diffusion (walls included) and particle shifting, alpha 0
+    # fidelity 'delta_plus' (issue 38): standard with the kernel-gradient correction, delta-SPH diffusion of the
+    # pressure's density (walls included) and light particle shifting, alpha 0 (docs/physics.md 'The delta_plus level')
     "delta_plus": {"fluid.fidelity": "delta_plus"},
+    # the level as the 2026-11-28 H200 record ran it: the continuity density diffused, no correction, K = 0.1
+    "delta_plus_1128": {"fluid.fidelity": "delta_plus", "fluid.density_diffusion_form": "hydrostatic",
+                        "fluid.gradient_correction": False, "fluid.particle_shifting": 0.1},
+    # the level without shifting (on the CPU the shift adds ~11 K points of decay per period to the standing wave)
+    "delta_plus_K0": {"fluid.fidelity": "delta_plus", "fluid.particle_shifting": 0.0},
 }
 CASES = ("standing_wave", "wave_maker", "dam_break", "spheric")
 STANDING = dict(depth=0.2, kh=0.9, mode=1, a=0.02, c0=12.0, signal="projection")  # first sloshing mode

@@ -48,6 +48,7 @@ PARTS = {
     "nonconvex": "benchmarks.nonconvex",
     "at_rest": "benchmarks.at_rest",
     "batched_sweep": "benchmarks.batched_sweep",
+    "delta_plus": "benchmarks.delta_plus",
 }
 SUITES = ("quick", "full")
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")

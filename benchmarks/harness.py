@@ -543,7 +543,8 @@ def run_spheric(device: str, spacing: float, variant: dict, t_end: float, sample
 
 # ---------------------------------------------------------------------------- standing wave ----
 FORMULATION_KEYS = ("kernel", "support_radius_ratio", "density", "density_diffusion", "pressure_force", "fidelity",
-                    "boundary", "density_floor", "gradient_correction", "particle_shifting")
+                    "boundary", "density_floor", "gradient_correction", "particle_shifting", "density_diffusion_form",
+                    "shifting_correction")
 
 
 def fluid_settings(sim) -> dict:

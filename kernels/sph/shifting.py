@@ -15,7 +15,7 @@ Sources (equations written out here; no code copied):
   (the bracket is Monaghan's (2000) anti-clumping term: two particles closer than the lattice push apart harder),
   applied in full inside the water, with its normal component removed, delta r_i <- (I - n n) delta r_i, for the
   particles at the free surface and within one kernel support of it, and not at all for splash. Their K is the
-  Courant number; here K = fluid.particle_shifting (default 0.5), (2h)^2 = H^2 (our H is the support radius 2h).
+  Courant number; here K = fluid.particle_shifting (0.02 at `delta_plus`), (2h)^2 = H^2 (our H is the support radius 2h).
 - Free-surface detection: Marrone, Colagrossi, Le Touze & Graziani (2010), J. Comput. Phys. 229, 3652-3663:
   lambda_i = the smallest eigenvalue of B_i = sum_j V_j grad_i W_ij (x) (x_j - x_i) (the renormalisation matrix
   of Randles & Libersky 1996; 1 in full support, ~0.5 at a flat free surface); lambda_i < FS_LAMBDA marks a

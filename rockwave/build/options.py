@@ -71,6 +71,7 @@ def fluid_parameters(fluid: Node | dict) -> FluidParameters:
         density=Density.SUMMATION if fluid["density"] == "summation" else Density.CONTINUITY,
         density_diffusion=float(fluid.get("density_diffusion", 0.0) or 0.0),
         particle_shifting=float(fluid.get("particle_shifting", 0.0) or 0.0),
+        density_diffusion_form=fluid.get("density_diffusion_form") or "hydrostatic",
     )
 
 

@@ -113,25 +113,27 @@ _REGION_KEYS = dict(
 # -6.5% at 32 layers for standard (-6.7% / -7.0%) and -3.8% / -1.3% for waves (-6.8% / -2.6%), the standing wave
 # and the dam break the same within 0.3 points, SPHERIC Test 2 H1-H4 0.062 (0.060), P1 peak +113% (+139%):
 # docs/notes.md 'The balanced start as the default'.
-# 'delta_plus' (issue 38): standard with delta-SPH density diffusion (walls included, kernels/sph/diffusion.py) and
-# particle shifting with a free-surface band (kernels/sph/shifting.py), alpha 0: docs/physics.md 'The delta_plus
-# level', docs/notes.md 'delta-plus'. Ghost SPH takes it without the shifting and the diffusion.
+# 'delta_plus' (issue 38, opt-in until the GPU chart confirms it): standard with the kernel-gradient correction (no
+# density floor), delta-SPH diffusion of the pressure's density (walls included, kernels/sph/diffusion.py), light
+# particle shifting with a free-surface band (K = 0.02, kernels/sph/shifting.py) and alpha 0: docs/physics.md 'The
+# delta_plus level', docs/notes.md 'delta-plus' and 'delta-plus, second round'. Ghost SPH takes it without the
+# correction, the shifting and the diffusion.
 FIDELITY = {
     "draft": dict(kernel="muller", support_radius_ratio=2.0, density_diffusion=0.0, boundary="akinci", artificial_alpha=0.0,
                   density_floor=False, gradient_correction=False, packed_start=False, wall_volume="mass",
-                  particle_shifting=0.0),
+                  particle_shifting=0.0, density_diffusion_form="hydrostatic"),
     "standard": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
                      density_floor=False, gradient_correction=False, packed_start=True, wall_volume="geometric",
-                     particle_shifting=0.0),
+                     particle_shifting=0.0, density_diffusion_form="hydrostatic"),
     "high": dict(kernel="wendland", support_radius_ratio=4.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
                  density_floor=False, gradient_correction=False, packed_start=True, wall_volume="geometric",
-                 particle_shifting=0.0),
+                 particle_shifting=0.0, density_diffusion_form="hydrostatic"),
     "waves": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
                   density_floor=True, gradient_correction=True, packed_start=True, wall_volume="geometric",
-                  particle_shifting=0.0),
+                  particle_shifting=0.0, density_diffusion_form="hydrostatic"),
     "delta_plus": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.1, boundary="adami",
-                       artificial_alpha=0.0, density_floor=False, gradient_correction=False, packed_start=True,
-                       wall_volume="geometric", particle_shifting=0.1),
+                       artificial_alpha=0.0, density_floor=False, gradient_correction=True, packed_start=True,
+                       wall_volume="geometric", particle_shifting=0.02, density_diffusion_form="pressure"),
 }
 
 SCHEMA: dict[str, Key] = {
@@ -158,7 +160,7 @@ SCHEMA: dict[str, Key] = {
         "weakly compressible SPH water (leave the section out for a scene of blocks alone)", optional=True,
         spacing_m=Key("float", "initial particle spacing", required=True, min=0, min_open=True),
         rest_density_kg_m3=Key("float", "rest density rho0", default=1000.0, min=0, min_open=True),
-        fidelity=Key("str", "speed against accuracy without SPH internals: sets the defaults of kernel, support_radius_ratio, density_diffusion, particle_shifting, boundary, wall_volume, packed_start and viscosity.artificial_alpha (any of them given in the scene wins); 'draft': the old fast formulation (Mueller kernels at 2 spacings, frozen Akinci walls, no diffusion, uniform start); 'standard': Wendland C2 at 3 spacings, Adami walls keeping their volume, the start packed at its hydrostatic density, alpha 0.01; 'high': as standard at 4 spacings; 'waves': standard with gradient_correction and density_floor, for wave propagation (Ghost SPH takes it without the two); 'delta_plus' (opt-in): standard with delta-SPH density diffusion 0.1 (walls included), particle shifting 0.1 with a free-surface band and alpha 0 (Ghost SPH takes it without the shifting and the diffusion); docs/validation.md 'Accuracy against cost' compares the levels", default="standard", choices=tuple(FIDELITY)),
+        fidelity=Key("str", "speed against accuracy without SPH internals: sets the defaults of kernel, support_radius_ratio, density_diffusion, density_diffusion_form, particle_shifting, gradient_correction, boundary, wall_volume, packed_start and viscosity.artificial_alpha (any of them given in the scene wins); 'draft': the old fast formulation (Mueller kernels at 2 spacings, frozen Akinci walls, no diffusion, uniform start); 'standard': Wendland C2 at 3 spacings, Adami walls keeping their volume, the start packed at its hydrostatic density, alpha 0.01; 'high': as standard at 4 spacings; 'waves': standard with gradient_correction and density_floor, for wave propagation (Ghost SPH takes it without the two); 'delta_plus' (opt-in): standard with gradient_correction (no density floor), delta-SPH diffusion 0.1 of the pressure's density (density_diffusion_form = 'pressure', walls included), particle shifting 0.02 with a free-surface band and alpha 0 (Ghost SPH takes it without the correction, the shifting and the diffusion); docs/validation.md 'Accuracy against cost' compares the levels", default="standard", choices=tuple(FIDELITY)),
         kernel=Key("str", "'muller': poly6 density, spiky pressure gradient, viscosity Laplacian (Mueller 2003); 'cubic_spline': Monaghan cubic spline for all; 'wendland': Wendland C2 (no pairing instability at large support_radius_ratio) for all; h = H/2 for the last two (default: from fidelity)", choices=("muller", "cubic_spline", "wendland")),
         support_radius_ratio=Key("float", "kernel support radius / spacing (2.0 gives ~30 neighbours in 3D, ~12 in 2D; 3.0 ~113 and ~28; above 1: at 1 the nearest neighbours sit on the support's edge; default: from fidelity)", min=1.0, max=5.0, min_open=True),
         boundary=Key("str", "wall treatment of the tank and obstacle particles: 'adami': generalized wall boundary (Adami, Hu & Adams 2012), each wall particle carries the pressure extrapolated from the fluid plus the hydrostatic part, so walls and corners get the fluid's pressure (needs walls as thick as the kernel support); 'akinci': frozen particles pushing with -Psi_b p_i/rho_i^2 grad W (Akinci et al. 2012; cheaper, wall pressure less accurate: docs/physics.md 'Walls'); default: from fidelity", choices=("adami", "akinci")),
@@ -169,9 +171,10 @@ SCHEMA: dict[str, Key] = {
         density=Key("str", "'continuity': d rho_i/dt = sum m_j (v_i - v_j).gradW_ij (keeps rho0 at a free surface); 'summation': rho_i = sum m_j W_ij", default="continuity", choices=("continuity", "summation")),
         clamp_negative_pressure=Key("bool", "clip p < 0 to 0 (prevents tensile clumping at a free surface with summation density)", default=True),
         density_floor=Key("bool", "continuity density kept at rho0 or above: with negative pressure clipped a lower density holds no pressure and no energy, only a memory of expansion, and a splash particle whose neighbours left it is compressed back that far before it pushes (kernels/sph/fluid.py continuity_floor). Only 'waves' (with gradient_correction, which needs it) sets it (docs/notes.md 'Density floor'); basic method, continuity density and clamp_negative_pressure only (default: from fidelity, false)"),
-        gradient_correction=Key("bool", "kernel-gradient correction in the continuity and pressure terms: G_ij = (L_i + L_j)/2 grad W_ij, L_i the inverse of sum_j V_j grad W_ij (x) (x_j - x_i) (Bonet & Lok 1999; symmetrised, so momentum and the pressure's energy exchange are kept), blended to the plain gradient where the support is short of neighbours (smallest eigenvalue of the matrix below 0.75: the free surface and splash, Marrone et al. 2010; kernels/sph/fluid.py gradient_correction_matrix); pairs with wall particles keep the plain gradient. Use with density_floor in violent flows (docs/notes.md 'Kernel-gradient correction'); basic method only (default: from fidelity, true for 'waves')"),
+        gradient_correction=Key("bool", "kernel-gradient correction in the continuity and pressure terms: G_ij = (L_i + L_j)/2 grad W_ij, L_i the inverse of sum_j V_j grad W_ij (x) (x_j - x_i) (Bonet & Lok 1999; symmetrised, so momentum and the pressure's energy exchange are kept), blended to the plain gradient where the support is short of neighbours (smallest eigenvalue of the matrix below 0.75: the free surface and splash, Marrone et al. 2010; kernels/sph/fluid.py gradient_correction_matrix); pairs with wall particles keep the plain gradient. Use with density_floor in violent flows (docs/notes.md 'Kernel-gradient correction'); basic method only (default: from fidelity, true for 'waves' and 'delta_plus')"),
         density_diffusion=Key("float", "delta of the delta-SPH density diffusion with continuity density (Molteni & Colagrossi 2009, hydrostatic part removed as Fourtakas et al. 2019): d rho_i/dt += delta (H/2) c0 sum_j 2 (rho_j - rho_i - rho0 g.x_ji/c0^2) x_ji.grad_i W_ij/r^2 V_j; 0.1 typical, 0 = off; continuity density only (kernels/sph/diffusion.py; default: from fidelity, 0 with summation density)", min=0.0, max=1.0),
-        particle_shifting=Key("float", "K of the particle shifting (delta-plus-SPH, Sun et al. 2017; Lind et al. 2012): each step a particle moves by dr_i = -K Ma H^2 sum_j [1 + 0.2 (W_ij/W(dx))^4] grad W_ij V_j, Ma = max speed / c0, walls counted as water; only along the free surface for particles within one kernel support of it (Marrone et al. 2010's indicator), not at all for splash; at most a quarter spacing a step (kernels/sph/shifting.py); 0 = off; basic method only (default: from fidelity, 0.1 for 'delta_plus', 0 otherwise)", min=0.0, max=5.0),
+        particle_shifting=Key("float", "K of the particle shifting (delta-plus-SPH, Sun et al. 2017; Lind et al. 2012): each step a particle moves by dr_i = -K Ma H^2 sum_j [1 + 0.2 (W_ij/W(dx))^4] grad W_ij V_j, Ma = max speed / c0, walls counted as water; only along the free surface for particles within one kernel support of it (Marrone et al. 2010's indicator), not at all for splash; at most a quarter spacing a step (kernels/sph/shifting.py); 0 = off; basic method only (default: from fidelity, 0.02 for 'delta_plus', 0 otherwise)", min=0.0, max=5.0),
+        density_diffusion_form=Key("str", "what the density diffusion diffuses: 'hydrostatic': the continuity density, its hydrostatic part rho0 g.x_ji/c0^2 taken out of the difference (Fourtakas et al. 2019), the Adami wall particles in the sum with the density of their extrapolated pressure; 'pressure': the same for the density of the pressure, max(rho, rho0) with clipped negative pressure (a density below rho0 holds no pressure; diffused as it is, the run-up sheet on a wall drained the compression of the water pressed into the wall, which then crept into it: docs/physics.md 'The delta_plus level') (kernels/sph/diffusion.py; default: from fidelity)", choices=("hydrostatic", "pressure")),
         method=Key("str", "'basic': WCSPH as above; 'ghost': Ghost SPH free surface (Schechter & Bridson 2012), ghost air particles seeded each step around the free surface ([fluid.ghost])", default="basic", choices=("basic", "ghost")),
         ghost=_sec(
             "Ghost SPH settings (used when method = 'ghost')",
@@ -699,7 +702,8 @@ def apply_fidelity(v: _Validator, fl: Node, tank: Node | None) -> None:
     """Fill the formulation keys the scene leaves out from fluid.fidelity (FIDELITY), then check what the chosen
     formulation cannot do: Adami walls need boundary layers as thick as the kernel support."""
     level = FIDELITY.get(fl.get("fidelity")) or FIDELITY["standard"]
-    for k in ("kernel", "support_radius_ratio", "boundary", "density_floor", "gradient_correction", "particle_shifting"):
+    for k in ("kernel", "support_radius_ratio", "boundary", "density_floor", "gradient_correction", "particle_shifting",
+              "density_diffusion_form"):
         if fl.get(k) is None:
             fl[k] = level[k]
             # a level's density floor and gradient correction are for basic WCSPH with continuity density and

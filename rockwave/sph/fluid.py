@@ -166,6 +166,11 @@ class FluidParameters:
     particle_shifting: float = 0.0
     """K of the particle shifting [-] (0: off; kernels/sph/shifting.py)."""
 
+    density_diffusion_form: str = "hydrostatic"
+    """"hydrostatic" (the continuity density diffused, hydrostatic part removed (Fourtakas et al. 2019), Adami walls
+    in the sum) or "pressure" (the same for the density of the pressure, max(rho, rho0) with clipped negative
+    pressure; kernels/sph/diffusion.py)."""
+
     @property
     def support_radius_m(self) -> float:
         """Kernel support radius H [m] (support_radius)."""
@@ -285,6 +290,9 @@ class FluidModel:
 
     particle_shifting: float = 0.0
     """K of the particle shifting [-] (kernels/sph/shifting.py); 0: off."""
+
+    density_diffusion_form: str = "hydrostatic"
+    """FluidParameters.density_diffusion_form: "hydrostatic" or "pressure" (kernels/sph/diffusion.py)."""
 
     @property
     def n_static_boundary(self) -> int:
@@ -1036,7 +1044,7 @@ class FluidSolver:
             self.wall_pressure(state)
         self._launch(diffusion.density_diffusion_rate, m.n_fluid,
                      [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, self._wall_pr2, walls, m.params,
-                      m.density_diffusion], [self._diff_rate])
+                      m.density_diffusion, int(m.density_diffusion_form == "pressure")], [self._diff_rate])
         self._launch(diffusion.apply_density_diffusion, m.n_fluid, [self._diff_rate, dt, m.params],
                      [state.drho_dt, state.rho, state.pressure, self._pr2])
 
@@ -1195,6 +1203,7 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
         density_diffusion=float(fp.density_diffusion),
         boundary_spacing=float(bstep) if nb else 0.0, n_moving_walls=n_moving,
         particle_shifting=float(fp.particle_shifting),
+        density_diffusion_form=fp.density_diffusion_form,
     )
     if nb and full_support:
         mb = calibrate_lattice(params, bstep, dim, device)[0]
