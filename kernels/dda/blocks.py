@@ -1414,6 +1414,21 @@ def advance_block_clock(clock: wp.array(dtype=float)):
     clock[0] = clock[0] + clock[1]
 
 
+@wp.func
+def kinematic_step_change(b: int, clock: wp.array(dtype=float), motion: BlockMotion, bodies: BlockBodies,
+                          kinds: wp.array(dtype=int)):
+    # a kinematic block's velocity over the coming step (its prescribed displacement from x + x_lo to
+    # base_x + u(t_next), over dt: what integrate_blocks will move it by) minus the one it moved with over the last
+    # (bodies.v); zero for other blocks
+    dv = wp.vec3(0.0, 0.0, 0.0)
+    dt = clock[1]
+    if kinds[b] == KIND_KINEMATIC and dt > 0.0:
+        u, uv = kinematic_motion(b, clock[0], motion)
+        xs, xl = two_sum(motion.base_x[b], u)
+        dv = ((xs - bodies.x[b]) + (xl - bodies.x_lo[b])) / dt - bodies.v[b]
+    return dv
+
+
 @wp.kernel
 def contact_forces(
     pl: PairList,
@@ -1421,6 +1436,7 @@ def contact_forces(
     g_mag: float,
     props: BlockProps,
     mat: BlockMaterial,
+    motion: BlockMotion,
     bodies: BlockBodies,
     prev: ContactTable,
     cur: ContactTable,
@@ -1604,6 +1620,10 @@ def contact_forces(
         vrel = vB - vA
         vn = wp.dot(vrel, n)
         vt = vrel - vn * n
+        # the implicit dashpots pull a block towards the other's velocity over this step: a kinematic block's is its
+        # prescribed displacement over the step / dt (integrate_blocks), not the one it moved with over the last
+        vAd = vA + kinematic_step_change(A, clock, motion, bodies, kinds)
+        vBd = vB + kinematic_step_change(B, clock, motion, bodies, kinds)
         zn = float(1.0)
         if cur.vimp[c] > v_rest:
             zn = zt
@@ -1635,10 +1655,10 @@ def contact_forces(
                 f = f + fn * n
             else:
                 f = f + (kn * d) * n
-                add_damper(A, B, p, n, cn, vA, vB, xA, xB, kinds, loads)
+                add_damper(A, B, p, n, cn, vAd, vBd, xA, xB, kinds, loads)
             if stuck:
-                add_damper(A, B, p, t1, csk, vA, vB, xA, xB, kinds, loads)
-                add_damper(A, B, p, t2, csk, vA, vB, xA, xB, kinds, loads)
+                add_damper(A, B, p, t1, csk, vAd, vBd, xA, xB, kinds, loads)
+                add_damper(A, B, p, t2, csk, vAd, vBd, xA, xB, kinds, loads)
         elif stuck:
             f = f - csk * vt
         if movable(kinds[B]):
@@ -1935,6 +1955,8 @@ def integrate_blocks(
     if kind == KIND_KINEMATIC:
         u, uv = kinematic_motion(b, t_next, motion)
         xs, xl = two_sum(motion.base_x[b], u)
+        if dt > 0.0:
+            uv = ((xs - x[b]) + (xl - bodies.x_lo[b])) / dt
         x[b] = xs
         bodies.x_lo[b] = xl
         v[b] = uv

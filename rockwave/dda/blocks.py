@@ -1258,7 +1258,7 @@ class BlockSolver:
                                         inputs=[self.pair_list, state.verts, m.topology, state.bodies, old, new],
                                         device=d)
                 wp.launch(dda_k.contact_forces, dim=n,
-                          inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, state.bodies, old, new,
+                          inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, self.motion, state.bodies, old, new,
                                   state.loads], device=d)
             if self.sync_free or n == 0:
                 break
@@ -1290,7 +1290,7 @@ class BlockSolver:
             wp.launch(dda_k.carry_contacts, dim=n, inputs=[self.pair_list, self.block_clock, m.kinds, state.bodies, old, new],
                       device=d)
             wp.launch(dda_k.contact_forces, dim=n,
-                      inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, state.bodies, old, new,
+                      inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, self.motion, state.bodies, old, new,
                               state.loads], device=d)
         state.swap_tables()
 
