@@ -1594,7 +1594,7 @@ def contact_forces(
         # slides at the cap, in the direction of that trial force, with no dashpot
         ftr = fs - cs0 * vt
         lftr = wp.length(ftr)
-        if locked or (wp.length(fs) <= fmax and not (was_sliding == 1 and wp.dot(vt, fs) < 0.0)):
+        if locked or (lftr <= fmax and not (was_sliding == 1 and wp.dot(vt, fs) < 0.0)):
             stuck_mask = stuck_mask | (1 << k)
             n_stuck += 1
         elif lftr > 0.0:
