@@ -125,7 +125,9 @@ class BlockBodies:
     angular velocity w (world), strain and strain rate (body frame), and x_lo, the part of the centroid
     below float32's resolution at x: the centroid is x + x_lo ("double-float", ~48 bits; integrate_blocks); q_lo likewise
     the part of the orientation below q's resolution (the orientation is q + q_lo, unit to float64's precision;
-    every kernel reads the rounded q)."""
+    every kernel reads the rounded q). v_step: a kinematic block's displacement over its last step / dt (v is its
+    prescribed velocity at the step's end; the contact springs integrate v_step, as they integrate a free block's
+    v, the velocity that moved it over the last step); unused for other blocks."""
 
     x: wp.array(dtype=wp.vec3)
     q: wp.array(dtype=wp.quat)
@@ -135,6 +137,7 @@ class BlockBodies:
     strain_rate: wp.array(dtype=wp.spatial_vector)
     x_lo: wp.array(dtype=wp.vec3)
     q_lo: wp.array(dtype=wp.quat)
+    v_step: wp.array(dtype=wp.vec3)
 
 
 # a symmetric 6x6 matrix as its upper triangle, row by row (21 entries: 84 B, not the full matrix's 144)
@@ -1415,17 +1418,29 @@ def advance_block_clock(clock: wp.array(dtype=float)):
 
 
 @wp.func
+def kinematic_last_step(b: int, bodies: BlockBodies, kinds: wp.array(dtype=int)):
+    # what the contact springs integrate for block b beyond point_velocity (which reads v): a kinematic block's
+    # displacement over its last step / dt (v_step) in place of its prescribed velocity at the step's end (v), so
+    # that a stuck spring records exactly the relative displacement (the sum of v_step dt is the motion, the sum of
+    # v dt is not); zero for other blocks, whose v is already the velocity that moved them over the last step
+    dv = wp.vec3(0.0, 0.0, 0.0)
+    if kinds[b] == KIND_KINEMATIC:
+        dv = bodies.v_step[b] - bodies.v[b]
+    return dv
+
+
+@wp.func
 def kinematic_step_change(b: int, clock: wp.array(dtype=float), motion: BlockMotion, bodies: BlockBodies,
                           kinds: wp.array(dtype=int)):
     # a kinematic block's velocity over the coming step (its prescribed displacement from x + x_lo to
     # base_x + u(t_next), over dt: what integrate_blocks will move it by) minus the one it moved with over the last
-    # (bodies.v); zero for other blocks
+    # (v_step); zero for other blocks
     dv = wp.vec3(0.0, 0.0, 0.0)
     dt = clock[1]
     if kinds[b] == KIND_KINEMATIC and dt > 0.0:
         u, uv = kinematic_motion(b, clock[0], motion)
         xs, xl = two_sum(motion.base_x[b], u)
-        dv = ((xs - bodies.x[b]) + (xl - bodies.x_lo[b])) / dt - bodies.v[b]
+        dv = ((xs - bodies.x[b]) + (xl - bodies.x_lo[b])) / dt - bodies.v_step[b]
     return dv
 
 
@@ -1545,6 +1560,7 @@ def contact_forces(
         c = base + k
         p = new_pos[c]
         vrel = point_velocity(B, p, xB, q, v, w, strain_rate, kinds) - point_velocity(A, p, xA, q, v, w, strain_rate, kinds)
+        vrel = vrel + kinematic_last_step(B, bodies, kinds) - kinematic_last_step(A, bodies, kinds)
         vn = wp.dot(vrel, n)
         vt = vrel - vn * n
         # history of this point (matched by feature key): shear spring, closing speed at first touch
@@ -1615,8 +1631,8 @@ def contact_forces(
         c = base + k
         p = new_pos[c]
         d = new_depth[c]
-        vA = point_velocity(A, p, xA, q, v, w, strain_rate, kinds)
-        vB = point_velocity(B, p, xB, q, v, w, strain_rate, kinds)
+        vA = point_velocity(A, p, xA, q, v, w, strain_rate, kinds) + kinematic_last_step(A, bodies, kinds)
+        vB = point_velocity(B, p, xB, q, v, w, strain_rate, kinds) + kinematic_last_step(B, bodies, kinds)
         vrel = vB - vA
         vn = wp.dot(vrel, n)
         vt = vrel - vn * n
@@ -1955,11 +1971,13 @@ def integrate_blocks(
     if kind == KIND_KINEMATIC:
         u, uv = kinematic_motion(b, t_next, motion)
         xs, xl = two_sum(motion.base_x[b], u)
-        if dt > 0.0:
-            uv = ((xs - x[b]) + (xl - bodies.x_lo[b])) / dt
+        vs = uv
+        if dt > 0.0:  # the displacement over this step / dt (the same float32 parts as x + x_lo): v_step
+            vs = ((xs - x[b]) + (xl - bodies.x_lo[b])) / dt
         x[b] = xs
         bodies.x_lo[b] = xl
         v[b] = uv
+        bodies.v_step[b] = vs
         w[b] = wp.vec3(0.0, 0.0, 0.0)
     elif kind != KIND_FIXED:
         im = props.inv_mass[b]
