@@ -88,13 +88,16 @@ def run_case(device: str, peak_g: float, duration: float, kn: float, kind: str, 
                 wall_s=wall, ms_per_step=1e3 * wall / max(n_steps, 1))
 
 
+def _num(v) -> str:
+    return "-" if v is None else f"{v:.3f}"
+
+
 def markdown(rows: list[dict], head: str) -> str:
     out = [head, "", "| cube | motion | k_n (N/m/pt) | dt (ms) | cycles | first cycle (um) | max last 10 (um) | "
            "rate last 10 (um/s) | ms/step |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        f = (lambda v: "-" if v is None else f"{v:.3f}")
         out.append(f"| {r['kind']} | {r['motion']} | {r['kn']:.0e} | {1e3 * r['dt']:.3f} | {r['cycles']} | "
-                   f"{f(r['first_cycle_um'])} | {f(r['last10_max_abs_um'])} | {f(r['last10_rate_um_s'])} | "
+                   f"{_num(r['first_cycle_um'])} | {_num(r['last10_max_abs_um'])} | {_num(r['last10_rate_um_s'])} | "
                    f"{r['ms_per_step']:.2f} |")
     return "\n".join(out) + "\n"
 
