@@ -1624,7 +1624,11 @@ def contact_forces(
         cs = 2.0 * ZETA_STUCK * wp.sqrt(ks * m_eff / float(n_stuck))
         if not implicit and dt > 0.0:
             cs = wp.min(cs, m_eff / (float(n_stuck) * dt))  # explicit dashpot: c dt <= m (stable, no overshoot)
-    # pass 2: forces
+    # pass 2: forces. The implicit dashpots pull a block towards the other's velocity over this step: a kinematic
+    # block's is its prescribed displacement over the step / dt (integrate_blocks), not the one it moved with over the
+    # last (once per pair: a table motion's lookup scans its rows)
+    dvA_step = kinematic_step_change(A, clock, motion, bodies, kinds)
+    dvB_step = kinematic_step_change(B, clock, motion, bodies, kinds)
     impact_pts = int(0)
     cn_face = 2.0 * sq_n  # a resting point's normal dashpot
     for k in range(nc):
@@ -1636,10 +1640,8 @@ def contact_forces(
         vrel = vB - vA
         vn = wp.dot(vrel, n)
         vt = vrel - vn * n
-        # the implicit dashpots pull a block towards the other's velocity over this step: a kinematic block's is its
-        # prescribed displacement over the step / dt (integrate_blocks), not the one it moved with over the last
-        vAd = vA + kinematic_step_change(A, clock, motion, bodies, kinds)
-        vBd = vB + kinematic_step_change(B, clock, motion, bodies, kinds)
+        vAd = vA + dvA_step
+        vBd = vB + dvB_step
         zn = float(1.0)
         if cur.vimp[c] > v_rest:
             zn = zt
