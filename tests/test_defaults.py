@@ -43,6 +43,7 @@ FIELD_DEFAULTS = {
     "coupling.damping_n_s_m": (CouplingOptions, "damping_n_s_m"),
     "coupling.squeeze_out": (CouplingOptions, "squeeze_out"),
     "coupling.block_walls": (CouplingOptions, "block_walls"),
+    "coupling.joint_water": (CouplingOptions, "joint_water"),
     "blocks.density_kg_m3": (BlockSpec, "density"),
     "blocks.poisson_ratio": (BlockSpec, "poisson_ratio"),
     "blocks.strain_damping_ratio": (BlockSpec, "strain_damping_ratio"),

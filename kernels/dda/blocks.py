@@ -125,7 +125,9 @@ class BlockBodies:
     angular velocity w (world), strain and strain rate (body frame), and x_lo, the part of the centroid
     below float32's resolution at x: the centroid is x + x_lo ("double-float", ~48 bits; integrate_blocks); q_lo likewise
     the part of the orientation below q's resolution (the orientation is q + q_lo, unit to float64's precision;
-    every kernel reads the rounded q)."""
+    every kernel reads the rounded q). v_step: a kinematic block's displacement over its last step / dt (v is its
+    prescribed velocity at the step's end; the contact springs integrate v_step, as they integrate a free block's
+    v, the velocity that moved it over the last step); unused for other blocks."""
 
     x: wp.array(dtype=wp.vec3)
     q: wp.array(dtype=wp.quat)
@@ -135,6 +137,7 @@ class BlockBodies:
     strain_rate: wp.array(dtype=wp.spatial_vector)
     x_lo: wp.array(dtype=wp.vec3)
     q_lo: wp.array(dtype=wp.quat)
+    v_step: wp.array(dtype=wp.vec3)
 
 
 # a symmetric 6x6 matrix as its upper triangle, row by row (21 entries: 84 B, not the full matrix's 144)
@@ -1414,6 +1417,33 @@ def advance_block_clock(clock: wp.array(dtype=float)):
     clock[0] = clock[0] + clock[1]
 
 
+@wp.func
+def kinematic_last_step(b: int, bodies: BlockBodies, kinds: wp.array(dtype=int)):
+    # what the contact springs integrate for block b beyond point_velocity (which reads v): a kinematic block's
+    # displacement over its last step / dt (v_step) in place of its prescribed velocity at the step's end (v), so
+    # that a stuck spring records exactly the relative displacement (the sum of v_step dt is the motion, the sum of
+    # v dt is not); zero for other blocks, whose v is already the velocity that moved them over the last step
+    dv = wp.vec3(0.0, 0.0, 0.0)
+    if kinds[b] == KIND_KINEMATIC:
+        dv = bodies.v_step[b] - bodies.v[b]
+    return dv
+
+
+@wp.func
+def kinematic_step_change(b: int, clock: wp.array(dtype=float), motion: BlockMotion, bodies: BlockBodies,
+                          kinds: wp.array(dtype=int)):
+    # a kinematic block's velocity over the coming step (its prescribed displacement from x + x_lo to
+    # base_x + u(t_next), over dt: what integrate_blocks will move it by) minus the one it moved with over the last
+    # (v_step); zero for other blocks
+    dv = wp.vec3(0.0, 0.0, 0.0)
+    dt = clock[1]
+    if kinds[b] == KIND_KINEMATIC and dt > 0.0:
+        u, uv = kinematic_motion(b, clock[0], motion)
+        xs, xl = two_sum(motion.base_x[b], u)
+        dv = ((xs - bodies.x[b]) + (xl - bodies.x_lo[b])) / dt - bodies.v_step[b]
+    return dv
+
+
 @wp.kernel
 def contact_forces(
     pl: PairList,
@@ -1421,6 +1451,7 @@ def contact_forces(
     g_mag: float,
     props: BlockProps,
     mat: BlockMaterial,
+    motion: BlockMotion,
     bodies: BlockBodies,
     prev: ContactTable,
     cur: ContactTable,
@@ -1529,6 +1560,7 @@ def contact_forces(
         c = base + k
         p = new_pos[c]
         vrel = point_velocity(B, p, xB, q, v, w, strain_rate, kinds) - point_velocity(A, p, xA, q, v, w, strain_rate, kinds)
+        vrel = vrel + kinematic_last_step(B, bodies, kinds) - kinematic_last_step(A, bodies, kinds)
         vn = wp.dot(vrel, n)
         vt = vrel - vn * n
         # history of this point (matched by feature key): shear spring, closing speed at first touch
@@ -1592,18 +1624,24 @@ def contact_forces(
         cs = 2.0 * ZETA_STUCK * wp.sqrt(ks * m_eff / float(n_stuck))
         if not implicit and dt > 0.0:
             cs = wp.min(cs, m_eff / (float(n_stuck) * dt))  # explicit dashpot: c dt <= m (stable, no overshoot)
-    # pass 2: forces
+    # pass 2: forces. The implicit dashpots pull a block towards the other's velocity over this step: a kinematic
+    # block's is its prescribed displacement over the step / dt (integrate_blocks), not the one it moved with over the
+    # last (once per pair: a table motion's lookup scans its rows)
+    dvA_step = kinematic_step_change(A, clock, motion, bodies, kinds)
+    dvB_step = kinematic_step_change(B, clock, motion, bodies, kinds)
     impact_pts = int(0)
     cn_face = 2.0 * sq_n  # a resting point's normal dashpot
     for k in range(nc):
         c = base + k
         p = new_pos[c]
         d = new_depth[c]
-        vA = point_velocity(A, p, xA, q, v, w, strain_rate, kinds)
-        vB = point_velocity(B, p, xB, q, v, w, strain_rate, kinds)
+        vA = point_velocity(A, p, xA, q, v, w, strain_rate, kinds) + kinematic_last_step(A, bodies, kinds)
+        vB = point_velocity(B, p, xB, q, v, w, strain_rate, kinds) + kinematic_last_step(B, bodies, kinds)
         vrel = vB - vA
         vn = wp.dot(vrel, n)
         vt = vrel - vn * n
+        vAd = vA + dvA_step
+        vBd = vB + dvB_step
         zn = float(1.0)
         if cur.vimp[c] > v_rest:
             zn = zt
@@ -1635,10 +1673,10 @@ def contact_forces(
                 f = f + fn * n
             else:
                 f = f + (kn * d) * n
-                add_damper(A, B, p, n, cn, vA, vB, xA, xB, kinds, loads)
+                add_damper(A, B, p, n, cn, vAd, vBd, xA, xB, kinds, loads)
             if stuck:
-                add_damper(A, B, p, t1, csk, vA, vB, xA, xB, kinds, loads)
-                add_damper(A, B, p, t2, csk, vA, vB, xA, xB, kinds, loads)
+                add_damper(A, B, p, t1, csk, vAd, vBd, xA, xB, kinds, loads)
+                add_damper(A, B, p, t2, csk, vAd, vBd, xA, xB, kinds, loads)
         elif stuck:
             f = f - csk * vt
         if movable(kinds[B]):
@@ -1935,9 +1973,13 @@ def integrate_blocks(
     if kind == KIND_KINEMATIC:
         u, uv = kinematic_motion(b, t_next, motion)
         xs, xl = two_sum(motion.base_x[b], u)
+        vs = uv
+        if dt > 0.0:  # the displacement over this step / dt (the same float32 parts as x + x_lo): v_step
+            vs = ((xs - x[b]) + (xl - bodies.x_lo[b])) / dt
         x[b] = xs
         bodies.x_lo[b] = xl
         v[b] = uv
+        bodies.v_step[b] = vs
         w[b] = wp.vec3(0.0, 0.0, 0.0)
     elif kind != KIND_FIXED:
         im = props.inv_mass[b]

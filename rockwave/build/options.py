@@ -158,4 +158,5 @@ def coupling_options(scene: Scene) -> CouplingOptions:
                            stiffness_factor=float(pick("stiffness_factor")),
                            damping_ratio=float(pick("damping_ratio")),
                            stiffness_n_m=c.get("stiffness_n_m"), damping_n_s_m=c.get("damping_n_s_m"),
-                           squeeze_out=c.get("squeeze_out") is not False, block_walls=bool(c.get("block_walls")))
+                           squeeze_out=c.get("squeeze_out") is not False, block_walls=bool(c.get("block_walls")),
+                           joint_water=bool(pick("joint_water")))

@@ -101,6 +101,7 @@ import warp as wp
 
 from rockwave.base.maths import next_pow2, quat_to_matrix
 from rockwave.base.solver import TimeStep
+from rockwave.coupling.joint_water import JointWater
 from rockwave.kernels.coupling import penalty as penalty_k
 from rockwave.kernels.dda import blocks as dda_k
 
@@ -157,6 +158,12 @@ class CouplingOptions:
     block_walls: bool = False
     """Adami wall particles on the moving blocks within reach of the water (BlockWalls; scene:
     coupling.block_walls; needs fluid.boundary = 'adami' and the basic method). False: the penalty alone."""
+
+    joint_water: bool = False
+    """Water pressure in the block contacts below the water: the hydrostatic pressure of the local free surface at
+    each contact point, normal to the contact over its area share, equal and opposite on the two blocks, so the
+    Coulomb cap acts on the effective normal force (rockwave/coupling/joint_water.py; scene: coupling.joint_water).
+    False: no water in a closed joint (a resting block carries its full weight, not its buoyant weight, in friction)."""
 
 
 def default_penalty(particle_mass: float, sound_speed: float, spacing: float,
@@ -265,6 +272,8 @@ class Coupling:
         self.wall_impulse = np.zeros(3)  # sum of dt x (force of fixed/kinematic blocks on the water), when tracked
         self.active_blocks = 0  # blocks near water in the last step (host copy, diagnostics)
         self.walls = None  # BlockWalls: Adami wall particles of the moving blocks (rockwave/build/builder.py sets it)
+        # pore pressure in the block contacts below the water (coupling.joint_water)
+        self.joint_water = JointWater(fluid, blocks, fluid.params.rest_density) if opt.joint_water else None
         self._n_large = 0
         self._total = 0
 
@@ -366,6 +375,8 @@ class Coupling:
             return
         if self.walls is not None:
             self.walls.place(fluid_state, block_state, ts)
+        if self.joint_water is not None:
+            self.joint_water.apply(fluid_state, block_state)
         self._broad_phase(fluid_state, block_state)
         if self._nothing_near():
             self.dv.zero_()

@@ -595,6 +595,8 @@ class BlockState:
             (the centroid is x + x_lo, carried by a compensated sum in integrate_blocks; positions_numpy).
         q: quat (N): orientation body -> world (x, y, z, w), float32 part; the part below its resolution is in
             q_lo: quat (N) (the orientation is q + q_lo, integrate_blocks). v: vec3 (N) [m/s]. w: vec3 (N): spin, world frame [rad/s].
+            v_step: vec3 (N) [m/s]: a kinematic block's displacement over its last step / dt (its contact springs
+            integrate it; v is its prescribed velocity); unused for other blocks.
         strain, strain_rate: spatial_vector (N): eps_x, eps_y, eps_z, gamma_yz, gamma_zx, gamma_xy, body frame [-],
             [1/s] (zero for non-deformable blocks).
         ext_force, ext_torque: vec3 (N): external loads [N], [N m] about the centroid, world frame: other modules
@@ -636,6 +638,9 @@ class BlockState:
         self.q = wp.array(quats.astype(np.float32), dtype=wp.quat, device=d)
         self.v = wp.array(vel.astype(np.float32), dtype=wp.vec3, device=d)
         self.w = wp.array(ang.astype(np.float32), dtype=wp.vec3, device=d)
+        # a kinematic block's displacement over its last step / dt (integrate_blocks; the contact springs integrate it):
+        # its prescribed velocity until it has moved
+        self.v_step = wp.array(vel.astype(np.float32), dtype=wp.vec3, device=d)
         self.strain = wp.zeros(n, dtype=wp.spatial_vector, device=d)
         self.strain_rate = wp.zeros(n, dtype=wp.spatial_vector, device=d)
         # centroid = x + x_lo (kernels/dda/blocks.py two_sum): the specs' float64 poses to ~48 bits, so a scene placed
@@ -669,7 +674,7 @@ class BlockState:
         # kernel argument groups (kernels/dda/blocks.py) over the arrays above, built once (the arrays are
         # only ever assigned in place, e.g. by a checkpoint restore)
         self.bodies = dda_k.BlockBodies()
-        for name in ("x", "q", "v", "w", "strain", "strain_rate", "x_lo", "q_lo"):
+        for name in ("x", "q", "v", "w", "strain", "strain_rate", "x_lo", "q_lo", "v_step"):
             setattr(self.bodies, name, getattr(self, name))
         self.verts = dda_k.WorldVerts()
         self.verts.arm = self.world_verts_arm
@@ -1258,7 +1263,7 @@ class BlockSolver:
                                         inputs=[self.pair_list, state.verts, m.topology, state.bodies, old, new],
                                         device=d)
                 wp.launch(dda_k.contact_forces, dim=n,
-                          inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, state.bodies, old, new,
+                          inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, self.motion, state.bodies, old, new,
                                   state.loads], device=d)
             if self.sync_free or n == 0:
                 break
@@ -1290,7 +1295,7 @@ class BlockSolver:
             wp.launch(dda_k.carry_contacts, dim=n, inputs=[self.pair_list, self.block_clock, m.kinds, state.bodies, old, new],
                       device=d)
             wp.launch(dda_k.contact_forces, dim=n,
-                      inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, state.bodies, old, new,
+                      inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, self.motion, state.bodies, old, new,
                               state.loads], device=d)
         state.swap_tables()
 
@@ -1394,7 +1399,8 @@ class BlockSolver:
         pos0, _ = m.initial_poses()
         motion.base_x = wp.array(pos0.astype(np.float32), dtype=wp.vec3, device=d)
         x0 = state.positions_numpy()
-        saved = {k: wp.clone(getattr(state, k)) for k in ("x", "x_lo", "q", "q_lo", "v", "w", "strain", "strain_rate")}
+        saved = {k: wp.clone(getattr(state, k)) for k in ("x", "x_lo", "q", "q_lo", "v", "w", "strain", "strain_rate",
+                                                           "v_step")}
         dt = self.stable_dt(state)
         tol = opt.settle_speed_ratio * self.g_mag * self.critical_dt() / 2.0
         flags = wp.zeros(1, dtype=int, device=d)

@@ -380,6 +380,9 @@ def restore(sim, arrays: dict, meta: dict) -> None:
 
             print("resuming with changed settings: " + "; ".join(f"{k}: {a!r} -> {b!r}" for k, a, b in changes),
                   file=sys.stderr)
+    if "blocks/v" in arrays:  # written before issue 36's v_step: a kinematic block's step velocity starts as its v
+        arrays = dict(arrays)
+        arrays.setdefault("blocks/v_step", arrays["blocks/v"])
     if meta.get("format") in (2, 3, 4) and "blocks/q" in arrays:
         arrays = dict(arrays)  # before the orientations' compensation: q as saved, q_lo = 0
         arrays.setdefault("blocks/q_lo", np.zeros_like(arrays["blocks/q"]))
