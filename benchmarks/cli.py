@@ -47,6 +47,7 @@ PARTS = {
     "block_contacts": "benchmarks.block_contacts",
     "nonconvex": "benchmarks.nonconvex",
     "at_rest": "benchmarks.at_rest",
+    "energy_budget": "benchmarks.energy_budget",
 }
 SUITES = ("quick", "full")
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")

@@ -17,7 +17,7 @@ from benchmarks.common import RESULTS, ROOT, rel
 from benchmarks.common import fmt_value as _f
 
 PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface",
-              "multirate", "chart", "block_contacts", "nonconvex", "at_rest")
+              "multirate", "chart", "block_contacts", "nonconvex", "at_rest", "energy_budget")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -299,10 +299,27 @@ def _block_contacts(bc: dict) -> list[str]:
           r["same_trajectory"]] for r in bc.get("prisms", [])]) + [""]
 
 
+def _energy_budget(eb: dict) -> list[str]:
+    L = ["### Energy budget of the shipped scenes (benchmarks/energy_budget.py)", "",
+         f"Bound: {eb.get('bound', '')}. Growth: the largest (total - start - input work); rise: the largest rise of the "
+         "total above its lowest value so far; both over the scene's releasable energy (scale).", ""]
+    out = []
+    for r in eb.get("scenes", []):
+        if "error" in r:
+            out.append([r["scene"], "-", "-", "-", "-", "-", "-", "-", "-", f"error: {r['error'][:80]}"])
+            continue
+        t = _f(r["t_reached_s"], ".3g") + (" (wall limit)" if r.get("stopped") else "")
+        out.append([r["scene"], f"{r['dim']}D", r["fluid_particles"], r["blocks"], r["spacing_note"], t,
+                    f"{_f(r['scale_j'], '.4g')} {r['units']}", _f(100 * r["max_growth_fraction"], ".3g") + "%",
+                    _f(100 * r["max_rise_fraction"], ".3g") + "%", r["check"]])
+    return L + _table(["scene", "dim", "particles", "blocks", "spacing", "t reached s", "scale", "max growth",
+                       "max rise", "check"], out) + [""]
+
+
 TABLES = {"multirate": _multirate, "accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
           "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface,
           "chart": _chart, "block_contacts": _block_contacts, "nonconvex": _nonconvex,
-          "at_rest": _at_rest}
+          "at_rest": _at_rest, "energy_budget": _energy_budget}
 
 
 def title(res: dict) -> str:
