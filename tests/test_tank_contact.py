@@ -230,3 +230,19 @@ def test_landing_under_water_creates_no_energy(dim, squeeze, stepping, boundary)
     assert xb[up] - 0.05 < 1e-3 and abs(vb[up]) < 0.05, (xb, vb)  # landed, at rest
     assert rise < 0.01 * pe_floor, (rise, pe_floor)
     assert v_after < v_before + 3.0 * arrival, (v_after, v_before, arrival)
+
+
+@pytest.mark.parametrize("name,span", [("wedge_hoek_bray", 0.3), ("slide_2d_tiny", 0.1)])
+def test_shipped_scene_budget_is_ok(name, span):
+    """The energy budget of two of the cheapest shipped scenes (blocks alone; water and blocks) over a short span, as
+    the energy_budget benchmark runs every shipped scene over its first second (benchmarks/energy_budget.py): the
+    check is "ok" (no growth beyond 1% of the scene's releasable energy) and the books are read."""
+    from benchmarks.energy_budget import run_scene
+    from rockwave.app.cli import shipped_scenes
+
+    path = next(p for p in shipped_scenes() if p.stem == name)
+    r = run_scene(path, "cpu", {"energy_max_particles": [4000, 5000], "energy_duration": span, "energy_read_s": 0.05,
+                                "energy_wall_limit_s": 1e9})
+    assert r["t_reached_s"] == pytest.approx(span) and r["spacing_note"] == "own"
+    assert r["check"] == "ok" and r["max_growth_j"] <= r["limit_j"], r
+    assert r["scale_j"] > 0.0 and r["dissipated_j"] >= -r["limit_j"]
