@@ -117,8 +117,8 @@ def run_scene(path, device: str, cfg: dict) -> dict:
 
 
 def run(device: str, cfg: dict, save=None) -> dict:
-    from rockwave.app.cli import shipped_scenes
     from benchmarks.common import log
+    from rockwave.app.cli import shipped_scenes
 
     paths = shipped_scenes()
     if cfg.get("energy_scenes"):
