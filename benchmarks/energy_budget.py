@@ -8,8 +8,8 @@ Every scene of the scenes package (rockwave.app.cli.shipped_scenes) runs for ``e
 - ``max_growth_j`` / ``max_growth_fraction``: the largest growth (total - start - input work) and its share of the
   scene's releasable energy ``scale_j``; ``check``: the budget's verdict ("ok" below ENERGY_GROWTH_LIMIT = 1% of
   the scale, "exceeded", or "open: ..." where kinematic blocks touch moving blocks);
-- ``max_rise_fraction``: the largest rise of the total above its lowest value so far, over the scale (energy made
-  after earlier dissipation, e.g. at a landing, which the growth from the start can hide);
+- ``max_rise_fraction``: the largest rise of the total less the input work above its lowest value so far, over the
+  scale (energy made after earlier dissipation, e.g. at a landing, which the growth from the start can hide);
 - ``input_work_j``, ``dissipated_j``, the particle and block counts, the spacing run and ``spacing_note``.
 
 CPU size: a scene whose fluid exceeds ``energy_max_particles[dim - 2]`` particles runs at a coarser spacing,
@@ -93,15 +93,16 @@ def run_scene(path, device: str, cfg: dict) -> dict:
                    multirate=bool(sim.multirate))
         t_end = min(float(cfg["energy_duration"]), float(scene.simulation.duration_s))
         dt_read = float(cfg["energy_read_s"])
-        low, rise, rise_t, warned = b.start["total_j"], 0.0, 0.0, False
+        low, rise, rise_t, warned = b.start["total_j"], 0.0, 0.0, False  # of total - input work
         t1 = time.perf_counter()
         n = max(1, math.ceil(t_end / dt_read - 1e-9))
         for k in range(n):
             sim.advance(min(dt_read, t_end - sim.time))
             r = b.measure()
-            low = min(low, r["total_j"])
-            if r["total_j"] - low > rise:
-                rise, rise_t = r["total_j"] - low, r["time_s"]
+            net = r["total_j"] - r["input_work_j"]
+            low = min(low, net)
+            if net - low > rise:
+                rise, rise_t = net - low, r["time_s"]
             warned = warned or b.exceeded(r)
             if time.perf_counter() - t1 > cfg["energy_wall_limit_s"] and k < n - 1:
                 row["stopped"] = "wall limit"
