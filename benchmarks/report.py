@@ -302,16 +302,20 @@ def _block_contacts(bc: dict) -> list[str]:
 def _energy_budget(eb: dict) -> list[str]:
     L = ["### Energy budget of the shipped scenes (benchmarks/energy_budget.py)", "",
          f"Bound: {eb.get('bound', '')}. Growth: the largest (total - start - input work); rise: the largest rise of the "
-         "total above its lowest value so far; both over the scene's releasable energy (scale).", ""]
+         "total less the input work above its lowest value so far (energy made after earlier dissipation); both over the "
+         "scene's releasable energy (scale). Blocks: the moving ones.", ""]
     out = []
     for r in eb.get("scenes", []):
         if "error" in r:
             out.append([r["scene"], "-", "-", "-", "-", "-", "-", "-", "-", f"error: {r['error'][:80]}"])
             continue
         t = _f(r["t_reached_s"], ".3g") + (" (wall limit)" if r.get("stopped") else "")
+        if r["scale_j"] > 1e-9:
+            growth, rise = (_f(100 * r[k], ".3g") + "%" for k in ("max_growth_fraction", "max_rise_fraction"))
+        else:  # nothing releasable (no gravity, at rest): the absolute figures
+            growth, rise = (f"{_f(r[k], '.3g')} {r['units']}" for k in ("max_growth_j", "max_rise_j"))
         out.append([r["scene"], f"{r['dim']}D", r["fluid_particles"], r["blocks"], r["spacing_note"], t,
-                    f"{_f(r['scale_j'], '.4g')} {r['units']}", _f(100 * r["max_growth_fraction"], ".3g") + "%",
-                    _f(100 * r["max_rise_fraction"], ".3g") + "%", r["check"]])
+                    f"{_f(r['scale_j'], '.4g')} {r['units']}", growth, rise, r["check"]])
     return L + _table(["scene", "dim", "particles", "blocks", "spacing", "t reached s", "scale", "max growth",
                        "max rise", "check"], out) + [""]
 
