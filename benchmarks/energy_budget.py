@@ -141,3 +141,10 @@ def run(device: str, cfg: dict, save=None) -> dict:
         if save is not None:
             save(out)
     return out
+
+
+def merge(a: dict, b: dict) -> dict:
+    """Two records' rows of this part (``python -m benchmarks merge``): b's row of a scene replaces a's."""
+    rows = {r["scene"]: r for r in a.get("scenes", [])}
+    rows.update({r["scene"]: r for r in b.get("scenes", [])})
+    return dict(a, scenes=list(rows.values()))
