@@ -49,6 +49,7 @@ PARTS = {
     "at_rest": "benchmarks.at_rest",
     "batched_sweep": "benchmarks.batched_sweep",
     "delta_plus": "benchmarks.delta_plus",
+    "energy_budget": "benchmarks.energy_budget",
 }
 SUITES = ("quick", "full")
 HEADER = ("suite", "device", "device_name", "date", "time_utc", "commit", "warp", "load_average", "bounds", "config")

@@ -17,7 +17,7 @@ from benchmarks.common import RESULTS, ROOT, rel
 from benchmarks.common import fmt_value as _f
 
 PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface",
-              "multirate", "chart", "block_contacts", "nonconvex", "at_rest")
+              "multirate", "chart", "block_contacts", "nonconvex", "at_rest", "energy_budget")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -299,10 +299,31 @@ def _block_contacts(bc: dict) -> list[str]:
           r["same_trajectory"]] for r in bc.get("prisms", [])]) + [""]
 
 
+def _energy_budget(eb: dict) -> list[str]:
+    L = ["### Energy budget of the shipped scenes (benchmarks/energy_budget.py)", "",
+         f"Bound: {eb.get('bound', '')}. Growth: the largest (total - start - input work); rise: the largest rise of the "
+         "total less the input work above its lowest value so far (energy made after earlier dissipation); both over the "
+         "scene's releasable energy (scale). Blocks: the moving ones.", ""]
+    out = []
+    for r in eb.get("scenes", []):
+        if "error" in r:
+            out.append([r["scene"], "-", "-", "-", "-", "-", "-", "-", "-", f"error: {r['error'][:80]}"])
+            continue
+        t = _f(r["t_reached_s"], ".3g") + (" (wall limit)" if r.get("stopped") else "")
+        if r["scale_j"] > 1e-9:
+            growth, rise = (_f(100 * r[k], ".3g") + "%" for k in ("max_growth_fraction", "max_rise_fraction"))
+        else:  # nothing releasable (no gravity, at rest): the absolute figures
+            growth, rise = (f"{_f(r[k], '.3g')} {r['units']}" for k in ("max_growth_j", "max_rise_j"))
+        out.append([r["scene"], f"{r['dim']}D", r["fluid_particles"], r["blocks"], r["spacing_note"], t,
+                    f"{_f(r['scale_j'], '.4g')} {r['units']}", growth, rise, r["check"]])
+    return L + _table(["scene", "dim", "particles", "blocks", "spacing", "t reached s", "scale", "max growth",
+                       "max rise", "check"], out) + [""]
+
+
 TABLES = {"multirate": _multirate, "accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
           "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface,
           "chart": _chart, "block_contacts": _block_contacts, "nonconvex": _nonconvex,
-          "at_rest": _at_rest}
+          "at_rest": _at_rest, "energy_budget": _energy_budget}
 
 
 def title(res: dict) -> str:

@@ -13,6 +13,7 @@ import numpy as np
 
 from rockwave.base.maths import euler_xyz_deg_to_quat, quat_to_matrix
 from rockwave.build.rockmass import rock_mass_specs
+from rockwave.build.sampling import MeshInputError, load_trimesh
 from rockwave.dda import geometry
 from rockwave.dda.blocks import BlockSpec, CompoundPart, ContactMaterial, KinematicMotion
 from rockwave.scene.format import Scene, SceneError
@@ -138,7 +139,8 @@ def tank_specs(scene: Scene, specs: list[BlockSpec]) -> list[BlockSpec]:
     k_n = 0.1 E L: a pair uses the softer k_n, so the block's own). 2D: prisms whose z-extent covers every
     block's, grown by half of it each side. Marked ``BlockSpec.tank``: the coupling gives them no penalty
     faces and they get no fixed-block wall particles (the water has the tank's boundary particles there). A
-    mesh tank or obstacle is not built (a warning: build its walls of fixed blocks)."""
+    mesh tank and a non-convex mesh obstacle are not built (a warning: build them of fixed blocks); a convex mesh obstacle
+    is its polyhedron."""
     t = scene.tank
     moving = [s for s in specs if s.kind in ("rigid", "deformable")]
     if not moving or (t is None and not scene.obstacles):
@@ -186,16 +188,31 @@ def tank_specs(scene: Scene, specs: list[BlockSpec]) -> list[BlockSpec]:
     elif t is not None:
         warnings.warn("the mesh [tank] is not solid to blocks (only a box tank is): a block reaching its walls falls "
                       "through them; build the walls a block can reach of fixed [[blocks]]", stacklevel=2)
-    skipped = 0
+    skipped = []
     for i, ob in enumerate(scene.obstacles):
         if ob.get("box_min_m") is not None:
             out.append(box(ob.box_min_m, ob.box_max_m, f"obstacle.{i}"))
+            continue
+        mesh = _convex_obstacle(ob, f"obstacle.{i}")  # a convex mesh: its polyhedron, where it lies
+        if mesh is None:
+            skipped.append(f"obstacles[{i}]")
         else:
-            skipped += 1
+            out.append(BlockSpec(geometry=mesh, position=tuple(mesh.origin_offset), kind="fixed", name=f"obstacle.{i}",
+                                 material=ContactMaterial(), tank=True))
     if skipped:
-        warnings.warn(f"{skipped} mesh obstacle(s) are not solid to blocks (only box obstacles are): a block reaching "
-                      f"one passes through it; build it of fixed [[blocks]]", stacklevel=2)
+        warnings.warn(f"{', '.join(skipped)}: a non-convex mesh obstacle is not solid to blocks (box and convex mesh "
+                      f"obstacles are): a block reaching it passes through; build it of fixed [[blocks]] (shape = "
+                      f"'mesh' with a decomposition)", stacklevel=2)
     return out
+
+
+def _convex_obstacle(ob, name: str):
+    """A convex closed mesh obstacle as a ConvexPolyhedron (centred, origin_offset = its centroid in the scene);
+    None when the mesh is not convex (geometry.from_trimesh's test against its hull, CONVEXITY_TOL)."""
+    try:
+        return geometry.from_trimesh(load_trimesh(ob.mesh, ob.mesh_scale, ob.mesh_offset_m), name)
+    except (geometry.GeometryError, MeshInputError):  # non-convex; a bad mesh is the boundary builder's SceneError
+        return None
 
 
 def inside_blocks_message(n: int, total: int, where: str = "fluid.regions") -> str:
