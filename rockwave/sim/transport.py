@@ -173,12 +173,18 @@ def make_transport(kind: str, comm, device):
     dev = wp.get_device(device)
     if kind == "host" or (kind == "auto" and not dev.is_cuda):
         return HostTransport(comm, dev)
-    if kind in ("nccl", "auto"):
+    if kind in ("nccl", "auto") and dev.is_cuda:
         try:
+            NcclTransport._import()
+            here = 1
+        except ImportError:
+            here = 0
+        # every rank takes the same kind (the NCCL set-up is collective)
+        if comm.allreduce(here, op=_mpi().MIN):
             return NcclTransport(comm, dev)
-        except (ImportError, RuntimeError) as e:
-            if kind == "nccl":
-                raise RuntimeError(f"transport nccl: {e} (pip install nccl4py, or cupy with NCCL)") from None
+        if kind == "nccl":
+            raise RuntimeError("transport nccl: no NCCL binding imports on every rank (pip install nccl4py, or cupy "
+                               "with NCCL)")
     if not dev.is_cuda:
         raise RuntimeError(f"transport {kind}: needs a CUDA device, the ranks run on {dev}")
     if kind == "cuda-mpi" or cuda_aware_mpi():
