@@ -172,3 +172,18 @@ def owned_extrema(v: wp.array(dtype=wp.vec3), a: wp.array(dtype=wp.vec3), n: int
         i += stride
     wp.atomic_max(out, 0, vm)
     wp.atomic_max(out, 1, am)
+
+
+@wp.kernel
+def cell_keys(x: wp.array(dtype=wp.vec3), lo: wp.vec3, inv_c: float, nx: int, ny: int, nz: int,
+              keys: wp.array(dtype=int), order: wp.array(dtype=int)):
+    """The cell (edge 1/inv_c, from lo, clamped to nx x ny x nz) of particle i as a sort key, and order[i] = i: the
+    owned particles go into cell order at a relayout (coherent neighbour reads, as FluidSolver.reorder on one
+    process)."""
+    i = wp.tid()
+    d = (x[i] - lo) * inv_c
+    cx = wp.clamp(int(wp.floor(d[0])), 0, nx - 1)
+    cy = wp.clamp(int(wp.floor(d[1])), 0, ny - 1)
+    cz = wp.clamp(int(wp.floor(d[2])), 0, nz - 1)
+    keys[i] = cx + nx * (cy + ny * cz)
+    order[i] = i

@@ -341,6 +341,7 @@ class DistributedFluid:
         """The halo of the current owned set (the neighbours' owned particles within the halo width of the slab)
         and the rank's arrays and solver for owned + halo + walls; the lists are built at the next step."""
         n_own = self.n_own
+        self._sort_owned()
         _, _, _, h_down, h_up = self._classify(n_own)
         self._send = (self._compact(h_down, n_own), self._compact(h_up, n_own))
         recv_lo, recv_hi = self._exchange_full(*self._send)
@@ -349,7 +350,7 @@ class DistributedFluid:
         own, own_gid = self.state, self.gid
         st = self._alloc(n, nb)
         gid = wp.empty(n, dtype=int, device=self.device)
-        idx = wp.array(np.arange(n_own, dtype=np.int32), dtype=int, device=self.device) if n_own else None
+        idx = self._own_idx = wp.array(np.arange(n_own, dtype=np.int32), dtype=int, device=self.device)
         self._launch(kd.gather_owned, n_own, [idx, own_gid, own.x, own.v, own.rho, own.accel, own.pressure,
                                               gid, st.x, st.v, st.rho, st.accel, st.pressure])
         for off, buf in ((n_own, recv_lo), (n_own + n_lo, recv_hi)):
@@ -357,7 +358,6 @@ class DistributedFluid:
         if nb:
             wp.copy(st.x, self._xb_dev, n, 0, nb)
         self.state, self.gid, self.n_halo, self.n_halo_from = st, gid, n_lo + n_hi, (n_lo, n_hi)
-        self._own_idx = idx
         self._make_solver(n, nb)
         d = self.device
         # the per-step buffers: halo rows (x, v, rho) and halo densities (rho, p, p/rho^2) both ways
@@ -368,6 +368,35 @@ class DistributedFluid:
                             wp.empty((r, kd.DENS_COLS), dtype=float, device=d))
                            for s, r in zip(self._send, self.n_halo_from)]
         self.relayouts += 1
+
+    def _sort_owned(self) -> None:
+        """The owned particles in cell order (_cell_order)."""
+        n, old, old_gid = self.n_own, self.state, self.gid
+        if n == 0:
+            return
+        idx = self._cell_order()
+        st, gid = self._alloc(n, 0), wp.empty(n, dtype=int, device=self.device)
+        self._launch(kd.gather_owned, n, [idx, old_gid, old.x, old.v, old.rho, old.accel, old.pressure,
+                                          gid, st.x, st.v, st.rho, st.accel, st.pressure])
+        self.state, self.gid = st, gid
+
+    def _cell_order(self) -> wp.array:
+        """The owned slots sorted by cell of edge H (radix sort of the cell keys on the device)."""
+        n, d, m = self.n_own, self.device, self.global_model
+        order = wp.empty(2 * max(n, 1), dtype=int, device=d)  # the radix sort's scratch: twice the length
+        if n == 0:
+            return order[:0]
+        H = m.support_radius
+        lo = np.array(m.domain_lo, float) - H
+        dims = np.maximum(np.ceil((np.array(m.domain_hi, float) + H - lo) / H).astype(np.int64), 1)
+        while int(np.prod(dims)) >= 2**31:  # coarser cells rather than an overflowing key
+            dims = np.maximum(dims // 2, 1)
+        cell = float(np.max((np.array(m.domain_hi, float) + H - lo) / dims))
+        keys = wp.empty(2 * n, dtype=int, device=d)
+        self._launch(kd.cell_keys, n, [self.state.x, wp.vec3(*lo), 1.0 / cell, int(dims[0]), int(dims[1]), int(dims[2]),
+                                       keys, order])
+        wp.utils.radix_sort_pairs(keys, order, n)
+        return order[:n]
 
     def _make_solver(self, n: int, nb: int) -> None:
         """The rank's FluidModel (the global one's parameters, n fluid slots, the rank's walls, a domain around the
