@@ -1,23 +1,70 @@
-"""Scaling of one scene over MPI ranks (rockwave/sim/distributed.py; docs/mpi.md).
+"""Scaling of one scene over MPI ranks, one GPU each (rockwave/sim/distributed.py; docs/mpi.md), against the plain
+one-GPU Simulation.
 
-The 3D dam break (scenes/dam_break_3d.toml, gauges off) at the spacing that gives about ``--particles``
-fluid particles in all (strong scaling) or per rank (``--weak``), advanced by ``--steps`` times the initial
-dt (adaptive steps, as in a run) after ``--warmup`` steps (kernels loaded); the timing ends after a barrier
-ends with a barrier and leaves out the gather on rank 0. Rank 0 prints one JSON line: ranks, particles, seconds, particle-steps/s and the
-particle-steps/s per rank (parallel efficiency = that over the one-rank figure of the same size).
+The 3D dam break (scenes/dam_break_3d.toml, gauges off) at the spacing that gives about ``--particles`` fluid
+particles in all (strong scaling) or per rank (``--weak``). The ranks advance ``--steps`` times the initial dt
+(adaptive steps, as in a run) after ``--warmup`` steps (kernels loaded); the timing ends with a barrier and leaves
+out the gather on rank 0. Then rank 0 alone runs the plain one-GPU ``Simulation`` (CUDA graphs, reorders: the
+fastest one-GPU path) on the reference size: the same scene (strong) or the per-rank size (weak), same steps.
+Efficiency is always against that plain run, never against the distributed code on one rank:
 
-    mpiexec -n 4 python -m benchmarks.distributed --particles 8e6 --device cuda
-    mpiexec -n 4 python -m benchmarks.distributed --particles 8e6 --weak --device cuda
+    strong: speedup = rate(N ranks) / rate(plain, same scene);   efficiency = speedup / N
+    weak:   efficiency = rate(N ranks) / (N x rate(plain, per-rank size))
+
+Rank 0 prints one JSON line and writes it to benchmarks/results/<date>-<device>-distributed-<mode>-<N>ranks.json
+(and a row to the markdown table beside it): particle-steps/s, the halo exchange's seconds per step and share of
+the step (rank 0: the per-step halo refresh + the halo densities inside the step), the relayouts (list rebuilds:
+migration, new halos, new lists), the transport that ran, and rank 0's device bytes per particle.
+
+    mpiexec -n 2 python -m benchmarks.distributed --particles 16e6 --device cuda            # strong
+    mpiexec -n 2 python -m benchmarks.distributed --particles 8e6 --weak --device cuda      # weak
+    python -m benchmarks.distributed --particles 2e4 --device cpu --steps 20 --no-plain     # a smoke run
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import sys
 import time
+from datetime import date
+from pathlib import Path
 
-from benchmarks.common import ROOT
+from benchmarks.common import RESULTS, ROOT, commit, device_name, write_json
+
+
+def _scene(particles: float):
+    import rockwave
+
+    scene = rockwave.load_scene(ROOT / "scenes" / "dam_break_3d.toml")
+    scene.output["gauges"] = []
+    s0 = float(scene.fluid["spacing_m"])
+    volume = sum((hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2])
+                 for lo, hi in ((r["box_min_m"], r["box_max_m"]) for r in scene.fluid["regions"]))
+    scene.fluid["spacing_m"] = min(s0, (volume / particles) ** (1.0 / 3.0))
+    return scene
+
+
+def _plain_rate(particles: float, device: str, steps: int, warmup: int) -> dict:
+    """The plain one-GPU Simulation on the scene of ``particles``: particle-steps/s over ``steps`` steps."""
+    import warp as wp
+
+    from rockwave.sim.simulation import Simulation
+
+    sim = Simulation(_scene(particles), device=device)
+    dt = sim.dt
+    sim.advance(warmup * dt)
+    wp.synchronize_device(sim.device)
+    s0, t0 = sim.steps, time.perf_counter()
+    sim.advance(steps * dt)
+    wp.synchronize_device(sim.device)
+    t = time.perf_counter() - t0
+    n = sim.fluid.n_fluid
+    out = {"particles": n, "steps": sim.steps - s0, "seconds": t, "particle_steps_per_s": n * (sim.steps - s0) / t}
+    del sim
+    gc.collect()
+    return out
 
 
 def main(argv=None) -> int:
@@ -27,41 +74,79 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--warmup", type=int, default=20)
     ap.add_argument("--device", default="cuda")
+    ap.add_argument("--transport", default="auto", help="auto, nccl, cuda-mpi or host (rockwave/sim/transport.py)")
+    ap.add_argument("--balance-by", default="time", choices=("time", "count"))
+    ap.add_argument("--no-plain", action="store_true", help="leave out the plain one-GPU reference run")
+    ap.add_argument("--out", default=None, help="result JSON (default under benchmarks/results/)")
     a = ap.parse_args(argv)
     import warp as wp
 
     wp.config.quiet = True
-    import rockwave
     from rockwave.sim.distributed import DistributedSimulation, require_mpi
 
     comm = require_mpi().COMM_WORLD
     size = comm.Get_size()
-    scene = rockwave.load_scene(ROOT / "scenes" / "dam_break_3d.toml")
-    scene.output["gauges"] = []
-    s0 = float(scene.fluid["spacing_m"])
-    volume = sum(float((lambda lo, hi: (hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2]))(r["box_min_m"], r["box_max_m"]))
-                 for r in scene.fluid["regions"])
     target = a.particles * (size if a.weak else 1)
-    scene.fluid["spacing_m"] = min(s0, (volume / target) ** (1.0 / 3.0))
-    sim = DistributedSimulation(scene, device=a.device, comm=comm)
+    sim = DistributedSimulation(_scene(target), device=a.device, comm=comm, transport=a.transport,
+                                balance_by=a.balance_by)
     if sim.rank != 0:
         sim.serve()
+        del sim
+        gc.collect()
+        comm.Barrier()  # rank 0's plain run uses its GPU alone
         return 0
     dt = sim.dt
     for _ in range(a.warmup):
         sim.step(dt)
     sim.gather()  # a collective: every rank is between steps here
     sim.timings.clear()
+    df = sim.dfluid
+    s0, r0 = sim.steps, df.relayouts
     t0 = time.perf_counter()
     sim.advance(a.steps * dt, gather=False)  # adaptive steps (dt may shrink as the water speeds up)
     t = time.perf_counter() - t0
-    n = sim.fluid.n_fluid
-    print(json.dumps({"ranks": size, "device": sim.device, "particles": n, "spacing_m": scene.fluid["spacing_m"],
-                      "steps": sim.steps - a.warmup, "seconds": t, "particle_steps_per_s": n * (sim.steps - a.warmup) / t,
-                      "per_rank": n * (sim.steps - a.warmup) / t / size, "weak": a.weak,
-                      "rank0_owned": len(sim.dfluid.rows), "rank0_halo": sim.dfluid.n_halo,
-                      "rank0_seconds": {k: round(v, 4) for k, v in sim.timings.items()}}))
+    n, steps = sim.fluid.n_fluid, sim.steps - s0
+    tm = {k: v / steps for k, v in sim.timings.items()}
+    step_s = t / steps
+    res = {"benchmark": "distributed", "mode": "weak" if a.weak else "strong", "ranks": size,
+           "device": sim.device, "device_name": device_name(sim.device), "date": date.today().isoformat(),
+           "commit": commit(), "transport": sim.transport, "balance_by": a.balance_by,
+           "particles": n, "spacing_m": sim.scene.fluid["spacing_m"], "steps": steps, "seconds": t,
+           "particle_steps_per_s": n * steps / t, "relayouts": df.relayouts - r0,
+           "rank0_owned": df.n_own, "rank0_halo": df.n_halo, "rank0_bytes_per_particle": round(df.bytes_per_particle(), 1),
+           "rank0_seconds_per_step": {k: round(v, 6) for k, v in tm.items()},
+           "halo_exchange_s_per_step": tm.get("halo", 0.0), "halo_share_of_step": tm.get("halo", 0.0) / step_s,
+           "faces": [float(f) for f in df.dec.faces[1:-1]], "rebalances": df.rebalances}
     sim.close()
+    del sim, df
+    gc.collect()
+    comm.Barrier()
+    if not a.no_plain:
+        ref = _plain_rate(a.particles, a.device, a.steps, a.warmup)
+        res["plain"] = ref
+        if a.weak:
+            res["efficiency"] = res["particle_steps_per_s"] / (size * ref["particle_steps_per_s"])
+        else:
+            res["speedup"] = res["particle_steps_per_s"] / ref["particle_steps_per_s"]
+            res["efficiency"] = res["speedup"] / size
+    print(json.dumps(res))
+    dev = res["device"].replace(":", "")
+    out = a.out or RESULTS / f"{res['date']}-{dev}-distributed-{res['mode']}-{size}ranks.json"
+    write_json(res, out)
+    md = Path(out).parent / "distributed.md"
+    if not md.exists():
+        md.write_text("| date | commit | device | mode | ranks | particles | transport | particle-steps/s | plain 1 GPU | "
+                      "efficiency | halo s/step (share) | relayouts/steps | B/particle (rank 0) |\n"
+                      "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+    with open(md, "a") as f:
+        p = res.get("plain", {}).get("particle_steps_per_s")
+        f.write(f"| {res['date']} | {res['commit']} | {res['device_name']} | {res['mode']} | {size} | {n:,} | "
+                f"{res['transport']} | {res['particle_steps_per_s']:.3g} | {p:.3g} | " if p else
+                f"| {res['date']} | {res['commit']} | {res['device_name']} | {res['mode']} | {size} | {n:,} | "
+                f"{res['transport']} | {res['particle_steps_per_s']:.3g} | - | ")
+        f.write(f"{res.get('efficiency', float('nan')):.2f} | {res['halo_exchange_s_per_step']:.2e} "
+                f"({100 * res['halo_share_of_step']:.1f}%) | {res['relayouts']}/{steps} | "
+                f"{res['rank0_bytes_per_particle']:.0f} |\n")
     return 0
 
 

@@ -677,6 +677,8 @@ class DistributedSimulation(Simulation):
         self.dfluid.partition(self.state)
         if self.rank != 0:  # the whole scene's water lives on rank 0 alone (its outputs); the others drop it
             self._release_global_water()
+        else:  # rank 0 keeps the whole state for its outputs and checkpoints, not the whole scene's neighbour lists
+            self.fluid_solver.set_list_capacity(1)
         self._synced_time = self.clock.time
         self._last_gather = time.perf_counter()
         self._gather_every_step = scene.hazard is not None  # the hazard monitor reads the state after every step
