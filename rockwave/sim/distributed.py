@@ -1,57 +1,51 @@
 """One scene on several processes (one per GPU): slab decomposition of the water over MPI.
 
-Launch with ``mpiexec -n N python -m rockwave run SCENE --ranks`` (docs/mpi.md); the
-MPI world size is detected without ``--ranks`` too. Each rank runs the unchanged fluid solver
-(rockwave/sph/fluid.py FluidSolver.step) on its own arrays; this module owns what happens around the step.
+Launch with ``mpiexec -n N python -m rockwave run SCENE --ranks`` (docs/mpi.md); the MPI world size is detected
+without ``--ranks`` too. Each rank runs the unchanged fluid step (rockwave/sph/fluid.py FluidSolver's passes) on its own
+device arrays; this module owns what happens around the step.
 
 Decomposition (the slab scheme of GPUSPH, Rustico et al. 2014, "Advances in multi-GPU Smoothed Particle
 Hydrodynamics simulations", IEEE TPDS 25(1)):
 
-* Slabs along the longest axis of the fluid's initial bounding box, with faces at equal-count quantiles of
-  the initial particle positions (the load balance of the start). Rank r owns the fluid particles whose
-  coordinate lies in [face_r, face_r+1) (the outer faces at -inf / +inf, so particles leaving the domain
-  stay owned).
-* Halo, one kernel support H wide: the neighbours' owned particles within H of the slab (positions,
-  velocities, densities, pressures) are fluid in the rank's arrays, after the owned ones. The forces on an
-  owned particle i read its neighbours' densities *updated in the same step* (summation: rho_j = sum_k m_k
-  W_jk; continuity: rho_j += dt sum_k m_k v_jk . grad W_jk), which a halo slot cannot compute (its k reach
-  2 H past the face). So the step's halo densities come from their owners: RankFluidSolver (FluidSolver with
-  its ``wall_pressure`` hook, which runs after the density passes and before the forces) sends each owned
-  particle's new rho, p and p/rho^2 to the ranks that hold it as halo, and takes theirs for its halo slots
-  (a second exchange inside the step; the step itself is FluidSolver.step, unchanged). One more support with
-  Adami walls (a wall particle within H of i extrapolates its pressure from the fluid within H of itself) and
-  one more with the delta-SPH density diffusion (it reads the neighbours' densities before the exchange).
-  Halo results (accelerations, new positions) are thrown away after the step: they are never integrated
-  into the rank's owned set.
-* Boundary (wall) particles are static: each rank keeps those within its slab widened by the halo + H.
-* Migration: after the step, owned particles whose coordinate left the slab go to the neighbour rank
-  (a particle moves far less than one slab per step: CFL).
-* Load balance: every ``balance_interval`` steps, when the busiest rank owns more than (1 + ``balance_tolerance``)
-  x the mean count, the faces move to equal-count quantiles of a histogram of the owned coordinates summed over
-  the ranks, and the particles go to their new owners (all-to-all); refused while a slab would be narrower
-  than the halo.
-* dt: every rank reduces max |v|^2 and max |a|^2 of its owned particles (MPI allreduce, max), so the fluid
-  limit is the one-rank limit (Monaghan 1992, FluidSolver.stable_dt); the block and coupling limits are
-  replicated.
-* Blocks are replicated: each rank computes the water's force on every block from its owned particles
-  only (the coupling kernel launched over them), the per-rank loads are summed (reduce on rank 0 + bcast,
-  so all ranks hold bit-identical loads) and every rank integrates the blocks identically. The walls' impulse
-  on the water (CouplingOptions.track_walls, Coupling.wall_impulse) is summed over the ranks the same way.
-* Rank 0 drives: ``advance`` and ``step`` on rank 0 broadcast a command that the other ranks follow
-  (``serve``); after each advance the owned particles are gathered into rank 0's full FluidState, so
-  readers, gauges, recorders, run.json and checkpoints on rank 0 are those of a one-rank run. A checkpoint
-  is the full state: it resumes on any number of ranks (the state is repartitioned when rank 0's clock
-  differs from the last one it distributed).
+* Slabs along the longest axis of the fluid's initial bounding box, with faces at equal-count quantiles of the
+  initial positions, rounded to float32 (the kernels compare float32 coordinates with them). Rank r owns the
+  particles whose coordinate lay in [face_r, face_r+1) at the last list rebuild (outer faces at -inf / +inf).
+* Rank arrays, on the device: owned particles (in cell order), the halo from the lower rank, the halo from the
+  upper rank, then the rank's walls (those within the halo + H of the slab).
+* Halo: the neighbours' owned particles within ``depth`` supports of the slab plus the drift the Verlet skin allows
+  between two list rebuilds (halo_width). The forces on an owned particle i read its neighbours' densities *updated
+  in the same step*, which a halo slot cannot compute, so inside the step (RankFluidSolver's ``halo_densities``
+  pass, after the density passes, before the wall pressure) the owners send each halo particle's new rho, p and
+  p/rho^2. depth: 1, +1 with Adami walls (a wall particle within H of i extrapolates the fluid within H of itself),
+  +1 with delta-SPH diffusion (it reads the neighbours' densities before that exchange), +1 with particle shifting.
+  Halo results (accelerations, new positions) are never used: at the next step the halo slots take their owners'
+  x, v and rho again.
+* Verlet lists as on one GPU: the halo set is fixed between list rebuilds and refreshed every step (pack_halo /
+  unpack_halo into contiguous device buffers, kernels/sim/distributed.py; the transport of rockwave/sim/transport.py:
+  NCCL, CUDA-aware MPI or host mpi4py). Each rank runs FluidSolver's skin check over its owned and halo slots; the
+  ranks agree by allreduce (MAX) and rebuild together: a *relayout* (migration of the owned particles that left the
+  slab, to a neighbour only, since the skin bounds the drift; new halo set; cell order; a solver for the new counts).
+  All by device kernels (classify, prefix sum, scatter_flagged, pack_full/unpack_full); the host reads counts only.
+* Load balance (at a relayout, every ``balance_interval`` steps or more): the ranks' measured compute seconds per
+  step (StepTimer: CUDA events, so a wait inside a stream-ordered exchange is not counted) or their counts; when the
+  busiest exceeds (1 + ``balance_tolerance``) x the mean, the faces move to give each rank particles in proportion
+  to its speed (DistributedFluid.rebalance).
+* dt: every rank reduces max |v|^2 and max |a|^2 of its owned particles (the one-GPU motion_extrema kernel; MPI
+  allreduce, max), so the fluid limit is the one-rank limit (Monaghan 1992, FluidSolver.stable_dt); the block and
+  coupling limits are replicated.
+* Blocks are replicated: each rank computes the water's force on every block from its owned particles only (the
+  coupling kernel launched over them), the per-rank loads are summed (reduce on rank 0 + bcast, so all ranks hold
+  bit-identical loads) and every rank integrates the blocks identically. The walls' impulse on the water
+  (CouplingOptions.track_walls, Coupling.wall_impulse) is summed over the ranks the same way.
+* Rank 0 drives: ``advance`` and ``step`` on rank 0 broadcast a command that the other ranks follow (``serve``);
+  after each advance the owned particles are gathered (Gatherv) into rank 0's full FluidState, so readers, gauges,
+  recorders, run.json and checkpoints on rank 0 are those of a one-rank run. A checkpoint is the full state: it
+  resumes on any number of ranks (rank 0 scatters it again when its clock differs from the last one it
+  distributed). The other ranks drop the whole scene's fluid arrays after the first scatter.
 
-The CPU path packs halo and migration buffers with numpy on the host (one float64 row per particle:
-id, x, v, rho, a, p) and exchanges them with mpi4py (host MPI); the rank's solver arrays are rebuilt from
-them each step (the solver object itself when the local count changes). Not done yet: Warp packing kernels and
-NCCL (nccl4py) on GPUs with device-resident buffers, Ghost SPH, per-rank memory below the full state (every
-rank builds the whole scene once).
-
-Results differ from one rank within float round-off, not bit for bit: a rank's neighbour lists hold the
-same pairs in another order (its cell sort sees other slots), so the float32 sums over neighbours are
-added in another order; the block loads are summed per rank, then over ranks.
+Results differ from one rank within float32 round-off, not bit for bit: a rank's neighbour lists hold the same
+pairs in another order, so the float32 sums over neighbours are added in another order; the block loads are summed
+per rank, then over ranks.
 """
 
 from __future__ import annotations
