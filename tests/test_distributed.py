@@ -227,7 +227,10 @@ def test_cli_checkpoint_resumes_on_other_rank_count(tmp_path):
     r = _mpi(["-m", "rockwave", "run", str(scene), "--quiet", "--resume", "--out", str(tmp_path / "split"),
               "--duration", "0.08"], tmp_path)
     assert r.stderr.count("2 ranks, slabs along axis 0") == 1  # one run on two ranks, not two runs
-    assert json.loads((tmp_path / "split" / "run.json").read_text())["resumed_from_frame"] == 2
+    two = json.loads((tmp_path / "split" / "run.json").read_text())
+    assert two["resumed_from_frame"] == 2
+    ranks = two["ranks"]  # run.json records the ranks: the transport that ran, the lists kept over steps
+    assert ranks["ranks"] == 2 and ranks["transport"] == "host" and 0 < ranks["relayouts"] < ranks["steps"]
     one_rank("split", "0.1", "--resume")
     summary = json.loads((tmp_path / "split" / "run.json").read_text())
     assert summary["resumed_from_frame"] == 4 and summary["fluid_particles"] == 240
