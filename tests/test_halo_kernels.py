@@ -93,3 +93,22 @@ def test_host_transport_moves_buffers_intact():
     assert np.array_equal(recv.numpy(), rows)
     with pytest.raises(RuntimeError, match="CUDA device"):
         make_transport("cuda-mpi", MPI.COMM_SELF, D)
+
+
+def test_balanced_faces_follow_the_ranks_speeds():
+    """The load balance's new faces (rockwave/sim/distributed.py balanced_faces): water spread evenly over [0, 1];
+    a rank twice as fast as its neighbour gets twice the particles; a face moves at most half way to the next
+    face (particles go to a neighbour only); no slab narrower than the halo."""
+    from rockwave.sim.distributed import balanced_faces
+
+    hist = np.full(1000, 10)
+    two = np.array([-np.inf, 0.5, np.inf])
+    assert balanced_faces(hist, 0.0, 1.0, np.array([0.5, 0.5]), two, 0.05)[1] == pytest.approx(0.5, abs=1e-3)
+    speed = np.array([500.0, 500.0]) / np.array([2.0, 1.0])  # particles per compute second: rank 1 twice as fast
+    f = balanced_faces(hist, 0.0, 1.0, speed / speed.sum(), two, 0.05)
+    assert f[1] == pytest.approx(1.0 / 3.0, abs=1e-3) and f[1] == np.float32(f[1])  # float32 faces
+    assert balanced_faces(hist, 0.0, 1.0, np.array([0.1, 0.9]), two, 0.05)[1] == pytest.approx(0.25)  # half way
+    three = np.array([-np.inf, 1.0 / 3.0, 2.0 / 3.0, np.inf])
+    f = balanced_faces(hist, 0.0, 1.0, np.array([0.2, 0.6, 0.2]), three, 0.1)
+    assert f[1:3] == pytest.approx([0.2, 0.8], abs=1e-3)
+    assert balanced_faces(hist, 0.0, 1.0, np.array([0.2, 0.6, 0.2]), three, 0.7) is None  # middle slab < halo

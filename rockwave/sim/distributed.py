@@ -151,6 +151,29 @@ def float32_faces(inner) -> np.ndarray:
     return np.array([-math.inf, *np.asarray(inner, np.float32).astype(np.float64), math.inf])
 
 
+def balanced_faces(hist: np.ndarray, lo: float, hi: float, share: np.ndarray, faces: np.ndarray,
+                   halo: float) -> np.ndarray | None:
+    """New slab faces giving rank r the fraction share[r] of the particles, read from ``hist`` (particle counts in
+    equal bins over [lo, hi] along the axis): face k at the first bin edge where the cumulative count reaches
+    sum(share[:k]) of the total, then moved at most half way towards either neighbouring face of ``faces`` (the
+    outer ones taken at lo and hi), so that a particle goes to a neighbour rank only. None when a slab would be
+    narrower than ``halo`` or the faces would not increase."""
+    bins = len(hist)
+    cum = np.cumsum(hist)
+    edges = np.linspace(lo, hi, bins + 1)
+    targets = np.cumsum(share)[:-1] * cum[-1]
+    ends = np.array([lo, *faces[1:-1], hi])
+    inner = []
+    for k, target in enumerate(targets, start=1):
+        f = float(edges[1 + min(int(np.searchsorted(cum, target)), bins - 1)])
+        inner.append(min(max(f, 0.5 * (ends[k - 1] + ends[k])), 0.5 * (ends[k] + ends[k + 1])))
+    out = float32_faces(inner)
+    widths = np.diff(out)[1:-1]
+    if (len(widths) and widths.min() < halo) or np.any(np.diff(out) <= 0):
+        return None
+    return out
+
+
 def _finite(f: float) -> float:
     return max(-_FAR, min(_FAR, f))
 
@@ -491,18 +514,9 @@ class DistributedFluid:
             return False
         hist = np.histogram(c, bins=bins, range=(lo, hi))[0].astype(np.int64)
         comm.Allreduce(MPI.IN_PLACE, hist, op=MPI.SUM)
-        cum = np.cumsum(hist)
-        edges = np.linspace(lo, hi, bins + 1)
-        targets = np.cumsum(share)[:-1] * cum[-1]
         old = self.dec.faces.copy()
-        ends = np.array([lo, *old[1:-1], hi])
-        inner = []
-        for k, target in enumerate(targets, start=1):
-            f = float(edges[1 + min(np.searchsorted(cum, target), bins - 1)])
-            inner.append(min(max(f, 0.5 * (ends[k - 1] + ends[k])), 0.5 * (ends[k] + ends[k + 1])))
-        faces = float32_faces(inner)
-        widths = np.diff(faces)[1:-1]
-        if (len(widths) and widths.min() < self.dec.halo) or np.any(np.diff(faces) <= 0) or np.array_equal(faces, old):
+        faces = balanced_faces(hist, lo, hi, share, old, self.dec.halo)
+        if faces is None or np.array_equal(faces, old):
             return False
         self.dec.faces = faces
         self._set_slab()
