@@ -34,11 +34,14 @@ from pathlib import Path
 from benchmarks.common import RESULTS, ROOT, commit, device_name, write_json
 
 
-def _scene(particles: float):
+def _scene(particles: float, name: str = "dam_break_3d"):
+    """The shipped scene ``name`` with the spacing that gives about ``particles`` in its fluid boxes (never coarser
+    than its own), gauges and the hazard summary off (the hazard monitor reads the whole state every step)."""
     import rockwave
 
-    scene = rockwave.load_scene(ROOT / "scenes" / "dam_break_3d.toml")
+    scene = rockwave.load_scene(ROOT / "scenes" / f"{name}.toml")
     scene.output["gauges"] = []
+    scene.hazard = None
     s0 = float(scene.fluid["spacing_m"])
     volume = sum((hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2])
                  for lo, hi in ((r["box_min_m"], r["box_max_m"]) for r in scene.fluid["regions"]))
@@ -46,13 +49,13 @@ def _scene(particles: float):
     return scene
 
 
-def _plain_rate(particles: float, device: str, steps: int, warmup: int) -> dict:
+def _plain_rate(particles: float, device: str, steps: int, warmup: int, name: str = "dam_break_3d") -> dict:
     """The plain one-GPU Simulation on the scene of ``particles``: particle-steps/s over ``steps`` steps."""
     import warp as wp
 
     from rockwave.sim.simulation import Simulation
 
-    sim = Simulation(_scene(particles), device=device)
+    sim = Simulation(_scene(particles, name), device=device)
     dt = sim.dt
     sim.advance(warmup * dt)
     wp.synchronize_device(sim.device)
@@ -74,6 +77,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--warmup", type=int, default=20)
     ap.add_argument("--device", default="cuda")
+    ap.add_argument("--scene", default="dam_break_3d", help="a shipped scene with box fluid regions (default "
+                    "dam_break_3d; slide_3d: water and blocks, the blocks replicated on every rank)")
     ap.add_argument("--transport", default="auto", help="auto, nccl, cuda-mpi or host (rockwave/sim/transport.py)")
     ap.add_argument("--balance-by", default="time", choices=("time", "count"))
     ap.add_argument("--no-plain", action="store_true", help="leave out the plain one-GPU reference run")
@@ -87,7 +92,7 @@ def main(argv=None) -> int:
     comm = require_mpi().COMM_WORLD
     size = comm.Get_size()
     target = a.particles * (size if a.weak else 1)
-    sim = DistributedSimulation(_scene(target), device=a.device, comm=comm, transport=a.transport,
+    sim = DistributedSimulation(_scene(target, a.scene), device=a.device, comm=comm, transport=a.transport,
                                 balance_by=a.balance_by)
     if sim.rank != 0:
         sim.serve()
@@ -108,7 +113,7 @@ def main(argv=None) -> int:
     n, steps = sim.fluid.n_fluid, sim.steps - s0
     tm = {k: v / steps for k, v in sim.timings.items()}
     step_s = t / steps
-    res = {"benchmark": "distributed", "mode": "weak" if a.weak else "strong", "ranks": size,
+    res = {"benchmark": "distributed", "scene": a.scene, "mode": "weak" if a.weak else "strong", "ranks": size,
            "device": sim.device, "device_name": device_name(sim.device), "date": date.today().isoformat(),
            "commit": commit(), "transport": sim.transport, "balance_by": a.balance_by,
            "particles": n, "spacing_m": sim.scene.fluid["spacing_m"], "steps": steps, "seconds": t,
@@ -122,7 +127,7 @@ def main(argv=None) -> int:
     gc.collect()
     comm.Barrier()
     if not a.no_plain:
-        ref = _plain_rate(a.particles, a.device, a.steps, a.warmup)
+        ref = _plain_rate(a.particles, a.device, a.steps, a.warmup, a.scene)
         res["plain"] = ref
         if a.weak:
             res["efficiency"] = res["particle_steps_per_s"] / (size * ref["particle_steps_per_s"])
@@ -131,18 +136,18 @@ def main(argv=None) -> int:
             res["efficiency"] = res["speedup"] / size
     print(json.dumps(res))
     dev = res["device"].replace(":", "")
-    out = a.out or RESULTS / f"{res['date']}-{dev}-distributed-{res['mode']}-{size}ranks.json"
+    out = a.out or RESULTS / f"{res['date']}-{dev}-distributed-{a.scene}-{res['mode']}-{size}ranks.json"
     write_json(res, out)
     md = Path(out).parent / "distributed.md"
     if not md.exists():
-        md.write_text("| date | commit | device | mode | ranks | particles | transport | particle-steps/s | plain 1 GPU | "
+        md.write_text("| date | commit | device | scene, mode | ranks | particles | transport | particle-steps/s | plain 1 GPU | "
                       "efficiency | halo s/step (share) | relayouts/steps | B/particle (rank 0) |\n"
                       "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     with open(md, "a") as f:
         p = res.get("plain", {}).get("particle_steps_per_s")
-        f.write(f"| {res['date']} | {res['commit']} | {res['device_name']} | {res['mode']} | {size} | {n:,} | "
+        f.write(f"| {res['date']} | {res['commit']} | {res['device_name']} | {a.scene}, {res['mode']} | {size} | {n:,} | "
                 f"{res['transport']} | {res['particle_steps_per_s']:.3g} | {p:.3g} | " if p else
-                f"| {res['date']} | {res['commit']} | {res['device_name']} | {res['mode']} | {size} | {n:,} | "
+                f"| {res['date']} | {res['commit']} | {res['device_name']} | {a.scene}, {res['mode']} | {size} | {n:,} | "
                 f"{res['transport']} | {res['particle_steps_per_s']:.3g} | - | ")
         f.write(f"{res.get('efficiency', float('nan')):.2f} | {res['halo_exchange_s_per_step']:.2e} "
                 f"({100 * res['halo_share_of_step']:.1f}%) | {res['relayouts']}/{steps} | "

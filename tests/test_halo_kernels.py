@@ -91,7 +91,7 @@ def test_host_transport_moves_buffers_intact():
     recv = wp.zeros((11, kd.HALO_COLS), dtype=float, device=D)
     t.exchange([(0, send, recv), (None, None, None)])
     assert np.array_equal(recv.numpy(), rows)
-    with pytest.raises(RuntimeError, match="CUDA device"):
+    with pytest.raises(ValueError, match="CUDA device"):
         make_transport("cuda-mpi", MPI.COMM_SELF, D)
 
 

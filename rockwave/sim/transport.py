@@ -167,7 +167,7 @@ def _nccl_type(n, a):
 
 def make_transport(kind: str, comm, device):
     """The transport ``kind`` (KINDS) for ``device``; "auto": nccl on CUDA when a binding imports, else cuda-mpi
-    when the MPI is CUDA-aware, else host. An explicit kind that cannot run raises RuntimeError naming why."""
+    when the MPI is CUDA-aware, else host. An explicit kind that cannot run raises ValueError naming why."""
     if kind not in KINDS:
         raise ValueError(f"transport {kind!r}: expected one of {', '.join(KINDS)}")
     dev = wp.get_device(device)
@@ -183,10 +183,10 @@ def make_transport(kind: str, comm, device):
         if comm.allreduce(here, op=_mpi().MIN):
             return NcclTransport(comm, dev)
         if kind == "nccl":
-            raise RuntimeError("transport nccl: no NCCL binding imports on every rank (pip install nccl4py, or cupy "
+            raise ValueError("transport nccl: no NCCL binding imports on every rank (pip install nccl4py, or cupy "
                                "with NCCL)")
     if not dev.is_cuda:
-        raise RuntimeError(f"transport {kind}: needs a CUDA device, the ranks run on {dev}")
+        raise ValueError(f"transport {kind}: needs a CUDA device, the ranks run on {dev}")
     if kind == "cuda-mpi" or cuda_aware_mpi():
         return CudaMPITransport(comm, dev)
     return HostTransport(comm, dev)
