@@ -234,6 +234,8 @@ class DistributedFluid:
         self.migrated_total = 0  # rank 0, after a gather: summed over ranks
         self.rebalances = 0  # slab face moves (rebalance)
         self.relayouts = 0  # list rebuilds of the decomposition (each: migration + new halo set + new lists)
+        self.solver_reuses = 0  # relayouts that kept the rank's solver (its arrays fit the new counts)
+        self._capacity = 0
         self.steps = 0  # steps this rank took
         self.timings: dict[str, float] = {}  # seconds: halo (refresh + densities), check, relayout, compute
         self._since_balance = {"compute": 0.0, "steps": 0}
@@ -252,6 +254,7 @@ class DistributedFluid:
         d = self.device
         self._xb_dev = wp.array(self.xb.astype(np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
         self._mb_dev = wp.array(np.asarray(self.mb, np.float32), dtype=float, device=d)
+        self.solver = None  # other walls, another domain: a new solver at the next relayout
 
     # ------------------------------------------------------------ device helpers ------------
     def _launch(self, kernel, n: int, inputs) -> None:
@@ -415,14 +418,24 @@ class DistributedFluid:
         wp.utils.radix_sort_pairs(keys, order, n)
         return order[:n]
 
+    SOLVER_HEADROOM = 1.05  # a rank's solver holds arrays for this many times its particles (+ 256): a relayout reuses it
+
     def _make_solver(self, n: int, nb: int) -> None:
         """The rank's FluidModel (the global one's parameters, n fluid slots, the rank's walls, a domain around the
-        slab) and its RankFluidSolver."""
+        slab) and its RankFluidSolver. The solver is made for a capacity (SOLVER_HEADROOM) and kept over relayouts
+        while the slab is unchanged and the particles fit (RankFluidSolver.retarget: no allocation of lists and
+        grids, no host work over the walls); else made anew."""
         m, d = self.global_model, self.device
         mass = wp.empty(n + nb, dtype=float, device=d)
         mass.fill_(self.fluid_mass)
         if nb:
             wp.copy(mass, self._mb_dev, n, 0, nb)
+        if self.solver is not None and n <= self._capacity:
+            self.solver.retarget(n, mass)
+            self.local = self.solver.model
+            self.solver_reuses += 1
+            return
+        cap = int(self.SOLVER_HEADROOM * n) + 256
         lo, hi = np.array(m.domain_lo, float), np.array(m.domain_hi, float)
         ax, reach = self.dec.axis, self.dec.halo + 2.0 * m.support_radius
         lo[ax] = max(lo[ax], self.lo - reach) if math.isfinite(self.lo) else lo[ax]
@@ -430,12 +443,16 @@ class DistributedFluid:
         hi[ax] = max(hi[ax], lo[ax] + m.support_radius)
         # the solver reads the walls' positions from initial_positions (its skin check marks their cells); the
         # fluid rows there are never read (zeros: no copy of the particles to the host)
-        init = np.zeros((n + nb, 3))
-        init[n:] = self.xb
-        self.local = replace(m, n_fluid=n, n_boundary=nb, params=_copy_params(m.params, n), particle_mass=mass,
-                             initial_positions=init, initial_velocities=np.zeros((1, 3)), domain_lo=lo, domain_hi=hi)
-        self.solver = RankFluidSolver(self.local, self.options, exchange=self.exchange_densities)
-        self.solver.build_now = True
+        init = np.zeros((cap + nb, 3))
+        init[cap:] = self.xb
+        full = wp.empty(cap + nb, dtype=float, device=d)  # the capacity's masses (the model is retargeted below)
+        full.fill_(self.fluid_mass)
+        model = replace(m, n_fluid=cap, n_boundary=nb, params=_copy_params(m.params, cap), particle_mass=full,
+                        initial_positions=init, initial_velocities=np.zeros((1, 3)), domain_lo=lo, domain_hi=hi)
+        self.solver = RankFluidSolver(model, self.options, exchange=self.exchange_densities)
+        self._capacity = cap
+        self.solver.retarget(n, mass)
+        self.local = self.solver.model
 
     # ------------------------------------------------------------ per step --------------------
     def refresh_halo(self) -> None:
@@ -627,6 +644,19 @@ class RankFluidSolver(FluidSolver):
         self.insert_pass("halo_densities", lambda state, dt: exchange(state, self), before="wall_pressure")
         self.build_now = True
 
+    def retarget(self, n: int, mass: wp.array) -> None:
+        """The solver of n fluid slots (at most the count it was made for) with the particle masses ``mass``
+        (fluid, then the same walls): its arrays are kept (the list stride is their length, kernels/sph/fluid.py),
+        the launches take the new counts, and the lists are rebuilt at the next step. Arrays made at first use for
+        the count of the time (density diffusion, shifting) are made again when too short."""
+        self.model = replace(self.model, n_fluid=n, params=_copy_params(self.model.params, n), particle_mass=mass)
+        for name in ("_diff_rate", "_shift_dr"):
+            a = getattr(self, name, None)
+            if a is not None and a.shape[0] < n:
+                setattr(self, name, None)
+        self.invalidate_lists()
+        self.build_now = True
+
     def check_lists(self, state) -> bool:
         """This rank's skin check (FluidSolver's): would its lists be rebuilt now?"""
         if self.neighbour_skin <= 0:
@@ -709,7 +739,7 @@ class DistributedSimulation(Simulation):
         df = self.dfluid
         return {"ranks": self.size, "transport": self.transport, "axis": df.dec.axis, "halo_m": df.dec.halo,
                 "faces": [float(f) for f in df.dec.faces[1:-1]], "relayouts": df.relayouts, "steps": df.steps,
-                "rebalances": df.rebalances, "balance_by": self.balance_by, "migrated": df.migrated_total,
+                "rebalances": df.rebalances, "solver_reuses": df.solver_reuses, "balance_by": self.balance_by, "migrated": df.migrated_total,
                 "rank0_owned": df.n_own, "rank0_halo": df.n_halo,
                 "rank0_bytes_per_particle": round(df.bytes_per_particle(), 1),
                 "rank0_seconds": {k: round(v, 4) for k, v in df.timings.items()}}
@@ -940,7 +970,7 @@ def _main(argv=None) -> int:
     if not a.plain:
         df = sim.dfluid
         save.update(migrated=df.migrated_total, axis=df.dec.axis, rebalances=df.rebalances, faces=df.dec.faces,
-                    relayouts=df.relayouts, rank_steps=df.steps, transport=sim.transport,
+                    relayouts=df.relayouts, rank_steps=df.steps, transport=sim.transport, solver_reuses=df.solver_reuses,
                     bytes_per_particle=df.bytes_per_particle())
         sim.close()
     np.savez(a.out, **save)
