@@ -18,6 +18,7 @@ migration, new halos, new lists), the transport that ran, and rank 0's device by
 
     mpiexec -n 2 python -m benchmarks.distributed --particles 16e6 --device cuda            # strong
     mpiexec -n 2 python -m benchmarks.distributed --particles 8e6 --weak --device cuda      # weak
+    mpiexec -n 2 python -m benchmarks.distributed --particles 1e6 --device cuda --compare   # 2 GPUs vs 1, 100 steps
     python -m benchmarks.distributed --particles 2e4 --device cpu --steps 20 --no-plain     # a smoke run
 """
 
@@ -70,6 +71,61 @@ def _plain_rate(particles: float, device: str, steps: int, warmup: int, name: st
     return out
 
 
+def _compare(sim, a, comm) -> int:
+    """Rank 0 of --compare: positions, velocities, densities of the ranks against the plain one-GPU Simulation after
+    the same simulated time (the same adaptive steps: dt from the extrema reduced over ranks), and the yardstick:
+    the plain run against itself with every initial fluid coordinate moved by one float32 ulp; total momentum
+    (equal masses: sum of v) and particle count (mass) of both."""
+    import numpy as np
+
+    from rockwave.sim.simulation import Simulation
+
+    duration = a.steps * sim.dt
+    t0 = time.perf_counter()
+    sim.advance(duration)
+    t_ranks = time.perf_counter() - t0
+    two = dict(x=sim.positions(), v=sim.velocities(), rho=sim.densities(), steps=sim.steps)
+    report = sim.run_report()
+    sim.close()
+    del sim
+    gc.collect()
+    comm.Barrier()
+
+    def plain(ulp: bool) -> dict:
+        p = Simulation(_scene(a.particles * (comm.Get_size() if a.weak else 1), a.scene), device=a.device)
+        if ulp:
+            nf = p.fluid.n_fluid
+            x = p.state.x.numpy().copy()
+            sign = np.random.default_rng(1).choice([-1.0, 1.0], size=(nf, 3)).astype(np.float32)
+            x[:nf] = np.nextafter(x[:nf], x[:nf] + sign)
+            p.state.x.assign(x)
+            p.fluid_solver.invalidate_lists()
+        p.advance(duration)
+        out = dict(x=p.positions(), v=p.velocities(), rho=p.densities(), steps=p.steps)
+        del p
+        gc.collect()
+        return out
+
+    one, ulp = plain(False), plain(True)
+    diff = {k: float(np.abs(two[k] - one[k]).max()) for k in ("x", "v", "rho")}
+    yard = {k: float(np.abs(ulp[k] - one[k]).max()) for k in ("x", "v", "rho")}
+    p1, p2 = one["v"].astype(np.float64).sum(axis=0), two["v"].astype(np.float64).sum(axis=0)
+    res = {"benchmark": "distributed-compare", "scene": a.scene, "ranks": comm.Get_size(), "device": a.device,
+           "device_name": device_name(a.device), "date": date.today().isoformat(), "commit": commit(),
+           "particles": len(one["x"]), "steps_ranks": int(two["steps"]), "steps_plain": int(one["steps"]),
+           "simulated_s": duration, "ranks_wall_s": t_ranks, "max_diff_ranks_vs_plain": diff,
+           "max_diff_plain_vs_one_ulp": yard, "bound": "2 x the one-ulp pair's difference",
+           "within_round_off": all(diff[k] <= 2.0 * yard[k] for k in diff),
+           "momentum_plain": p1.tolist(), "momentum_ranks": p2.tolist(),
+           "momentum_rel_diff": float(np.abs(p1 - p2).max() / max(np.abs(p1).max(), 1e-30)),
+           "particles_equal": len(one["x"]) == len(two["x"]), "ranks_record": report}
+    print(json.dumps(res))
+    dev = a.device.replace(":", "")
+    out = a.out or RESULTS / f"{res['date']}-{dev}-distributed-compare-{a.scene}-{res['ranks']}ranks.json"
+    write_json(res, out)
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.distributed")
     ap.add_argument("--particles", type=float, required=True, help="fluid particles in all (or per rank with --weak)")
@@ -83,6 +139,9 @@ def main(argv=None) -> int:
     ap.add_argument("--balance-by", default="time", choices=("time", "count"))
     ap.add_argument("--no-plain", action="store_true", help="leave out the plain one-GPU reference run")
     ap.add_argument("--out", default=None, help="result JSON (default under benchmarks/results/)")
+    ap.add_argument("--compare", action="store_true", help="correctness instead of speed: the ranks and the plain "
+                    "Simulation advance the same --steps x the initial dt from the start; their particles are "
+                    "compared, with two plain runs one float32 ulp apart as the round-off yardstick")
     a = ap.parse_args(argv)
     import warp as wp
 
@@ -100,6 +159,8 @@ def main(argv=None) -> int:
         gc.collect()
         comm.Barrier()  # rank 0's plain run uses its GPU alone
         return 0
+    if a.compare:
+        return _compare(sim, a, comm)
     dt = sim.dt
     for _ in range(a.warmup):
         sim.step(dt)
