@@ -132,6 +132,8 @@ class NcclTransport:
             pass
         from cupy.cuda import nccl  # ImportError when neither binding is there
 
+        if not getattr(nccl, "available", True):  # CuPy without its NCCL library
+            raise ImportError("cupy.cuda.nccl: CuPy found no NCCL library")
         return "cupy", nccl
 
     def exchange(self, pairs) -> None:
