@@ -1,23 +1,129 @@
-"""Scaling of one scene over MPI ranks (rockwave/sim/distributed.py; docs/mpi.md).
+"""Scaling of one scene over MPI ranks, one GPU each (rockwave/sim/distributed.py; docs/mpi.md), against the plain
+one-GPU Simulation.
 
-The 3D dam break (scenes/dam_break_3d.toml, gauges off) at the spacing that gives about ``--particles``
-fluid particles in all (strong scaling) or per rank (``--weak``), advanced by ``--steps`` times the initial
-dt (adaptive steps, as in a run) after ``--warmup`` steps (kernels loaded); the timing ends after a barrier
-ends with a barrier and leaves out the gather on rank 0. Rank 0 prints one JSON line: ranks, particles, seconds, particle-steps/s and the
-particle-steps/s per rank (parallel efficiency = that over the one-rank figure of the same size).
+The 3D dam break (scenes/dam_break_3d.toml, gauges off) at the spacing that gives about ``--particles`` fluid
+particles in all (strong scaling) or per rank (``--weak``). The ranks advance ``--steps`` times the initial dt
+(adaptive steps, as in a run) after ``--warmup`` steps (kernels loaded); the timing ends with a barrier and leaves
+out the gather on rank 0. Then rank 0 alone runs the plain one-GPU ``Simulation`` (CUDA graphs, reorders: the
+fastest one-GPU path) on the reference size: the same scene (strong) or the per-rank size (weak), same steps.
+Efficiency is always against that plain run, never against the distributed code on one rank:
 
-    mpiexec -n 4 python -m benchmarks.distributed --particles 8e6 --device cuda
-    mpiexec -n 4 python -m benchmarks.distributed --particles 8e6 --weak --device cuda
+    strong: speedup = rate(N ranks) / rate(plain, same scene);   efficiency = speedup / N
+    weak:   efficiency = rate(N ranks) / (N x rate(plain, per-rank size))
+
+Rank 0 prints one JSON line and writes it to benchmarks/results/<date>-<device>-distributed-<mode>-<N>ranks.json
+(and a row to the markdown table beside it): particle-steps/s, the halo exchange's seconds per step and share of
+the step (rank 0: the per-step halo refresh + the halo densities inside the step), the relayouts (list rebuilds:
+migration, new halos, new lists), the transport that ran, and rank 0's device bytes per particle.
+
+    mpiexec -n 2 python -m benchmarks.distributed --particles 16e6 --device cuda            # strong
+    mpiexec -n 2 python -m benchmarks.distributed --particles 8e6 --weak --device cuda      # weak
+    mpiexec -n 2 python -m benchmarks.distributed --particles 1e6 --device cuda --compare   # 2 GPUs vs 1, 100 steps
+    python -m benchmarks.distributed --particles 2e4 --device cpu --steps 20 --no-plain     # a smoke run
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import sys
 import time
+from datetime import date
+from pathlib import Path
 
-from benchmarks.common import ROOT
+from benchmarks.common import RESULTS, ROOT, commit, device_name, write_json
+
+
+def _scene(particles: float, name: str = "dam_break_3d"):
+    """The shipped scene ``name`` with the spacing that gives about ``particles`` in its fluid boxes (never coarser
+    than its own), gauges and the hazard summary off (the hazard monitor reads the whole state every step)."""
+    import rockwave
+
+    scene = rockwave.load_scene(ROOT / "scenes" / f"{name}.toml")
+    scene.output["gauges"] = []
+    scene.hazard = None
+    s0 = float(scene.fluid["spacing_m"])
+    volume = sum((hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2])
+                 for lo, hi in ((r["box_min_m"], r["box_max_m"]) for r in scene.fluid["regions"]))
+    scene.fluid["spacing_m"] = min(s0, (volume / particles) ** (1.0 / 3.0))
+    return scene
+
+
+def _plain_rate(particles: float, device: str, steps: int, warmup: int, name: str = "dam_break_3d") -> dict:
+    """The plain one-GPU Simulation on the scene of ``particles``: particle-steps/s over ``steps`` steps."""
+    import warp as wp
+
+    from rockwave.sim.simulation import Simulation
+
+    sim = Simulation(_scene(particles, name), device=device)
+    dt = sim.dt
+    sim.advance(warmup * dt)
+    wp.synchronize_device(sim.device)
+    s0, t0 = sim.steps, time.perf_counter()
+    sim.advance(steps * dt)
+    wp.synchronize_device(sim.device)
+    t = time.perf_counter() - t0
+    n = sim.fluid.n_fluid
+    out = {"particles": n, "steps": sim.steps - s0, "seconds": t, "particle_steps_per_s": n * (sim.steps - s0) / t}
+    del sim
+    gc.collect()
+    return out
+
+
+def _compare(sim, a, comm) -> int:
+    """Rank 0 of --compare: positions, velocities, densities of the ranks against the plain one-GPU Simulation after
+    the same simulated time (the same adaptive steps: dt from the extrema reduced over ranks), and the yardstick:
+    the plain run against itself with every initial fluid coordinate moved by one float32 ulp; total momentum
+    (equal masses: sum of v) and particle count (mass) of both."""
+    import numpy as np
+
+    from rockwave.sim.simulation import Simulation
+
+    duration = a.steps * sim.dt
+    t0 = time.perf_counter()
+    sim.advance(duration)
+    t_ranks = time.perf_counter() - t0
+    two = dict(x=sim.positions(), v=sim.velocities(), rho=sim.densities(), steps=sim.steps)
+    report = sim.run_report()
+    sim.close()
+    del sim
+    gc.collect()
+    comm.Barrier()
+
+    def plain(ulp: bool) -> dict:
+        p = Simulation(_scene(a.particles * (comm.Get_size() if a.weak else 1), a.scene), device=a.device)
+        if ulp:
+            nf = p.fluid.n_fluid
+            x = p.state.x.numpy().copy()
+            sign = np.random.default_rng(1).choice([-1.0, 1.0], size=(nf, 3)).astype(np.float32)
+            x[:nf] = np.nextafter(x[:nf], x[:nf] + sign)
+            p.state.x.assign(x)
+            p.fluid_solver.invalidate_lists()
+        p.advance(duration)
+        out = dict(x=p.positions(), v=p.velocities(), rho=p.densities(), steps=p.steps)
+        del p
+        gc.collect()
+        return out
+
+    one, ulp = plain(False), plain(True)
+    diff = {k: float(np.abs(two[k] - one[k]).max()) for k in ("x", "v", "rho")}
+    yard = {k: float(np.abs(ulp[k] - one[k]).max()) for k in ("x", "v", "rho")}
+    p1, p2 = one["v"].astype(np.float64).sum(axis=0), two["v"].astype(np.float64).sum(axis=0)
+    res = {"benchmark": "distributed-compare", "scene": a.scene, "ranks": comm.Get_size(), "device": a.device,
+           "device_name": device_name(a.device), "date": date.today().isoformat(), "commit": commit(),
+           "particles": len(one["x"]), "steps_ranks": int(two["steps"]), "steps_plain": int(one["steps"]),
+           "simulated_s": duration, "ranks_wall_s": t_ranks, "max_diff_ranks_vs_plain": diff,
+           "max_diff_plain_vs_one_ulp": yard, "bound": "2 x the one-ulp pair's difference",
+           "within_round_off": all(diff[k] <= 2.0 * yard[k] for k in diff),
+           "momentum_plain": p1.tolist(), "momentum_ranks": p2.tolist(),
+           "momentum_rel_diff": float(np.abs(p1 - p2).max() / max(np.abs(p1).max(), 1e-30)),
+           "particles_equal": len(one["x"]) == len(two["x"]), "ranks_record": report}
+    print(json.dumps(res))
+    dev = a.device.replace(":", "")
+    out = a.out or RESULTS / f"{res['date']}-{dev}-distributed-compare-{a.scene}-{res['ranks']}ranks.json"
+    write_json(res, out)
+    return 0
 
 
 def main(argv=None) -> int:
@@ -27,41 +133,86 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--warmup", type=int, default=20)
     ap.add_argument("--device", default="cuda")
+    ap.add_argument("--scene", default="dam_break_3d", help="a shipped scene with box fluid regions (default "
+                    "dam_break_3d; slide_3d: water and blocks, the blocks replicated on every rank)")
+    ap.add_argument("--transport", default="auto", help="auto, nccl, cuda-mpi or host (rockwave/sim/transport.py)")
+    ap.add_argument("--balance-by", default="time", choices=("time", "count"))
+    ap.add_argument("--no-plain", action="store_true", help="leave out the plain one-GPU reference run")
+    ap.add_argument("--out", default=None, help="result JSON (default under benchmarks/results/)")
+    ap.add_argument("--compare", action="store_true", help="correctness instead of speed: the ranks and the plain "
+                    "Simulation advance the same --steps x the initial dt from the start; their particles are "
+                    "compared, with two plain runs one float32 ulp apart as the round-off yardstick")
     a = ap.parse_args(argv)
     import warp as wp
 
     wp.config.quiet = True
-    import rockwave
     from rockwave.sim.distributed import DistributedSimulation, require_mpi
 
     comm = require_mpi().COMM_WORLD
     size = comm.Get_size()
-    scene = rockwave.load_scene(ROOT / "scenes" / "dam_break_3d.toml")
-    scene.output["gauges"] = []
-    s0 = float(scene.fluid["spacing_m"])
-    volume = sum(float((lambda lo, hi: (hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2]))(r["box_min_m"], r["box_max_m"]))
-                 for r in scene.fluid["regions"])
     target = a.particles * (size if a.weak else 1)
-    scene.fluid["spacing_m"] = min(s0, (volume / target) ** (1.0 / 3.0))
-    sim = DistributedSimulation(scene, device=a.device, comm=comm)
+    sim = DistributedSimulation(_scene(target, a.scene), device=a.device, comm=comm, transport=a.transport,
+                                balance_by=a.balance_by)
     if sim.rank != 0:
         sim.serve()
+        del sim
+        gc.collect()
+        comm.Barrier()  # rank 0's plain run uses its GPU alone
         return 0
+    if a.compare:
+        return _compare(sim, a, comm)
     dt = sim.dt
     for _ in range(a.warmup):
         sim.step(dt)
     sim.gather()  # a collective: every rank is between steps here
     sim.timings.clear()
+    df = sim.dfluid
+    s0, r0 = sim.steps, df.relayouts
     t0 = time.perf_counter()
     sim.advance(a.steps * dt, gather=False)  # adaptive steps (dt may shrink as the water speeds up)
     t = time.perf_counter() - t0
-    n = sim.fluid.n_fluid
-    print(json.dumps({"ranks": size, "device": sim.device, "particles": n, "spacing_m": scene.fluid["spacing_m"],
-                      "steps": sim.steps - a.warmup, "seconds": t, "particle_steps_per_s": n * (sim.steps - a.warmup) / t,
-                      "per_rank": n * (sim.steps - a.warmup) / t / size, "weak": a.weak,
-                      "rank0_owned": len(sim.dfluid.rows), "rank0_halo": sim.dfluid.n_halo,
-                      "rank0_seconds": {k: round(v, 4) for k, v in sim.timings.items()}}))
+    n, steps = sim.fluid.n_fluid, sim.steps - s0
+    tm = {k: v / steps for k, v in sim.timings.items()}
+    step_s = t / steps
+    res = {"benchmark": "distributed", "scene": a.scene, "mode": "weak" if a.weak else "strong", "ranks": size,
+           "device": sim.device, "device_name": device_name(sim.device), "date": date.today().isoformat(),
+           "commit": commit(), "transport": sim.transport, "balance_by": a.balance_by,
+           "particles": n, "spacing_m": sim.scene.fluid["spacing_m"], "steps": steps, "seconds": t,
+           "particle_steps_per_s": n * steps / t, "relayouts": df.relayouts - r0,
+           "rank0_owned": df.n_own, "rank0_halo": df.n_halo, "rank0_bytes_per_particle": round(df.bytes_per_particle(), 1),
+           "rank0_seconds_per_step": {k: round(v, 6) for k, v in tm.items()},
+           "halo_exchange_s_per_step": tm.get("halo", 0.0), "halo_share_of_step": tm.get("halo", 0.0) / step_s,
+           "faces": [float(f) for f in df.dec.faces[1:-1]], "rebalances": df.rebalances}
     sim.close()
+    del sim, df
+    gc.collect()
+    comm.Barrier()
+    if not a.no_plain:
+        ref = _plain_rate(a.particles, a.device, a.steps, a.warmup, a.scene)
+        res["plain"] = ref
+        if a.weak:
+            res["efficiency"] = res["particle_steps_per_s"] / (size * ref["particle_steps_per_s"])
+        else:
+            res["speedup"] = res["particle_steps_per_s"] / ref["particle_steps_per_s"]
+            res["efficiency"] = res["speedup"] / size
+    print(json.dumps(res))
+    dev = res["device"].replace(":", "")
+    out = a.out or RESULTS / f"{res['date']}-{dev}-distributed-{a.scene}-{res['mode']}-{size}ranks.json"
+    write_json(res, out)
+    md = Path(out).parent / "distributed.md"
+    if not md.exists():
+        md.write_text("| date | commit | device | scene, mode | ranks | particles | transport | particle-steps/s | plain 1 GPU | "
+                      "efficiency | halo s/step (share) | relayouts/steps | B/particle (rank 0) |\n"
+                      "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+    with open(md, "a") as f:
+        p = res.get("plain", {}).get("particle_steps_per_s")
+        f.write(f"| {res['date']} | {res['commit']} | {res['device_name']} | {a.scene}, {res['mode']} | {size} | {n:,} | "
+                f"{res['transport']} | {res['particle_steps_per_s']:.3g} | {p:.3g} | " if p else
+                f"| {res['date']} | {res['commit']} | {res['device_name']} | {a.scene}, {res['mode']} | {size} | {n:,} | "
+                f"{res['transport']} | {res['particle_steps_per_s']:.3g} | - | ")
+        f.write(f"{res.get('efficiency', float('nan')):.2f} | {res['halo_exchange_s_per_step']:.2e} "
+                f"({100 * res['halo_share_of_step']:.1f}%) | {res['relayouts']}/{steps} | "
+                f"{res['rank0_bytes_per_particle']:.0f} |\n")
     return 0
 
 

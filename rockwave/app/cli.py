@@ -16,8 +16,9 @@ from rockwave.base.errors import SimulationError
 from rockwave.build import preflight
 from rockwave.scene.format import SceneError, load_scene, scene_format_doc
 from rockwave.sim.checkpoint import CheckpointError
-from rockwave.sim.distributed import DistributedSimulation, world_size_from_env
+from rockwave.sim.distributed import BALANCE_BY, DistributedSimulation, world_size_from_env
 from rockwave.sim.simulation import Simulation
+from rockwave.sim.transport import KINDS as TRANSPORTS
 
 DEFAULT_SCENE_NAME = "dam_break_3d.toml"
 
@@ -101,6 +102,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="wall-clock seconds between checkpoints (overrides output.checkpoint_interval_s; 0: none)")
     r.add_argument("--ranks", action="store_true", help="one scene on all ranks of the MPI job (mpiexec -n N ...; detected "
                    "without the flag when the MPI world has more than one rank; docs/mpi.md)")
+    r.add_argument("--transport", choices=TRANSPORTS, default="auto",
+                   help="with ranks: how halos travel between them: nccl (GPU to GPU), cuda-mpi (a CUDA-aware MPI), "
+                   "host (mpi4py on host copies; the CPU path) or auto (the first of these that runs; run.json's "
+                   "ranks.transport says which did)")
+    r.add_argument("--balance-by", choices=BALANCE_BY, default="time",
+                   help="with ranks: the slab faces follow each rank's measured compute time (time, default) or its "
+                   "particle count (count)")
     v = sub.add_parser("validate", help="check a scene file without running it: every check 'run' makes before its first step")
     v.add_argument("scene", nargs="?", default=None, help=f"scene TOML file, or the name of a shipped scene (python -m rockwave scenes; default: the built-in {DEFAULT_SCENE_NAME})")
     v.add_argument("--device", default=None, help="device the memory and run-length estimates are for (default: the scene's)")
@@ -242,11 +250,12 @@ def _main(args) -> int:
     try:
         if ranks:  # rockwave/sim/distributed.py: rank 0 runs the loop below, the other ranks follow it
 
-            sim = DistributedSimulation(scene, device=device)
+            sim = DistributedSimulation(scene, device=device, transport=args.transport, balance_by=args.balance_by)
             if sim.rank != 0:
                 sim.serve()
                 return 0
-            print(f"{sim.size} ranks, slabs along axis {sim.dfluid.dec.axis} (halo {sim.dfluid.dec.halo:g} m)", file=sys.stderr)
+            print(f"{sim.size} ranks, slabs along axis {sim.dfluid.dec.axis} (halo {sim.dfluid.dec.halo:g} m, transport "
+                  f"{sim.transport})", file=sys.stderr)
         else:
             sim = Simulation(scene, device=device)
         sim.run_length_forced = bool(args.yes)  # --yes, for the run loop's own run-length check

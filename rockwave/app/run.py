@@ -351,6 +351,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         "checkpoint": str(checkpointer.path) if checkpointer.written_frame is not None else None,
     }
     summary["energy"] = energy.summary()
+    if hasattr(sim, "run_report"):  # several ranks (rockwave/sim/distributed.py): the transport that ran, rebuilds, balance
+        summary["ranks"] = sim.run_report()
     if hazard is not None:
         summary["hazard"] = hazard.result()
         atomic_write_text(out / HAZARD_FILE, json.dumps(summary["hazard"], indent=2))

@@ -988,8 +988,12 @@ class FluidSolver:
     def _neighbour_lists(self, state: FluidState, dt: wp.array) -> bool:
         """The cell grid and Verlet lists, rebuilt when the skin check says so. Returns True when the
         density was computed in the same pass (fused_density)."""
+        return self._neighbour_lists_with(state, dt, self._list_guard(state))
+
+    def _neighbour_lists_with(self, state: FluidState, dt: wp.array, guard) -> bool:
+        """The list pass with the skin check's answer ``guard`` (_list_guard's: None, a flag to launch on, or
+        self._always); a rank of a decomposition decides it with the other ranks (rockwave/sim/distributed.py)."""
         m = self.model
-        guard = self._list_guard(state)
         # the fused list build + density needs the host to know that the list is rebuilt this step
         fused = self.fused_density and guard is self._always and not m.params.gradient_correction  # L_i first
         if guard is self._rebuild and self.conditional_rebuild and m.device.is_capturing:
