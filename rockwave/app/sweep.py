@@ -738,11 +738,22 @@ def comparison_rows(study: Study) -> list[dict]:
         res = read_result(study, sc)
         if res is None:
             continue
+        metrics = dict(res.get("metrics") or {})
+        try:  # the comparison again from the run's summary: a corrected predictor needs no re-run
+            summary = json.loads((study.results / "scenarios" / sc.id / "run.json").read_text())
+            metrics.update(GENERATORS[study.generator].compare(sc.setup, summary))
+        except (OSError, ValueError, KeyError):
+            pass
         r = {"index": sc.index, "scenario": sc.id, "status": res["status"], "error": res.get("error", ""),
-             "wall_s": res.get("wall_s"), "device": res.get("device"), **sc.setup, **(res.get("metrics") or {})}
+             "wall_s": res.get("wall_s"), "device": res.get("device"), **sc.setup, **metrics}
         r = {k: v for k, v in r.items() if "." not in k}  # the hazard's per-gauge columns stay in study.csv
         out.append(r)
     return out
+
+
+def summarise_study(study: Study, by: str | None = "layers") -> list[dict]:
+    """A generated study's mean errors per ``by`` group (rockwave/output/impulse.py summarise)."""
+    return summarise(comparison_rows(study), by=by)
 
 
 def write_comparison(study: Study) -> dict:
