@@ -105,7 +105,7 @@ device = "cpu"
 [generator]
 depth_m = 0.2
 layers = 6
-gauge_max = 7.0
+gauge_max = 6.0
 thickness = 0.4
 mass = 1.0
 
@@ -119,7 +119,7 @@ values = [30.0, 60.0]
 
 
 def test_cpu_miniature_of_the_impulse_study(tmp_path):
-    """Two coarse scenarios (6 particles per depth, gauges to 7 h) through the sweep: every scenario ok, the
+    """Two coarse scenarios (6 particles per depth, gauges to 6 h) through the sweep: every scenario ok, the
     comparison table written, the errors finite and within a factor 2 of the relations (a loose bound: the
     resolution is far too coarse for the study's accuracy), the slide entering at its Froude number."""
     p = tmp_path / "mini.toml"
