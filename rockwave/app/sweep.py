@@ -48,8 +48,8 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rockwave.base.device import device_syntax_error, init_warp, quiet_warp
 from rockwave.app.impulse import GENERATORS
+from rockwave.base.device import device_syntax_error, init_warp, quiet_warp
 from rockwave.base.files import atomic_write, atomic_write_text
 from rockwave.output.hazard import flat_metrics
 from rockwave.output.impulse import summarise
