@@ -10,7 +10,7 @@ resolution and cost, and the mean errors per resolution:
     python -m benchmarks.impulse_waves --device cuda:0 --study impulse_2d      # the 16-scenario study at h/dx = 20
     python -m benchmarks.impulse_waves --device cpu --study FILE.toml --workers 1
 
-Record: benchmarks/results/<date>-<device>-impulse_waves-<study>.json and .md (the comparison table) and .csv;
+Record: benchmarks/results/<date>-<device>-impulse_waves-<study>.json, .md (the comparison table), .csv and .png;
 the scenarios' own results stay in --out (default runs/bench_<study>), so a re-run resumes.
 """
 
@@ -50,7 +50,7 @@ def main(argv=None) -> None:
     stem = f"{datetime.date.today().isoformat()}-{dev}-impulse_waves-{name}"
     od = Path(a.out_dir)
     od.mkdir(parents=True, exist_ok=True)
-    for key, ext in (("comparison_md", "md"), ("comparison_csv", "csv")):
+    for key, ext in (("comparison_md", "md"), ("comparison_csv", "csv"), ("comparison_png", "png")):
         if key in res.paths:
             shutil.copyfile(res.paths[key], od / f"{stem}.{ext}")
     record = {"benchmark": "impulse_waves", "study": str(path), "device": a.device, "device_name": device_name(a.device),

@@ -52,6 +52,7 @@ from rockwave.app.impulse import GENERATORS
 from rockwave.base.device import device_syntax_error, init_warp, quiet_warp
 from rockwave.base.files import atomic_write, atomic_write_text
 from rockwave.output.hazard import flat_metrics
+from rockwave.output.impulse import chart as impulse_chart
 from rockwave.output.impulse import summarise
 from rockwave.scene.format import SceneError, parse_scene
 from rockwave.sim.simulation import Simulation
@@ -807,6 +808,23 @@ def write_comparison(study: Study) -> dict:
                 cell(s, "H_M_mean_abs_err", "{:.1%}"), cell(s, "H_M_within_band", "{:.0%}"), cell(s, "x_M_mean_err", "{:+.1%}"),
                 cell(s, "decay_H_mean_err", "{:+.1%}"), cell(s, "wall_s_mean", "{:.1f}")]) + " |")
     atomic_write_text(paths["comparison_md"], "\n".join(lines) + "\n")
+    profiles = {}  # crest minus trough along the channel, per scenario (hazard.json)
+    for sc in study.scenarios:
+        try:
+            hz = json.loads((study.results / "scenarios" / sc.id / "hazard.json").read_text())
+        except (OSError, ValueError):
+            continue
+        h, x0 = sc.setup.get("h_m"), sc.setup.get("x0_m", 0.0)
+        if not h:
+            continue
+        profiles[sc.index] = [((g["position_m"][0] - x0) / h, (g["max_crest_m"] - g["deepest_trough_m"]) / h)
+                              for name, g in hz.get("gauges", {}).items()
+                              if name.startswith("x") and g.get("max_crest_m") is not None and g.get("deepest_trough_m") is not None]
+    try:
+        paths["comparison_png"] = study.results / "comparison.png"
+        impulse_chart(rows, profiles, paths["comparison_png"], title=study.path.name)
+    except ImportError:  # no matplotlib: the tables are written, the chart is not
+        paths.pop("comparison_png")
     return paths
 
 

@@ -171,3 +171,62 @@ def summarise(rows: list[dict], by: str | None = None, band: float = BAND) -> li
         s["wall_s_mean"] = sum(w) / len(w) if w else None
         out.append(s)
     return out
+
+
+def chart(rows: list[dict], profiles: dict, path, band: float = BAND, title: str = "") -> None:
+    """comparison.png: (left) measured a_M/h and H_M/h against P with the relations (4/9) P^(4/5), (5/9) P^(4/5) and
+    the band; (right) the height along the channel scaled by the relations, H(x)/(h P^(4/5)) against x/h, with
+    (3/4) (x/h)^(-4/15) and the band. ``profiles``: scenario index -> [(x/h, H/h), ...] (crest minus trough at each
+    gauge); ``rows``: the comparison rows (status, P, a_M_m, H_M_m, h_m, layers, index)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ok = [r for r in rows if r.get("status", "ok") == "ok" and r.get("a_M_m") is not None]
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.2))
+    if ok:
+        ps = [float(r["P"]) for r in ok]
+        lo, hi = min(ps) / 1.3, max(ps) * 1.3
+        grid = [lo * (hi / lo) ** (k / 50) for k in range(51)]
+        for coef, key, col, lab in ((4 / 9, "a_M_m", "C0", "a_M"), (5 / 9, "H_M_m", "C1", "H_M")):
+            ax.plot(grid, [coef * p ** 0.8 for p in grid], "-", color=col, lw=1.2, label=f"{lab}/h = {coef * 9:.0f}/9 P^(4/5)")
+            ax.fill_between(grid, [(1 - band) * coef * p ** 0.8 for p in grid], [(1 + band) * coef * p ** 0.8 for p in grid],
+                            color=col, alpha=0.12)
+            layers = sorted({r.get("layers") for r in ok}, key=lambda v: (v is None, v))
+            for j, lay in enumerate(layers):
+                sel = [r for r in ok if r.get("layers") == lay]
+                ax.plot([float(r["P"]) for r in sel], [float(r[key]) / float(r["h_m"]) for r in sel], "os^Dv"[j % 5],
+                        color=col, alpha=0.85, label=f"{lab} measured, h/dx = {lay:g}" if lay is not None else f"{lab} measured")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+    ax.set_xlabel("impulse product parameter P")
+    ax.set_ylabel("a_M/h, H_M/h")
+    ax.set_title(f"maximum wave (band ±{band:.0%})")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
+    xs = [x for prof in profiles.values() for x, _ in prof]
+    if xs:
+        grid = [min(xs) + (max(xs) - min(xs)) * k / 50 for k in range(51)]
+        bx.plot(grid, [0.75 * x ** (-4 / 15) for x in grid], "k-", lw=1.4, label="H(x)/(h P^(4/5)) = (3/4) (x/h)^(-4/15)")
+        bx.fill_between(grid, [(1 - band) * 0.75 * x ** (-4 / 15) for x in grid],
+                        [(1 + band) * 0.75 * x ** (-4 / 15) for x in grid], color="k", alpha=0.1)
+        byidx = {r["index"]: r for r in ok}
+        for idx, prof in profiles.items():
+            r = byidx.get(idx)
+            if r is None or not prof:
+                continue
+            s = float(r["P"]) ** 0.8
+            bx.plot([x for x, _ in prof], [H / s for _, H in prof], "-", lw=0.9, alpha=0.7,
+                    label=f"#{idx} P={float(r['P']):.2f} h/dx={r.get('layers', 0):g}" if len(profiles) <= 12 else None)
+        bx.axvline(RANGES["X"][0], color="grey", lw=0.8, ls=":")
+    bx.set_xlabel("x/h (from the still shoreline)")
+    bx.set_ylabel("H(x) / (h P^(4/5))")
+    bx.set_title("decay along the channel")
+    bx.grid(alpha=0.3)
+    bx.legend(fontsize=6)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
