@@ -128,6 +128,7 @@ def test_cpu_miniature_of_the_impulse_study(tmp_path):
     assert res.failed == 0 and res.ran == 2
     md = (tmp_path / "res" / "comparison.md").read_text()
     assert "a_M err" in md and md.count("\n| 0 |") + md.count("\n| 1 |") == 2
+    assert (tmp_path / "res" / "comparison.png").stat().st_size > 10_000
     import csv
 
     rows = list(csv.DictReader((tmp_path / "res" / "comparison.csv").open()))
