@@ -727,7 +727,7 @@ COMPARISON_COLUMNS = [  # (column, header, format)
     ("P", "P", "{:.2f}"), ("layers", "h/dx", "{:.0f}"), ("a_M_pred_m", "a_M pred m", "{:.4f}"), ("a_M_m", "a_M m", "{:.4f}"),
     ("a_M_err", "a_M err", "{:+.1%}"), ("H_M_pred_m", "H_M pred m", "{:.4f}"), ("H_M_m", "H_M m", "{:.4f}"),
     ("H_M_err", "H_M err", "{:+.1%}"), ("x_M_pred_m", "x_M pred m", "{:.2f}"), ("x_M_m", "x_M m", "{:.2f}"),
-    ("decay_H_mean_err", "H(x) err", "{:+.1%}"), ("F_measured", "F meas.", "{:.2f}"),
+    ("decay_H_mean_err", "H(x) err", "{:+.1%}"), ("decay_a_mean_err", "a(x) err", "{:+.1%}"), ("F_measured", "F meas.", "{:.2f}"),
     ("energy_to_water_fraction", "E_w/E_s", "{:.1%}"), ("fluid_particles", "particles", "{}"), ("steps", "steps", "{}"),
     ("wall_s", "wall s", "{:.1f}"), ("outside_ranges", "outside data ranges", "{}")]
 
