@@ -40,7 +40,7 @@ def test_impulse_product_and_maximum_wave_match_the_manuals_worked_examples():
     n = slide_numbers(V_s=58.0, s=12.0, m_s=1700.0 * 220000.0, b=100.0, h=80.0, alpha_deg=40.0)
     assert n["P"] == pytest.approx(0.64, abs=0.01)
     assert outside_ranges(n) == []
-    assert "alpha_deg" in outside_ranges({"alpha_deg": 10.4}) [0]
+    assert "alpha_deg" in outside_ranges({"alpha_deg": 10.4})[0]
 
 
 def test_decay_along_the_channel():

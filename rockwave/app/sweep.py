@@ -10,7 +10,10 @@ a re-run skips the finished ones; a scenario that fails (a blow-up, a bad run) o
 recorded with its error and the others go on. The study table (``study.parquet`` and ``study.csv``)
 holds one row per scenario: its varied values and its hazard summary (rockwave/output/hazard.py); plots:
 ``max_wave_height.png`` (highest crest at each gauge against each varied key) and ``runup.png`` (run-up
-along the shore, one line per scenario).
+along the shore, one line per scenario). Instead of a base scene, ``generator = NAME`` builds each scenario from a
+scene maker's parameters (rockwave/app/impulse.py; a ``[generator]`` table holds the fixed ones, ``[[vary]]`` keys
+name the varied ones); its comparison joins each row and ``comparison.md``/``.csv``/``.png`` hold the error table.
+Shipped studies (scenes/studies/) run by name: ``python -m rockwave sweep impulse_2d``.
 
 Study file::
 
