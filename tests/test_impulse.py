@@ -147,3 +147,41 @@ def test_cpu_miniature_of_the_impulse_study(tmp_path):
     hz = json.loads(next((tmp_path / "res" / "scenarios").glob("*/hazard.json")).read_text())
     assert all(g["max_crest_m"] is not None for g in hz["gauges"].values())
     assert tomllib.loads(p.read_text())["study"]["generator"] == "impulse_2d"
+
+
+def test_comparison_of_a_synthetic_wave_that_follows_the_relations():
+    """Gauges that read exactly the relations' crest and height past x_M (and a maximum of exactly a_M, H_M at x_M)
+    give zero errors; a gauge nearer than 2.7 h (outside the data's range) is left out even with a huge reading;
+    the energy column counts the water's gain less the displaced water's potential energy."""
+    from rockwave.output.impulse import compare_channel, summarise
+
+    h, F, S, M, alpha = 0.2, 2.0, 0.4, 1.2, 45.0
+    P = impulse_product(F, S, M, alpha)
+    m = max_wave_2d(P, h)
+    gauges = {"x2": {"position_m": [0.4, 0.0], "max_crest_m": 5.0, "deepest_trough_m": -1.0}}  # splash: ignored
+    gauges[f"x{m['x_M_m'] / h:g}"] = {"position_m": [m["x_M_m"], 0.0], "max_crest_m": m["a_M_m"],
+                                      "deepest_trough_m": m["a_M_m"] - m["H_M_m"]}
+    for X in (9.0, 12.0, 15.0):
+        H, a = height_2d(P, X * h, h), amplitude_2d(P, X * h, h)
+        gauges[f"x{X:g}"] = {"position_m": [X * h, 0.0], "max_crest_m": a, "deepest_trough_m": a - H}
+    setup = {"h_m": h, "x0_m": 0.0, "F": F, "S": S, "M": M, "alpha_deg": alpha, "slide_mass_kg_m": 40.0,
+             "slide_area_m2": 0.02, "rho_w": 1000.0, "channel_length_m": 4.0}
+    e_slide = 0.5 * 40.0 * (F * math.sqrt(9.81 * h)) ** 2
+    static = 1000.0 * 9.81 * 0.02 * (h + 0.5 * 0.02 / 4.0 - 0.05)
+    energy = {"start": {"water_kinetic_j": 0.0, "water_potential_j": 100.0},
+              "end": {"water_kinetic_j": 3.0, "water_potential_j": 100.0 + static + 0.1 * e_slide - 3.0}}
+    hazard = {"gauges": gauges, "slides": {"slide": {"peak_speed_m_s": F * math.sqrt(9.81 * h),
+                                                     "final_position_m": [0.3, 0.05]}}}
+    row = compare_channel(setup, hazard, energy)
+    assert row["P"] == pytest.approx(P)
+    for k in ("a_M_err", "H_M_err", "x_M_err", "decay_H_mean_err", "decay_H_max_abs_err", "decay_a_mean_err"):
+        assert row[k] == pytest.approx(0.0, abs=1e-9), k
+    assert row["a_M_within_band"] and row["H_M_within_band"] and row["decay_gauges"] == 3
+    assert row["F_measured"] == pytest.approx(F)
+    assert row["energy_to_water_fraction"] == pytest.approx(0.1, rel=1e-9)
+    # a crest 40% high is outside the +-30% band and shows in the per-resolution summary
+    gauges[f"x{m['x_M_m'] / h:g}"]["max_crest_m"] *= 1.4
+    row2 = compare_channel(setup, hazard, energy)
+    assert row2["a_M_err"] == pytest.approx(0.4) and row2["a_M_within_band"] is False
+    s = summarise([dict(row, layers=10, wall_s=1.0), dict(row2, layers=10, wall_s=3.0)], by="layers")
+    assert s[0]["a_M_mean_err"] == pytest.approx(0.2) and s[0]["a_M_within_band"] == 0.5 and s[0]["wall_s_mean"] == 2.0
