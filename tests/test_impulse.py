@@ -93,6 +93,10 @@ def test_shipped_studies_validate_and_a_bad_generator_parameter_is_named(tmp_pat
         load_study(bad, tmp_path / "r")
     msg = str(e.value)
     assert "generator.layerz" in msg and "froude" in msg
+    # a block that would tip over its front edge (length/thickness < tan alpha) is refused, naming the mass
+    bad = ImpulseChannel2D.check({"froude": 1.0, "thickness": 0.5, "mass": 0.6, "slope_deg": 60.0})
+    assert [k for k, _ in bad] == ["mass"] and "topple" in bad[0][1]
+    assert ImpulseChannel2D.check({"froude": 1.0, "thickness": 0.5, "mass": 0.6, "slope_deg": 45.0}) == []
 
 
 MINI = """

@@ -15,7 +15,8 @@ impulse product parameter P. The slide is set by its dimensionless numbers:
   slows it;
 - ``thickness`` S = s / h;
 - ``mass`` M = m_s / (rho_w b h^2) = D l s / h^2 per unit width, with D = ``density_ratio`` (rho_s / rho_w): the
-  block's length along the slope is l = M h / (D S);
+  block's length along the slope is l = M h / (D S); a block with l/s < tan(alpha) would tip over its front edge
+  (the base friction that balances gravity acts below its centroid) and is refused;
 - ``slope_deg`` alpha;
 - ``layers``: particles per water depth (the resolution: spacing = h / layers).
 
@@ -70,6 +71,17 @@ class ImpulseChannel2D:
                 bad.append(("slope_deg", f"{a:g}: a slope between 5 and 85 degrees"))
         if not bad and float(params.get("layers", cls.PARAMS["layers"])) < 4:
             bad.append(("layers", "at least 4 particles per depth"))
+        need = ("thickness", "mass", "slope_deg")
+        if not bad and all(params.get(k) is not None for k in need):
+            # sliding with base friction = the driving force tips the block about its front edge unless the normal
+            # force's shift (s/2) tan(alpha) stays within its half length: l/s >= tan(alpha), l = M h / (D S)
+            S, M = float(params["thickness"]), float(params["mass"])
+            D = float(params.get("density_ratio", cls.PARAMS["density_ratio"]))
+            ratio, tan_a = M / (D * S * S), math.tan(math.radians(float(params["slope_deg"])))
+            if ratio < tan_a:
+                bad.append(("mass", f"the block (length/thickness M/(D S^2) = {ratio:.3g}) would topple on a "
+                                    f"{float(params['slope_deg']):g} degree plane (it slides upright only for "
+                                    f"length/thickness >= tan(alpha) = {tan_a:.3g}): raise M or lower S"))
         return bad
 
     @classmethod
