@@ -71,6 +71,8 @@ class ImpulseChannel2D:
                 bad.append(("slope_deg", f"{a:g}: a slope between 5 and 85 degrees"))
         if not bad and float(params.get("layers", cls.PARAMS["layers"])) < 4:
             bad.append(("layers", "at least 4 particles per depth"))
+        if not bad and float(params.get("gauge_min", cls.PARAMS["gauge_min"])) > float(params.get("gauge_max", cls.PARAMS["gauge_max"])):
+            bad.append(("gauge_min", "the first gauge lies beyond the last (gauge_max)"))
         need = ("thickness", "mass", "slope_deg")
         if not bad and all(params.get(k) is not None for k in need):
             # sliding with base friction = the driving force tips the block about its front edge unless the normal
