@@ -111,6 +111,8 @@ def test_wheel_holds_the_scenes_and_their_data_and_declares_the_mesh_dependencie
         meta = z.read(next(n for n in names if n.endswith("dist-info/METADATA"))).decode()
     shipped = {f"rockwave/scenes/{p.name}" for p in (ROOT / "scenes").glob("*.toml")}
     assert shipped and shipped <= names
+    studies = {f"rockwave/scenes/studies/{p.name}" for p in (ROOT / "scenes" / "studies").glob("*.toml")}
+    assert studies and studies <= names  # python -m rockwave sweep impulse_2d finds them in any install
     assert {"rockwave/scenes/data/spheric_test2/water_level.dat", "rockwave/scenes/data/spheric_test2/pressure.dat"} <= names
     assert "rockwave/base/device.py" in names and "rockwave/kernels/sph/fluid.py" in names
     requires = [l.split(":", 1)[1].strip().lower() for l in meta.splitlines() if l.startswith("Requires-Dist:") and "extra ==" not in l]

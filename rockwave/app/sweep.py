@@ -10,7 +10,10 @@ a re-run skips the finished ones; a scenario that fails (a blow-up, a bad run) o
 recorded with its error and the others go on. The study table (``study.parquet`` and ``study.csv``)
 holds one row per scenario: its varied values and its hazard summary (rockwave/output/hazard.py); plots:
 ``max_wave_height.png`` (highest crest at each gauge against each varied key) and ``runup.png`` (run-up
-along the shore, one line per scenario).
+along the shore, one line per scenario). Instead of a base scene, ``generator = NAME`` builds each scenario from a
+scene maker's parameters (rockwave/app/impulse.py; a ``[generator]`` table holds the fixed ones, ``[[vary]]`` keys
+name the varied ones); its comparison joins each row and ``comparison.md``/``.csv``/``.png`` hold the error table.
+Shipped studies (scenes/studies/) run by name: ``python -m rockwave sweep impulse_2d``.
 
 Study file::
 
@@ -49,17 +52,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rockwave.app import batch as batching
+from rockwave.app.impulse import GENERATORS
 from rockwave.base.device import device_syntax_error, init_warp, quiet_warp
 from rockwave.base.files import atomic_write, atomic_write_text
 from rockwave.build.builder import seed_particles
 from rockwave.output.hazard import flat_metrics
+from rockwave.output.impulse import chart as impulse_chart
+from rockwave.output.impulse import summarise
 from rockwave.scene.format import SceneError, parse_scene
 from rockwave.sim.simulation import Simulation
 
 RESULT_FILE = "result.json"
 SAMPLES = ("grid", "random", "lhs")
 OUTPUT_KEYS = ("usd", "gauges_csv", "blocks_csv", "vtk")
-STUDY_KEYS = {"scene", "results", "sample", "n", "seed", "duration_s", "keep", "device", "workers", "workers_per_gpu"}
+STUDY_KEYS = {"scene", "generator", "results", "sample", "n", "seed", "duration_s", "keep", "device", "workers", "workers_per_gpu"}
 VARY_KEYS = {"key", "values", "range", "steps"}
 
 
@@ -128,6 +134,7 @@ class Scenario:
     params: dict  # varied key -> value
     data: dict  # the scene TOML dict with the values put in
     id: str = ""
+    setup: dict = field(default_factory=dict)  # a generated scenario's setup (rockwave/app/impulse.py)
 
 
 @dataclass
@@ -141,6 +148,7 @@ class Study:
     device: str = "auto"
     workers: int = 0
     workers_per_gpu: int = 1
+    generator: str | None = None  # a scene maker of rockwave/app/impulse.py GENERATORS
 
 
 def _values(v: dict, sample: str, where: str, err) -> list | tuple | None:
@@ -224,8 +232,8 @@ def load_study(path: str | os.PathLike, results: str | os.PathLike | None = None
     errors: list[tuple[str, str]] = []
     err = lambda k, m: errors.append((k, m))  # noqa: E731
     for k in data:
-        if k not in ("study", "vary"):
-            err(k, "unknown section; allowed: [study], [[vary]]")
+        if k not in ("study", "vary", "generator"):
+            err(k, "unknown section; allowed: [study], [[vary]], [generator]")
     st = data.get("study")
     if not isinstance(st, dict):
         raise StudyError(p, [("study", "required table [study] (scene = 'base scene.toml', ...) is missing")])
@@ -234,8 +242,23 @@ def load_study(path: str | os.PathLike, results: str | os.PathLike | None = None
             err(f"study.{k}", f"unknown key; allowed: {', '.join(sorted(STUDY_KEYS))}")
     scene_rel = st.get("scene")
     scene_path = None
-    if not isinstance(scene_rel, str):
-        err("study.scene", f"required: the base scene file (relative to the study file), got {scene_rel!r}")
+    gen_name, gen, gen_fixed = st.get("generator"), None, data.get("generator", {})
+    if gen_name is not None:
+        if scene_rel is not None:
+            err("study.scene", "give a base scene or a generator, not both")
+        if gen_name not in GENERATORS:
+            err("study.generator", f"{gen_name!r} is not a scene maker; one of {', '.join(map(repr, GENERATORS))}")
+        elif not isinstance(gen_fixed, dict):
+            err("generator", f"expected a table of {gen_name} parameters, got {gen_fixed!r}")
+        else:
+            gen = GENERATORS[gen_name]
+            for k, m in gen.check(gen_fixed, partial=True):
+                err(f"generator.{k}", m)
+            scene_path = p.resolve()  # a generated scene's relative paths and messages refer to the study file
+    elif "generator" in data:
+        err("generator", "a [generator] table needs study.generator = the scene maker's name")
+    elif not isinstance(scene_rel, str):
+        err("study.scene", f"required: the base scene file (relative to the study file) or a generator, got {scene_rel!r}")
     else:
         scene_path = (p.parent / scene_rel).resolve()
         if not scene_path.is_file():
@@ -308,20 +331,37 @@ def load_study(path: str | os.PathLike, results: str | os.PathLike | None = None
             specs.append(spec)
     if errors or scene_path is None:
         raise StudyError(p, errors)
-    base_text = scene_path.read_bytes()
-    try:
-        base = tomllib.loads(base_text.decode())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
-        raise StudyError(p, [("study.scene", f"{scene_path}: not valid TOML: {e}")]) from None
+    if gen is not None:
+        base_text = json.dumps([gen.name, gen.version, gen_fixed], sort_keys=True).encode()
+        base = None
+    else:
+        base_text = scene_path.read_bytes()
+        try:
+            base = tomllib.loads(base_text.decode())
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+            raise StudyError(p, [("study.scene", f"{scene_path}: not valid TOML: {e}")]) from None
     digest = hashlib.sha1(base_text + json.dumps([dur, keep]).encode()).hexdigest()
     study = Study(path=p.resolve(), scene_path=scene_path, results=res_path, sample=sample, keys=keys, device=device,
-                  workers=st.get("workers") or 0, workers_per_gpu=st.get("workers_per_gpu") or 1)
+                  workers=st.get("workers") or 0, workers_per_gpu=st.get("workers_per_gpu") or 1,
+                  generator=gen.name if gen is not None else None)
     for index, combo in enumerate(_combinations(specs, sample, n or 0, seed)):
         params = dict(zip(keys, combo))
-        d = copy.deepcopy(base)
         what = ", ".join(f"{k} = {_show(v)}" for k, v in params.items())
+        setup = {}
+        if gen is not None:  # the maker's parameters build the scene; other (dotted scene) keys are set on it
+            gp = {**gen_fixed, **{k: v for k, v in params.items() if k in gen.PARAMS}}
+            problems = gen.check(gp)
+            for k, m in problems:
+                err(f"scenario {index} ({what})", f"{k}: {m}")
+            if problems:
+                continue
+            d, setup = gen.scene(gp)
+        else:
+            d = copy.deepcopy(base)
         bad = False
         for k, val in params.items():
+            if gen is not None and k in gen.PARAMS:
+                continue
             try:
                 set_key(d, k, val)
             except ValueError as e:
@@ -344,7 +384,7 @@ def load_study(path: str | os.PathLike, results: str | os.PathLike | None = None
             for k, m in e.errors:
                 err(f"scenario {index} ({what})", f"{k}: {m}" if k else m)
             continue
-        study.scenarios.append(Scenario(index, params, d, _scenario_id(index, params, digest)))
+        study.scenarios.append(Scenario(index, params, d, _scenario_id(index, params, digest), setup))
     if errors:
         raise StudyError(p, errors)
     return study
@@ -358,7 +398,8 @@ def _show(v) -> str:
 def scenario_config(study: Study, sc: Scenario) -> dict:
     """The plain (picklable, JSON-able) config of one scenario: what run_scenario needs on any worker."""
     return {"id": sc.id, "index": sc.index, "params": sc.params, "scene": sc.data, "scene_path": str(study.scene_path),
-            "out_dir": str((study.results / "scenarios" / sc.id).resolve()), "device": study.device}
+            "out_dir": str((study.results / "scenarios" / sc.id).resolve()), "device": study.device,
+            "generator": study.generator, "setup": sc.setup}
 
 
 def _failed(config: dict, error: str, wall: float = 0.0) -> dict:
@@ -387,8 +428,12 @@ def run_scenario(config: dict) -> dict:
         out.mkdir(parents=True, exist_ok=True)
         sim = Simulation(scene, device=device)
         summary = sim.run(out, progress=False, checkpoint_interval_s=0.0)
+        metrics = flat_metrics(summary.get("hazard") or {})
+        if config.get("generator"):  # the maker's comparison (e.g. the impulse-wave predictors) joins the row
+            metrics.update(GENERATORS[config["generator"]].compare(config["setup"], summary))
+            metrics.update({"steps": summary["steps"], "fluid_particles": summary["fluid_particles"]})
         res = {"id": config["id"], "index": config["index"], "params": config["params"], "status": "ok", "error": "",
-               "metrics": flat_metrics(summary.get("hazard") or {}), "wall_s": time.perf_counter() - t0,
+               "metrics": metrics, "wall_s": time.perf_counter() - t0,
                "steps": summary["steps"], "device": sim.device, "fluid_particles": summary["fluid_particles"]}
     except KeyboardInterrupt:
         raise
@@ -687,6 +732,113 @@ def write_plots(study: Study, rows: list[dict]) -> list[Path]:
     return out
 
 
+# ----------------------------------------------------------------------------------- comparison table ----
+COMPARISON_COLUMNS = [  # (column, header, format)
+    ("index", "#", "{}"), ("F", "F", "{:.2f}"), ("S", "S", "{:.2f}"), ("M", "M", "{:.2f}"), ("alpha_deg", "α °", "{:.0f}"),
+    ("P", "P", "{:.2f}"), ("layers", "h/dx", "{:.0f}"), ("a_M_pred_m", "a_M pred m", "{:.4f}"), ("a_M_m", "a_M m", "{:.4f}"),
+    ("a_M_err", "a_M err", "{:+.1%}"), ("H_M_pred_m", "H_M pred m", "{:.4f}"), ("H_M_m", "H_M m", "{:.4f}"),
+    ("H_M_err", "H_M err", "{:+.1%}"), ("x_M_pred_m", "x_M pred m", "{:.2f}"), ("x_M_m", "x_M m", "{:.2f}"),
+    ("decay_H_mean_err", "H(x) err", "{:+.1%}"), ("decay_a_mean_err", "a(x) err", "{:+.1%}"), ("F_measured", "F meas.", "{:.2f}"),
+    ("energy_to_water_fraction", "E_w/E_s", "{:.1%}"), ("fluid_particles", "particles", "{}"), ("steps", "steps", "{}"),
+    ("wall_s", "wall s", "{:.1f}"), ("outside_ranges", "outside data ranges", "{}")]
+
+
+def comparison_rows(study: Study) -> list[dict]:
+    """A generated study's rows with the comparison columns, the scenario's status and its cost (wall_s)."""
+    out = []
+    for sc in study.scenarios:
+        res = read_result(study, sc)
+        if res is None:
+            continue
+        metrics = dict(res.get("metrics") or {})
+        try:  # the comparison again from the run's summary: a corrected predictor needs no re-run
+            summary = json.loads((study.results / "scenarios" / sc.id / "run.json").read_text())
+            metrics.update(GENERATORS[study.generator].compare(sc.setup, summary))
+        except (OSError, ValueError, KeyError):
+            pass
+        r = {"index": sc.index, "scenario": sc.id, "status": res["status"], "error": res.get("error", ""),
+             "wall_s": res.get("wall_s"), "device": res.get("device"), **sc.setup, **metrics}
+        r = {k: v for k, v in r.items() if "." not in k}  # the hazard's per-gauge columns stay in study.csv
+        out.append(r)
+    return out
+
+
+def summarise_study(study: Study, by: str | None = "layers") -> list[dict]:
+    """A generated study's mean errors per ``by`` group (rockwave/output/impulse.py summarise)."""
+    return summarise(comparison_rows(study), by=by)
+
+
+def write_comparison(study: Study) -> dict:
+    """comparison.csv (every column) and comparison.md (the table of docs/validation.md 'Landslide impulse waves':
+    each scenario's error against the predictors, its resolution and cost, then the mean errors per resolution)."""
+    import csv
+    import io
+
+    rows = comparison_rows(study)
+    if not rows:
+        return {}
+    cols: list[str] = []
+    for r in rows:
+        cols += [k for k in r if k not in cols]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=cols, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: "" if r.get(k) is None else r.get(k) for k in cols})
+    paths = {"comparison_csv": study.results / "comparison.csv", "comparison_md": study.results / "comparison.md"}
+    atomic_write_text(paths["comparison_csv"], buf.getvalue())
+
+    def cell(r, k, f):
+        v = r.get(k)
+        if v is None or v == "":
+            return "–"
+        try:
+            return f.format(v)
+        except (ValueError, TypeError):
+            return str(v)
+
+    lines = [f"# {study.path.name}: waves against the impulse-product relations", "",
+             "Errors are measured / predicted − 1 (rockwave/output/impulse.py; docs/validation.md 'Landslide impulse waves').",
+             "", "| " + " | ".join(h for _, h, _ in COMPARISON_COLUMNS) + " |",
+             "|" + "---|" * len(COMPARISON_COLUMNS)]
+    for r in rows:
+        if r["status"] != "ok":
+            lines.append(f"| {r['index']} | failed: {str(r.get('error'))[:100]} |")
+            continue
+        lines.append("| " + " | ".join(cell(r, k, f) for k, _, f in COMPARISON_COLUMNS) + " |")
+    summ = summarise(rows, by="layers")
+    if summ:
+        lines += ["", "Per resolution (h/dx: particles per water depth): mean signed error, mean |error|, the share "
+                  "within ±30%, mean wall time per scenario", "",
+                  "| h/dx | scenarios | a_M mean | a_M mean abs | a_M within | H_M mean | H_M mean abs | H_M within | "
+                  "x_M mean | H(x) mean | wall s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for s in summ:
+            lines.append("| " + " | ".join([
+                cell(s, "group", "{:.0f}"), str(s["scenarios"]), cell(s, "a_M_mean_err", "{:+.1%}"),
+                cell(s, "a_M_mean_abs_err", "{:.1%}"), cell(s, "a_M_within_band", "{:.0%}"), cell(s, "H_M_mean_err", "{:+.1%}"),
+                cell(s, "H_M_mean_abs_err", "{:.1%}"), cell(s, "H_M_within_band", "{:.0%}"), cell(s, "x_M_mean_err", "{:+.1%}"),
+                cell(s, "decay_H_mean_err", "{:+.1%}"), cell(s, "wall_s_mean", "{:.1f}")]) + " |")
+    atomic_write_text(paths["comparison_md"], "\n".join(lines) + "\n")
+    profiles = {}  # crest minus trough along the channel, per scenario (hazard.json)
+    for sc in study.scenarios:
+        try:
+            hz = json.loads((study.results / "scenarios" / sc.id / "hazard.json").read_text())
+        except (OSError, ValueError):
+            continue
+        h, x0 = sc.setup.get("h_m"), sc.setup.get("x0_m", 0.0)
+        if not h:
+            continue
+        profiles[sc.index] = [((g["position_m"][0] - x0) / h, (g["max_crest_m"] - g["deepest_trough_m"]) / h)
+                              for name, g in hz.get("gauges", {}).items()
+                              if name.startswith("x") and g.get("max_crest_m") is not None and g.get("deepest_trough_m") is not None]
+    try:
+        paths["comparison_png"] = study.results / "comparison.png"
+        impulse_chart(rows, profiles, paths["comparison_png"], title=study.path.name)
+    except ImportError:  # no matplotlib: the tables are written, the chart is not
+        paths.pop("comparison_png")
+    return paths
+
+
 # ----------------------------------------------------------------------------------------------- driver ----
 def slurm_script(study: Study, gpus: int = 1, cpus: int = 4, time_limit: str = "04:00:00", batch: int = 1) -> Path:
     """A Slurm job array for sites without Ray: one array task per scenario (``sweep --only INDEX``), or with
@@ -837,6 +989,8 @@ def run_study(study: Study | str | os.PathLike, out: str | os.PathLike | None = 
                  ray_address, ray_init)
     rows = study_rows(study)
     paths = write_table(study, rows) if only is None else {}
+    if only is None and study.generator:
+        paths.update(write_comparison(study))
     pics = write_plots(study, rows) if plots and only is None and rows else []
     wall = time.perf_counter() - t0
     if only is None:
@@ -889,10 +1043,36 @@ def _execute(todo, executor, slots, on_result, fn, study, gpus_per_scenario, ray
         raise ValueError(f"executor {executor!r}: expected 'local', 'ray' or 'inline'")
 
 
+def shipped_studies_dir() -> Path:
+    """The studies shipped with rockwave: ``rockwave.scenes``/studies (the checkout's scenes/studies/)."""
+    try:
+        from importlib.resources import files
+
+        d = files("rockwave.scenes") / "studies"
+        if d.is_dir():
+            return Path(str(d))
+    except (ImportError, OSError, TypeError, ModuleNotFoundError):
+        pass
+    return Path(__file__).resolve().parents[2] / "scenes" / "studies"
+
+
+def resolve_study(name: str, out: str | None) -> tuple[Path, str | None]:
+    """A study file, or the name of a shipped study (``impulse_2d`` -> scenes/studies/impulse_2d.toml, its results
+    in ./runs/<name> unless ``out`` says otherwise: never inside the installed package)."""
+    p = Path(name)
+    if p.is_file() or p.suffix == ".toml" or os.sep in name:
+        return p, out
+    shipped = shipped_studies_dir() / f"{name}.toml"
+    if shipped.is_file():
+        return shipped, out if out is not None else str(Path("runs") / name)
+    return p, out
+
+
 def cli(args) -> int:
     """``python -m rockwave sweep`` (rockwave/app/cli.py). Exit 0: every scenario ok; 1: some failed; 2: a bad study."""
     try:
-        study = load_study(args.study, args.out)
+        path, out = resolve_study(args.study, args.out)
+        study = load_study(path, out)
     except StudyError as e:
         print(str(e), file=sys.stderr)
         return 2
@@ -909,6 +1089,8 @@ def cli(args) -> int:
     if args.collect:
         rows = study_rows(study)
         paths = write_table(study, rows)
+        if study.generator:
+            write_comparison(study)
         write_plots(study, rows)
         print(f"{len(rows)}/{len(study.scenarios)} scenarios have results; table {paths['csv']}")
         return 0

@@ -1,0 +1,191 @@
+"""Landslide impulse waves (issue 41): the impulse-product relations against the VAW manual's worked examples,
+the impulse_2d scene maker's geometry, and a CPU miniature of the shipped study through the sweep (two coarse
+scenarios: the pipeline runs, the comparison is written, the errors are finite and loosely bounded)."""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rockwave.app.impulse import ImpulseChannel2D
+from rockwave.app.sweep import StudyError, load_study, run_study, shipped_studies_dir
+from rockwave.output.impulse import (
+    amplitude_2d,
+    height_2d,
+    impulse_product,
+    max_wave_2d,
+    outside_ranges,
+    slide_numbers,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_impulse_product_and_maximum_wave_match_the_manuals_worked_examples():
+    # Lake Askja 2014 (Evers et al. 2019, VAW-Mitteilung 254, Section 4.2.1): P = 0.49, H_M = 43.3 m, x_M = 531 m
+    n = slide_numbers(V_s=30.1, s=35.5, m_s=2.0e10, b=550.0, h=138.0, alpha_deg=10.4)
+    assert n["F"] == pytest.approx(0.82, abs=0.005) and n["S"] == pytest.approx(0.26, abs=0.005)
+    assert n["M"] == pytest.approx(1.91, abs=0.005)
+    assert n["P"] == pytest.approx(0.49, abs=0.01)
+    w = max_wave_2d(0.49, 138.0)  # the manual carries P rounded to 0.49
+    assert w["H_M_m"] == pytest.approx(43.3, abs=0.05)
+    assert w["x_M_m"] == pytest.approx(531.0, abs=1.0)
+    assert w["a_M_m"] == pytest.approx(0.8 * w["H_M_m"], rel=1e-12)  # a = (4/5) H (Eq. 3.16)
+    # Example 1 (Heller, Hager & Minor 2009, Section 5.1): 220,000 m^3 at 1700 kg/m^3, 58 m/s into 80 m, P = 0.64
+    n = slide_numbers(V_s=58.0, s=12.0, m_s=1700.0 * 220000.0, b=100.0, h=80.0, alpha_deg=40.0)
+    assert n["P"] == pytest.approx(0.64, abs=0.01)
+    assert outside_ranges(n) == []
+    assert "alpha_deg" in outside_ranges({"alpha_deg": 10.4})[0]
+
+
+def test_decay_along_the_channel():
+    P, h = 1.3, 0.2
+    # H(x)/h = (3/4) [P X^(-1/3)]^(4/5): X^(-4/15) exactly, and a = (4/5) H = (3/5) [P X^(-1/3)]^(4/5) h
+    assert height_2d(P, 2 * 3.0 * h, h) / height_2d(P, 3.0 * h, h) == pytest.approx(2 ** (-4 / 15), rel=1e-12)
+    assert height_2d(P, h, h) == pytest.approx(0.75 * P ** 0.8 * h, rel=1e-12)
+    assert amplitude_2d(P, 5 * h, h) == pytest.approx(0.6 * (P * 5 ** (-1 / 3)) ** 0.8 * h, rel=1e-12)
+    # P falls as the slope steepens past zero: cos(6 alpha / 7) (Heller & Hager 2010)
+    assert impulse_product(2.0, 0.4, 1.0, 30.0) > impulse_product(2.0, 0.4, 1.0, 60.0)
+    assert impulse_product(2.0, 0.4, 1.0, 90.0) == pytest.approx(2.0 * 0.4 ** 0.5 * math.cos(math.radians(540 / 7)) ** 0.5)
+
+
+@pytest.mark.parametrize("alpha", [30.0, 60.0])
+def test_scene_maker_puts_the_slide_at_the_requested_numbers(alpha):
+    h, F, S, M = 0.2, 2.0, 0.4, 1.3
+    scene, setup = ImpulseChannel2D.scene({"froude": F, "thickness": S, "mass": M, "slope_deg": alpha, "depth_m": h})
+    slide = next(b for b in scene["blocks"] if b["name"] == "slide")
+    length, s, depth = slide["size_m"]
+    # M = rho_s l s / (rho_w h^2) per unit width, S = s / h, F = V / sqrt(g h)
+    assert slide["density_kg_m3"] * length * s / (1000.0 * h * h) == pytest.approx(M, rel=1e-12)
+    assert s / h == pytest.approx(S, rel=1e-12)
+    v = np.asarray(slide["velocity_m_s"][:2])
+    assert np.linalg.norm(v) / math.sqrt(9.81 * h) == pytest.approx(F, rel=1e-12)
+    a = math.radians(alpha)
+    assert v / np.linalg.norm(v) == pytest.approx([math.cos(a), -math.sin(a)])
+    # the lower front corner at the still shoreline (0, h), the block's base on the slope line y = h - x tan(alpha)
+    c = np.asarray(slide["position_m"][:2])
+    t, n = np.array([math.cos(a), -math.sin(a)]), np.array([math.sin(a), math.cos(a)])
+    assert c + 0.5 * length * t - 0.5 * s * n == pytest.approx([0.0, h], abs=1e-12)
+    plane = next(b for b in scene["blocks"] if b["name"] == "plane")
+    for x, y, _ in plane["vertices_m"]:
+        if y > 0:
+            assert y == pytest.approx(h - x * math.tan(a), abs=1e-12)
+    # gauges on the channel floor from 2 h to 15 h; the end wall beyond the last
+    xs = [g["position_m"][0] / h for g in scene["hazard"]["gauges"]]
+    assert xs[0] == pytest.approx(2.0) and xs[-1] == pytest.approx(15.0)
+    assert scene["tank"]["box_max_m"][0] > 15.0 * h + 2 * h
+    assert setup["slide_mass_kg_m"] == pytest.approx(M * 1000.0 * h * h, rel=1e-12)
+
+
+def test_shipped_studies_validate_and_a_bad_generator_parameter_is_named(tmp_path):
+    for name, n in (("impulse_2d", 16), ("impulse_2d_convergence", 12)):
+        st = load_study(shipped_studies_dir() / f"{name}.toml", tmp_path / name)
+        assert len(st.scenarios) == n and st.generator == "impulse_2d"
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[study]\ngenerator = "impulse_2d"\nresults = "r"\n[generator]\nthickness = 0.4\nlayerz = 8\n'
+                   '[[vary]]\nkey = "froude"\nvalues = [1.0, -2.0]\n')
+    with pytest.raises(StudyError) as e:
+        load_study(bad, tmp_path / "r")
+    msg = str(e.value)
+    assert "generator.layerz" in msg and "froude" in msg
+    # a block that would tip over its front edge (length/thickness < tan alpha) is refused, naming the mass
+    bad = ImpulseChannel2D.check({"froude": 1.0, "thickness": 0.5, "mass": 0.6, "slope_deg": 60.0})
+    assert [k for k, _ in bad] == ["mass"] and "topple" in bad[0][1]
+    assert ImpulseChannel2D.check({"froude": 1.0, "thickness": 0.5, "mass": 0.6, "slope_deg": 45.0}) == []
+
+
+MINI = """
+[study]
+generator = "impulse_2d"
+results = "res"
+sample = "grid"
+device = "cpu"
+
+[generator]
+depth_m = 0.2
+layers = 6
+gauge_max = 6.0
+thickness = 0.4
+mass = 1.0
+
+[[vary]]
+key = "froude"
+values = [1.5]
+[[vary]]
+key = "slope_deg"
+values = [30.0, 60.0]
+"""
+
+
+def test_cpu_miniature_of_the_impulse_study(tmp_path):
+    """Two coarse scenarios (6 particles per depth, gauges to 6 h) through the sweep: every scenario ok, the
+    comparison table written, the errors finite and within a factor 2 of the relations (a loose bound: the
+    resolution is far too coarse for the study's accuracy), the slide entering at its Froude number."""
+    p = tmp_path / "mini.toml"
+    p.write_text(MINI)
+    res = run_study(load_study(p), executor="inline", progress=False, plots=False)
+    assert res.failed == 0 and res.ran == 2
+    md = (tmp_path / "res" / "comparison.md").read_text()
+    assert "a_M err" in md and md.count("\n| 0 |") + md.count("\n| 1 |") == 2
+    assert (tmp_path / "res" / "comparison.png").stat().st_size > 10_000
+    import csv
+
+    rows = list(csv.DictReader((tmp_path / "res" / "comparison.csv").open()))
+    assert len(rows) == 2
+    for r in rows:
+        assert r["status"] == "ok"
+        for k in ("a_M_err", "H_M_err", "x_M_err", "decay_H_mean_err", "energy_to_water_fraction"):
+            assert math.isfinite(float(r[k])), (k, r[k])
+        assert abs(float(r["a_M_err"])) < 1.0 and abs(float(r["H_M_err"])) < 1.0, r
+        assert 0.0 < float(r["energy_to_water_fraction"]) < 1.0
+        assert float(r["F_measured"]) == pytest.approx(1.5, rel=0.02)  # the launch speed is the peak speed
+        assert int(r["decay_gauges"]) >= 1
+    # the steeper slope gives the smaller P (cos(6 alpha / 7)): the relations' prediction ranks them
+    p30, p60 = (float(r["P"]) for r in sorted(rows, key=lambda r: float(r["alpha_deg"])))
+    assert p30 > p60
+    hz = json.loads(next((tmp_path / "res" / "scenarios").glob("*/hazard.json")).read_text())
+    assert all(g["max_crest_m"] is not None for g in hz["gauges"].values())
+    assert tomllib.loads(p.read_text())["study"]["generator"] == "impulse_2d"
+
+
+def test_comparison_of_a_synthetic_wave_that_follows_the_relations():
+    """Gauges that read exactly the relations' crest and height past x_M (and a maximum of exactly a_M, H_M at x_M)
+    give zero errors; a gauge nearer than 2.7 h (outside the data's range) is left out even with a huge reading;
+    the energy column counts the water's gain less the displaced water's potential energy."""
+    from rockwave.output.impulse import compare_channel, summarise
+
+    h, F, S, M, alpha = 0.2, 2.0, 0.4, 1.2, 45.0
+    P = impulse_product(F, S, M, alpha)
+    m = max_wave_2d(P, h)
+    gauges = {"x2": {"position_m": [0.4, 0.0], "max_crest_m": 5.0, "deepest_trough_m": -1.0}}  # splash: ignored
+    gauges[f"x{m['x_M_m'] / h:g}"] = {"position_m": [m["x_M_m"], 0.0], "max_crest_m": m["a_M_m"],
+                                      "deepest_trough_m": m["a_M_m"] - m["H_M_m"]}
+    for X in (9.0, 12.0, 15.0):
+        H, a = height_2d(P, X * h, h), amplitude_2d(P, X * h, h)
+        gauges[f"x{X:g}"] = {"position_m": [X * h, 0.0], "max_crest_m": a, "deepest_trough_m": a - H}
+    setup = {"h_m": h, "x0_m": 0.0, "F": F, "S": S, "M": M, "alpha_deg": alpha, "slide_mass_kg_m": 40.0,
+             "slide_area_m2": 0.02, "rho_w": 1000.0, "channel_length_m": 4.0}
+    e_slide = 0.5 * 40.0 * (F * math.sqrt(9.81 * h)) ** 2
+    static = 1000.0 * 9.81 * 0.02 * (h + 0.5 * 0.02 / 4.0 - 0.05)
+    energy = {"start": {"water_kinetic_j": 0.0, "water_potential_j": 100.0},
+              "end": {"water_kinetic_j": 3.0, "water_potential_j": 100.0 + static + 0.1 * e_slide - 3.0}}
+    hazard = {"gauges": gauges, "slides": {"slide": {"peak_speed_m_s": F * math.sqrt(9.81 * h),
+                                                     "final_position_m": [0.3, 0.05]}}}
+    row = compare_channel(setup, hazard, energy)
+    assert row["P"] == pytest.approx(P)
+    for k in ("a_M_err", "H_M_err", "x_M_err", "decay_H_mean_err", "decay_H_max_abs_err", "decay_a_mean_err"):
+        assert row[k] == pytest.approx(0.0, abs=1e-9), k
+    assert row["a_M_within_band"] and row["H_M_within_band"] and row["decay_gauges"] == 3
+    assert row["F_measured"] == pytest.approx(F)
+    assert row["energy_to_water_fraction"] == pytest.approx(0.1, rel=1e-9)
+    # a crest 40% high is outside the +-30% band and shows in the per-resolution summary
+    gauges[f"x{m['x_M_m'] / h:g}"]["max_crest_m"] *= 1.4
+    row2 = compare_channel(setup, hazard, energy)
+    assert row2["a_M_err"] == pytest.approx(0.4) and row2["a_M_within_band"] is False
+    s = summarise([dict(row, layers=10, wall_s=1.0), dict(row2, layers=10, wall_s=3.0)], by="layers")
+    assert s[0]["a_M_mean_err"] == pytest.approx(0.2) and s[0]["a_M_within_band"] == 0.5 and s[0]["wall_s_mean"] == 2.0
