@@ -113,6 +113,8 @@ def run(device: str, cfg: dict) -> dict:
                    "failed": n - len(ok), "steps_max": max((r.get("steps") or 0) for r in results) if results else 0,
                    "fluid_particles_per_scenario": ok[0].get("fluid_particles") if ok else None}
             rows.append(row)
+            print(f"  {tag}: {n} scenarios, {wall:.1f} s, {row['scenarios_per_hour']:.0f} scenarios/h, "
+                  f"{row['failed']} failed", flush=True)  # each row as it finishes: a cut-off run keeps its figures
             return row
 
         t0 = t0_all = time.perf_counter()
@@ -129,8 +131,9 @@ def run(device: str, cfg: dict) -> dict:
 
         agreement = {}
         for n in cfg["bs_batches"]:
-            if rows and rows[-1]["mode"].startswith("batch_"):  # a batch of n takes about as long as the last one
-                last = rows[-1]        # scaled by its particles (launch-bound below, so this overestimates)
+            ran = [r for r in rows if r["mode"].startswith("batch_") and "wall_s" in r]
+            if ran:  # a batch of n takes about as long as the last one that ran, scaled by its scenarios
+                last = ran[-1]  # (launch-bound below, so this overestimates)
                 guess = last["wall_s"] * n / last["scenarios"]
                 if time.perf_counter() - t0_all + guess > cfg["bs_budget_s"]:
                     rows.append({"mode": f"batch_{n}", "scenarios": n, "skipped": f"over the {cfg['bs_budget_s']:.0f} s "
