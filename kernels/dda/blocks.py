@@ -215,9 +215,13 @@ class WorldVerts:
     centroid x, x_lo + R (X + E X) (~ the block's size, so float32 keeps its bits there). The float32
     world position is x + arm, formed where it is needed (block_aabbs, pose_motion; not stored: 12 B per
     vertex). The narrow phase reads them in a frame of its pair (pair_vertex), where contact depths keep
-    their bits however far the pair is from the world origin."""
+    their bits however far the pair is from the world origin. arm_lo: the part of the arm below float32's
+    resolution at it (the arm x_lo + R(q + q_lo) (X + E X) is formed in float64, arm + arm_lo its value to
+    ~48 bits): column_depth reads it, so that a contact depth of a few um is not rounded to the ~3e-8 m spacing of
+    coordinates ~0.5 m (issue 36)."""
 
     arm: wp.array(dtype=wp.vec3)
+    arm_lo: wp.array(dtype=wp.vec3)
 
 
 @wp.struct
@@ -635,6 +639,58 @@ def column_through(
 
 
 @wp.func
+def vec64(a: wp.vec3):
+    return wp.vec3d(wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2]))
+
+
+@wp.func
+def column_depth(
+    vi: int,
+    dv: wp.vec3,
+    n: wp.vec3,
+    fstart: int,
+    fcount: int,
+    face_he: wp.array(dtype=int),
+    verts: WorldVerts,
+    dfc: wp.vec3,
+    he_vertex: wp.array(dtype=int),
+    he_next: wp.array(dtype=int),
+    upper: int,
+):
+    # the depth of vertex vi (its block's centroid dv in the pair frame) in the convex block of faces fstart ..
+    # (centroid dfc) along n: t_hi (upper = 1: a vertex of B in A) or -t_lo (upper = 0: a vertex of A in B) of
+    # column_through, formed in float64 from the arms' hi and lo parts (WorldVerts.arm_lo): per face
+    # s_f = n_f.(p_f - p), p_f - p = (dfc - dv) + (arm_f - arm_v) + (lo_f - lo_v), the face normal from the
+    # arms' differences. column_through's float32 dot products round n_f.p at coordinates ~|p| (3e-8 m at 0.5 m):
+    # against a resting corner's depth of ~4e-6 m at the default stiffness, a normal force noise of ~1%, more
+    # than the friction margin of a block 0.1 deg above its limit (issue 36, docs/notes.md). The float32 search
+    # (which points, hit or not) stays column_through's.
+    wv = verts.arm
+    wl = verts.arm_lo
+    pv = vec64(wv[vi]) + vec64(wl[vi])
+    dd = vec64(dfc) - vec64(dv)
+    nd = vec64(n)
+    t = wp.float64(1.0e30)
+    for k in range(fcount):
+        h = face_he[fstart + k]
+        h1 = he_next[h]
+        i0 = he_vertex[h]
+        i1 = he_vertex[h1]
+        i2 = he_vertex[he_next[h1]]
+        p0 = vec64(wv[i0]) + vec64(wl[i0])
+        p1 = vec64(wv[i1]) + vec64(wl[i1])
+        p2 = vec64(wv[i2]) + vec64(wl[i2])
+        nf = wp.normalize(wp.cross(p1 - p0, p2 - p1))
+        c = wp.dot(nf, nd)
+        sf = wp.dot(nf, dd + (p0 - pv))
+        if upper == 1 and c > wp.float64(1.0e-4):
+            t = wp.min(t, sf / c)
+        elif upper == 0 and c < wp.float64(-1.0e-4):
+            t = wp.min(t, -sf / c)
+    return wp.float32(t)
+
+
+@wp.func
 def fcp_touching(
     n: wp.vec3,
     gap: float,
@@ -810,6 +866,24 @@ def world_vertices(
     out[v] = x[b] + wp.quat_rotate(q[b], X)
 
 
+@wp.func
+def vertex_arm(x_lo: wp.vec3, qh: wp.quat, ql: wp.quat, X: wp.vec3):
+    # a vertex's arm from its block's float32 centroid, x_lo + R(q + q_lo) X, formed in float64 from the compensated
+    # orientation and split into its float32 value and the rest (hi, lo). With R from the rounded q alone, every
+    # change of q's last bit moved the arm of a 0.5 m vertex by ~6e-8 m (R's rounding, |X| x 2 ulps of q) while the
+    # block had turned by ~1e-9 rad: a resting block's corner forces jumped by k_n x 6e-8 (~50 N at the default
+    # stiffness of a 1 m block) as its q flickered, and at a small friction margin the jumps drove a limit cycle
+    # of twist and rocking that ratcheted the lightly loaded corners' springs down (issue 36, docs/notes.md)
+    q = wp.quatd(wp.float64(qh[0]) + wp.float64(ql[0]), wp.float64(qh[1]) + wp.float64(ql[1]),
+                 wp.float64(qh[2]) + wp.float64(ql[2]), wp.float64(qh[3]) + wp.float64(ql[3]))
+    Xd = wp.vec3d(wp.float64(X[0]), wp.float64(X[1]), wp.float64(X[2]))
+    r = wp.quat_rotate(q, Xd) + wp.vec3d(wp.float64(x_lo[0]), wp.float64(x_lo[1]), wp.float64(x_lo[2]))
+    hi = wp.vec3(wp.float32(r[0]), wp.float32(r[1]), wp.float32(r[2]))
+    lo = wp.vec3(wp.float32(r[0] - wp.float64(hi[0])), wp.float32(r[1] - wp.float64(hi[1])),
+                 wp.float32(r[2] - wp.float64(hi[2])))
+    return hi, lo
+
+
 @wp.kernel
 def block_world_vertices(
     body_verts: wp.array(dtype=wp.vec3),
@@ -819,14 +893,15 @@ def block_world_vertices(
     out: WorldVerts,
 ):
     """The block solver's world vertices x_world = (x + x_lo) + R (X + E X) (WorldVerts): the arm
-    x_lo + R (X + E X) from the float32 centroid x."""
+    x_lo + R (X + E X) from the float32 centroid x, R from the compensated orientation q + q_lo (vertex_arm)."""
     v = wp.tid()
     b = vert_block[v]
     X = body_verts[v]
     if kinds[b] == KIND_DEFORMABLE:
         X = X + strain_matrix(bodies.strain[b]) * X
-    arm = bodies.x_lo[b] + wp.quat_rotate(bodies.q[b], X)
-    out.arm[v] = arm
+    hi, lo = vertex_arm(bodies.x_lo[b], bodies.q[b], bodies.q_lo[b], X)
+    out.arm[v] = hi
+    out.arm_lo[v] = lo
 
 
 @wp.kernel
@@ -839,6 +914,7 @@ def pose_motion(
     arm: wp.array(dtype=wp.vec3),
     x_ref: wp.array(dtype=wp.vec3),
     q_ref: wp.array(dtype=wp.quat),
+    q_lo_ref: wp.array(dtype=wp.quat),
     x_lo_ref: wp.array(dtype=wp.vec3),
     strain_ref: wp.array(dtype=wp.spatial_vector),
     dx: wp.array(dtype=wp.vec3),
@@ -847,8 +923,8 @@ def pose_motion(
     # motion of each block since the last narrow phase (the poses of the history table's planes):
     # every world vertex moved by dx[b] + dev with |dev| <= rho[b] (rotation, strain, and 2 ulps of
     # the coordinates for float32 round-off); then the reference becomes the current pose. The reference
-    # vertices are not stored: they are rebuilt from the reference pose (x, q, x_lo, strain) by the same
-    # float32 operations as block_world_vertices, so they equal the world vertices of that step bit for bit.
+    # vertices are not stored: they are rebuilt from the reference pose (x, q, q_lo, x_lo, strain) by the same
+    # operations as block_world_vertices, so they equal the world vertices of that step bit for bit.
     # A zero q_ref (no reference yet: the first step, or a checkpoint from before format 4) takes the
     # reference vertices at the origin, which certifies nothing.
     b = wp.tid()
@@ -869,13 +945,15 @@ def pose_motion(
             X = body_verts[s + k]
             if deformable:
                 X = X + strain_matrix(strain_ref[b]) * X
-            pr = xr + (lr + wp.quat_rotate(qr, X))
+            ar, alo = vertex_arm(lr, qr, q_lo_ref[b], X)
+            pr = xr + ar
         r = wp.max(r, wp.length(p - pr - d))
         amax = wp.max(amax, wp.max(wp.abs(p[0]), wp.max(wp.abs(p[1]), wp.abs(p[2]))))
     dx[b] = d
     rho[b] = r + 2.4e-7 * amax
     x_ref[b] = xb
     q_ref[b] = bodies.q[b]
+    q_lo_ref[b] = bodies.q_lo[b]
     x_lo_ref[b] = bodies.x_lo[b]
     if deformable:
         strain_ref[b] = bodies.strain[b]
@@ -1320,7 +1398,10 @@ def narrow_phase(
         pa = pair_vertex(wv, dA, va)
         if wp.dot(n, pa) >= loB - tol:
             t_lo, t_hi, hit = column_through(pa, n, face_start[B], face_count[B], face_he, wv, dB, he_vertex, he_next, tol)
-            d = wp.min(-t_lo, over)
+            d = float(0.0)
+            if hit == 1:
+                d = wp.min(column_depth(va, dA, n, face_start[B], face_count[B], face_he, verts, dB, he_vertex, he_next, 0),
+                           over + tol)
             if hit == 1 and d > 0.0:
                 nc, px, py, pz, pd, pka, pkb = add_contact(nc, pa + (0.5 * t_lo) * n, d, va, -1, dup_tol, px, py, pz, pd, pka, pkb)
     # vertices of B that may lie inside A
@@ -1329,7 +1410,10 @@ def narrow_phase(
         pb = pair_vertex(wv, dB, vb)
         if wp.dot(n, pb) <= hiA + tol:
             t_lo, t_hi, hit = column_through(pb, n, face_start[A], face_count[A], face_he, wv, dA, he_vertex, he_next, tol)
-            d = wp.min(t_hi, over)
+            d = float(0.0)
+            if hit == 1:
+                d = wp.min(column_depth(vb, dB, n, face_start[A], face_count[A], face_he, verts, dA, he_vertex, he_next, 1),
+                           over + tol)
             if hit == 1 and d > 0.0:
                 nc, px, py, pz, pd, pka, pkb = add_contact(nc, pb + (0.5 * t_hi) * n, d, -1, vb, dup_tol, px, py, pz, pd, pka, pkb)
     # edge-edge crossings of the two contact patches, projected on the plane

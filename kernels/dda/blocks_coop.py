@@ -18,6 +18,7 @@ from rockwave.kernels.dda.blocks import (
     PointKey,
     WorldVerts,
     add_contact,
+    column_depth,
     column_through,
     contact_tangent,
     face_normal,
@@ -442,14 +443,18 @@ def narrow_phase_coop(
                 if side == 0:
                     if wp.dot(n, pv) >= loB - tol:
                         t_lo, t_hi, hit = column_through(pv, n, fs, fc, face_he, wv, dfc, he_vertex, he_next, tol)
-                        d = wp.min(-t_lo, over)
+                        if hit == 1:  # the depth in float64 from the arms' hi and lo parts (column_depth)
+                            d = wp.min(column_depth(s0 + k, dv, n, fs, fc, face_he, verts, dfc, he_vertex, he_next, 0),
+                                       over + tol)
                         if hit == 1 and d > 0.0:
                             ok = 1
                             p = pv + (0.5 * t_lo) * n
                 else:
                     if wp.dot(n, pv) <= hiA + tol:
                         t_lo, t_hi, hit = column_through(pv, n, fs, fc, face_he, wv, dfc, he_vertex, he_next, tol)
-                        d = wp.min(t_hi, over)
+                        if hit == 1:
+                            d = wp.min(column_depth(s0 + k, dv, n, fs, fc, face_he, verts, dfc, he_vertex, he_next, 1),
+                                       over + tol)
                         if hit == 1 and d > 0.0:
                             ok = 1
                             p = pv + (0.5 * t_hi) * n

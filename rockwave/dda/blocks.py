@@ -602,8 +602,9 @@ class BlockState:
         force, torque: vec3 (N) [N], [N m], strain_force: spatial_vector (N) [N m]: contact accumulators of a step.
         contact_count: int (N): contact points of the last step.
         damp_c: sym6 (N) (upper triangle), damp_b: spatial_vector (N): the implicit contact dashpots (kernels/dda/blocks.py).
-        world_verts_arm: vec3 (V): each vertex relative to its block's float32 centroid x [m] (x_lo + R (X + E X)).
-        x_ref, x_lo_ref: vec3 (N) [m], q_ref: quat (N) (0: none yet), strain_ref: spatial_vector (N, or 1 without
+        world_verts_arm: vec3 (V): each vertex relative to its block's float32 centroid x [m] (x_lo + R (X + E X)),
+            world_verts_arm_lo: its part below float32's spacing (kernels/dda/blocks.py vertex_arm).
+        x_ref, x_lo_ref: vec3 (N) [m], q_ref, q_lo_ref: quat (N) (q_ref 0: none yet), strain_ref: spatial_vector (N, or 1 without
             deformable blocks): the poses of the history table's planes (the last narrow phase).
         motion_dx: vec3 (N) [m], motion_rho: float (N) [m]: the motion since the reference poses: every world vertex
             moved by motion_dx + dev with |dev| <= motion_rho (kernels/dda/blocks.py pose_motion).
@@ -656,10 +657,12 @@ class BlockState:
         self.damp_b = wp.zeros(n, dtype=wp.spatial_vector, device=d)
         # each vertex relative to its block's float32 centroid x: x_lo + R (X + E X) (the narrow phase's pair frame)
         self.world_verts_arm = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
+        self.world_verts_arm_lo = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)  # its part below float32's spacing
         # poses of the history table's planes (last narrow phase: x, q, x_lo and, of deformable blocks, strain;
         # q_ref = 0: none yet) and the motion since (pose_motion)
         self.x_ref = wp.zeros(n, dtype=wp.vec3, device=d)
         self.q_ref = wp.zeros(n, dtype=wp.quat, device=d)
+        self.q_lo_ref = wp.zeros(n, dtype=wp.quat, device=d)
         self.x_lo_ref = wp.zeros(n, dtype=wp.vec3, device=d)
         self.strain_ref = wp.zeros(n if np.any(model.np["kinds"] == int(dda_k.KIND_DEFORMABLE)) else 1, dtype=wp.spatial_vector,
                                    device=d)
@@ -673,6 +676,7 @@ class BlockState:
             setattr(self.bodies, name, getattr(self, name))
         self.verts = dda_k.WorldVerts()
         self.verts.arm = self.world_verts_arm
+        self.verts.arm_lo = self.world_verts_arm_lo
         self.loads = dda_k.BlockLoads()
         for name in ("force", "torque", "strain_force", "ext_force", "ext_torque", "contact_count", "damp_c", "damp_b"):
             setattr(self.loads, name, getattr(self, name))
@@ -1236,7 +1240,7 @@ class BlockSolver:
             state.alloc_tables(cap, pcap)
         wp.launch(dda_k.pose_motion, dim=m.num_blocks,
                   inputs=[m.body_verts, m.kinds, m.vert_start, m.vert_count, state.bodies, state.world_verts_arm, state.x_ref,
-                          state.q_ref, state.x_lo_ref, state.strain_ref, state.motion_dx, state.motion_rho], device=d)
+                          state.q_ref, state.q_lo_ref, state.x_lo_ref, state.strain_ref, state.motion_dx, state.motion_rho], device=d)
         while True:
             old, new = state.table_views
             new.keys.fill_(-1)
