@@ -111,6 +111,22 @@ def test_resting_block_does_not_creep(kind, coop):
     assert disp - elastic(model) < 5.0e-5, (disp, elastic(model))
 
 
+@pytest.mark.parametrize("kind, coop", [("rigid", False), ("deformable", False), ("rigid", True)])
+def test_flat_block_on_steep_slope_does_not_creep(kind, coop):
+    # the H200 matrix's one creeping case: a 1 m block of h/w 0.52 (0.9 x its toppling limit) on 60 deg, 0.1 deg
+    # margin, default stiffness. Its uphill corners carry 166 N against 3148 N at the downhill ones, at a depth of
+    # 0.2 um (about 4 float32 spacings of their ~0.5 m pair-frame coordinates). Before the fix it crept at a steady
+    # 66 um/s (rigid, serial): the vertex arms took R from the rounded q, so the corners jumped by ~6e-8 m whenever
+    # q's last bit flickered, the corner forces by ~100 N, and a twist-and-rocking limit cycle ratcheted the
+    # corners' springs down to their momentary caps; then the downhill corners' depth, rounded to 3e-8 m (1% of
+    # its 3.9 um), chattered them past a cap 0.4% above their load. With arms from q + q_lo in float64 and
+    # float64 depths (column_depth) the corner forces are steady to 0.01 N and it creeps < 0.01 um/s
+    opt = BlockOptions(start="plain", coop_min_vertices=0 if coop else None)
+    disp, creep, state, model, ts, ds = run_on_slope(2.5, 1.0, options=opt, kind=kind, width=1.0,
+                                                     height=0.9 / math.tan(math.radians(60.0)), k=None, alpha=60.0)
+    assert abs(creep) < 1.0e-6, creep
+
+
 @pytest.mark.parametrize("hold", [False, True])
 def test_resting_block_does_not_creep_multirate(hold):
     # the multi-rate path: 8 sub-steps per step, contacts found every sub-step or carried (held)
