@@ -20,6 +20,7 @@ from rockwave.kernels.dda.blocks import (
     add_contact,
     column_depth,
     column_through,
+    crossing_depth,
     contact_tangent,
     face_normal,
     face_plane_of_he,
@@ -507,10 +508,12 @@ def narrow_phase_coop(
                     if wp.abs(det) > 1.0e-6 * wp.length(ea) * wp.length(eb):
                         s = (r0 * (-b1) - r1 * (-b0)) / det
                         u = (a0 * r1 - a1 * r0) / det
-                        if s > 1.0e-5 and s < 1.0 - 1.0e-5 and u > 1.0e-5 and u < 1.0 - 1.0e-5:
+                        sa = 0.5 * tol / wp.length(ea)  # inside both edges by more than tol / 2 (narrow_phase)
+                        sb = 0.5 * tol / wp.length(eb)
+                        if s > sa and s < 1.0 - sa and u > sb and u < 1.0 - sb:
                             xa_ = pa + s * ea
                             xb_ = pb + u * eb
-                            d = wp.min(wp.dot(n, xa_ - xb_), over)
+                            d = wp.min(crossing_depth(va, ua, vb, ub, dA, dB, s, u, n, verts), over + tol)
                             if d > 0.0:
                                 ok = 1
                                 p = 0.5 * (xa_ + xb_)
