@@ -1885,11 +1885,15 @@ def settle_speed(
     v: wp.array(dtype=wp.vec3),
     w: wp.array(dtype=wp.vec3),
     tol: float,
+    x: wp.array(dtype=wp.vec3),
+    x0: wp.array(dtype=wp.vec3),
+    max_move: float,
     flags: wp.array(dtype=int),
     reach: wp.array(dtype=float),
 ):
     """BlockSolver.settle: reach[b] = the speed of a rigid or deformable block's fastest point |v| + |w| r
-    (r = block_size / 2; 0 for the others), and flags[0] = 1 when one is above tol."""
+    (r = block_size / 2; 0 for the others), and flags[0] = 1 when one is above tol; flags[1] = 1 when a block's
+    centroid has moved more than max_move x its size from x0 (where it was placed)."""
     b = wp.tid()
     reach[b] = 0.0
     if not movable(kinds[b]):
@@ -1898,6 +1902,8 @@ def settle_speed(
     reach[b] = r
     if r > tol:
         flags[0] = 1
+    if wp.length(x[b] - x0[b]) > max_move * block_size[b]:
+        flags[1] = 1
 
 
 @wp.kernel

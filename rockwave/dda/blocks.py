@@ -953,6 +953,12 @@ class BlockOptions:
     """Settled start: block steps allowed before the settling gives up (the scene then starts plain, with a
     warning: e.g. a block that topples even with its friction locked) [steps]."""
 
+    settle_max_move: float = 0.01
+    """Settled start: a settling block whose centroid moves more than this fraction of its size from where it
+    was placed is not at rest there even with its friction locked (it topples, or falls off an overhang): the
+    settling stops and the scene starts plain, with a warning. A block sinking onto its springs moves
+    m g / (n k_n), ~1e-3 of its size at the default stiffness (0.15% for a 10 m cube at 2.5e8 N/m per point) [-]."""
+
     settle_contact_gap: float = 1.0e-4
     """Settled start: a block rests on another at t = 0 when their gap is below this fraction of the smaller
     one's size [-] (a block placed in the air, e.g. 1 mm above a slope, falls as placed)."""
@@ -1398,10 +1404,12 @@ class BlockSolver:
         pos0, _ = m.initial_poses()
         motion.base_x = wp.array(pos0.astype(np.float32), dtype=wp.vec3, device=d)
         x0 = state.positions_numpy()
+        x0_dev = wp.clone(state.x)
         saved = {k: wp.clone(getattr(state, k)) for k in ("x", "x_lo", "q", "q_lo", "v", "w", "strain", "strain_rate")}
         dt = self.stable_dt(state)
         tol = opt.settle_speed_ratio * self.g_mag * self.critical_dt() / 2.0
-        flags = wp.zeros(1, dtype=int, device=d)
+        flags = wp.zeros(2, dtype=int, device=d)
+        moved = False
         every, calm, steps, speed = 16, 0, 0, math.inf
         # float32's floor: a block whose contact force changes by k_n x (the spacing of its vertices' float32
         # coordinates) per step of position more than its friction margin chatters at ~ that force x dt / m and
@@ -1421,8 +1429,13 @@ class BlockSolver:
                 if steps % every == 0:
                     flags.zero_()
                     wp.launch(dda_k.settle_speed, dim=n,
-                              inputs=[props.kinds, m.block_size, state.v, state.w, float(tol), flags, reach], device=d)
-                    calm = calm + 1 if int(flags.numpy()[0]) == 0 else 0
+                              inputs=[props.kinds, m.block_size, state.v, state.w, float(tol), state.x, x0_dev,
+                                      float(opt.settle_max_move), flags, reach], device=d)
+                    fl = flags.numpy()
+                    if fl[1]:  # a block left its place: not at rest where it was put (it topples or falls)
+                        moved = True
+                        break
+                    calm = calm + 1 if int(fl[0]) == 0 else 0
                     if calm >= 2:
                         break
                     speed = float(reach.numpy().max())  # (a read of N floats every 16 steps)
@@ -1447,10 +1460,19 @@ class BlockSolver:
                 wp.copy(getattr(state, k), a)
             self._reset_history(state)
             report["start"] = "plain"
-            worst = int(np.argmax(np.where(settling, np.linalg.norm(v, axis=1), -1.0)))
-            warnings.warn(f"settled start: the blocks did not come to rest within {opt.settle_max_steps} block steps "
-                          f"({steps * dt:.3g} s; block '{m.names[worst]}' still moves at {speed:.3g} m/s, the bound is "
-                          f"{tol:.3g} m/s): the scene starts as placed (simulation.start = 'plain')")
+            report["converged"] = False
+            if moved:
+                worst = int(np.argmax(np.where(settling, disp / size, -1.0)))
+                report["moved"] = True
+                warnings.warn(f"settled start: block '{m.names[worst]}' moved {disp[worst]:.3g} m ({disp[worst] / size[worst]:.2g} "
+                              f"of its size, the bound is BlockOptions.settle_max_move = {opt.settle_max_move:g}) in "
+                              f"{steps} steps with its friction locked: the blocks are not at rest where they were placed "
+                              f"(they topple or fall); the scene starts as placed (simulation.start = 'plain')")
+            else:
+                worst = int(np.argmax(np.where(settling, np.linalg.norm(v, axis=1), -1.0)))
+                warnings.warn(f"settled start: the blocks did not come to rest within {opt.settle_max_steps} block steps "
+                              f"({steps * dt:.3g} s; block '{m.names[worst]}' still moves at {speed:.3g} m/s, the bound is "
+                              f"{tol:.3g} m/s): the scene starts as placed (simulation.start = 'plain')")
         else:
             for a in (state.v, state.w, state.strain_rate):
                 a.zero_()
