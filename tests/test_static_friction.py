@@ -207,8 +207,8 @@ def test_small_turns_are_not_rounded_away():
 
 
 def test_scene_settles_and_reports_it(tmp_path):
-    # simulation.start = 'settled': the block resting on the slope settles, run.json says so; 'plain' (the default)
-    # keeps the old start
+    # simulation.start = 'settled' (the default): the block resting on the slope settles, run.json says so; 'plain'
+    # keeps the old start; the same block placed 1 cm above the slope, or moving, starts as placed
     import tomllib
 
     import rockwave
@@ -241,6 +241,18 @@ material = {{ friction_angle_deg = {ALPHA + 0.1}, normal_stiffness_n_m = 1e8, sh
     assert sim.block_state.time == 0.0 and np.all(sim.block_state.v.numpy() == 0.0)
     summary = sim.run(str(tmp_path / "run"))
     assert summary["block_start"]["start"] == "settled"
-    plain = rockwave.Simulation(parse_scene(tomllib.loads(text.replace('start = "settled"', "")),
+    default = rockwave.Simulation(parse_scene(tomllib.loads(text.replace('start = "settled"', "")), "slope.toml"),
+                                  device=DEVICE)
+    assert default.block_solver.start_report["start"] == "settled"
+    plain = rockwave.Simulation(parse_scene(tomllib.loads(text.replace('start = "settled"', 'start = "plain"')),
                                             "slope.toml"), device=DEVICE)
     assert plain.block_solver.start_report == {"start": "plain"}
+    # in the air (1 cm above the slope) or moving: nothing to settle, the block starts as placed
+    n = np.array([math.sin(math.radians(ALPHA)), 0.0, math.cos(math.radians(ALPHA))])
+    above = text.replace(f"position_m = [{0.75 * math.sin(math.radians(ALPHA))!r}, 0.0, {0.75 * math.cos(math.radians(ALPHA))!r}]",
+                         f"position_m = [{0.76 * n[0]!r}, 0.0, {0.76 * n[2]!r}]")
+    moving = text.replace('name = "rock"', 'name = "rock"\nvelocity_m_s = [0.0, 0.1, 0.0]')
+    for t in (above, moving):
+        assert t != text
+        sim = rockwave.Simulation(parse_scene(tomllib.loads(t), "slope.toml"), device=DEVICE)
+        assert sim.block_solver.start_report["settled_blocks"] == 0, sim.block_solver.start_report

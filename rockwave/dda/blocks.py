@@ -936,13 +936,16 @@ class BlockOptions:
     """Threads per pair in the cooperative narrow phase (a GPU warp; Warp's CPU backend runs 1 unless
     warp.config.enable_cpu_blocks) [-]."""
 
-    start: str = "plain"
-    """How a scene's blocks start (scene: ``simulation.start``): "plain": as placed, contacts unloaded, gravity from
-    t = 0 (a stable block slips while its normal springs load); "settled": BlockSolver.settle() first brings the
-    blocks resting at t = 0 to the equilibrium of their contact springs with friction locked, then releases it
-    (rockwave/build/builder.py runs it; a solver made in Python starts as its state is unless settle() is called). Not the
-    default yet: the 72-block jointed slab of tests/test_block_scenes.py did not come to rest within 20000 steps
-    (7.6e-4 m/s left, cause not found; docs/notes.md 'Rock that stands stays standing')."""
+    start: str = "settled"
+    """How a scene's blocks start (scene: ``simulation.start``): "settled" (the default): BlockSolver.settle() first
+    brings the blocks resting on another at t = 0 with no initial velocity to the equilibrium of their contact
+    springs under gravity with friction locked, then releases it, so a stable block or rock mass starts at rest
+    with its contacts loaded; blocks placed in the air or given a velocity start as placed, and a scene whose
+    resting blocks do not stay where they were put with their friction locked (they topple or fall:
+    settle_max_move) or do not come to rest (settle_max_steps) starts plain, with a warning. "plain": every block
+    as placed, contacts unloaded, gravity from t = 0 (a stable block slips while its normal springs load: a 10 m
+    cube on 2.5e8 N/m per point at a 0.1 deg margin ends 13 mm beyond its elastic deflection). rockwave/build/builder.py runs it; a solver made in
+    Python starts as its state is unless settle() is called (docs/physics.md 'The start of a block scene')."""
 
     settle_speed_ratio: float = 1.0e-3
     """Settled start: the blocks count as at rest when every settling block moves slower than this fraction of
