@@ -250,7 +250,7 @@ material = {{ friction_angle_deg = {ALPHA + 0.1}, normal_stiffness_n_m = 1e8, sh
     # in the air (1 cm above the slope) or moving: nothing to settle, the block starts as placed
     n = np.array([math.sin(math.radians(ALPHA)), 0.0, math.cos(math.radians(ALPHA))])
     above = text.replace(f"position_m = [{0.75 * math.sin(math.radians(ALPHA))!r}, 0.0, {0.75 * math.cos(math.radians(ALPHA))!r}]",
-                         f"position_m = [{0.76 * n[0]!r}, 0.0, {0.76 * n[2]!r}]")
+                         f"position_m = [{float(0.76 * n[0])!r}, 0.0, {float(0.76 * n[2])!r}]")
     moving = text.replace('name = "rock"', 'name = "rock"\nvelocity_m_s = [0.0, 0.1, 0.0]')
     for t in (above, moving):
         assert t != text
