@@ -1637,6 +1637,7 @@ def contact_forces(
     if not implicit and dt > 0.0:
         cs0 = wp.min(cs0, m_eff / (float(nc) * dt))
     stuck_mask = int(0)
+    fresh_mask = int(0)  # points without history (their first step in contact)
     n_stuck = int(0)
     for k in range(nc):
         c = base + k
@@ -1666,6 +1667,8 @@ def contact_forces(
                 if lp > 1.0e-20:
                     fs = fp * (mag / lp)
         cur.vimp[c] = vimp
+        if hist < 0:
+            fresh_mask = fresh_mask | (1 << k)
         zn = float(1.0)
         if vimp > v_rest:
             zn = zt  # an impact: the restitution's ratio
@@ -1733,7 +1736,14 @@ def contact_forces(
         # friction beyond Coulomb's (a point touching down with a tangential velocity slides at mu F_n)
         csk = float(0.0)
         lvt2 = wp.dot(vt, vt)
-        if stuck:
+        # a point's first step in contact (no history) takes no dashpot: the bound below is formed from the
+        # start-of-step v_t, and a point touching at rest (v_t = 0: a block placed exactly touching, gravity from
+        # t = 0) would otherwise hold the whole step's tangential motion in the implicit solve with next to no
+        # normal force behind it (its depth ~0). float32 depths had hidden this by rounding such a touch to no
+        # contact; exact depths found it and a block sliding 5 deg past its limit lost 1-2% of its speed in that
+        # one step (issue 36, docs/notes.md)
+        fresh = (fresh_mask & (1 << k)) != 0
+        if stuck and (locked or not fresh):
             csk = cs
             if lvt2 > 0.0 and not locked:
                 fcap = cur.fcap[c]
