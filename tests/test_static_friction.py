@@ -111,6 +111,23 @@ def test_resting_block_does_not_creep(kind, coop):
     assert disp - elastic(model) < 5.0e-5, (disp, elastic(model))
 
 
+@pytest.mark.parametrize("kind, coop", [("rigid", False), ("rigid", True)])
+def test_flat_block_on_steep_slope_does_not_creep(kind, coop):
+    # the H200 matrix's one creeping case: a 1 m block of h/w 0.52 (0.9 x its toppling limit) on 60 deg, 0.1 deg
+    # margin, default stiffness. Its uphill corners carry 166 N against 3148 N at the downhill ones, at a depth of
+    # 0.2 um (about 4 float32 spacings of their ~0.5 m pair-frame coordinates). Before the fix it crept at a steady
+    # 66 um/s (rigid, serial): the vertex arms took R from the rounded q, so the corners jumped by ~6e-8 m whenever
+    # q's last bit flickered, the corner forces by ~100 N, and a twist-and-rocking limit cycle ratcheted the
+    # corners' springs down to their momentary caps; then the downhill corners' depth, rounded to 3e-8 m (1% of
+    # its 3.9 um), chattered them past a cap 0.4% above their load. With arms from q + q_lo in float64 and
+    # float64 depths (column_depth) the corner forces are steady to 0.01 N and it creeps < 0.01 um/s. (A deformable
+    # block held before the fix too, and takes 3x as long: test_resting_block_does_not_creep covers that path.)
+    opt = BlockOptions(start="plain", coop_min_vertices=0 if coop else None)
+    disp, creep, state, model, ts, ds = run_on_slope(2.5, 1.0, options=opt, kind=kind, width=1.0,
+                                                     height=0.9 / math.tan(math.radians(60.0)), k=None, alpha=60.0)
+    assert abs(creep) < 1.0e-6, creep
+
+
 @pytest.mark.parametrize("hold", [False, True])
 def test_resting_block_does_not_creep_multirate(hold):
     # the multi-rate path: 8 sub-steps per step, contacts found every sub-step or carried (held)
@@ -156,6 +173,16 @@ def test_halving_the_step_keeps_the_displacements():
     assert sliding[1] == pytest.approx(sliding[0], rel=0.005), sliding
 
 
+def test_settled_start_is_independent_of_the_step():
+    # from the settled start (settled at the solver's stable step), halving the step of the run or taking it as 4
+    # block sub-steps changes a stable block's displacement by < 0.1 mm and a sliding one's by < 0.5%
+    stable = [run_on_slope(1.5, 1.0, start="settled", **kw)[0]
+              for kw in (dict(), dict(dt_scale=0.5), dict(dt_scale=0.25, substeps=4))]
+    assert max(stable) - min(stable) < 1.0e-4, stable
+    sliding = [run_on_slope(1.5, 1.0, start="settled", margin=-0.1, **kw)[0] for kw in (dict(), dict(dt_scale=0.5))]
+    assert max(sliding) - min(sliding) < 0.005 * abs(sliding[0]), sliding
+
+
 # ----------------------------------------------------------------------------------------------------------------
 # the orientation's compensation and the settled start from a scene
 # ----------------------------------------------------------------------------------------------------------------
@@ -180,8 +207,8 @@ def test_small_turns_are_not_rounded_away():
 
 
 def test_scene_settles_and_reports_it(tmp_path):
-    # simulation.start = 'settled': the block resting on the slope settles, run.json says so; 'plain' (the default)
-    # keeps the old start
+    # simulation.start = 'settled' (the default): the block resting on the slope settles, run.json says so; 'plain'
+    # keeps the old start; the same block placed 1 cm above the slope, or moving, starts as placed
     import tomllib
 
     import rockwave
@@ -214,6 +241,18 @@ material = {{ friction_angle_deg = {ALPHA + 0.1}, normal_stiffness_n_m = 1e8, sh
     assert sim.block_state.time == 0.0 and np.all(sim.block_state.v.numpy() == 0.0)
     summary = sim.run(str(tmp_path / "run"))
     assert summary["block_start"]["start"] == "settled"
-    plain = rockwave.Simulation(parse_scene(tomllib.loads(text.replace('start = "settled"', "")),
+    default = rockwave.Simulation(parse_scene(tomllib.loads(text.replace('start = "settled"', "")), "slope.toml"),
+                                  device=DEVICE)
+    assert default.block_solver.start_report["start"] == "settled"
+    plain = rockwave.Simulation(parse_scene(tomllib.loads(text.replace('start = "settled"', 'start = "plain"')),
                                             "slope.toml"), device=DEVICE)
     assert plain.block_solver.start_report == {"start": "plain"}
+    # in the air (1 cm above the slope) or moving: nothing to settle, the block starts as placed
+    n = np.array([math.sin(math.radians(ALPHA)), 0.0, math.cos(math.radians(ALPHA))])
+    above = text.replace(f"position_m = [{0.75 * math.sin(math.radians(ALPHA))!r}, 0.0, {0.75 * math.cos(math.radians(ALPHA))!r}]",
+                         f"position_m = [{float(0.76 * n[0])!r}, 0.0, {float(0.76 * n[2])!r}]")
+    moving = text.replace('name = "rock"', 'name = "rock"\nvelocity_m_s = [0.0, 0.1, 0.0]')
+    for t in (above, moving):
+        assert t != text
+        sim = rockwave.Simulation(parse_scene(tomllib.loads(t), "slope.toml"), device=DEVICE)
+        assert sim.block_solver.start_report["settled_blocks"] == 0, sim.block_solver.start_report

@@ -218,9 +218,13 @@ class WorldVerts:
     centroid x, x_lo + R (X + E X) (~ the block's size, so float32 keeps its bits there). The float32
     world position is x + arm, formed where it is needed (block_aabbs, pose_motion; not stored: 12 B per
     vertex). The narrow phase reads them in a frame of its pair (pair_vertex), where contact depths keep
-    their bits however far the pair is from the world origin."""
+    their bits however far the pair is from the world origin. arm_lo: the part of the arm below float32's
+    resolution at it (the arm x_lo + R(q + q_lo) (X + E X) is formed in float64, arm + arm_lo its value to
+    ~48 bits): column_depth reads it, so that a contact depth of a few um is not rounded to the ~3e-8 m spacing of
+    coordinates ~0.5 m (issue 36)."""
 
     arm: wp.array(dtype=wp.vec3)
+    arm_lo: wp.array(dtype=wp.vec3)
 
 
 @wp.struct
@@ -638,6 +642,77 @@ def column_through(
 
 
 @wp.func
+def vec64(a: wp.vec3):
+    return wp.vec3d(wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2]))
+
+
+@wp.func
+def column_depth(
+    vi: int,
+    dv: wp.vec3,
+    n: wp.vec3,
+    fstart: int,
+    fcount: int,
+    face_he: wp.array(dtype=int),
+    verts: WorldVerts,
+    dfc: wp.vec3,
+    he_vertex: wp.array(dtype=int),
+    he_next: wp.array(dtype=int),
+    upper: int,
+):
+    # the depth of vertex vi (its block's centroid dv in the pair frame) in the convex block of faces fstart ..
+    # (centroid dfc) along n: t_hi (upper = 1: a vertex of B in A) or -t_lo (upper = 0: a vertex of A in B) of
+    # column_through, formed in float64 from the arms' hi and lo parts (WorldVerts.arm_lo): per face
+    # s_f = n_f.(p_f - p), p_f - p = (dfc - dv) + (arm_f - arm_v) + (lo_f - lo_v), the face normal from the
+    # arms' differences. column_through's float32 dot products round n_f.p at coordinates ~|p| (3e-8 m at 0.5 m):
+    # against a resting corner's depth of ~4e-6 m at the default stiffness, a normal force noise of ~1%, more
+    # than the friction margin of a block 0.1 deg above its limit (issue 36, docs/notes.md). The float32 search
+    # (which points, hit or not) stays column_through's.
+    wv = verts.arm
+    wl = verts.arm_lo
+    pv = vec64(wv[vi]) + vec64(wl[vi])
+    dd = vec64(dfc) - vec64(dv)
+    nd = vec64(n)
+    t = wp.float64(1.0e30)
+    for k in range(fcount):
+        h = face_he[fstart + k]
+        h1 = he_next[h]
+        i0 = he_vertex[h]
+        i1 = he_vertex[h1]
+        i2 = he_vertex[he_next[h1]]
+        p0 = vec64(wv[i0]) + vec64(wl[i0])
+        p1 = vec64(wv[i1]) + vec64(wl[i1])
+        p2 = vec64(wv[i2]) + vec64(wl[i2])
+        nf = wp.normalize(wp.cross(p1 - p0, p2 - p1))
+        c = wp.dot(nf, nd)
+        sf = wp.dot(nf, dd + (p0 - pv))
+        if upper == 1 and c > wp.float64(1.0e-4):
+            t = wp.min(t, sf / c)
+        elif upper == 0 and c < wp.float64(-1.0e-4):
+            t = wp.min(t, -sf / c)
+    return wp.float32(t)
+
+
+@wp.func
+def crossing_depth(
+    va: int, ua: int, vb: int, ub: int, dA: wp.vec3, dB: wp.vec3, s: float, u: float, n: wp.vec3, verts: WorldVerts
+):
+    # depth n.(x_a - x_b) of an edge-edge crossing, x_a = p_va + s (p_ua - p_va) on A's edge, x_b likewise on B's,
+    # in float64 from the arms' hi and lo parts as column_depth (the float32 difference of two ~0.5 m pair-frame
+    # coordinates rounds a depth of ~1e-6 m by ~3e-8)
+    wv = verts.arm
+    wl = verts.arm_lo
+    pa = vec64(wv[va]) + vec64(wl[va])
+    qa = vec64(wv[ua]) + vec64(wl[ua])
+    pb = vec64(wv[vb]) + vec64(wl[vb])
+    qb = vec64(wv[ub]) + vec64(wl[ub])
+    sd = wp.float64(s)
+    ud = wp.float64(u)
+    r = (vec64(dA) - vec64(dB)) + (pa - pb) + sd * (qa - pa) - ud * (qb - pb)
+    return wp.float32(wp.dot(vec64(n), r))
+
+
+@wp.func
 def fcp_touching(
     n: wp.vec3,
     gap: float,
@@ -813,6 +888,24 @@ def world_vertices(
     out[v] = x[b] + wp.quat_rotate(q[b], X)
 
 
+@wp.func
+def vertex_arm(x_lo: wp.vec3, qh: wp.quat, ql: wp.quat, X: wp.vec3):
+    # a vertex's arm from its block's float32 centroid, x_lo + R(q + q_lo) X, formed in float64 from the compensated
+    # orientation and split into its float32 value and the rest (hi, lo). With R from the rounded q alone, every
+    # change of q's last bit moved the arm of a 0.5 m vertex by ~6e-8 m (R's rounding, |X| x 2 ulps of q) while the
+    # block had turned by ~1e-9 rad: a resting block's corner forces jumped by k_n x 6e-8 (~50 N at the default
+    # stiffness of a 1 m block) as its q flickered, and at a small friction margin the jumps drove a limit cycle
+    # of twist and rocking that ratcheted the lightly loaded corners' springs down (issue 36, docs/notes.md)
+    q = wp.quatd(wp.float64(qh[0]) + wp.float64(ql[0]), wp.float64(qh[1]) + wp.float64(ql[1]),
+                 wp.float64(qh[2]) + wp.float64(ql[2]), wp.float64(qh[3]) + wp.float64(ql[3]))
+    Xd = wp.vec3d(wp.float64(X[0]), wp.float64(X[1]), wp.float64(X[2]))
+    r = wp.quat_rotate(q, Xd) + wp.vec3d(wp.float64(x_lo[0]), wp.float64(x_lo[1]), wp.float64(x_lo[2]))
+    hi = wp.vec3(wp.float32(r[0]), wp.float32(r[1]), wp.float32(r[2]))
+    lo = wp.vec3(wp.float32(r[0] - wp.float64(hi[0])), wp.float32(r[1] - wp.float64(hi[1])),
+                 wp.float32(r[2] - wp.float64(hi[2])))
+    return hi, lo
+
+
 @wp.kernel
 def block_world_vertices(
     body_verts: wp.array(dtype=wp.vec3),
@@ -822,14 +915,15 @@ def block_world_vertices(
     out: WorldVerts,
 ):
     """The block solver's world vertices x_world = (x + x_lo) + R (X + E X) (WorldVerts): the arm
-    x_lo + R (X + E X) from the float32 centroid x."""
+    x_lo + R (X + E X) from the float32 centroid x, R from the compensated orientation q + q_lo (vertex_arm)."""
     v = wp.tid()
     b = vert_block[v]
     X = body_verts[v]
     if kinds[b] == KIND_DEFORMABLE:
         X = X + strain_matrix(bodies.strain[b]) * X
-    arm = bodies.x_lo[b] + wp.quat_rotate(bodies.q[b], X)
-    out.arm[v] = arm
+    hi, lo = vertex_arm(bodies.x_lo[b], bodies.q[b], bodies.q_lo[b], X)
+    out.arm[v] = hi
+    out.arm_lo[v] = lo
 
 
 @wp.kernel
@@ -842,6 +936,7 @@ def pose_motion(
     arm: wp.array(dtype=wp.vec3),
     x_ref: wp.array(dtype=wp.vec3),
     q_ref: wp.array(dtype=wp.quat),
+    q_lo_ref: wp.array(dtype=wp.quat),
     x_lo_ref: wp.array(dtype=wp.vec3),
     strain_ref: wp.array(dtype=wp.spatial_vector),
     dx: wp.array(dtype=wp.vec3),
@@ -850,8 +945,8 @@ def pose_motion(
     # motion of each block since the last narrow phase (the poses of the history table's planes):
     # every world vertex moved by dx[b] + dev with |dev| <= rho[b] (rotation, strain, and 2 ulps of
     # the coordinates for float32 round-off); then the reference becomes the current pose. The reference
-    # vertices are not stored: they are rebuilt from the reference pose (x, q, x_lo, strain) by the same
-    # float32 operations as block_world_vertices, so they equal the world vertices of that step bit for bit.
+    # vertices are not stored: they are rebuilt from the reference pose (x, q, q_lo, x_lo, strain) by the same
+    # operations as block_world_vertices, so they equal the world vertices of that step bit for bit.
     # A zero q_ref (no reference yet: the first step, or a checkpoint from before format 4) takes the
     # reference vertices at the origin, which certifies nothing.
     b = wp.tid()
@@ -872,13 +967,15 @@ def pose_motion(
             X = body_verts[s + k]
             if deformable:
                 X = X + strain_matrix(strain_ref[b]) * X
-            pr = xr + (lr + wp.quat_rotate(qr, X))
+            ar, alo = vertex_arm(lr, qr, q_lo_ref[b], X)
+            pr = xr + ar
         r = wp.max(r, wp.length(p - pr - d))
         amax = wp.max(amax, wp.max(wp.abs(p[0]), wp.max(wp.abs(p[1]), wp.abs(p[2]))))
     dx[b] = d
     rho[b] = r + 2.4e-7 * amax
     x_ref[b] = xb
     q_ref[b] = bodies.q[b]
+    q_lo_ref[b] = bodies.q_lo[b]
     x_lo_ref[b] = bodies.x_lo[b]
     if deformable:
         strain_ref[b] = bodies.strain[b]
@@ -1323,7 +1420,10 @@ def narrow_phase(
         pa = pair_vertex(wv, dA, va)
         if wp.dot(n, pa) >= loB - tol:
             t_lo, t_hi, hit = column_through(pa, n, face_start[B], face_count[B], face_he, wv, dB, he_vertex, he_next, tol)
-            d = wp.min(-t_lo, over)
+            d = float(0.0)
+            if hit == 1:
+                d = wp.min(column_depth(va, dA, n, face_start[B], face_count[B], face_he, verts, dB, he_vertex, he_next, 0),
+                           over + tol)
             if hit == 1 and d > 0.0:
                 nc, px, py, pz, pd, pka, pkb = add_contact(nc, pa + (0.5 * t_lo) * n, d, va, -1, dup_tol, px, py, pz, pd, pka, pkb)
     # vertices of B that may lie inside A
@@ -1332,7 +1432,10 @@ def narrow_phase(
         pb = pair_vertex(wv, dB, vb)
         if wp.dot(n, pb) <= hiA + tol:
             t_lo, t_hi, hit = column_through(pb, n, face_start[A], face_count[A], face_he, wv, dA, he_vertex, he_next, tol)
-            d = wp.min(t_hi, over)
+            d = float(0.0)
+            if hit == 1:
+                d = wp.min(column_depth(vb, dB, n, face_start[A], face_count[A], face_he, verts, dA, he_vertex, he_next, 1),
+                           over + tol)
             if hit == 1 and d > 0.0:
                 nc, px, py, pz, pd, pka, pkb = add_contact(nc, pb + (0.5 * t_hi) * n, d, -1, vb, dup_tol, px, py, pz, pd, pka, pkb)
     # edge-edge crossings of the two contact patches, projected on the plane
@@ -1374,10 +1477,20 @@ def narrow_phase(
                             if wp.abs(det) > 1.0e-6 * wp.length(ea) * wp.length(eb):
                                 s = (r0 * (-b1) - r1 * (-b0)) / det
                                 u = (a0 * r1 - a1 * r0) / det
-                                if s > 1.0e-5 and s < 1.0 - 1.0e-5 and u > 1.0e-5 and u < 1.0 - 1.0e-5:
+                                # inside both edges by more than half the vertices' tolerance tol: a crossing
+                                # nearer an end is that end's vertex, which column_through accepts up to tol outside
+                                # the face. The two tests overlap by tol / 2 (there add_contact keeps the vertex), so
+                                # float32 rounding at the thresholds cannot drop both. With a relative window of 1e-5
+                                # here, a corner between tol and 1e-5 x its edge outside the neighbour's face
+                                # (0.9 - 5 um for 0.5 m blocks: coincident faces of continuous joints, shifted by um
+                                # as a jointed mass settles) was found neither as a vertex nor as a crossing, and a
+                                # block could rest on two points of a face (issue 36, docs/notes.md)
+                                sa = 0.5 * tol / wp.length(ea)
+                                sb = 0.5 * tol / wp.length(eb)
+                                if s > sa and s < 1.0 - sa and u > sb and u < 1.0 - sb:
                                     xa_ = pa + s * ea
                                     xb_ = pb + u * eb
-                                    d = wp.min(wp.dot(n, xa_ - xb_), over)
+                                    d = wp.min(crossing_depth(va, ua, vb, ub, dA, dB, s, u, n, verts), over + tol)
                                     if d > 0.0:
                                         ha = wp.min(h, he_twin[h])
                                         hb2 = wp.min(g, he_twin[g])
@@ -1555,6 +1668,7 @@ def contact_forces(
     if not implicit and dt > 0.0:
         cs0 = wp.min(cs0, m_eff / (float(nc) * dt))
     stuck_mask = int(0)
+    fresh_mask = int(0)  # points without history (their first step in contact)
     n_stuck = int(0)
     for k in range(nc):
         c = base + k
@@ -1585,6 +1699,8 @@ def contact_forces(
                 if lp > 1.0e-20:
                     fs = fp * (mag / lp)
         cur.vimp[c] = vimp
+        if hist < 0:
+            fresh_mask = fresh_mask | (1 << k)
         zn = float(1.0)
         if vimp > v_rest:
             zn = zt  # an impact: the restitution's ratio
@@ -1658,7 +1774,14 @@ def contact_forces(
         # friction beyond Coulomb's (a point touching down with a tangential velocity slides at mu F_n)
         csk = float(0.0)
         lvt2 = wp.dot(vt, vt)
-        if stuck:
+        # a point's first step in contact (no history) takes no dashpot: the bound below is formed from the
+        # start-of-step v_t, and a point touching at rest (v_t = 0: a block placed exactly touching, gravity from
+        # t = 0) would otherwise hold the whole step's tangential motion in the implicit solve with next to no
+        # normal force behind it (its depth ~0). float32 depths had hidden this by rounding such a touch to no
+        # contact; exact depths found it and a block sliding 5 deg past its limit lost 1-2% of its speed in that
+        # one step (issue 36, docs/notes.md)
+        fresh = (fresh_mask & (1 << k)) != 0
+        if stuck and (locked or not fresh):
             csk = cs
             if lvt2 > 0.0 and not locked:
                 fcap = cur.fcap[c]
@@ -1810,11 +1933,15 @@ def settle_speed(
     v: wp.array(dtype=wp.vec3),
     w: wp.array(dtype=wp.vec3),
     tol: float,
+    x: wp.array(dtype=wp.vec3),
+    x0: wp.array(dtype=wp.vec3),
+    max_move: float,
     flags: wp.array(dtype=int),
     reach: wp.array(dtype=float),
 ):
     """BlockSolver.settle: reach[b] = the speed of a rigid or deformable block's fastest point |v| + |w| r
-    (r = block_size / 2; 0 for the others), and flags[0] = 1 when one is above tol."""
+    (r = block_size / 2; 0 for the others), and flags[0] = 1 when one is above tol; flags[1] = 1 when a block's
+    centroid has moved more than max_move x its size from x0 (where it was placed)."""
     b = wp.tid()
     reach[b] = 0.0
     if not movable(kinds[b]):
@@ -1823,6 +1950,8 @@ def settle_speed(
     reach[b] = r
     if r > tol:
         flags[0] = 1
+    if wp.length(x[b] - x0[b]) > max_move * block_size[b]:
+        flags[1] = 1
 
 
 @wp.kernel

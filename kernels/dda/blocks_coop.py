@@ -18,8 +18,10 @@ from rockwave.kernels.dda.blocks import (
     PointKey,
     WorldVerts,
     add_contact,
+    column_depth,
     column_through,
     contact_tangent,
+    crossing_depth,
     face_normal,
     face_plane_of_he,
     he_dest,
@@ -442,14 +444,18 @@ def narrow_phase_coop(
                 if side == 0:
                     if wp.dot(n, pv) >= loB - tol:
                         t_lo, t_hi, hit = column_through(pv, n, fs, fc, face_he, wv, dfc, he_vertex, he_next, tol)
-                        d = wp.min(-t_lo, over)
+                        if hit == 1:  # the depth in float64 from the arms' hi and lo parts (column_depth)
+                            d = wp.min(column_depth(s0 + k, dv, n, fs, fc, face_he, verts, dfc, he_vertex, he_next, 0),
+                                       over + tol)
                         if hit == 1 and d > 0.0:
                             ok = 1
                             p = pv + (0.5 * t_lo) * n
                 else:
                     if wp.dot(n, pv) <= hiA + tol:
                         t_lo, t_hi, hit = column_through(pv, n, fs, fc, face_he, wv, dfc, he_vertex, he_next, tol)
-                        d = wp.min(t_hi, over)
+                        if hit == 1:
+                            d = wp.min(column_depth(s0 + k, dv, n, fs, fc, face_he, verts, dfc, he_vertex, he_next, 1),
+                                       over + tol)
                         if hit == 1 and d > 0.0:
                             ok = 1
                             p = pv + (0.5 * t_hi) * n
@@ -502,10 +508,12 @@ def narrow_phase_coop(
                     if wp.abs(det) > 1.0e-6 * wp.length(ea) * wp.length(eb):
                         s = (r0 * (-b1) - r1 * (-b0)) / det
                         u = (a0 * r1 - a1 * r0) / det
-                        if s > 1.0e-5 and s < 1.0 - 1.0e-5 and u > 1.0e-5 and u < 1.0 - 1.0e-5:
+                        sa = 0.5 * tol / wp.length(ea)  # inside both edges by more than tol / 2 (narrow_phase)
+                        sb = 0.5 * tol / wp.length(eb)
+                        if s > sa and s < 1.0 - sa and u > sb and u < 1.0 - sb:
                             xa_ = pa + s * ea
                             xb_ = pb + u * eb
-                            d = wp.min(wp.dot(n, xa_ - xb_), over)
+                            d = wp.min(crossing_depth(va, ua, vb, ub, dA, dB, s, u, n, verts), over + tol)
                             if d > 0.0:
                                 ok = 1
                                 p = 0.5 * (xa_ + xb_)

@@ -604,8 +604,9 @@ class BlockState:
         force, torque: vec3 (N) [N], [N m], strain_force: spatial_vector (N) [N m]: contact accumulators of a step.
         contact_count: int (N): contact points of the last step.
         damp_c: sym6 (N) (upper triangle), damp_b: spatial_vector (N): the implicit contact dashpots (kernels/dda/blocks.py).
-        world_verts_arm: vec3 (V): each vertex relative to its block's float32 centroid x [m] (x_lo + R (X + E X)).
-        x_ref, x_lo_ref: vec3 (N) [m], q_ref: quat (N) (0: none yet), strain_ref: spatial_vector (N, or 1 without
+        world_verts_arm: vec3 (V): each vertex relative to its block's float32 centroid x [m] (x_lo + R (X + E X)),
+            world_verts_arm_lo: its part below float32's spacing (kernels/dda/blocks.py vertex_arm).
+        x_ref, x_lo_ref: vec3 (N) [m], q_ref, q_lo_ref: quat (N) (q_ref 0: none yet), strain_ref: spatial_vector (N, or 1 without
             deformable blocks): the poses of the history table's planes (the last narrow phase).
         motion_dx: vec3 (N) [m], motion_rho: float (N) [m]: the motion since the reference poses: every world vertex
             moved by motion_dx + dev with |dev| <= motion_rho (kernels/dda/blocks.py pose_motion).
@@ -661,10 +662,12 @@ class BlockState:
         self.damp_b = wp.zeros(n, dtype=wp.spatial_vector, device=d)
         # each vertex relative to its block's float32 centroid x: x_lo + R (X + E X) (the narrow phase's pair frame)
         self.world_verts_arm = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)
+        self.world_verts_arm_lo = wp.zeros(model.num_vertices, dtype=wp.vec3, device=d)  # its part below float32's spacing
         # poses of the history table's planes (last narrow phase: x, q, x_lo and, of deformable blocks, strain;
         # q_ref = 0: none yet) and the motion since (pose_motion)
         self.x_ref = wp.zeros(n, dtype=wp.vec3, device=d)
         self.q_ref = wp.zeros(n, dtype=wp.quat, device=d)
+        self.q_lo_ref = wp.zeros(n, dtype=wp.quat, device=d)
         self.x_lo_ref = wp.zeros(n, dtype=wp.vec3, device=d)
         self.strain_ref = wp.zeros(n if np.any(model.np["kinds"] == int(dda_k.KIND_DEFORMABLE)) else 1, dtype=wp.spatial_vector,
                                    device=d)
@@ -678,6 +681,7 @@ class BlockState:
             setattr(self.bodies, name, getattr(self, name))
         self.verts = dda_k.WorldVerts()
         self.verts.arm = self.world_verts_arm
+        self.verts.arm_lo = self.world_verts_arm_lo
         self.loads = dda_k.BlockLoads()
         for name in ("force", "torque", "strain_force", "ext_force", "ext_torque", "contact_count", "damp_c", "damp_b"):
             setattr(self.loads, name, getattr(self, name))
@@ -937,13 +941,16 @@ class BlockOptions:
     """Threads per pair in the cooperative narrow phase (a GPU warp; Warp's CPU backend runs 1 unless
     warp.config.enable_cpu_blocks) [-]."""
 
-    start: str = "plain"
-    """How a scene's blocks start (scene: ``simulation.start``): "plain": as placed, contacts unloaded, gravity from
-    t = 0 (a stable block slips while its normal springs load); "settled": BlockSolver.settle() first brings the
-    blocks resting at t = 0 to the equilibrium of their contact springs with friction locked, then releases it
-    (rockwave/build/builder.py runs it; a solver made in Python starts as its state is unless settle() is called). Not the
-    default yet: the 72-block jointed slab of tests/test_block_scenes.py did not come to rest within 20000 steps
-    (7.6e-4 m/s left, cause not found; docs/notes.md 'Rock that stands stays standing')."""
+    start: str = "settled"
+    """How a scene's blocks start (scene: ``simulation.start``): "settled" (the default): BlockSolver.settle() first
+    brings the blocks resting on another at t = 0 with no initial velocity to the equilibrium of their contact
+    springs under gravity with friction locked, then releases it, so a stable block or rock mass starts at rest
+    with its contacts loaded; blocks placed in the air or given a velocity start as placed, and a scene whose
+    resting blocks do not stay where they were put with their friction locked (they topple or fall:
+    settle_max_move) or do not come to rest (settle_max_steps) starts plain, with a warning. "plain": every block
+    as placed, contacts unloaded, gravity from t = 0 (a stable block slips while its normal springs load: a 10 m
+    cube on 2.5e8 N/m per point at a 0.1 deg margin ends 13 mm beyond its elastic deflection). rockwave/build/builder.py runs it; a solver made in
+    Python starts as its state is unless settle() is called (docs/physics.md 'The start of a block scene')."""
 
     settle_speed_ratio: float = 1.0e-3
     """Settled start: the blocks count as at rest when every settling block moves slower than this fraction of
@@ -953,6 +960,12 @@ class BlockOptions:
     settle_max_steps: int = 20000
     """Settled start: block steps allowed before the settling gives up (the scene then starts plain, with a
     warning: e.g. a block that topples even with its friction locked) [steps]."""
+
+    settle_max_move: float = 0.01
+    """Settled start: a settling block whose centroid moves more than this fraction of its size from where it
+    was placed is not at rest there even with its friction locked (it topples, or falls off an overhang): the
+    settling stops and the scene starts plain, with a warning. A block sinking onto its springs moves
+    m g / (n k_n), ~1e-3 of its size at the default stiffness (0.15% for a 10 m cube at 2.5e8 N/m per point) [-]."""
 
     settle_contact_gap: float = 1.0e-4
     """Settled start: a block rests on another at t = 0 when their gap is below this fraction of the smaller
@@ -1241,7 +1254,7 @@ class BlockSolver:
             state.alloc_tables(cap, pcap)
         wp.launch(dda_k.pose_motion, dim=m.num_blocks,
                   inputs=[m.body_verts, m.kinds, m.vert_start, m.vert_count, state.bodies, state.world_verts_arm, state.x_ref,
-                          state.q_ref, state.x_lo_ref, state.strain_ref, state.motion_dx, state.motion_rho], device=d)
+                          state.q_ref, state.q_lo_ref, state.x_lo_ref, state.strain_ref, state.motion_dx, state.motion_rho], device=d)
         while True:
             old, new = state.table_views
             new.keys.fill_(-1)
@@ -1399,11 +1412,13 @@ class BlockSolver:
         pos0, _ = m.initial_poses()
         motion.base_x = wp.array(pos0.astype(np.float32), dtype=wp.vec3, device=d)
         x0 = state.positions_numpy()
+        x0_dev = wp.clone(state.x)
         saved = {k: wp.clone(getattr(state, k)) for k in ("x", "x_lo", "q", "q_lo", "v", "w", "strain", "strain_rate",
                                                            "v_step")}
         dt = self.stable_dt(state)
         tol = opt.settle_speed_ratio * self.g_mag * self.critical_dt() / 2.0
-        flags = wp.zeros(1, dtype=int, device=d)
+        flags = wp.zeros(2, dtype=int, device=d)
+        moved = False
         every, calm, steps, speed = 16, 0, 0, math.inf
         # float32's floor: a block whose contact force changes by k_n x (the spacing of its vertices' float32
         # coordinates) per step of position more than its friction margin chatters at ~ that force x dt / m and
@@ -1423,8 +1438,13 @@ class BlockSolver:
                 if steps % every == 0:
                     flags.zero_()
                     wp.launch(dda_k.settle_speed, dim=n,
-                              inputs=[props.kinds, m.block_size, state.v, state.w, float(tol), flags, reach], device=d)
-                    calm = calm + 1 if int(flags.numpy()[0]) == 0 else 0
+                              inputs=[props.kinds, m.block_size, state.v, state.w, float(tol), state.x, x0_dev,
+                                      float(opt.settle_max_move), flags, reach], device=d)
+                    fl = flags.numpy()
+                    if fl[1]:  # a block left its place: not at rest where it was put (it topples or falls)
+                        moved = True
+                        break
+                    calm = calm + 1 if int(fl[0]) == 0 else 0
                     if calm >= 2:
                         break
                     speed = float(reach.numpy().max())  # (a read of N floats every 16 steps)
@@ -1449,10 +1469,19 @@ class BlockSolver:
                 wp.copy(getattr(state, k), a)
             self._reset_history(state)
             report["start"] = "plain"
-            worst = int(np.argmax(np.where(settling, np.linalg.norm(v, axis=1), -1.0)))
-            warnings.warn(f"settled start: the blocks did not come to rest within {opt.settle_max_steps} block steps "
-                          f"({steps * dt:.3g} s; block '{m.names[worst]}' still moves at {speed:.3g} m/s, the bound is "
-                          f"{tol:.3g} m/s): the scene starts as placed (simulation.start = 'plain')")
+            report["converged"] = False
+            if moved:
+                worst = int(np.argmax(np.where(settling, disp / size, -1.0)))
+                report["moved"] = True
+                warnings.warn(f"settled start: block '{m.names[worst]}' moved {disp[worst]:.3g} m ({disp[worst] / size[worst]:.2g} "
+                              f"of its size, the bound is BlockOptions.settle_max_move = {opt.settle_max_move:g}) in "
+                              f"{steps} steps with its friction locked: the blocks are not at rest where they were placed "
+                              f"(they topple or fall); the scene starts as placed (simulation.start = 'plain')")
+            else:
+                worst = int(np.argmax(np.where(settling, np.linalg.norm(v, axis=1), -1.0)))
+                warnings.warn(f"settled start: the blocks did not come to rest within {opt.settle_max_steps} block steps "
+                              f"({steps * dt:.3g} s; block '{m.names[worst]}' still moves at {speed:.3g} m/s, the bound is "
+                              f"{tol:.3g} m/s): the scene starts as placed (simulation.start = 'plain')")
         else:
             for a in (state.v, state.w, state.strain_rate):
                 a.zero_()

@@ -402,6 +402,14 @@ def restore(sim, arrays: dict, meta: dict) -> None:
             arrays.setdefault("blocks/x_lo", np.zeros_like(arrays["blocks/x"]))
             arm = wv - arrays["blocks/x"][sim.blocks.vert_block.numpy()]
             arrays.setdefault("blocks/world_verts_arm", arm.astype(np.float32))
+    if "blocks/q" in arrays and "blocks/q_lo_ref" not in arrays:
+        # written before the vertex arms' float64 parts (issue 36): arm_lo is formed again at the next step's
+        # block_world_vertices; q_lo_ref = 0 leaves pose_motion's bound that reference's q_lo (~1e-7 of a vertex's
+        # arm) wider, which certifies nothing wrongly
+        arrays = dict(arrays)
+        arrays["blocks/q_lo_ref"] = np.zeros_like(arrays["blocks/q"])
+        if "blocks/world_verts_arm" in arrays:
+            arrays.setdefault("blocks/world_verts_arm_lo", np.zeros_like(arrays["blocks/world_verts_arm"]))
     provs = providers(sim)
     for name in meta["groups"]:
         if name not in provs:
