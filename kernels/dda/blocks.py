@@ -1639,6 +1639,13 @@ def contact_forces(
             if stuck:
                 add_damper(A, B, p, t1, csk, vA, vB, xA, xB, kinds, loads)
                 add_damper(A, B, p, t2, csk, vA, vB, xA, xB, kinds, loads)
+            elif lvt2 > 0.0 and wp.dot(fs, vt) < 0.0:
+                # kinetic friction against the sliding: its part along v_t as an implicit dashpot
+                # c_k = -f_s.v_t / |v_t|^2 (the same force at the start-of-step velocity; backward Euler
+                # cannot reverse the point's sliding within the step, the explicit force did and chattered)
+                c_kin = -wp.dot(fs, vt) / lvt2
+                f = f + c_kin * vt
+                add_damper(A, B, p, vt / wp.sqrt(lvt2), c_kin, vA, vB, xA, xB, kinds, loads)
         elif stuck:
             f = f - csk * vt
         if movable(kinds[B]):
