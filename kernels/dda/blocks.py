@@ -1574,11 +1574,15 @@ def contact_forces(
         cur.fcap[c] = fmax
         # Coulomb: a sliding point slides on (at mu F_n) while it still moves against its spring; it sticks
         # again once its tangential velocity has stopped or turned (kinetic friction brought it to rest)
-        # a point sticks while its spring and its dashpot together stay within the cap; beyond it the point
-        # slides at the cap, in the direction of that trial force, with no dashpot
+        # a point sticks while its spring stays within the cap (its dashpot then takes only the capacity the spring
+        # leaves, csk in pass 2, implicit); beyond it the point slides at the cap, in the direction of the trial
+        # force spring + dashpot, with no dashpot. The stick test once included the dashpot: a slowly moving point
+        # (c_s0 |v_t| > mu F_n - |f_s|) then slid at mu F_n against v_t, explicitly, which reversed it within the
+        # step (h mu F_n > (m / n) |v_t|), every step: in a locked jointed mass that pumped rotation modes at the
+        # step rate until it exploded (issue 36, docs/notes.md)
         ftr = fs - cs0 * vt
         lftr = wp.length(ftr)
-        if locked or (lftr <= fmax and not (was_sliding == 1 and wp.dot(vt, fs) < 0.0)):
+        if locked or (wp.length(fs) <= fmax and not (was_sliding == 1 and wp.dot(vt, fs) < 0.0)):
             stuck_mask = stuck_mask | (1 << k)
             n_stuck += 1
         elif lftr > 0.0:
@@ -1639,13 +1643,6 @@ def contact_forces(
             if stuck:
                 add_damper(A, B, p, t1, csk, vA, vB, xA, xB, kinds, loads)
                 add_damper(A, B, p, t2, csk, vA, vB, xA, xB, kinds, loads)
-            elif lvt2 > 0.0 and wp.dot(fs, vt) < 0.0:
-                # kinetic friction against the sliding: its part along v_t as an implicit dashpot
-                # c_k = -f_s.v_t / |v_t|^2 (the same force at the start-of-step velocity; backward Euler
-                # cannot reverse the point's sliding within the step, the explicit force did and chattered)
-                c_kin = -wp.dot(fs, vt) / lvt2
-                f = f + c_kin * vt
-                add_damper(A, B, p, vt / wp.sqrt(lvt2), c_kin, vA, vB, xA, xB, kinds, loads)
         elif stuck:
             f = f - csk * vt
         if movable(kinds[B]):
