@@ -1717,11 +1717,9 @@ def contact_forces(
         fmax = mu * wp.max(fnc, 0.0) + coh * a_share
         cur.fcap[c] = fmax
         # Coulomb: a point sticks while its spring and its dashpot together stay within the cap; beyond it the
-        # point slides at the cap, in the direction of that trial force, with no dashpot. A point that slid the step
-        # before and still moves against its spring once slid on at the cap even when the trial force was below
-        # it: the force scaled up to mu F_n exceeded what stops the point, reversed it within the step, and did
-        # so again the next step (a point whose cap was 0 the step before counts as sliding). That made energy: a
-        # locked jointed mass (friction 60 deg) exploded, 8 blocks at 89.5 deg in 6 steps (issue 36, docs/notes.md)
+        # point slides at the cap, in the direction of that trial force, with no dashpot. Never a force above the
+        # trial force: mu F_n applied to a point that a smaller force stops reverses it within the explicit step
+        # and makes energy (docs/notes.md 'A locked jointed mass explodes')
         ftr = fs - cs0 * vt
         lftr = wp.length(ftr)
         if locked or lftr <= fmax:
