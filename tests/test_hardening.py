@@ -25,6 +25,7 @@ import rockwave
 from rockwave.app import cli
 from rockwave.app.progress import Progress
 from rockwave.build import preflight
+from rockwave.build.rockmass import resize_box_region
 from rockwave.scene.format import SceneError, load_scene, parse_scene
 
 from conftest import DEVICE
@@ -607,6 +608,10 @@ def _small(name: str) -> dict:
     for b in d.get("blocks", []):
         if "array" in b:
             b["array"]["count"] = [min(c, 2) for c in b["array"].get("count", [1, 1, 1])]
+    for r in d.get("rock_mass", []):  # a corner of the mass (rock_slope_10k: 10,000 blocks -> 27)
+        reg = r.get("region", {})
+        if {"box_min_m", "box_max_m", "orientation_deg"} <= set(reg):
+            resize_box_region(r, [min(1.5, hi - lo) for lo, hi in zip(reg["box_min_m"], reg["box_max_m"])])
     if "fluid" in d:
         est = preflight.estimate(parse_scene(copy.deepcopy(d), ROOT / "scenes" / f"{name}.toml"))
         n = est.fluid_particles + est.boundary_particles

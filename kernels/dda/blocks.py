@@ -1931,13 +1931,13 @@ def settle_speed(
     tol: float,
     x: wp.array(dtype=wp.vec3),
     x0: wp.array(dtype=wp.vec3),
-    max_move: float,
+    max_move: wp.array(dtype=float),
     flags: wp.array(dtype=int),
     reach: wp.array(dtype=float),
 ):
     """BlockSolver.settle: reach[b] = the speed of a rigid or deformable block's fastest point |v| + |w| r
     (r = block_size / 2; 0 for the others), and flags[0] = 1 when one is above tol; flags[1] = 1 when a block's
-    centroid has moved more than max_move x its size from x0 (where it was placed)."""
+    centroid has moved more than max_move[b] [m] from x0 (where it was placed)."""
     b = wp.tid()
     reach[b] = 0.0
     if not movable(kinds[b]):
@@ -1946,7 +1946,7 @@ def settle_speed(
     reach[b] = r
     if r > tol:
         flags[0] = 1
-    if wp.length(x[b] - x0[b]) > max_move * block_size[b]:
+    if wp.length(x[b] - x0[b]) > max_move[b]:
         flags[1] = 1
 
 

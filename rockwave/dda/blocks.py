@@ -962,10 +962,11 @@ class BlockOptions:
     warning: e.g. a block that topples even with its friction locked) [steps]."""
 
     settle_max_move: float = 0.01
-    """Settled start: a settling block whose centroid moves more than this fraction of its size from where it
-    was placed is not at rest there even with its friction locked (it topples, or falls off an overhang): the
-    settling stops and the scene starts plain, with a warning. A block sinking onto its springs moves
-    m g / (n k_n), ~1e-3 of its size at the default stiffness (0.15% for a 10 m cube at 2.5e8 N/m per point) [-]."""
+    """Settled start: a settling block whose centroid moves more than this fraction of its size, plus twice its
+    springs' sag under its own weight on one point (2 m g / k_n), from where it was placed is not at rest there
+    even with its friction locked (it topples, or falls off an overhang): the settling stops and the scene starts
+    plain, with a warning. A block sinking onto its springs moves m g / (n k_n), ~1e-3 of its size at the default
+    stiffness (0.15% for a 10 m cube at 2.5e8 N/m per point), but 3% of a 20 m block's on a 1 MPa/m joint [-]."""
 
     settle_contact_gap: float = 1.0e-4
     """Settled start: a block rests on another at t = 0 when their gap is below this fraction of the smaller
@@ -1426,6 +1427,13 @@ class BlockSolver:
         # settled once its speed has not halved over stall_checks checks and is below 0.1 g / omega_max
         stall_checks, best, stall, v_max = 32, math.inf, 0, self.g_mag * self.critical_dt() / 2.0
         reach = wp.zeros(n, dtype=float, device=d)
+        # how far a block may move and still be "where it was placed": settle_max_move of its size, plus twice
+        # its springs' deflection under its own weight on one contact point, 2 m g / k_n (soft joints: a 20 m
+        # block on 1 MPa/m sinks 0.7 m onto its springs, 3% of its size, and is still at rest there)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sag = np.where(m.np["k_n"] > 0.0, 2.0 * m.np["mass"] * self.g_mag / m.np["k_n"], 0.0)
+        allow = opt.settle_max_move * size + np.where(np.isfinite(sag), sag, 0.0)
+        allow_dev = wp.array(allow.astype(np.float32), dtype=float, device=d)
         self.props, self.motion = props, motion
         self.block_clock.assign(np.array([0.0, dt, 1.0]))  # clock[2] = 1: friction locked (contact_forces)
         try:
@@ -1439,7 +1447,7 @@ class BlockSolver:
                     flags.zero_()
                     wp.launch(dda_k.settle_speed, dim=n,
                               inputs=[props.kinds, m.block_size, state.v, state.w, float(tol), state.x, x0_dev,
-                                      float(opt.settle_max_move), flags, reach], device=d)
+                                      allow_dev, flags, reach], device=d)
                     fl = flags.numpy()
                     if fl[1]:  # a block left its place: not at rest where it was put (it topples or falls)
                         moved = True
@@ -1471,10 +1479,11 @@ class BlockSolver:
             report["start"] = "plain"
             report["converged"] = False
             if moved:
-                worst = int(np.argmax(np.where(settling, disp / size, -1.0)))
+                worst = int(np.argmax(np.where(settling, disp / allow, -1.0)))
                 report["moved"] = True
                 warnings.warn(f"settled start: block '{m.names[worst]}' moved {disp[worst]:.3g} m ({disp[worst] / size[worst]:.2g} "
-                              f"of its size, the bound is BlockOptions.settle_max_move = {opt.settle_max_move:g}) in "
+                              f"of its size; the bound is BlockOptions.settle_max_move = {opt.settle_max_move:g} of its size "
+                              f"+ 2 m g / k_n = {allow[worst]:.3g} m) in "
                               f"{steps} steps with its friction locked: the blocks are not at rest where they were placed "
                               f"(they topple or fall); the scene starts as placed (simulation.start = 'plain')")
             else:
