@@ -17,7 +17,7 @@ from benchmarks.common import RESULTS, ROOT, rel
 from benchmarks.common import fmt_value as _f
 
 PART_ORDER = ("accuracy", "stability", "scaling", "peers", "wave_maker", "ghost_cost", "ghost_accuracy", "readers", "surface",
-              "multirate", "chart", "block_contacts", "nonconvex", "at_rest", "energy_budget")
+              "multirate", "chart", "block_contacts", "nonconvex", "at_rest", "energy_budget", "batched_sweep")
 
 
 # ----------------------------------------------------------------------------------- tables ----
@@ -89,9 +89,10 @@ def _scaling(sc: dict) -> list[str]:
                      for r in sc["fluid"]]) + [""]
     if sc.get("blocks"):
         L += ["### Block step throughput (jointed rock slope)", ""]
-        L += _table(["blocks", "contacts/block", "steps/s", "block-steps/s", "solver bytes/block"],
+        L += _table(["blocks", "contacts/block", "steps/s", "block-steps/s", "ns per contact point", "solver bytes/block"],
                     [[r["blocks"], _f(r["contacts_per_block"], ".2f"), _f(r["steps_per_s"], ".1f"),
-                      _f(r["block_steps_per_s"], ".3g"), _f(r.get("device_bytes_per_block"), ".0f")] for r in sc["blocks"]]) + [""]
+                      _f(r["block_steps_per_s"], ".3g"), _f(r.get("ns_per_contact_point"), ".1f"),
+                      _f(r.get("device_bytes_per_block"), ".0f")] for r in sc["blocks"]]) + [""]
     if sc.get("coupled"):
         L += ["### Coupled SPH-DDA throughput", ""]
         L += _table(["scene", "scale", "fluid particles", "blocks", "ms/step", "particle-steps/s", "coupling share"],
@@ -320,10 +321,26 @@ def _energy_budget(eb: dict) -> list[str]:
                        "max rise", "check"], out) + [""]
 
 
+def _batched_sweep(b: dict) -> list[str]:
+    """Scenarios per hour, solo against batched (benchmarks/batched_sweep.py), and the batches' agreement with solo."""
+    L = [f"### Batched sweep ({b.get('scene')}, {_f(b.get('duration_s'), 'g')} s scenarios)", ""]
+    L += _table(["mode", "scenarios", "workers", "wall s", "scenarios/h", "x solo_1", "particles"],
+                [[r["mode"], r["scenarios"], r.get("workers", "-"), _f(r.get("wall_s"), ".1f"),
+                  _f(r.get("scenarios_per_hour"), ".0f"), _f(r.get("ratio_to_solo_1"), ".1f"),
+                  r.get("batch_fluid_particles", r.get("fluid_particles_per_scenario", "-"))] if "skipped" not in r else
+                 [r["mode"], r["scenarios"], "-", "-", "skipped: " + r["skipped"], "-", "-"] for r in b.get("rows", [])])
+    for mode, a in b.get("agreement_with_solo", {}).items():
+        L += ["", f"{mode} against solo ({a.get('scenarios_compared')} scenarios), largest differences: crest "
+              f"{_f(a.get('height_m'), '.3g')} m, arrival {_f(a.get('arrival_s'), '.3g')} s, runout "
+              f"{_f(a.get('runout_m'), '.3g')} m, speed {_f(a.get('speed_m_s'), '.3g')} m/s, volume "
+              f"{_f(a.get('volume_m3'), '.3g')} m^3"]
+    return L + [""]
+
+
 TABLES = {"multirate": _multirate, "accuracy": _accuracy, "stability": _stability, "scaling": _scaling, "peers": _peers, "wave_maker": _wave_maker,
           "ghost_cost": _ghost_cost, "ghost_accuracy": _ghost_accuracy, "readers": _readers, "surface": _surface,
           "chart": _chart, "block_contacts": _block_contacts, "nonconvex": _nonconvex,
-          "at_rest": _at_rest, "energy_budget": _energy_budget}
+          "at_rest": _at_rest, "energy_budget": _energy_budget, "batched_sweep": _batched_sweep}
 
 
 def title(res: dict) -> str:
