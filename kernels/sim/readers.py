@@ -200,6 +200,53 @@ def gauge_pressure_wall_sums(
         wp.atomic_add(sums, g, 1, w)
 
 
+@wp.kernel
+def surface_pressure(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    wall_pressure: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    adami: int,
+    n_all: int,
+    points: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    wet_min: float,
+    out: wp.array(dtype=float),
+):
+    """Force gauges (rockwave/sim/readers.py ForceGauges): the pressure at points on a block's faces, the
+    Shepard interpolation over the fluid and, with Adami walls, the wall particles (whose extrapolated pressure
+    continues the fluid's across the face, so the reading is not that of a point half a support inside the
+    water), found through a hash grid of all particles. A point whose fluid volume fraction sum V_j W is below
+    wet_min (a face pressed on another block or the floor, or above the water) reads 0."""
+    k = wp.tid()
+    xp = points[k]
+    sf = float(0.0)
+    vf = float(0.0)
+    sw = float(0.0)
+    vw = float(0.0)
+    q = wp.hash_grid_query(grid, xp, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j >= n_all:
+            continue
+        r2 = wp.length_sq(xp - x[j])
+        if r2 < p.H * p.H:
+            if j < p.n_fluid:
+                w = particle_mass[j] / rho[j] * kernel_w(r2, p)
+                sf += w * pressure[j]
+                vf += w
+            elif adami != 0:
+                w = particle_mass[j] / p.rest_density * kernel_w(r2, p)
+                sw += w * wall_pressure[j - p.n_fluid]
+                vw += w
+    if vf < wet_min:
+        out[k] = 0.0
+    else:
+        out[k] = (sf + sw) / (vf + vw)
+
+
 # ---------------------------------------------------------------------------------------------------
 # Hazard summary (rockwave/output/hazard.py): running extremes reduced on the device, one host read at the end.
 # ---------------------------------------------------------------------------------------------------

@@ -300,8 +300,10 @@ SCHEMA: dict[str, Key] = {
         checkpoint_interval_s=Key("float", "wall-clock seconds between checkpoints (checkpoint.npz; 'run --resume' continues from it); 0: only on Ctrl-C or a blow-up", default=600.0, min=0.0),
         gauges=_list("probes read every frame",
                      name=Key("str", "column name in the CSV", required=True),
-                     kind=Key("str", "'height': water level on position_m's vertical line, the top of the continuous water column from the bed: where the kernel-interpolated water fraction, going up from the first point where it reaches 0.5, drops below 0.5 (water overhead with air between, such as spray or a jet, does not count; NaN when dry; rockwave/sim/readers.py Gauges); 'pressure': SPH-interpolated (Shepard) pressure at position_m", required=True, choices=("height", "pressure")),
-                     position_m=Key("vec", "probe position (for 'height' the vertical coordinate is ignored: the line runs from below the tank floor to one domain height above the top)", length="dim", required=True)),
+                     kind=Key("str", "'height': water level on position_m's vertical line, the top of the continuous water column from the bed: where the kernel-interpolated water fraction, going up from the first point where it reaches 0.5, drops below 0.5 (water overhead with air between, such as spray or a jet, does not count; NaN when dry; rockwave/sim/readers.py Gauges); 'pressure': SPH-interpolated (Shepard) pressure at position_m; 'force': the water's pressure force on a block along direction [N; 2D: N per metre of depth], the pressure integrated over the block's faces (rockwave/sim/readers.py ForceGauges; docs/outputs.md 'Force gauges')", required=True, choices=("height", "pressure", "force")),
+                     position_m=Key("vec", "probe position, for 'height' and 'pressure' (for 'height' the vertical coordinate is ignored: the line runs from below the tank floor to one domain height above the top)", length="dim"),
+                     block=Key("str", "for 'force': the block's name (an array's blocks are name_0, name_1, ...; a multi-part mesh block counts whole)"),
+                     direction=Key("vec", "for 'force': the direction the force is read along (any length; e.g. [0, 1] for the vertical in 2D)", length="dim")),
         surface=_sec("fluid surface for rendering: a scalar field of the particles on a grid, isosurface by marching cubes (3D mesh /World/fluid_surface) or marching squares (2D contour curves)",
                      enabled=Key("bool", "write the surface into the USD stage (and the ParaView series)", default=True),
                      field=Key("str", "'colour': SPH colour field sum (m/rho) W (cubic spline); 'metaball': sum s^d/V_R (1 - (d/R)^2)^2 (Ghost SPH report)", default="colour", choices=("colour", "metaball")),
@@ -887,10 +889,33 @@ def _check_gauges(v: _Validator, s: Node) -> None:
             v.err("output.gauges", f"gauge name {n!r} is used more than once (output.gauges[{seen[n]}] and [{i}])")
         else:
             seen[n] = i
+    names = [b.get("name") for b in (s.get("blocks") or []) + (s.get("rock_mass") or [])]
+    for i, g in enumerate(gauges):
+        kind = g.get("kind")
+        if kind in ("height", "pressure") and g.get("position_m") is None:
+            v.err(f"output.gauges[{i}].position_m", f"a '{kind}' gauge needs a position")
+        if kind != "force":
+            for key in ("block", "direction"):
+                if g.get(key) is not None:
+                    v.err(f"output.gauges[{i}].{key}", f"only a 'force' gauge has a {key} (this one is '{kind}')")
+            continue
+        bn, d = g.get("block"), g.get("direction")
+        if bn is None:
+            v.err(f"output.gauges[{i}].block", "a 'force' gauge needs the name of the block it reads")
+        elif isinstance(bn, str) and not any(isinstance(e, str) and block_name_matches(bn, e) for e in names):
+            v.err(f"output.gauges[{i}].block", f"{bn!r} is not the name of a block; the scene's blocks: "
+                                               f"{', '.join(repr(e) for e in names) or 'none'}")
+        if d is None:
+            v.err(f"output.gauges[{i}].direction", "a 'force' gauge needs the direction it reads along, e.g. "
+                                                   f"{[0.0] * (v.dim - 1) + [1.0]} for the vertical")
+        elif isinstance(d, (list, tuple)) and all(isinstance(c, (int, float)) for c in d) and not any(d):
+            v.err(f"output.gauges[{i}].direction", f"{list(d)}: the direction must not be zero")
+        if g.get("position_m") is not None:
+            v.err(f"output.gauges[{i}].position_m", "a 'force' gauge reads a whole block: no position")
     t, fl = s["tank"], s["fluid"]
     if fl is None and gauges:
-        v.err("output.gauges", "needs water: the scene has no [fluid] section and gauges read the water (height and "
-                               "pressure); remove the [[output.gauges]] entries or add water")
+        v.err("output.gauges", "needs water: the scene has no [fluid] section and gauges read the water (height, "
+                               "pressure and force); remove the [[output.gauges]] entries or add water")
         return
     box = _box_of(t) if t is not None else None
     if box is None or fl is None or not fl.get("spacing_m") or not gauges:

@@ -25,10 +25,124 @@ import math
 import numpy as np
 import warp as wp
 
-from rockwave.base.maths import pad3
+from rockwave.base.maths import pad3, quat_to_matrix
 from rockwave.coupling.penalty import block_signed_distance
 from rockwave.kernels.sim import readers as gauge_k
 from rockwave.kernels.sph import fluid as sph
+
+
+def face_samples(geometry, dim: int, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points on a convex block's faces in its body frame and the area vector A_k n_k (outward) each stands for,
+    about ``step`` apart: 3D, every face's fan triangles cut into m^2 similar triangles (m = ceil(longest edge /
+    step)), one point at each centroid; 2D (a prism along z, the water in the x-y plane at z = 0), the side faces'
+    edges in the x-y plane cut into ceil(length / step) pieces, one point at each middle, per metre of depth (the
+    end caps carry no water)."""
+    pts, areas = [], []
+    V = np.asarray(geometry.vertices, float)
+    for f, n in zip(geometry.faces, np.asarray(geometry.face_normals, float)):
+        loop = V[np.asarray(f)]
+        if dim == 2:
+            if abs(n[2]) > 0.5:
+                continue
+            xy = np.unique(np.round(loop[:, :2], 12), axis=0)
+            if len(xy) != 2:  # (a side face of a prism has two distinct x-y corners)
+                continue
+            a, b = xy
+            length = float(np.linalg.norm(b - a))
+            m = max(1, math.ceil(length / step))
+            t = (np.arange(m) + 0.5) / m
+            seg = a[None, :] + t[:, None] * (b - a)[None, :]
+            pts.append(np.column_stack([seg, np.zeros(m)]))
+            nxy = np.array([n[0], n[1], 0.0]) / max(math.hypot(n[0], n[1]), 1e-30)
+            areas.append(np.repeat((length / m) * nxy[None, :], m, axis=0))
+            continue
+        for i in range(1, len(loop) - 1):
+            p0, e1, e2 = loop[0], loop[i] - loop[0], loop[i + 1] - loop[0]
+            area = 0.5 * float(np.linalg.norm(np.cross(e1, e2)))
+            m = max(1, math.ceil(max(np.linalg.norm(e1), np.linalg.norm(e2), np.linalg.norm(e2 - e1)) / step))
+            ab = []
+            for u in range(m):  # the m^2 sub-triangles' centroids in (e1, e2) coordinates
+                for v in range(m - u):
+                    ab.append(((u + 1.0 / 3.0) / m, (v + 1.0 / 3.0) / m))
+                    if v < m - u - 1:
+                        ab.append(((u + 2.0 / 3.0) / m, (v + 2.0 / 3.0) / m))
+            ab = np.asarray(ab)
+            pts.append(p0[None, :] + ab[:, :1] * e1[None, :] + ab[:, 1:] * e2[None, :])
+            areas.append(np.repeat((area / (m * m)) * n[None, :], len(ab), axis=0))
+    if not pts:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    return np.concatenate(pts), np.concatenate(areas)
+
+
+class ForceGauges:
+    """Force gauges (``[[output.gauges]]`` kind 'force'): the water's pressure force on a block along a direction,
+    F . e = -sum_k p(x_k) A_k (n_k . e) over points x_k on the block's faces (face_samples, half a particle spacing
+    apart), posed with the block now (a deformable block's strain is not followed). p(x_k) is the Shepard
+    interpolation over the fluid and, with Adami walls, the wall particles (kernels/sim/readers.py
+    surface_pressure); a point where the water fills less than WET_MIN of the kernel support reads 0 (a face on the
+    floor, pressed on another block or above the water). With Adami walls on the block (coupling.block_walls, or a
+    fixed block) the interpolation is centred on the face and still water gives Archimedes' force (test:
+    tests/test_force_gauges.py); other wall kinds read the pressure of the water half a support off the face.
+    Viscous shear is not included (SPH's artificial viscosity carries no physical shear stress). 2D: N per metre
+    of depth. A multi-part block (mesh) sums its parts' faces; faces shared by two parts are dry."""
+
+    WET_MIN = 0.1
+
+    def __init__(self, gauges, rows: list[int], fluid, blocks, device, dim: int):
+        self.rows, self.fluid, self.blocks, self.device, self.dim = rows, fluid, blocks, device, dim
+        names = blocks.names if blocks is not None else []
+        pts, areas, part, owner = [], [], [], []
+        self.direction = np.zeros((len(rows), 3))
+        for gi, g in enumerate(gauges):
+            parts = [b for b, nm in enumerate(names) if nm == g.block or nm.startswith(g.block + ".part")]
+            if not parts:
+                raise ValueError(f"force gauge {g.name!r}: no block named {g.block!r}")
+            e = pad3(g.direction)
+            self.direction[gi] = np.asarray(e, float) / np.linalg.norm(e)
+            for b in parts:
+                r, a = face_samples(blocks.specs[b].geometry, dim, 0.5 * fluid.spacing)
+                pts.append(r)
+                areas.append(a)
+                part.append(np.full(len(r), b))
+                owner.append(np.full(len(r), gi))
+        self.body_r = np.concatenate(pts)
+        self.body_a = np.concatenate(areas)
+        self.part = np.concatenate(part)
+        self.owner = np.concatenate(owner)
+        self.points = wp.zeros(len(self.body_r), dtype=wp.vec3, device=device)
+        self.p = wp.zeros(len(self.body_r), dtype=float, device=device)
+        self.grid = wp.HashGrid(128, 128, 128 if dim == 3 else 1, device=device)
+
+    def world(self, block_state) -> tuple[np.ndarray, np.ndarray]:
+        """The sample points and their area vectors posed with the blocks now."""
+        x = block_state.positions_numpy().astype(np.float64)
+        q = block_state.orientations_numpy().astype(np.float64)
+        R = np.stack([quat_to_matrix(qq) for qq in q])[self.part]
+        pts = x[self.part] + np.einsum("kij,kj->ki", R, self.body_r)
+        if self.dim == 2:
+            pts[:, 2] = 0.0
+        return pts, np.einsum("kij,kj->ki", R, self.body_a)
+
+    def pressures(self, state, block_state) -> tuple[np.ndarray, np.ndarray]:
+        """(p at every sample point [Pa], the posed area vectors)."""
+        m = self.fluid
+        pts, areas = self.world(block_state)
+        self.points.assign(pts.astype(np.float32))
+        n_all = m.n_fluid + m.n_boundary
+        self.grid.build(state.x, m.support_radius)
+        adami = int(m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary > 0)
+        wp.launch(gauge_k.surface_pressure, dim=len(pts),
+                  inputs=[self.grid.id, state.x, state.rho, state.pressure, state.wall_pressure, m.particle_mass, adami,
+                          n_all, self.points, m.params, self.WET_MIN], outputs=[self.p], device=self.device)
+        return self.p.numpy().astype(np.float64), areas
+
+    def read(self, state, block_state) -> np.ndarray:
+        """Each gauge's force along its direction [N; 2D N/m]."""
+        p, areas = self.pressures(state, block_state)
+        f = -(p[:, None] * areas)  # the water pushes on a face against its outward normal
+        out = np.zeros(len(self.rows))
+        np.add.at(out, self.owner, np.einsum("kj,kj->k", f, self.direction[self.owner]))
+        return out
 
 
 class Gauges:
@@ -62,8 +176,12 @@ class Gauges:
         self.fluid = fluid
         self.up = up = scene.dim - 1
         n = len(g)
-        self.pos = wp.array(np.asarray([pad3(gg.position_m) for gg in g] or np.zeros((0, 3)), dtype=np.float32),
-                            dtype=wp.vec3, device=device)
+        forces = [i for i, gg in enumerate(g) if gg.kind == "force"]
+        self.block_state = block_state
+        self.forces = (ForceGauges([g[i] for i in forces], forces, fluid, blocks, device, scene.dim)
+                       if forces else None)
+        self.pos = wp.array(np.asarray([pad3(gg.position_m) if gg.kind != "force" else (0.0, 0.0, 0.0) for gg in g]
+                                       or np.zeros((0, 3)), dtype=np.float32), dtype=wp.vec3, device=device)
         heights = [gg.kind == "height" for gg in g]
         self.is_height = wp.array(np.array(heights or [0], dtype=np.int32), dtype=int, device=device)
         lo, hi = float(fluid.domain_lo[up]), float(fluid.domain_hi[up])
@@ -130,9 +248,12 @@ class Gauges:
         wp.launch(gauge_k.gauge_pressure, dim=n, inputs=[self.sums], outputs=[self.out], device=d)
         self.launch_levels(state)
         names = self.names
+        forces = None
+        if self.forces is not None:  # (read at once: the blocks' poses come to the host for the sample points)
+            forces = dict(zip(self.forces.rows, self.forces.read(state, self.block_state)))
 
         def finish(vals):
-            return {name: float(vals[i]) for i, name in enumerate(names)}
+            return {name: float(forces[i] if forces and i in forces else vals[i]) for i, name in enumerate(names)}
 
         self.hosts.reverse()
         return _queue_copy(self.hosts[0], self.out, n, d, finish)

@@ -333,8 +333,8 @@ class Simulation:
         return e
 
     def gauges(self) -> dict[str, float]:
-        """Current gauge readings by name: 'height' gauges in m (NaN when dry), 'pressure' gauges in Pa
-        (rockwave/sim/readers.py Gauges, evaluated on the device)."""
+        """Current gauge readings by name: 'height' gauges in m (NaN when dry), 'pressure' gauges in Pa, 'force'
+        gauges in N (2D: N per metre) (rockwave/sim/readers.py Gauges, evaluated on the device)."""
         return self.readers.gauges()
 
     def check_health(self, x: np.ndarray, v: np.ndarray) -> int:
