@@ -273,3 +273,43 @@ material = {{ friction_angle_deg = {ALPHA + 0.1}, normal_stiffness_n_m = 1e8, sh
         assert t != text
         sim = rockwave.Simulation(parse_scene(tomllib.loads(t), "slope.toml"), device=DEVICE)
         assert sim.block_solver.start_report["settled_blocks"] == 0, sim.block_solver.start_report
+
+
+def test_a_toppling_block_is_released_as_placed_and_the_others_settle():
+    # one slope, three blocks: a 1 m cube resting 0.1 deg below its friction limit, a 0.4 x 0.4 x 1.6 m column
+    # resting on it past its toppling limit (h/w 4 > 1 / tan 35 = 1.43) and a cube thrown through the air. The
+    # column leaves its place with friction locked: it is held while the cube settles, then released as placed
+    # (before: the whole scene fell back to the plain start); the thrown cube keeps its velocity (before: zeroed
+    # with the settled blocks'). The settled cube then stays: < 1 um/s over the last second of 2 s.
+    R = rot_y(ALPHA)
+    n, d = R @ [0.0, 0.0, 1.0], R @ [1.0, 0.0, 0.0]
+    mat = ContactMaterial(friction_angle_deg=ALPHA + 0.1, normal_stiffness=1.0e8, shear_stiffness=1.0e8)
+    slab = (12.0, 3.0, 0.5)
+    specs = [BlockSpec(G.box(slab), kind="fixed", orientation=quat_y(ALPHA), material=mat, name="slab"),
+             BlockSpec(G.box((1.0, 1.0, 1.0)), position=tuple(-3.0 * d + 0.75 * n), orientation=quat_y(ALPHA),
+                       density=RHO, material=mat, name="cube"),
+             BlockSpec(G.box((0.4, 0.4, 1.6)), position=tuple(3.0 * d + 1.05 * n), orientation=quat_y(ALPHA),
+                       density=RHO, material=mat, name="column"),
+             BlockSpec(G.box((0.3, 0.3, 0.3)), position=(0.0, 0.0, 3.0), velocity=(1.0, 0.0, 0.0), density=RHO,
+                       material=mat, name="thrown")]
+    model = BlockModel(specs, device=DEVICE)
+    solver = BlockSolver(model, options=BlockOptions(start="settled"))
+    state = model.state()
+    with pytest.warns(UserWarning, match="column"):
+        rep = solver.settle(state)
+    assert rep["start"] == "settled" and rep["converged"] and rep["released_as_placed"] == ["column"], rep
+    assert rep["settled_blocks"] == 1, rep
+    assert np.allclose(state.velocities_numpy()[3], [1.0, 0.0, 0.0]), state.velocities_numpy()[3]
+    assert np.allclose(state.positions_numpy()[2], model.base_position[2], atol=1e-6)  # the column as placed
+    dt = solver.stable_dt(state)
+    dta = wp.array([dt], dtype=float, device=DEVICE)
+    x_window = None
+    for i in range(int(round(2.0 / dt))):
+        solver.step(state, TimeStep(dt, state.time, dta))
+        if x_window is None and state.time >= 1.0:
+            x_window = state.positions_numpy()[1].copy()
+    creep = float((state.positions_numpy()[1] - x_window) @ d)
+    assert abs(creep) < 1.0e-6, creep
+    q = state.orientations_numpy()[2]
+    tilt = 2.0 * math.acos(min(1.0, abs(float(np.dot(q, quat_y(ALPHA))))))
+    assert tilt > 0.1, tilt  # the column topples (from where it was put)
