@@ -29,14 +29,20 @@ def test_face_samples_integrate_area_and_closure():
     assert -(pts[:, 2] * a[:, 2]).sum() == pytest.approx(-g.volume, rel=1e-9)
 
 
-def test_submerged_fixed_block_feels_archimedes_force():
-    # a 0.1 x 0.1 m fixed block (Adami walls) in the middle of 0.4 m of still water (2D, 0.01 m): the water's
-    # vertical force on it is rho g A = 98.1 N/m (Archimedes; measured +2.1%, 100.2 N/m, over 0.1-0.6 s) and the
-    # sideways one nil (measured < 0.04 N/m)
+@pytest.mark.parametrize("solid", ["block", "obstacle"])
+def test_submerged_fixed_block_feels_archimedes_force(solid):
+    # a 0.1 x 0.1 m fixed block (Adami walls), or a box obstacle (boundary particles), in the middle of 0.4 m of
+    # still water (2D, 0.01 m): the water's vertical force on it is rho g A = 98.1 N/m (Archimedes; measured on
+    # the block +2.1%, 100.2 N/m, over 0.1-0.6 s) and the sideways one nil (measured < 0.04 N/m)
     d = tank_2d(width=0.6, depth=0.4, height=0.5, spacing=0.01)
-    d["blocks"] = [{"name": "rock", "shape": "box", "kind": "fixed", "size_m": [0.1, 0.1, 0.1], "position_m": [0.3, 0.2, 0.0]}]
-    d["output"] = {"gauges": [{"name": "lift", "kind": "force", "block": "rock", "direction": [0.0, 2.0]},
-                              {"name": "push", "kind": "force", "block": "rock", "direction": [1.0, 0.0]}]}
+    if solid == "block":
+        d["blocks"] = [{"name": "rock", "shape": "box", "kind": "fixed", "size_m": [0.1, 0.1, 0.1], "position_m": [0.3, 0.2, 0.0]}]
+        name = "rock"
+    else:
+        d["obstacles"] = [{"box_min_m": [0.25, 0.15], "box_max_m": [0.35, 0.25]}]
+        name = "obstacle.0"
+    d["output"] = {"gauges": [{"name": "lift", "kind": "force", "block": name, "direction": [0.0, 2.0]},
+                              {"name": "push", "kind": "force", "block": name, "direction": [1.0, 0.0]}]}
     sim = rockwave.Simulation(parse_scene(d, "tank.toml"), device=DEVICE)
     lift, push = [], []
     for _ in range(6):
@@ -66,6 +72,7 @@ def test_floating_box_is_carried_by_its_weight():
 @pytest.mark.parametrize("gauge, key, words", [
     ({"kind": "force", "direction": [0.0, 1.0]}, "output.gauges[0].block", "needs the name"),
     ({"kind": "force", "block": "nope", "direction": [0.0, 1.0]}, "output.gauges[0].block", "not the name of a block"),
+    ({"kind": "force", "block": "obstacle.3", "direction": [0.0, 1.0]}, "output.gauges[0].block", "box obstacles: none"),
     ({"kind": "force", "block": "rock"}, "output.gauges[0].direction", "needs the direction"),
     ({"kind": "force", "block": "rock", "direction": [0.0, 0.0]}, "output.gauges[0].direction", "must not be zero"),
     ({"kind": "force", "block": "rock", "direction": [0.0, 1.0], "position_m": [0.1, 0.1]}, "output.gauges[0].position_m",

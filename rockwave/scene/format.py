@@ -302,7 +302,7 @@ SCHEMA: dict[str, Key] = {
                      name=Key("str", "column name in the CSV", required=True),
                      kind=Key("str", "'height': water level on position_m's vertical line, the top of the continuous water column from the bed: where the kernel-interpolated water fraction, going up from the first point where it reaches 0.5, drops below 0.5 (water overhead with air between, such as spray or a jet, does not count; NaN when dry; rockwave/sim/readers.py Gauges); 'pressure': SPH-interpolated (Shepard) pressure at position_m; 'force': the water's pressure force on a block along direction [N; 2D: N per metre of depth], the pressure integrated over the block's faces (rockwave/sim/readers.py ForceGauges; docs/outputs.md 'Force gauges')", required=True, choices=("height", "pressure", "force")),
                      position_m=Key("vec", "probe position, for 'height' and 'pressure' (for 'height' the vertical coordinate is ignored: the line runs from below the tank floor to one domain height above the top)", length="dim"),
-                     block=Key("str", "for 'force': the block's name (an array's blocks are name_0, name_1, ...; a multi-part mesh block counts whole)"),
+                     block=Key("str", "for 'force': the block's name (an array's blocks are name_0, name_1, ...; a multi-part mesh block counts whole), or 'obstacle.<i>' for the box obstacle obstacles[i]"),
                      direction=Key("vec", "for 'force': the direction the force is read along (any length; e.g. [0, 1] for the vertical in 2D)", length="dim")),
         surface=_sec("fluid surface for rendering: a scalar field of the particles on a grid, isosurface by marching cubes (3D mesh /World/fluid_surface) or marching squares (2D contour curves)",
                      enabled=Key("bool", "write the surface into the USD stage (and the ParaView series)", default=True),
@@ -903,8 +903,11 @@ def _check_gauges(v: _Validator, s: Node) -> None:
         if bn is None:
             v.err(f"output.gauges[{i}].block", "a 'force' gauge needs the name of the block it reads")
         elif isinstance(bn, str) and not any(isinstance(e, str) and block_name_matches(bn, e) for e in names):
-            v.err(f"output.gauges[{i}].block", f"{bn!r} is not the name of a block; the scene's blocks: "
-                                               f"{', '.join(repr(e) for e in names) or 'none'}")
+            boxes = [f"obstacle.{k}" for k, ob in enumerate(s.get("obstacles") or []) if ob.get("box_min_m") is not None]
+            if bn not in boxes:
+                v.err(f"output.gauges[{i}].block", f"{bn!r} is not the name of a block or a box obstacle; the scene's "
+                                                   f"blocks: {', '.join(repr(e) for e in names) or 'none'}; box "
+                                                   f"obstacles: {', '.join(repr(e) for e in boxes) or 'none'}")
         if d is None:
             v.err(f"output.gauges[{i}].direction", "a 'force' gauge needs the direction it reads along, e.g. "
                                                    f"{[0.0] * (v.dim - 1) + [1.0]} for the vertical")

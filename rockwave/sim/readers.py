@@ -27,6 +27,7 @@ import warp as wp
 
 from rockwave.base.maths import pad3, quat_to_matrix
 from rockwave.coupling.penalty import block_signed_distance
+from rockwave.dda.geometry import box, shifted
 from rockwave.kernels.sim import readers as gauge_k
 from rockwave.kernels.sph import fluid as sph
 
@@ -88,19 +89,26 @@ class ForceGauges:
 
     WET_MIN = 0.1
 
-    def __init__(self, gauges, rows: list[int], fluid, blocks, device, dim: int):
+    def __init__(self, gauges, rows: list[int], fluid, blocks, device, dim: int, obstacles=()):
         self.rows, self.fluid, self.blocks, self.device, self.dim = rows, fluid, blocks, device, dim
         names = blocks.names if blocks is not None else []
         pts, areas, part, owner = [], [], [], []
         self.direction = np.zeros((len(rows), 3))
         for gi, g in enumerate(gauges):
             parts = [b for b, nm in enumerate(names) if nm == g.block or nm.startswith(g.block + ".part")]
-            if not parts:
-                raise ValueError(f"force gauge {g.name!r}: no block named {g.block!r}")
             e = pad3(g.direction)
             self.direction[gi] = np.asarray(e, float) / np.linalg.norm(e)
-            for b in parts:
-                r, a = face_samples(blocks.specs[b].geometry, dim, 0.5 * fluid.spacing)
+            shapes = [(blocks.specs[b].geometry, b) for b in parts]
+            if not parts and g.block.startswith("obstacle."):  # a box obstacle: fixed, sampled where it lies (part -1)
+                k = int(g.block.split(".", 1)[1])
+                lo, hi = np.asarray(pad3(obstacles[k].box_min_m), float), np.asarray(pad3(obstacles[k].box_max_m), float)
+                if dim == 2:
+                    lo[2], hi[2] = -0.5, 0.5
+                shapes = [(shifted(box(hi - lo), 0.5 * (lo + hi)), -1)]
+            if not shapes:
+                raise ValueError(f"force gauge {g.name!r}: no block named {g.block!r}")
+            for geom, b in shapes:
+                r, a = face_samples(geom, dim, 0.5 * fluid.spacing)
                 pts.append(r)
                 areas.append(a)
                 part.append(np.full(len(r), b))
@@ -115,13 +123,17 @@ class ForceGauges:
 
     def world(self, block_state) -> tuple[np.ndarray, np.ndarray]:
         """The sample points and their area vectors posed with the blocks now."""
-        x = block_state.positions_numpy().astype(np.float64)
-        q = block_state.orientations_numpy().astype(np.float64)
-        R = np.stack([quat_to_matrix(qq) for qq in q])[self.part]
-        pts = x[self.part] + np.einsum("kij,kj->ki", R, self.body_r)
+        pts, areas = self.body_r.copy(), self.body_a.copy()  # part -1: a box obstacle, in the world frame
+        moving = self.part >= 0
+        if moving.any():
+            x = block_state.positions_numpy().astype(np.float64)
+            q = block_state.orientations_numpy().astype(np.float64)
+            R = np.stack([quat_to_matrix(qq) for qq in q])[self.part[moving]]
+            pts[moving] = x[self.part[moving]] + np.einsum("kij,kj->ki", R, self.body_r[moving])
+            areas[moving] = np.einsum("kij,kj->ki", R, self.body_a[moving])
         if self.dim == 2:
             pts[:, 2] = 0.0
-        return pts, np.einsum("kij,kj->ki", R, self.body_a)
+        return pts, areas
 
     def pressures(self, state, block_state) -> tuple[np.ndarray, np.ndarray]:
         """(p at every sample point [Pa], the posed area vectors)."""
@@ -178,7 +190,7 @@ class Gauges:
         n = len(g)
         forces = [i for i, gg in enumerate(g) if gg.kind == "force"]
         self.block_state = block_state
-        self.forces = (ForceGauges([g[i] for i in forces], forces, fluid, blocks, device, scene.dim)
+        self.forces = (ForceGauges([g[i] for i in forces], forces, fluid, blocks, device, scene.dim, scene.obstacles)
                        if forces else None)
         self.pos = wp.array(np.asarray([pad3(gg.position_m) if gg.kind != "force" else (0.0, 0.0, 0.0) for gg in g]
                                        or np.zeros((0, 3)), dtype=np.float32), dtype=wp.vec3, device=device)
