@@ -82,6 +82,39 @@ def test_scene_maker_puts_the_slide_at_the_requested_numbers(alpha):
     assert setup["slide_mass_kg_m"] == pytest.approx(M * 1000.0 * h * h, rel=1e-12)
 
 
+@pytest.mark.parametrize("alpha, front", [(30.0, 30.0), (60.0, 45.0)])
+def test_scene_maker_front_angle_keeps_the_slide_numbers(alpha, front):
+    """front_deg < 90: a trapezoidal slide of the same thickness and area as the box (so F, S, M and P are the
+    same), its base on the slope from the shoreline up, its front face at front_deg to the base; 90 is the box."""
+    h, F, S, M, D = 0.2, 2.5, 0.4, 1.0, 2.0
+    params = {"froude": F, "thickness": S, "mass": M, "slope_deg": alpha, "depth_m": h, "front_deg": front}
+    assert ImpulseChannel2D.check(params) == []
+    scene, setup = ImpulseChannel2D.scene(params)
+    slide = next(b for b in scene["blocks"] if b["name"] == "slide")
+    assert slide["shape"] == "prism"
+    pts = np.unique(np.round(np.asarray(slide["vertices_m"])[:, :2], 12), axis=0)
+    a = math.radians(alpha)
+    t, n = np.array([math.cos(a), -math.sin(a)]), np.array([math.sin(a), math.cos(a)])
+    uw = np.array([[(p - [0.0, h]) @ t, (p - [0.0, h]) @ n] for p in pts])  # slope coordinates from the shoreline
+    order = np.argsort(np.arctan2(uw[:, 1] - uw[:, 1].mean(), uw[:, 0] - uw[:, 0].mean()))
+    u, w = uw[order, 0], uw[order, 1]
+    area = 0.5 * abs(np.dot(u, np.roll(w, 1)) - np.dot(w, np.roll(u, 1)))  # shoelace
+    # M = rho_s A / (rho_w h^2) per unit width and S = s / h exactly as the box's: P unchanged
+    assert D * 1000.0 * area / (1000.0 * h * h) == pytest.approx(M, rel=1e-9)
+    assert w.max() == pytest.approx(S * h, rel=1e-12) and w.min() == pytest.approx(0.0, abs=1e-12)
+    assert u.max() == pytest.approx(0.0, abs=1e-12)  # the front lower corner at the shoreline, the slide up-slope
+    # the front face: from (0, 0) to (-s / tan(front), s)
+    top_front = uw[np.argmax(uw[:, 0] + 10 * uw[:, 1])]
+    assert math.degrees(math.atan2(top_front[1], -top_front[0])) == pytest.approx(front, abs=1e-9)
+    assert setup["front_deg"] == front and setup["slide_mass_kg_m"] == pytest.approx(M * 1000.0 * h * h, rel=1e-12)
+    v = np.asarray(slide["velocity_m_s"][:2])
+    assert np.linalg.norm(v) / math.sqrt(9.81 * h) == pytest.approx(F, rel=1e-12)
+    # 90 degrees is the box (the shipped studies' slide, unchanged)
+    box = next(b for b in ImpulseChannel2D.scene({**params, "front_deg": 90.0})[0]["blocks"] if b["name"] == "slide")
+    assert box["shape"] == "box" and box["size_m"][0] == pytest.approx(M * h / (D * S), rel=1e-12)
+    assert [k for k, _ in ImpulseChannel2D.check({**params, "front_deg": 5.0})] == ["front_deg"]
+
+
 def test_shipped_studies_validate_and_a_bad_generator_parameter_is_named(tmp_path):
     for name, n in (("impulse_2d", 16), ("impulse_2d_convergence", 12)):
         st = load_study(shipped_studies_dir() / f"{name}.toml", tmp_path / name)
