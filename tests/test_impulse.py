@@ -116,7 +116,7 @@ def test_scene_maker_front_angle_keeps_the_slide_numbers(alpha, front):
 
 
 def test_shipped_studies_validate_and_a_bad_generator_parameter_is_named(tmp_path):
-    for name, n in (("impulse_2d", 16), ("impulse_2d_convergence", 12)):
+    for name, n in (("impulse_2d", 16), ("impulse_2d_convergence", 12), ("impulse_2d_front", 12)):
         st = load_study(shipped_studies_dir() / f"{name}.toml", tmp_path / name)
         assert len(st.scenarios) == n and st.generator == "impulse_2d"
     bad = tmp_path / "bad.toml"
