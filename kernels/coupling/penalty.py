@@ -12,7 +12,8 @@ of action, so angular momentum is conserved too), goes to the block's ext_force 
 
 Squeeze-out (rockwave/coupling/penalty.py): a particle touching a block face and pinched by an opposing
 solid face within the gap w_s = 2 d0 + H gets its normal force turned to mag (n + lambda t), t the way
-out of the gap (towards the nearest side face of the moving block), lambda = (w_s - w)/(w_s - 2 d0);
+out of the gap (towards the nearest side face of the moving block; none if the other face closes the gap
+before it: a wedge's apex), lambda = (w_s - w)/(w_s - 2 d0);
 the film drains and a block can settle on a floor or on another block.
 
 Broad phase ("a scene pays only for what it contains"): each block's AABB, grown by max(d0, w_s), is clipped
@@ -237,6 +238,9 @@ def fill_buckets(grid: CouplingGrid):
 
 PINCH_COS = wp.constant(0.7071)  # two faces oppose (pinch a gap) when n_a . n_b < -cos 45 deg
 SIDE_COS = wp.constant(0.7071)  # exit faces of the moving block: |n_k . n| < cos 45 deg (its sides)
+WEDGE_SIN = wp.constant(0.3827)  # a pinch is a wedge, not a film, when its faces open at more than half the pinch
+# cone's 45 deg: sin 22.5 deg (a block landing on a floor stays below it; a box's front face over the floor at the toe
+# of a 60 deg plane opens at 30 deg)
 
 
 @wp.func
@@ -276,7 +280,8 @@ def exit_direction(
     plane_d: wp.array(dtype=float),
 ):
     """Unit direction, in the plane of block b's face with normal n, towards the nearest side face of
-    b (the shortest way out of the gap under that face); zero if b has no such side face."""
+    b (the shortest way out of the gap under that face; zero if b has no such side face), and the distance to
+    that side face's plane along the face (0 when the point is beyond it)."""
     fs = face_start[b]
     best = float(-BIG)
     t = wp.vec3(0.0)
@@ -288,9 +293,11 @@ def exit_direction(
             if e > best:
                 best = e
                 t = nk - c * n
+    edge = float(0.0)
     if wp.length(t) > 0.0:
+        edge = wp.max(-best, 0.0) / wp.length(t)  # the side face's plane reached along the face, not along its normal
         t = wp.normalize(t)
-    return t
+    return t, edge
 
 
 @wp.func
@@ -457,13 +464,28 @@ def particle_block_forces(
         if bb >= 0:
             # the block that moves sets the way out (the nearest edge of its face); two walls: none
             t = wp.vec3(0.0)
+            edge = float(0.0)
             bm = int(-1)
             if kinds[ba] != KIND_FIXED:
-                t = exit_direction(ba, xi, na, face_start, face_count, plane_n, plane_d)
+                t, edge = exit_direction(ba, xi, na, face_start, face_count, plane_n, plane_d)
                 bm = ba
             elif kinds[bb] != KIND_FIXED:
-                t = exit_direction(bb, xi, nb, face_start, face_count, plane_n, plane_d)
+                t, edge = exit_direction(bb, xi, nb, face_start, face_count, plane_n, plane_d)
                 bm = bb
+            # a wedge (its faces open at more than 22.5 deg), not a film: t lies in the moving face's plane; if the
+            # way along t runs into the other face (its distance d_o + s t.n_o reaches 0) before it passes the moving
+            # face's edge (s = edge), that edge is the wedge's apex, not a way out, and there is no push (a block's
+            # front face leaning over the floor it rests on: pushing the water into the apex pressed it through the
+            # floor, docs/notes.md 'Why the box slides read +100%'). A film (faces within 22.5 deg of parallel) is
+            # squeezed as before.
+            n_o = nb
+            d_o = db
+            if bm == bb:
+                n_o = na
+                d_o = da
+            g = wp.dot(t, n_o)
+            if g < -WEDGE_SIN and d_o < -g * edge:
+                t = wp.vec3(0.0)
             w = wp.max(da + db, 2.0 * p.d0)
             lam = wp.min(1.0, (p.squeeze_gap - w) / wp.max(p.squeeze_gap - 2.0 * p.d0, 1.0e-12))
             if bm >= 0:

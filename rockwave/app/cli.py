@@ -131,7 +131,7 @@ def _parser() -> argparse.ArgumentParser:
     sw = sub.add_parser("sweep", help="run a scenario study: a base scene with keys varied (grid, random or Latin hypercube), "
                         "each scenario's hazard summary in one table (rockwave/app/sweep.py)")
     sw.add_argument("study", help="study TOML file ([study] scene or generator, results, sample; [[vary]] key, values or "
-                    "range), or the name of a shipped study (scenes/studies/: impulse_2d, impulse_2d_convergence)")
+                    "range), or the name of a shipped study (scenes/studies/: impulse_2d, impulse_2d_convergence, impulse_2d_front)")
     sw.add_argument("--out", default=None, help="result folder (default: the study's results)")
     sw.add_argument("--workers", type=int, default=None, help="local workers (default: one per GPU, else the CPU count)")
     sw.add_argument("--ray", default=None, metavar="ADDRESS", help="run on a Ray cluster ('auto', 'ray://HOST:10001'; "

@@ -18,6 +18,10 @@ impulse product parameter P. The slide is set by its dimensionless numbers:
   block's length along the slope is l = M h / (D S); a block with l/s < tan(alpha) would tip over its front edge
   (the base friction that balances gravity acts below its centroid) and is refused;
 - ``slope_deg`` alpha;
+- ``front_deg``: the angle between the slide's front face and its base (default 90: a box, whose front face at
+  alpha < 90 deg leans forward over the water by s sin(alpha)); below 90 the slide is a trapezoid of the same
+  thickness and area (its base lengthened by s / (2 tan(front))), so F, S, M and P do not change. The
+  relations carry no slide shape, and a rigid block's near-field wave depends on it (docs/validation.md);
 - ``layers``: particles per water depth (the resolution: spacing = h / layers).
 
 The channel (its floor a fixed block, the tank around it) runs from the impact point (the still shoreline, x = 0) to
@@ -44,7 +48,7 @@ class ImpulseChannel2D:
     PARAMS = {"froude": None, "thickness": None, "mass": None, "slope_deg": None, "layers": 16, "depth_m": 0.2,
               "density_ratio": 2.0, "gauge_step": 0.5, "gauge_min": 2.0, "gauge_max": 15.0,
               "normal_stiffness_n_m": 1.0e6, "fidelity": "standard", "block_walls": True,
-              "sound_speed_factor": 10.0}
+              "sound_speed_factor": 10.0, "front_deg": 90.0}
 
     @classmethod
     def check(cls, params: dict, partial: bool = False) -> list[tuple[str, str]]:
@@ -74,7 +78,17 @@ class ImpulseChannel2D:
             bad.append(("layers", "at least 4 particles per depth"))
         if not bad and float(params.get("gauge_min", cls.PARAMS["gauge_min"])) > float(params.get("gauge_max", cls.PARAMS["gauge_max"])):
             bad.append(("gauge_min", "the first gauge lies beyond the last (gauge_max)"))
+        if not bad and not 10.0 <= float(params.get("front_deg", cls.PARAMS["front_deg"])) <= 90.0:
+            bad.append(("front_deg", f"{float(params['front_deg']):g}: the front face's angle to the slide's base, "
+                                     "between 10 and 90 degrees (90: a box)"))
         need = ("thickness", "mass", "slope_deg")
+        if not bad and all(params.get(k) is not None for k in need):
+            S, M = float(params["thickness"]), float(params["mass"])
+            D = float(params.get("density_ratio", cls.PARAMS["density_ratio"]))
+            beta = math.radians(float(params.get("front_deg", cls.PARAMS["front_deg"])))
+            if beta < 0.5 * math.pi and S / math.tan(beta) > _base_length(M / (D * S), S, beta):  # in units of h
+                bad.append(("front_deg", f"{math.degrees(beta):g}: the front taper s/tan(front) = "
+                                         f"{S / math.tan(beta):.3g} h is longer than the slide's base: raise M or the angle"))
         if not bad and all(params.get(k) is not None for k in need):
             # sliding with base friction = the driving force tips the block about its front edge unless the normal
             # force's shift (s/2) tan(alpha) stays within its half length: l/s >= tan(alpha), l = M h / (D S)
@@ -97,16 +111,18 @@ class ImpulseChannel2D:
         dx = h / float(p["layers"])
         V = F * math.sqrt(G * h)
         s = S * h
-        length = M * h / (D * S)  # M = D l s / h^2
+        length = M * h / (D * S)  # M = D l s / h^2: the box's length (front_deg = 90)
+        beta = math.radians(float(p["front_deg"]))
+        base = _base_length(length, s, beta)  # the base of the trapezoid of the same area l s (= the box's l at 90)
         ca, sa = math.cos(a), math.sin(a)
         t = (ca, -sa)  # down the slope
         n = (sa, ca)  # the slope's outward normal
         x_toe = h / math.tan(a)
         # the plane: a right triangle whose hypotenuse is the slope line y = h - x tan(alpha), from the floor to
         # a margin above the block's start
-        up = length + s + 4 * dx
+        up = base + s + 4 * dx
         x_top, y_top = -up * ca, h + up * sa
-        x_end = float(p["gauge_max"]) * h + 2.0 * h + length / F
+        x_end = float(p["gauge_max"]) * h + 2.0 * h + base / F
         y_max = y_top + s + 4 * dx
         # the channel floor is a fixed block, not the tank's floor: a block landing on it pinches water against a
         # face the coupling knows, and its squeeze-out pushes that water along the gap (the tank, solid to blocks,
@@ -118,12 +134,23 @@ class ImpulseChannel2D:
         c0 = float(p["sound_speed_factor"]) * max(V, math.sqrt(2.0 * G * h))
         mat = {"friction_angle_deg": float(p["slope_deg"]), "normal_stiffness_n_m": float(p["normal_stiffness_n_m"])}
         zd = 0.5 * Z_DEPTH
-        duration = length / V + (float(p["gauge_max"]) + 3.0) * math.sqrt(h / G)
+        duration = base / V + (float(p["gauge_max"]) + 3.0) * math.sqrt(h / G)
         xs = []
         X = float(p["gauge_min"])
         while X <= float(p["gauge_max"]) + 1e-9:
             xs.append(X)
             X += float(p["gauge_step"])
+        slide = {"name": "slide", "density_kg_m3": D * rho_w, "velocity_m_s": [V * t[0], V * t[1], 0.0],
+                 "material": dict(mat)}
+        if beta >= 0.5 * math.pi - 1e-9:  # the box
+            slide.update({"shape": "box", "size_m": [length, s, Z_DEPTH], "position_m": [cx, cy, 0.0],
+                          "orientation_deg": [0.0, 0.0, -float(p["slope_deg"])]})
+        else:  # a trapezoid: base from u = -base to 0 along the slope (u: down-slope, w: out of the slope), top
+            # face from u = -base to -s/tan(front) at w = s; its front lower corner at the shoreline (0, h)
+            taper = s / math.tan(beta)
+            corners = [(-base, 0.0), (0.0, 0.0), (-taper, s), (-base, s)]
+            slide.update({"shape": "prism", "vertices_m": [[u * t[0] + w * n[0], h + u * t[1] + w * n[1], z]
+                                                            for u, w in corners for z in (-zd, zd)]})
         scene = {
             "simulation": {"dimension": 2, "duration_s": duration},
             "fluid": {"spacing_m": dx, "fidelity": p["fidelity"], "eos": {"type": "tait", "speed_of_sound_m_s": c0},
@@ -135,9 +162,7 @@ class ImpulseChannel2D:
                 {"name": "plane", "shape": "prism", "kind": "fixed", "material": dict(mat),
                  "vertices_m": [[x_toe, 0.0, -zd], [x_top, 0.0, -zd], [x_top, y_top, -zd],
                                 [x_toe, 0.0, zd], [x_top, 0.0, zd], [x_top, y_top, zd]]},
-                {"name": "slide", "shape": "box", "size_m": [length, s, Z_DEPTH], "position_m": [cx, cy, 0.0],
-                 "orientation_deg": [0.0, 0.0, -float(p["slope_deg"])], "density_kg_m3": D * rho_w,
-                 "velocity_m_s": [V * t[0], V * t[1], 0.0], "material": dict(mat)},
+                slide,
             ],
             "output": {"frame_rate_hz": 20.0},
             "hazard": {"sample_interval_s": 0.02 * math.sqrt(h / G),
@@ -147,7 +172,8 @@ class ImpulseChannel2D:
         if p["block_walls"]:
             scene["coupling"] = {"block_walls": True}
         setup = {"h_m": h, "x0_m": 0.0, "F": F, "S": S, "M": M, "alpha_deg": float(p["slope_deg"]), "D": D,
-                 "layers": float(p["layers"]), "spacing_m": dx, "slide_length_m": length, "slide_speed_m_s": V,
+                 "layers": float(p["layers"]), "spacing_m": dx, "slide_length_m": base, "front_deg": float(p["front_deg"]),
+                 "slide_speed_m_s": V,
                  "slide_mass_kg_m": D * rho_w * length * s, "slide_area_m2": length * s, "rho_w": rho_w,
                  "channel_length_m": x_end}
         return scene, setup
@@ -158,6 +184,12 @@ class ImpulseChannel2D:
         row["layers"] = setup["layers"]
         row["spacing_m"] = setup["spacing_m"]
         return row
+
+
+def _base_length(length: float, s: float, beta: float) -> float:
+    """The base of a trapezoidal slide of thickness s whose front face makes the angle beta with its base and whose
+    area equals the box's l s: l s = base s - s^2 / (2 tan beta), so base = l + s / (2 tan beta) (= l at 90 deg)."""
+    return length + (0.5 * s / math.tan(beta) if beta < 0.5 * math.pi - 1e-9 else 0.0)
 
 
 GENERATORS = {ImpulseChannel2D.name: ImpulseChannel2D}

@@ -735,7 +735,7 @@ def write_plots(study: Study, rows: list[dict]) -> list[Path]:
 # ----------------------------------------------------------------------------------- comparison table ----
 COMPARISON_COLUMNS = [  # (column, header, format)
     ("index", "#", "{}"), ("F", "F", "{:.2f}"), ("S", "S", "{:.2f}"), ("M", "M", "{:.2f}"), ("alpha_deg", "α °", "{:.0f}"),
-    ("P", "P", "{:.2f}"), ("layers", "h/dx", "{:.0f}"), ("a_M_pred_m", "a_M pred m", "{:.4f}"), ("a_M_m", "a_M m", "{:.4f}"),
+    ("front_deg", "front °", "{:.0f}"), ("P", "P", "{:.2f}"), ("layers", "h/dx", "{:.0f}"), ("a_M_pred_m", "a_M pred m", "{:.4f}"), ("a_M_m", "a_M m", "{:.4f}"),
     ("a_M_err", "a_M err", "{:+.1%}"), ("H_M_pred_m", "H_M pred m", "{:.4f}"), ("H_M_m", "H_M m", "{:.4f}"),
     ("H_M_err", "H_M err", "{:+.1%}"), ("x_M_pred_m", "x_M pred m", "{:.2f}"), ("x_M_m", "x_M m", "{:.2f}"),
     ("decay_H_mean_err", "H(x) err", "{:+.1%}"), ("decay_a_mean_err", "a(x) err", "{:+.1%}"), ("F_measured", "F meas.", "{:.2f}"),
