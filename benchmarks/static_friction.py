@@ -20,6 +20,7 @@ Measured at the centre of the block's base, along the dip:
   whose normal force is too small for its share of the shear slides until its spring sits at its cap, and the
   others carry more: the elastic deflection of the base is then its most loaded spring's);
 - ``creep_um_s``: displacement over the last ``creep_window`` s (10 s of a 60 s run) per second;
+- ``points_at_cap``: its contact points whose spring sits at the Coulomb cap at the end (sliding or about to);
 - ``tilt_mrad``: its rotation; ``settle_steps``: the settled start's steps (``floor``: it stopped at float32's
   chatter floor, BlockSolver.settle).
 
@@ -214,11 +215,15 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
     t = state.tables[0]
     keys, nc, ps = t["keys"].numpy(), t["nc"].numpy(), t["pstart"].numpy()
     shear = np.linalg.norm(t["shear"].numpy(), axis=1)
+    fcap = t["fcap"].numpy()
     ext = np.zeros(model.num_blocks)
+    at_cap = np.zeros(model.num_blocks, int)  # contact points whose spring sits at its Coulomb cap (sliding)
     for slot in np.nonzero(keys >= 0)[0]:
         b = int(keys[slot] % model.num_blocks)
         if nc[slot]:
-            ext[b] = max(ext[b], float(shear[ps[slot]: ps[slot] + nc[slot]].max()))
+            sl = slice(ps[slot], ps[slot] + nc[slot])
+            ext[b] = max(ext[b], float(shear[sl].max()))
+            at_cap[b] += int(np.count_nonzero(shear[sl] >= 0.999 * fcap[sl]))
     ks = model.np["k_s"]
     q = state.orientations_numpy()[blocks]
     rows = []
@@ -237,6 +242,7 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
                          creep_um_s=1e6 * (d_end[c] - d_window[c]) / max(window, 1e-12),
                          tilt_mrad=1e3 * tilt, settle_steps=rep.get("steps", 0),
                          topples_on_springs=bool(4.0 * kp / (w * w) < topple_stiffness(w, asp, s)),
+                         points_at_cap=int(at_cap[b]),
                          floor=bool(rep.get("float32_floor", False)), settled=rep.get("start") == "settled",
                          wall_s=wall))
     return rows
@@ -306,9 +312,15 @@ def summary(rows: list, slip_bound_mm: float = 0.1, creep_bound_um_s: float = 1.
     not_settled = [r for r in stand if r["start"] == "settled" and not r.get("settled", True)]
     worst_slip = max((r["slip_mm"] for r in settled), default=float("nan"))
     worst_creep = max((abs(r["creep_um_s"]) for r in stand), default=float("nan"))
+    over = [r for r in settled if r["slip_mm"] > slip_bound_mm]
+    stuck = [r for r in over if r.get("points_at_cap") == 0]
+    known = [r for r in over if "points_at_cap" in r]
+    stuck_note = (f" Of the {len(over)} beyond it, {len(stuck)} have no contact point at its Coulomb cap (every point "
+                  f"stuck: the excess is the measure's, the base centre against the corner springs of a tilted block, "
+                  f"not slip)." if known else "")
     return (f"Standing rows (not predicted to topple on their springs): {len(stand)}. Settled start: {len(ok_slip)} of "
             f"{len(settled)} within {slip_bound_mm:g} mm of slip beyond the elastic deflection (largest "
-            f"{worst_slip:.4f} mm; {len(not_settled)} more fell back to the plain start). Creep below {creep_bound_um_s:g} um/s: "
+            f"{worst_slip:.4f} mm; {len(not_settled)} more fell back to the plain start).{stuck_note} Creep below {creep_bound_um_s:g} um/s: "
             f"{len(ok_creep)} of {len(stand)} rows, both starts (largest {worst_creep:.3f} um/s). Predicted to topple on "
             f"their springs (K < K_c / (1 - e0)): {len(fell)} rows, {len(fell_did)} of them toppled.\n\n")
 
