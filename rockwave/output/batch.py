@@ -29,13 +29,13 @@ import warp as wp
 from rockwave.base.maths import pad3, quat_to_matrix
 from rockwave.kernels.output import batch as batch_k
 from rockwave.kernels.sim import readers as gauge_k
-from rockwave.output.hazard import _clean
+from rockwave.output.hazard import SampledRecorder, _clean
 from rockwave.scene.format import DEFAULT_MAX_COLUMNS, SceneError
 from rockwave.sim.batch import hazard_interval
 from rockwave.sim.readers import Gauges
 
 
-class BatchHazard:
+class BatchHazard(SampledRecorder):
     """Every scenario's [hazard] of a BatchSimulation; ``after_step()`` after every step or chunk (or
     ``wrap(watch)``), ``results()`` the summaries (one host read)."""
 
@@ -256,25 +256,6 @@ class BatchHazard:
         phi_s[:, : len(z)][inside] = 1.0
 
     # ------------------------------------------------------------------------------------------------
-    def after_step(self) -> None:
-        """Block speeds now; the lines and crossings when a sample time has been reached (device launches only)."""
-        sim, d = self.sim, self.device
-        t = float(sim.time)
-        if self.slide_index:
-            wp.launch(gauge_k.hazard_block_speed, dim=len(self.slide_index), inputs=[sim.block_state.v, self.slide_d, t],
-                      outputs=[self.slide_stats], device=d)
-        if t + 1e-12 >= self.next_t:
-            self.sample()
-            k = math.floor((t - self.t_start) / self.interval + 1e-9) + 1
-            self.next_t = self.t_start + k * self.interval
-
-    def wrap(self, watch):
-        def chained():
-            self.after_step()
-            if watch is not None:
-                watch()
-        return chained
-
     def sample(self) -> None:
         sim, d = self.sim, self.device
         t = float(sim.time)

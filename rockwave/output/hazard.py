@@ -79,7 +79,29 @@ class _Chained:
         return getattr(self.watch, name)
 
 
-class HazardMonitor:
+class SampledRecorder:
+    """The step hook shared by HazardMonitor and the batch's BatchHazard (rockwave/output/batch.py): slide speeds
+    every step, ``sample()`` when a sample time is reached. Needs sim, device, slide_index, slide_d, slide_stats,
+    t_start, interval, next_t and sample()."""
+
+    def after_step(self) -> None:
+        """Block speeds now; the lines and crossings when a sample time has been reached (device launches only)."""
+        sim, d = self.sim, self.device
+        t = float(sim.time)
+        if self.slide_index:
+            wp.launch(gauge_k.hazard_block_speed, dim=len(self.slide_index), inputs=[sim.block_state.v, self.slide_d, t],
+                      outputs=[self.slide_stats], device=d)
+        if t + 1e-12 >= self.next_t:
+            self.sample()
+            k = math.floor((t - self.t_start) / self.interval + 1e-9) + 1
+            self.next_t = self.t_start + k * self.interval
+
+    def wrap(self, watch):
+        """Simulation.advance's watch with after_step called first."""
+        return _Chained(self.after_step, watch)
+
+
+class HazardMonitor(SampledRecorder):
     """The scene's [hazard] entries, reduced on the device during a run. ``after_step()`` after every step (or
     ``wrap(watch)`` for Simulation.advance's watch); ``result()`` reads the summary (one host read)."""
 
@@ -196,18 +218,6 @@ class HazardMonitor:
         self.after_step()  # the first sample: t = t_start
 
     # ------------------------------------------------------------------------------------------------
-    def after_step(self) -> None:
-        """Block speeds now; the lines and crossings when a sample time has been reached (device launches only)."""
-        sim, d = self.sim, self.device
-        t = float(sim.time)
-        if self.slide_index:
-            wp.launch(gauge_k.hazard_block_speed, dim=len(self.slide_index), inputs=[sim.block_state.v, self.slide_d, t],
-                      outputs=[self.slide_stats], device=d)
-        if t + 1e-12 >= self.next_t:
-            self.sample()
-            k = math.floor((t - self.t_start) / self.interval + 1e-9) + 1
-            self.next_t = self.t_start + k * self.interval
-
     def sample(self) -> None:
         """One sample of the gauges, run-up columns and crossings at the current time (device launches only)."""
         sim, d = self.sim, self.device
@@ -266,10 +276,6 @@ class HazardMonitor:
         self.still_d.assign(np.asarray(self.still or [0.0], np.float32))
         if self.slide_index:
             self.slide_start = np.array(arrays["slide_start"])
-
-    def wrap(self, watch):
-        """Simulation.advance's watch with after_step called first."""
-        return _Chained(self.after_step, watch)
 
     # ------------------------------------------------------------------------------------------------
     def result(self) -> dict:
