@@ -157,7 +157,7 @@ def _standing_dict(ppd, changes):
 # ------------------------------------------------------------------------------------ runners ----
 def _standing(dev, ppd, ch, periods):
     r = H.standing_wave(dev, ppd, ch, periods=periods, **STANDING)
-    r.pop("t"), r.pop("signal_m")
+    r.pop("t"), r.pop("signal_m"), r.pop("noise_ke_j"), r.pop("kinetic_j")
     r["error"] = abs(r["decay_per_period"]) if math.isfinite(r["decay_per_period"]) else math.nan
     return r
 
@@ -280,7 +280,8 @@ def line(r: dict) -> str:
         v = r.get(k)
         return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, fmt)
 
-    extra = {"standing_wave": f"decay/period {f('decay_per_period', '+.4f')} period error {f('period_error', '+.4f')}",
+    extra = {"standing_wave": f"decay/period {f('decay_per_period', '+.4f')} period error {f('period_error', '+.4f')} "
+                              f"noise/period {f('noise_growth_per_period', '+.3f')}",
              "wave_maker": f"gauge_1 {f('error_flume_gauge1', '+.3f')} gauge_2 {f('error_flume_gauge2', '+.3f')} (flume's linear solution)",
              "dam_break": f"front bias T>=1.5 {f('front_bias_late', '+.3f')} rms {f('error_rms', '.3f')} "
                           f"speed x{f('front_speed_ratio', '.3f')} delay {f('front_delay_s', '.4f')} s",
@@ -385,6 +386,9 @@ def table_rows(part: dict) -> list[list]:
         c = r["case"]
         if c == "standing_wave":
             err = f"decay/period {_f(r.get('decay_per_period'), '+.1%')}, period {_f(r.get('period_error'), '+.2%')}"
+            if r.get("noise_growth_per_period") is not None:
+                err += (f"; particle-scale KE {_f(r.get('noise_growth_per_period'), '+.1%')} per period, "
+                        f"{_f(r.get('noise_share_end'), '.1%')} of the KE in the last period")
         elif c == "wave_maker":
             from benchmarks.wave_maker import with_flume_errors
 
