@@ -87,7 +87,7 @@ def scene_dict(layers: int, depth: float = 0.1, height_ratio: float = 0.2, trave
          "tank": {"box_min_m": [-wall - s, 0.0], "box_max_m": [length, 3.0 * depth]},
          "blocks": [
              {"name": "piston", "shape": "box", "size_m": [wall, 2.5 * depth, 0.1],
-              "position_m": [-wall / 2, 1.25 * depth + 0.5 * s, 0.0], "kind": "kinematic",
+              "position_m": [-wall / 2, 1.25 * depth + 0.02 * s, 0.0], "kind": "kinematic",
               "motion": {"type": "table", "times_s": tt, "displacements_m": [[x, 0.0, 0.0] for x in xx]}}]}
     for key, v in (variant or {}).items():
         set_path(d, key, v)
