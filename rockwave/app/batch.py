@@ -141,12 +141,19 @@ def _run_one_batch(members: list) -> list[dict]:
     summaries = hz.results()
     wall = time.perf_counter() - t0
     out = []
+    own = sim.own
     for k, (c, s, h) in enumerate(zip(configs, scenes, summaries)):
         a, b = sim.tiles[k].fluid
+        if own is not None:  # its own clock (the default: rockwave/sim/batch.py)
+            steps, limiting, limited = int(own.steps[k]), own.limiting[k], dict(own.steps_limited_by[k])
+            substeps = int(own.substeps[k]) if own.multirate[k] else None
+        else:
+            steps, limiting, limited = sim.steps, sim.clock.limiting, dict(sim.clock.steps_limited_by)
+            substeps = sim.clock.substeps if sim.clock.block_substep is not None else None
         run = {"scene": str(Path(c["scene_path"]).resolve()), "device": sim.device, "fluid_particles": b - a,
-               "removed_inside_blocks": sim.removed_inside[k], "simulated_s": sim.time, "steps": sim.steps,
-               "step_limited_by": sim.clock.limiting, "steps_limited_by": dict(sim.clock.steps_limited_by),
-               "block_substeps": sim.clock.substeps if sim.clock.block_substep is not None else None,
+               "removed_inside_blocks": sim.removed_inside[k], "simulated_s": float(sim.times[k]), "steps": steps,
+               "step_limited_by": limiting, "steps_limited_by": limited, "block_substeps": substeps,
+               "batch_steps": sim.step_mode, "batch_launches": sim.steps,
                "particles_outside_domain": outside[k], "wall_s_batch": wall,
                "batch": {"scenarios": len(scenes), "position": k, "tile_offset_m": sim.tiles[k].offset.tolist(),
                          "gap_m": sim.gap, "fluid_particles": sim.n_fluid},
@@ -156,6 +163,6 @@ def _run_one_batch(members: list) -> list[dict]:
         atomic_write_text(d / "hazard.json", json.dumps(h, indent=2))
         atomic_write_text(d / "run.json", json.dumps(run, indent=2, default=str))
         out.append({"id": c["id"], "index": c["index"], "params": c["params"], "status": "ok", "error": "",
-                    "metrics": flat_metrics(h), "wall_s": wall / len(scenes), "steps": sim.steps, "device": sim.device,
+                    "metrics": flat_metrics(h), "wall_s": wall / len(scenes), "steps": steps, "device": sim.device,
                     "fluid_particles": b - a, "batch_size": len(scenes)})
     return out
