@@ -46,7 +46,7 @@ class BatchHazard(SampledRecorder):
         self.dim, self.up = scene.dim, scene.dim - 1
         up = self.up
         fluid = sim.fluid
-        self.interval = hazard_interval(scene)
+        self.interval = hazard_interval(sim.scenes[0])  # (shared by the template; sim.scene, the template, has no [hazard])
         spacing = float(scene.fluid.spacing_m)
         nf = fluid.n_fluid
         masses = fluid.particle_mass.numpy()

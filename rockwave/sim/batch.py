@@ -53,6 +53,7 @@ from rockwave.base.solver import TimeStep
 from rockwave.build import builder
 from rockwave.build.options import block_options, boundary_lattice, gravity_norm, support_radius_m
 from rockwave.build.rocks import block_specs
+from rockwave.kernels.dda import blocks as dda_k
 from rockwave.kernels.sim import batch as batch_k
 from rockwave.scene.format import DEFAULT_SAMPLE_INTERVAL_S, Node, Scene, SceneError
 from rockwave.sim.clock import MAX_BLOCK_SUBSTEPS, Clock
@@ -393,8 +394,25 @@ class BatchSimulation(Simulation):
                 solver._narrow_phase(state, h_max)
             else:
                 solver._contact_forces(state, h_max)
-            solver._integrate(state)
+            self._integrate_blocks(on[bo])
         state.time = float(o.time.min())
+
+    def _integrate_blocks(self, moving: np.ndarray) -> None:
+        """BlockSolver._integrate with the blocks of the scenarios that have taken their sub-steps (``moving`` False)
+        left out of the planar constraint too (its renormalisation of q is not exactly idempotent)."""
+        solver, state, m, d = self.block_solver, self.block_state, self.blocks, self.device
+        if moving.all():
+            return solver._integrate(state)
+        if m.num_compounds:
+            wp.launch(dda_k.compound_loads, dim=m.num_compounds, inputs=[m.compound_start, m.compound_count, state.loads],
+                      device=d)
+        wp.launch(dda_k.integrate_blocks, dim=m.num_blocks,
+                  inputs=[solver.props, solver.motion, wp.vec3(*m.gravity), solver.block_clock, state.bodies, state.loads],
+                  device=d)
+        if m.planar:
+            o = self.own
+            o.kinds_idle.assign(np.where(moving, o.kinds, int(dda_k.KIND_FIXED)).astype(np.int32))
+            wp.launch(dda_k.planar_blocks, dim=m.num_blocks, inputs=[m.planar_z, o.kinds_idle, state.bodies], device=d)
 
     # ---------------------------------------------------------------- per scenario -------------
     def scenario_blocks(self, k: int) -> list[str]:
@@ -587,6 +605,8 @@ class _OwnClocks:
             self.block_clock = wp.zeros(3 * max(nb, 2), dtype=float, device=d)
             b.block_solver.block_clock = self.block_clock
             self.held = (wp.zeros(nb, dtype=wp.vec3, device=d), wp.zeros(nb, dtype=wp.vec3, device=d))
+            self.kinds = b.blocks.kinds.numpy()
+            self.kinds_idle = wp.zeros(nb, dtype=int, device=d)
         self.pairs_hold = self.contacts_hold = None
         self.stepped = np.ones(S, bool)  # the scenarios that moved in the last step (all: at the start)
         self.substeps = np.ones(S, np.int64)
