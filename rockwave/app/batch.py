@@ -81,11 +81,12 @@ def write_result(out: Path, res: dict) -> None:
     atomic_write_text(out / "result.json", json.dumps(res, indent=2, default=str))
 
 
-def run_batch(configs: list[dict], solo) -> list[dict]:
+def run_batch(configs: list[dict], solo, steps: str = "scenario") -> list[dict]:
     """Run scenario configs (rockwave/app/sweep.py scenario_config) as batches of one template; returns their
     summaries (in the order given), each written as result.json in its out_dir. ``solo``: the one-scenario entry
-    point (rockwave/app/sweep.py run_scenario) for the scenarios that fail in a batch. Never raises for a
-    scenario that fails."""
+    point (rockwave/app/sweep.py run_scenario) for the scenarios that fail in a batch. ``steps``: "scenario" (each
+    scenario its own step and clock, the default) or "shared" (rockwave/sim/batch.py). Never raises for a scenario
+    that fails."""
     quiet_warp()
     results: dict[str, dict] = {}
     groups: dict[str, list] = {}
@@ -102,7 +103,7 @@ def run_batch(configs: list[dict], solo) -> list[dict]:
         live = list(members)
         while live:
             try:
-                done = _run_one_batch(live)
+                done = _run_one_batch(live, steps)
             except ScenarioFailed as e:  # run again without them; they run alone below
                 alone += [live[k][0] for k in sorted(e.failures)]
                 live = [m for k, m in enumerate(live) if k not in e.failures]
@@ -119,12 +120,12 @@ def run_batch(configs: list[dict], solo) -> list[dict]:
     return [results[c["id"]] for c in configs]
 
 
-def _run_one_batch(members: list) -> list[dict]:
+def _run_one_batch(members: list, steps: str = "scenario") -> list[dict]:
     """One BatchSimulation of (config, scene) pairs, frame by frame to the end; the summaries (not yet written)."""
     t0 = time.perf_counter()
     configs, scenes = [m[0] for m in members], [m[1] for m in members]
     device = resolve_device(_device(configs[0]))
-    sim = BatchSimulation(scenes, device=device)
+    sim = BatchSimulation(scenes, device=device, steps=steps)
     hz = BatchHazard(sim)
     scene = scenes[0]
     duration = float(scene.simulation.duration_s)

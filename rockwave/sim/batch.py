@@ -14,14 +14,22 @@ arrays, each in its own tile of space, so that one set of launches steps them al
   its size, ulp(32 m) = 3.8e-6 m against 2.4e-7 m at 3 m). Neighbouring tiles are ``gap`` apart (default:
   8 H and the blocks' broad-phase margin, or more), so no neighbour search, water-block coupling or block contact
   ever pairs two scenarios: every pair term is cut off at H (1 + skin) or the contact distance, all smaller.
-- **One clock, a shared step**: the step is the smallest of all scenarios' limits (the fluid's CFL, force and
-  viscous limits over all particles, the coupling spring; the blocks' sub-step from the stiffest block), so each
-  scenario steps within its own limits, at a step no longer than it would take alone. With a fixed step
-  (``simulation.time_step = 'fixed'``) and the same block sub-step the batch takes each scenario's solo steps and
-  the results are those of the solo runs within float32 round-off (tests/test_batch.py); with the adaptive step
-  a scenario in a batch takes the batch's (shorter or equal) steps, and its results differ from the solo run's
-  by the time-discretisation error of the two step sequences (docs/hazard_and_sweeps.md states the measured
-  difference).
+- **Each scenario its own step and clock** (``steps="scenario"``, the default): each scenario runs the solo
+  clock's rules (rockwave/sim/clock.py; Simulation.advance's loop) on its own clock (:class:`_OwnClocks`): its
+  target from its own limits every dt_update_interval of its own steps (the fluid's CFL, force and viscous limits
+  over its own particles, kernels/sim/batch.py scenario_motion_extrema; its own blocks' DDA limit, BlockSolver
+  .critical_dt_of; the coupling spring where it has blocks), the time to the end divided into equal steps no
+  longer than the target, its own multi-rate sub-step count. One launch sequence steps all: the fluid and coupling
+  kernels read each particle's step (kernels/sph/fluid.py step_of: a per-particle array filled from its scenario's),
+  the block kernels each block's clock (kernels/dda/blocks.py clock_of), max n_k block sub-steps run and a block
+  whose scenario has taken its own gets dt = 0 (no integration, no planar projection, its contact history kept).
+  A scenario that has landed takes dt = 0 while the others go on. A scenario at its own coordinates reproduces its
+  solo run bit for bit; in its tile it differs by the float32 round-off of its translated coordinates
+  (tests/test_batch.py).
+- **Or one shared step** (``steps="shared"``): the step is the smallest of all scenarios' limits and the block
+  sub-step the stiffest block's, so each scenario steps within its own limits, at a step no longer than it would
+  take alone; its results differ from the solo run's by the difference of the two step sequences. Kept for
+  fluid-only batches on a GPU, whose chunks it replays as CUDA graphs (docs/hazard_and_sweeps.md).
 - **Scenarios share the template**: dimension, the [simulation], [gravity], [fluid] (its regions aside),
   [coupling] sections, the boundary lattice, the frame rate and the hazard sampling rhythm; anything else may differ (geometry,
   particle counts, blocks, materials, gauges). A batch of scenes that do not share it is a SceneError naming the
