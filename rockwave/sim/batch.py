@@ -309,6 +309,13 @@ class BatchSimulation(Simulation):
             o.set_dt(np.ones(self.n_scenarios, bool), dts)
         self._own_step(dts, np.ones(self.n_scenarios, bool))
 
+    def step_many(self, n: int) -> None:
+        """n steps (per-scenario steps: each scenario's own current step, one by one)."""
+        if self.own is None:
+            return super().step_many(n)
+        for _ in range(n):
+            self.step()
+
     def advance(self, duration: float, watch=None) -> None:
         """Advance every scenario by ``duration`` seconds, each landing exactly on the end time. Per-scenario steps:
         each scenario runs the solo loop (Simulation.advance) on its own clock: its adaptive target re-evaluated
