@@ -12,11 +12,14 @@ size) are skipped and say so: ``--batches 256`` alone runs the largest in a call
 wall seconds (build, run and writing included; the kernels are loaded before the first row),
 scenarios per hour, and the step count. Agreement: the hazard metrics of the scenarios that ran both solo and in a
 batch (the batches start with the solo rows' scenarios): the largest difference of each kind (crest heights and
-run-up [m], arrival times [s], runout [m], volumes [m^3/m]). The batch steps at the smallest limit of its
-scenarios, so with the adaptive step the differences are those of two valid step sequences, not round-off
-(tests/test_batch.py checks round-off agreement at a fixed step).
+run-up [m], arrival times [s], runout [m], volumes [m^3/m]) and how many summaries are identical, number for number.
+``bs_modes``: the batches' step rule, each a row per batch size: "scenario" (each scenario its own step and clock,
+the default: its solo step sequence, so the differences are the float32 round-off of its tile's coordinates grown
+by the splash) and "shared" (one step, the smallest limit of the batch: two valid step sequences differ).
 
     python -m benchmarks run --device cuda:0 --suite full --only batched_sweep      # ~8 min on an H200
+    python -m benchmarks run --device cuda:0 --suite full --only batched_sweep --set bs_duration_s=1.0 \
+        --set 'bs_batches=[64,256]' --set 'bs_modes=["scenario","shared"]'          # per-scenario vs shared steps
     python -m benchmarks.batched_sweep --device cuda:0 --batches 16 64 256          # the same, standalone
 """
 
@@ -29,9 +32,9 @@ from pathlib import Path
 
 CONFIG = {
     "quick": dict(bs_scene="slide_2d_tiny.toml", bs_duration_s=0.1, bs_solo=2, bs_workers=2, bs_solo_workers_n=2,
-                  bs_batches=[2, 4], bs_budget_s=600.0),
+                  bs_batches=[2, 4], bs_budget_s=600.0, bs_modes=["scenario", "shared"]),
     "full": dict(bs_scene="slide_2d.toml", bs_duration_s=3.0, bs_solo=2, bs_workers=4, bs_solo_workers_n=4,
-                 bs_batches=[16, 64, 256], bs_budget_s=480.0),
+                 bs_batches=[16, 64, 256], bs_budget_s=480.0, bs_modes=["scenario"]),
 }
 
 
@@ -78,17 +81,20 @@ def _agreement(solo: dict, other: dict) -> dict:
              "arrival_s": ("arrival_time_s",), "runout_m": ("runout_m",), "speed_m_s": ("peak_speed_m_s",),
              "volume_m3": ("net_volume_m3", "max_volume_m3")}
     out = {k: 0.0 for k in kinds}
-    n = 0
+    n = same = 0
     for sid, m in solo.items():
         if sid not in other:
             continue
         n += 1
+        same += all(v == other[sid].get(key) or (isinstance(v, float) and isinstance(other[sid].get(key), float)
+                                                  and math.isnan(v) and math.isnan(other[sid][key])) for key, v in m.items())
         for key, v in m.items():
             w = other[sid].get(key)
             for kind, ends in kinds.items():
                 if key.rsplit(".", 1)[-1] in ends and v is not None and w is not None and math.isfinite(v) and math.isfinite(w):
                     out[kind] = max(out[kind], abs(v - w))
     out["scenarios_compared"] = n
+    out["identical_summaries"] = same
     return out
 
 
@@ -130,21 +136,23 @@ def run(device: str, cfg: dict) -> dict:
         record(f"solo_{cfg['bs_workers']}_workers", len(got), time.perf_counter() - t0, got, cfg["bs_workers"])
 
         agreement = {}
-        for n in cfg["bs_batches"]:
+        for n, mode in [(n, mode) for n in cfg["bs_batches"] for mode in cfg.get("bs_modes", ["scenario"])]:
+            tag = f"batch_{n}" if mode == "scenario" else f"batch_{n}_{mode}"
             ran = [r for r in rows if r["mode"].startswith("batch_") and "wall_s" in r]
             if ran:  # a batch of n takes about as long as the last one that ran, scaled by its scenarios
                 last = ran[-1]  # (launch-bound below, so this overestimates)
                 guess = last["wall_s"] * n / last["scenarios"]
                 if time.perf_counter() - t0_all + guess > cfg["bs_budget_s"]:
-                    rows.append({"mode": f"batch_{n}", "scenarios": n, "skipped": f"over the {cfg['bs_budget_s']:.0f} s "
+                    rows.append({"mode": tag, "scenarios": n, "skipped": f"over the {cfg['bs_budget_s']:.0f} s "
                                  f"budget (estimated {guess:.0f} s)"})
                     continue
-            cs = _configs(study, f"batch_{n}", range(n))
+            cs = _configs(study, tag, range(n))
             t0 = time.perf_counter()
-            res = batching.run_batch(cs, sweep.run_scenario)
-            row = record(f"batch_{n}", n, time.perf_counter() - t0, res)
+            res = batching.run_batch(cs, sweep.run_scenario, steps=mode)
+            row = record(tag, n, time.perf_counter() - t0, res)
             row["batch_fluid_particles"] = n * (row["fluid_particles_per_scenario"] or 0)
-            agreement[f"batch_{n}"] = _agreement(solo_metrics, {r["id"]: r["metrics"] for r in res if r["status"] == "ok"})
+            row["steps"] = mode
+            agreement[tag] = _agreement(solo_metrics, {r["id"]: r["metrics"] for r in res if r["status"] == "ok"})
     base = next(r for r in rows if r["mode"] == "solo_1")["scenarios_per_hour"]
     for r in rows:
         if "scenarios_per_hour" in r:
@@ -165,7 +173,8 @@ def markdown(res: dict) -> str:
     lines.append("")
     for k, a in part["agreement_with_solo"].items():
         lines.append(f"- {k} vs solo ({a['scenarios_compared']} scenarios): " + ", ".join(
-            f"{x} {v:.3g}" for x, v in a.items() if x != "scenarios_compared"))
+            f"{x} {v:.3g}" for x, v in a.items() if x not in ("scenarios_compared", "identical_summaries"))
+            + f"; identical summaries: {a.get('identical_summaries', 0)}")
     return "\n".join(lines)
 
 

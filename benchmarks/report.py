@@ -341,7 +341,8 @@ def _batched_sweep(b: dict) -> list[str]:
         L += ["", f"{mode} against solo ({a.get('scenarios_compared')} scenarios), largest differences: crest "
               f"{_f(a.get('height_m'), '.3g')} m, arrival {_f(a.get('arrival_s'), '.3g')} s, runout "
               f"{_f(a.get('runout_m'), '.3g')} m, speed {_f(a.get('speed_m_s'), '.3g')} m/s, volume "
-              f"{_f(a.get('volume_m3'), '.3g')} m^3"]
+              f"{_f(a.get('volume_m3'), '.3g')} m^3"
+              + (f"; identical summaries {a['identical_summaries']}" if "identical_summaries" in a else "")]
     return L + [""]
 
 

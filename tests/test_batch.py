@@ -173,20 +173,28 @@ values = [10.0, 20.0, 25.0]
     assert "--array=0-1" in text and "--only 0 --only 1" in text and "--batch 2" in text
 
 
-def test_adaptive_step_batch_keeps_each_limit():
-    """The adaptive step (simulation.time_step = 'cfl'): slides of 2000, 2600 and 3000 kg/m^3 (their blocks'
-    stable sub-steps differ). The batch steps at the smallest limit of the three, so each scenario takes steps no
-    longer than alone and sub-steps no longer than its own stable block step; over these 0.04 s the batch's step
-    and each solo step are the coupling spring's (the same for all), so the results agree within round-off too."""
-    variants = []
-    for rho in (2000.0, 2600.0, 3000.0):
-        d = _variant(time_step="cfl")
+def _slides(**changes) -> list[dict]:
+    """slide_2d_tiny variants with the adaptive step (simulation.time_step = 'cfl'): the slide's density and contact
+    stiffness set its stable block sub-step (4 sub-steps of the coupling spring's step at 2500 kg/m^3 and 1e6 N/m,
+    3 at 2000 kg/m^3 and 3e5 N/m)."""
+    out = []
+    for rho, kn, depth in ((2000.0, 3e5, 0.2), (2500.0, 1e6, None), (3000.0, 1e6, None)):
+        d = _variant(time_step="cfl", depth=depth, **changes)
         del d["simulation"]["dt_s"]
         for b in d["blocks"]:
             if b["name"] == "slide":
                 b["density_kg_m3"] = rho
-        variants.append(d)
-    b = BatchSimulation([_scene(d) for d in variants], device=DEVICE)
+                b["material"]["normal_stiffness_n_m"] = kn
+        out.append(d)
+    return out
+
+
+def test_shared_step_batch_keeps_each_limit():
+    """The shared step (steps = 'shared'): the batch steps at the smallest limit of its scenarios and sub-steps the
+    blocks at the stiffest block's step, so each scenario takes steps and sub-steps no longer than alone; over these
+    0.04 s the step is the coupling spring's for all, so the results agree within round-off too."""
+    variants = _slides()
+    b = BatchSimulation([_scene(d) for d in variants], device=DEVICE, steps="shared")
     hz = BatchHazard(b)
     b.advance(T, watch=hz.after_step)
     summaries = hz.results()
@@ -201,6 +209,97 @@ def test_adaptive_step_batch_keeps_each_limit():
             if key.endswith("_time_s") or v is None:
                 continue
             assert abs(v - mine[key]) < 2e-5, (key, v, mine[key])
+
+
+def _jets(T_end: float) -> list[dict]:
+    """Dam breaks in box tanks of different widths and columns, the third column thrown at the wall at 3 m/s (its CFL
+    step c h / (c0 (1 + 0.6 alpha) + u_max) is shorter: 150 steps against 134 over 0.05 s); a wave gauge and a
+    crossing sampled every 5 ms."""
+    out = []
+    for w, col, h, u in ((0.3, 0.1, 0.15, 0.0), (0.4, 0.12, 0.1, 0.0), (0.25, 0.06, 0.2, 3.0)):
+        d = tank_2d(width=w, depth=h, height=0.3, spacing=0.01)
+        d["fluid"]["regions"][0].update(box_max_m=[col, h], velocity_m_s=[u, 0.0])
+        d["simulation"].update({"duration_s": T_end})
+        d["hazard"] = {"sample_interval_s": 0.005, "gauges": [{"name": "g", "position_m": [0.05, 0.0]}],
+                       "crossings": [{"name": "c", "position_m": [0.11, 0.0], "normal": [1.0, 0.0]}]}
+        out.append(d)
+    return out
+
+
+def _differences(solo: dict, mine: dict) -> dict:
+    """|solo - batch| of every number of two flat hazard summaries (inf where one is missing or NaN alone)."""
+    out = {}
+    assert solo.keys() == mine.keys()
+    for key, v in solo.items():
+        w = mine[key]
+        if v is None or w is None or (isinstance(v, float) and (math.isnan(v) or math.isnan(w))):
+            out[key] = 0.0 if (v is None and w is None) or (v is not None and w is not None and math.isnan(v) and math.isnan(w)) else math.inf
+        else:
+            out[key] = abs(v - w)
+    return out
+
+
+def test_each_scenario_takes_its_own_adaptive_steps():
+    """Per-scenario steps (the default): each scenario of a batch takes the step sequence it takes alone (its own
+    CFL limit from its own particles, its own landing on the sample times), so its positions agree with its solo
+    run's within float32 round-off and every number of its hazard summary, the times of its extremes and its
+    arrival time included, within 1e-6 (the levels and volumes differ by an ulp or two of float32; the sample
+    times are the same step ends). The shared step (the smallest limit for all) moves the first two by ~1.7e-5 m and
+    their gauges by up to 1.7e-5 m: it fails the same checks (asserted below)."""
+    T_end = 0.05
+    variants = _jets(T_end)
+    scenes = lambda: [parse_scene(copy.deepcopy(d)) for d in variants]  # noqa: E731
+    solo = []
+    for s in scenes():
+        sim = Simulation(s, device=DEVICE)
+        h = HazardMonitor(sim)
+        sim.advance(T_end, watch=h.after_step)
+        solo.append((sim, flat_metrics(h.result()), h.result()["samples"]))
+    assert len({sim.steps for sim, _, _ in solo}) == 2  # the jet's steps are shorter
+    worst = {}
+    for mode in ("scenario", "shared"):
+        b = BatchSimulation(scenes(), device=DEVICE, steps=mode)
+        hz = BatchHazard(b)
+        b.advance(T_end, watch=hz.after_step)
+        summaries = hz.results()
+        assert np.all(b.times == T_end)
+        worst[mode] = []
+        for k, (sim, metrics, samples) in enumerate(solo):
+            dx = np.abs(sim.positions() - b.positions(k)).max()
+            dh = max(_differences(metrics, flat_metrics(summaries[k])).values())
+            worst[mode].append((dx, dh))
+            if mode == "scenario":
+                assert b.own.steps[k] == sim.steps and b.own.steps_limited_by[k] == sim.clock.steps_limited_by
+                assert summaries[k]["samples"] == samples
+                assert dx < 1e-3 * 0.01, (k, dx)
+                assert dh < 1e-6, (k, dh)
+    assert max(max(dx / 1e-5, dh / 1e-6) for dx, dh in worst["shared"]) > 1.0  # the shared step fails these checks
+
+
+def test_a_scenario_in_its_own_frame_is_its_solo_run(monkeypatch):
+    """The step itself is exact: a scenario placed at its own coordinates (tile offset zero; its batch-mate, with 4
+    block sub-steps to its 3, to its right) takes its solo run's steps and sub-steps bit for bit: the same block
+    trajectory and the same hazard summary, number for number; its water agrees within an ulp (the union's cell
+    grid orders some neighbour sums differently). What a tiled batch adds is only the float32 round-off of the
+    translated coordinates (test_each_scenario_takes_its_own_adaptive_steps)."""
+    import rockwave.sim.batch as batch_sim
+
+    T_end = 0.06
+    variants = _slides(duration_s=T_end)[:2]
+    first = BatchSimulation([_scene(d) for d in variants], device=DEVICE)
+    lo, hi, gap = first.tiles[0].lo, first.tiles[0].hi, first.gap
+    monkeypatch.setattr(batch_sim, "tile_offsets", lambda sizes, g, dim: np.array([[lo[0], lo[1]], [hi[0] + gap, lo[1]]]))
+    b = BatchSimulation([_scene(d) for d in variants], device=DEVICE)
+    assert np.all(b.tiles[0].offset == 0.0) and list(b.own.substeps) == [3, 4]
+    hz = BatchHazard(b)
+    b.advance(T_end, watch=hz.after_step)
+    sim = Simulation(_scene(variants[0]), device=DEVICE)
+    h = HazardMonitor(sim)
+    sim.advance(T_end, watch=h.after_step)
+    assert sim.clock.substeps == 3 and b.own.steps[0] == sim.steps
+    assert np.array_equal(sim.block_positions(), b.block_positions(0))
+    assert np.abs(sim.positions() - b.positions(0)).max() < 1e-6
+    assert flat_metrics(h.result()) == flat_metrics(hz.results()[0])
 
 
 def test_dam_breaks_in_tanks_batch_as_alone():

@@ -26,6 +26,7 @@ reads only the bucket of its own cell. Blocks covering more than ``max_cells`` c
 import warp as wp
 
 from rockwave.kernels.dda.blocks import BlockBodies, BlockLoads
+from rockwave.kernels.sph.fluid import step_of
 
 wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
 
@@ -406,6 +407,7 @@ def particle_block_forces(
     plane_d = faces.plane_d
     kinds = faces.kinds
     i = wp.tid()
+    step = step_of(dt, i)  # this particle's step (a batch: its scenario's)
     xi = x[i]
     vi = v[i]
     c = cell_of(xi, p.inv_s)
@@ -514,7 +516,7 @@ def particle_block_forces(
             sq = zero
             if b == ba or b == bb:  # only the two faces of the pinch push along the gap
                 sq = squeeze
-            f += block_contact(b, xi, vi, p, sq, faces, bodies, loads, wall_force, wall_work, dt[0])
+            f += block_contact(b, xi, vi, p, sq, faces, bodies, loads, wall_force, wall_work, step)
     for k in range(counters[1]):
         b = large[k]
         if wall_only[b] != 0 or not in_box(xi, box_lo[b], box_hi[b]):
@@ -522,8 +524,8 @@ def particle_block_forces(
         sq = zero
         if b == ba or b == bb:
             sq = squeeze
-        f += block_contact(b, xi, vi, p, sq, faces, bodies, loads, wall_force, wall_work, dt[0])
-    dv[i] = (dt[0] / particle_mass[i]) * f
+        f += block_contact(b, xi, vi, p, sq, faces, bodies, loads, wall_force, wall_work, step)
+    dv[i] = (step / particle_mass[i]) * f
 
 
 @wp.kernel
@@ -533,7 +535,7 @@ def apply_dv(dv: wp.array(dtype=wp.vec3), dt: wp.array(dtype=float), x: wp.array
     i = wp.tid()
     d = dv[i]
     v[i] = v[i] + d
-    x[i] = x[i] + dt[0] * d
+    x[i] = x[i] + step_of(dt, i) * d
 
 
 @wp.kernel

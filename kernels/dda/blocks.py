@@ -1543,15 +1543,25 @@ def kinematic_last_step(b: int, bodies: BlockBodies, kinds: wp.array(dtype=int))
 
 
 @wp.func
+def clock_of(clock: wp.array(dtype=float), b: int, j: int):
+    """Entry j of block b's clock [t_next, dt, friction locked]: clock[j] (one clock for all blocks), or
+    clock[3 b + j] where the array holds one clock per block (a batch of scenarios with their own steps:
+    rockwave/sim/batch.py; a block whose scenario has finished its sub-steps has dt = 0 and does not move)."""
+    if clock.shape[0] > 3:
+        return clock[3 * b + j]
+    return clock[j]
+
+
+@wp.func
 def kinematic_step_change(b: int, clock: wp.array(dtype=float), motion: BlockMotion, bodies: BlockBodies,
                           kinds: wp.array(dtype=int)):
     # a kinematic block's velocity over the coming step (its prescribed displacement from x + x_lo to
     # base_x + u(t_next), over dt: what integrate_blocks will move it by) minus the one it moved with over the last
     # (v_step); zero for other blocks
     dv = wp.vec3(0.0, 0.0, 0.0)
-    dt = clock[1]
+    dt = clock_of(clock, b, 1)
     if kinds[b] == KIND_KINEMATIC and dt > 0.0:
-        u, uv = kinematic_motion(b, clock[0], motion)
+        u, uv = kinematic_motion(b, clock_of(clock, b, 0), motion)
         xs, xl = two_sum(motion.base_x[b], u)
         dv = ((xs - bodies.x[b]) + (xl - bodies.x_lo[b])) / dt - bodies.v_step[b]
     return dv
@@ -1575,8 +1585,6 @@ def contact_forces(
     order (the forces add up in the same order whichever kernel found the points). clock = [t_next, dt]
     of this step (set_block_clock), read on the device so a CUDA graph can replay the step; clock[2] = 1: friction
     locked (BlockSolver.settle), every point sticks whatever its Coulomb cap (the cap is still recorded)."""
-    dt = clock[1]
-    locked = clock[2] > 0.5  # BlockSolver.settle: friction locked, every point sticks
     kinds = props.kinds
     inv_mass = props.inv_mass
     x = bodies.x
@@ -1596,6 +1604,8 @@ def contact_forces(
     tid = pl.active[li]
     A = pl.pairs[tid][0]
     B = pl.pairs[tid][1]
+    dt = clock_of(clock, A, 1)  # (A and B share a clock: one scenario's blocks)
+    locked = clock_of(clock, A, 2) > 0.5  # BlockSolver.settle: friction locked, every point sticks
     slot = pl.slot[tid]
     oslot = pl.oslot[tid]
     nc = cur.nc[slot]
@@ -1663,6 +1673,28 @@ def contact_forces(
     if oslot >= 0:
         onc = prev.nc[oslot]
         obase = prev.pstart[oslot]
+    if dt <= 0.0 and clock.shape[0] > 3:
+        # a batch's scenario that has taken its own sub-steps of this fluid step (per-block clocks,
+        # rockwave/sim/batch.py): no force, and each point's history kept as its last real sub-step left it (depth,
+        # normal force, shear spring, closing speed, cap), so its next real sub-step reads what it reads alone; a
+        # point without history stays without (its key cleared: fresh at the next real sub-step, as alone)
+        for k in range(nc):
+            c = base + k
+            ck = new_ckey[c]
+            hist = int(-1)
+            for m in range(onc):
+                ok = prev.ckey[obase + m]
+                if ok[0] == ck[0] and ok[1] == ck[1]:
+                    hist = obase + m
+            if hist >= 0:
+                new_depth[c] = prev.depth[hist]
+                cur.fn[c] = prev.fn[hist]
+                cur.shear[c] = prev.shear[hist]
+                cur.vimp[c] = prev.vimp[hist]
+                cur.fcap[c] = prev.fcap[hist]
+            else:
+                new_ckey[c] = wp.vec2i(-1, -1)
+        return
     # pass 1: springs, the Coulomb cap and which points stick (the stuck points share the shear dashpot)
     cs0 = 2.0 * ZETA_STUCK * wp.sqrt(ks * m_eff / float(nc))
     if not implicit and dt > 0.0:
@@ -1871,9 +1903,9 @@ def carry_contacts(
         cur.normal[slot] = n
         cur.nc[slot] = 0
         return
-    h = clock[1]
     A = pl.pairs[tid][0]
     B = pl.pairs[tid][1]
+    h = clock_of(clock, A, 1)
     x = bodies.x
     xA = wp.vec3(0.0, 0.0, 0.0)
     xB = (x[B] - x[A]) + (bodies.x_lo[B] - bodies.x_lo[A])
@@ -2082,8 +2114,6 @@ def integrate_blocks(
     """One explicit step of every block: kinematic blocks follow their motion at t_next, rigid and
     deformable ones integrate the contact and external loads (then zeroed) and gravity.
     clock = [t_next, dt] (set_block_clock)."""
-    t_next = clock[0]
-    dt = clock[1]
     x = bodies.x
     q = bodies.q
     v = bodies.v
@@ -2094,7 +2124,11 @@ def integrate_blocks(
     ext_force = loads.ext_force
     ext_torque = loads.ext_torque
     b = wp.tid()
+    t_next = clock_of(clock, b, 0)
+    dt = clock_of(clock, b, 1)
     kind = props.kinds[b]
+    if dt <= 0.0:  # a batch's block whose scenario has taken its sub-steps of this fluid step: it stays as it is
+        kind = KIND_FIXED
     if kind == KIND_KINEMATIC:
         u, uv = kinematic_motion(b, t_next, motion)
         xs, xl = two_sum(motion.base_x[b], u)

@@ -4,7 +4,7 @@ columns and crossings of every scenario in one launch each, a particle counted o
 
 import warp as wp
 
-from rockwave.kernels.sim.readers import column_top, line_add
+from rockwave.kernels.sim.readers import column_sample, column_top, crossing_sample, line_add, speed_sample, wave_sample
 from rockwave.kernels.sph.fluid import SPHParams
 
 wp.set_module_options({"enable_backward": False})
@@ -80,3 +80,46 @@ def batch_side_volume(
     l = cross_first[k] + c
     if wp.dot(x[j] - point[l], normal[l]) > 0.0:
         wp.atomic_add(vol, l, particle_mass[j] / rho[j])
+
+
+# Each scenario's own clock (BatchSimulation with per-scenario steps): a row is updated only when its scenario
+# samples now (on[k] = 1), at its scenario's time t[k] (readers.py's updates per scenario).
+@wp.kernel
+def batch_wave_update(level: wp.array(dtype=float), still: wp.array(dtype=float), threshold: wp.array(dtype=float),
+                      row_scenario: wp.array(dtype=int), t: wp.array(dtype=float), on: wp.array(dtype=int),
+                      stats: wp.array2d(dtype=float)):
+    """readers.py hazard_wave_update for the wave gauges of the scenarios that sample now."""
+    g = wp.tid()
+    k = row_scenario[g]
+    if on[k] != 0:
+        wave_sample(g, level[g], still[g], threshold[g], t[k], stats)
+
+
+@wp.kernel
+def batch_column_update(level: wp.array(dtype=float), row_scenario: wp.array(dtype=int), t: wp.array(dtype=float),
+                        on: wp.array(dtype=int), stats: wp.array2d(dtype=float)):
+    """readers.py hazard_column_update for the run-up columns of the scenarios that sample now."""
+    c = wp.tid()
+    k = row_scenario[c]
+    if on[k] != 0:
+        column_sample(c, level[c], t[k], stats)
+
+
+@wp.kernel
+def batch_crossing_update(vol: wp.array(dtype=float), row_scenario: wp.array(dtype=int), t: wp.array(dtype=float),
+                          on: wp.array(dtype=int), stats: wp.array2d(dtype=float)):
+    """readers.py hazard_crossing_update for the crossings of the scenarios that sample now."""
+    l = wp.tid()
+    k = row_scenario[l]
+    if on[k] != 0:
+        crossing_sample(l, vol[l], t[k], stats)
+
+
+@wp.kernel
+def batch_block_speed(v: wp.array(dtype=wp.vec3), index: wp.array(dtype=int), row_scenario: wp.array(dtype=int),
+                      t: wp.array(dtype=float), on: wp.array(dtype=int), stats: wp.array2d(dtype=float)):
+    """readers.py hazard_block_speed for the slides of the scenarios that stepped (each after its own steps)."""
+    i = wp.tid()
+    k = row_scenario[i]
+    if on[k] != 0:
+        speed_sample(i, wp.length(v[index[i]]), t[k], stats)

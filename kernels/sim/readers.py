@@ -262,6 +262,30 @@ HZ_PREV_T = wp.constant(6)
 HZ_COLUMNS = 7
 
 
+@wp.func
+def wave_sample(g: int, z: float, still: float, thr: float, t: float, stats: wp.array2d(dtype=float)):
+    """One sample of wave gauge g (its reading z, NaN when dry) into its row of stats (hazard_wave_update)."""
+    if wp.isnan(z):
+        stats[g, HZ_PREV_ETA] = wp.nan
+        return
+    eta = z - still
+    if eta > stats[g, HZ_MAX]:
+        stats[g, HZ_MAX] = eta
+        stats[g, HZ_T_MAX] = t
+    if eta < stats[g, HZ_MIN]:
+        stats[g, HZ_MIN] = eta
+        stats[g, HZ_T_MIN] = t
+    a = wp.abs(eta)
+    if wp.isnan(stats[g, HZ_ARRIVAL]) and a > thr:
+        t_arr = t
+        a0 = wp.abs(stats[g, HZ_PREV_ETA])
+        if not wp.isnan(a0) and a0 <= thr:
+            t_arr = stats[g, HZ_PREV_T] + (thr - a0) / (a - a0) * (t - stats[g, HZ_PREV_T])
+        stats[g, HZ_ARRIVAL] = t_arr
+    stats[g, HZ_PREV_ETA] = eta
+    stats[g, HZ_PREV_T] = t
+
+
 @wp.kernel
 def hazard_wave_update(
     level: wp.array(dtype=float),
@@ -276,27 +300,15 @@ def hazard_wave_update(
     the previous sample and this one (|eta| rising through the threshold). A dry sample (NaN) changes nothing
     but the previous sample."""
     g = wp.tid()
-    z = level[g]
-    if wp.isnan(z):
-        stats[g, HZ_PREV_ETA] = wp.nan
-        return
-    eta = z - still[g]
-    if eta > stats[g, HZ_MAX]:
-        stats[g, HZ_MAX] = eta
-        stats[g, HZ_T_MAX] = t
-    if eta < stats[g, HZ_MIN]:
-        stats[g, HZ_MIN] = eta
-        stats[g, HZ_T_MIN] = t
-    a = wp.abs(eta)
-    thr = threshold[g]
-    if wp.isnan(stats[g, HZ_ARRIVAL]) and a > thr:
-        t_arr = t
-        a0 = wp.abs(stats[g, HZ_PREV_ETA])
-        if not wp.isnan(a0) and a0 <= thr:
-            t_arr = stats[g, HZ_PREV_T] + (thr - a0) / (a - a0) * (t - stats[g, HZ_PREV_T])
-        stats[g, HZ_ARRIVAL] = t_arr
-    stats[g, HZ_PREV_ETA] = eta
-    stats[g, HZ_PREV_T] = t
+    wave_sample(g, level[g], still[g], threshold[g], t, stats)
+
+
+@wp.func
+def column_sample(c: int, z: float, t: float, stats: wp.array2d(dtype=float)):
+    """One sample of run-up column c (hazard_column_update)."""
+    if not wp.isnan(z) and z > stats[c, 0]:
+        stats[c, 0] = z
+        stats[c, 1] = t
 
 
 @wp.kernel
@@ -304,20 +316,22 @@ def hazard_column_update(level: wp.array(dtype=float), offset: int, t: float, st
     """Run-up columns (one thread per column; level[offset + c]: the top of the continuous water column on the
     column's vertical line, NaN when dry): the highest top so far (stats[c, 0], -inf until wet) and its time."""
     c = wp.tid()
-    z = level[offset + c]
-    if not wp.isnan(z) and z > stats[c, 0]:
-        stats[c, 0] = z
-        stats[c, 1] = t
+    column_sample(c, level[offset + c], t, stats)
+
+
+@wp.func
+def speed_sample(i: int, s: float, t: float, stats: wp.array2d(dtype=float)):
+    """One reading s of watched block i's speed (hazard_block_speed)."""
+    if s > stats[i, 0]:
+        stats[i, 0] = s
+        stats[i, 1] = t
 
 
 @wp.kernel
 def hazard_block_speed(v: wp.array(dtype=wp.vec3), index: wp.array(dtype=int), t: float, stats: wp.array2d(dtype=float)):
     """Peak speed |v| of each watched block (one thread per slide; index: its block) and its time."""
     i = wp.tid()
-    s = wp.length(v[index[i]])
-    if s > stats[i, 0]:
-        stats[i, 0] = s
-        stats[i, 1] = t
+    speed_sample(i, wp.length(v[index[i]]), t, stats)
 
 
 @wp.kernel
@@ -336,15 +350,21 @@ def hazard_side_volume(
         wp.atomic_add(vol, l, particle_mass[j] / rho[j])
 
 
+@wp.func
+def crossing_sample(l: int, vol: float, t: float, stats: wp.array2d(dtype=float)):
+    """One sample of crossing line l's volume (hazard_crossing_update)."""
+    if wp.isnan(stats[l, 0]):
+        stats[l, 0] = vol
+    dv = vol - stats[l, 0]
+    stats[l, 1] = dv
+    if dv > stats[l, 2]:
+        stats[l, 2] = dv
+        stats[l, 3] = t
+
+
 @wp.kernel
 def hazard_crossing_update(vol: wp.array(dtype=float), t: float, stats: wp.array2d(dtype=float)):
     """Crossing lines (one thread per line): stats[l, 0] the volume at the first sample (V0), then the net
     volume moved across the line V - V0 now (col 1), its largest value (col 2) and that time (col 3)."""
     l = wp.tid()
-    if wp.isnan(stats[l, 0]):
-        stats[l, 0] = vol[l]
-    dv = vol[l] - stats[l, 0]
-    stats[l, 1] = dv
-    if dv > stats[l, 2]:
-        stats[l, 2] = dv
-        stats[l, 3] = t
+    crossing_sample(l, vol[l], t, stats)

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from rockwave.kernels.sph.fluid import BOUNDARY_ADAMI, SPHParams, kernel_grad, store_density
+from rockwave.kernels.sph.fluid import BOUNDARY_ADAMI, SPHParams, kernel_grad, step_of, store_density
 
 wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
 
@@ -118,6 +118,6 @@ def apply_density_diffusion(
 ):
     """rho_i += dt rate_i, then p_i = EOS(rho_i) and pr2_i = p_i/rho_i^2 (drho_dt gains the rate)."""
     i = wp.tid()
-    r = rho[i] + dt[0] * rate[i]
+    r = rho[i] + step_of(dt, i) * rate[i]
     drho_dt[i] = drho_dt[i] + rate[i]
     store_density(i, r, p, rho, pressure, pr2)

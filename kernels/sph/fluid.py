@@ -842,6 +842,15 @@ def continuity_floor(rr: float, p: SPHParams) -> float:
 
 
 @wp.func
+def step_of(dt: wp.array(dtype=float), i: int):
+    """The step [s] of particle i: dt[0] (one step for all, the solo run), or dt[i] where dt holds one step per fluid
+    particle (a batch of scenarios with their own steps: rockwave/sim/batch.py)."""
+    if dt.shape[0] > 1:
+        return dt[i]
+    return dt[0]
+
+
+@wp.func
 def store_density(i: int, rr_in: float, p: SPHParams, rho: wp.array(dtype=float), pressure: wp.array(dtype=float),
                   pr2: wp.array(dtype=float)):
     """rho_i = rr (continuity_floor applied), p_i = EOS(rr), pr2_i = p_i / rr^2 (the force pass reads pr2)."""
@@ -884,7 +893,7 @@ def particle_density_continuity_list(
     for k in range(c):
         s += pair_density_rate(xi, vi, nbr[k * n + i], x, v, particle_mass, li, kgc, p)
     drho_dt[i] = s
-    store_density(i, rho[i] + dt[0] * s, p, rho, pressure, pr2)
+    store_density(i, rho[i] + step_of(dt, i) * s, p, rho, pressure, pr2)
 
 
 @wp.kernel
@@ -932,7 +941,7 @@ def particle_density_overflow(
                     s += pair_density_rate(xi, vi, j, x, v, particle_mass, li, kgc, p)
     if summation == 0:
         drho_dt[i] = s
-        s = continuity_floor(rho[i] + dt[0] * s, p)
+        s = continuity_floor(rho[i] + step_of(dt, i) * s, p)
     rho[i] = s
     pr = equation_of_state(s, p)
     pressure[i] = pr
@@ -999,7 +1008,7 @@ def neighbour_list_density(
     count[i] = c
     if mode == DENSITY_CONTINUITY:
         drho_dt[i] = s
-        s = continuity_floor(rho[i] + dt[0] * s, p)
+        s = continuity_floor(rho[i] + step_of(dt, i) * s, p)
     if mode != DENSITY_NONE:
         rho[i] = s
         pr = equation_of_state(s, p)
@@ -1173,7 +1182,7 @@ def integrate_particles(
 ):
     """Semi-implicit (symplectic) Euler: v += a dt; x += (v + dv_xsph) dt."""
     i = wp.tid()
-    h = dt[0]
+    h = step_of(dt, i)
     vn = v[i] + h * accel[i]
     v[i] = vn
     x[i] = x[i] + h * (vn + xsph_dv[i])

@@ -81,11 +81,12 @@ def write_result(out: Path, res: dict) -> None:
     atomic_write_text(out / "result.json", json.dumps(res, indent=2, default=str))
 
 
-def run_batch(configs: list[dict], solo) -> list[dict]:
+def run_batch(configs: list[dict], solo, steps: str = "scenario") -> list[dict]:
     """Run scenario configs (rockwave/app/sweep.py scenario_config) as batches of one template; returns their
     summaries (in the order given), each written as result.json in its out_dir. ``solo``: the one-scenario entry
-    point (rockwave/app/sweep.py run_scenario) for the scenarios that fail in a batch. Never raises for a
-    scenario that fails."""
+    point (rockwave/app/sweep.py run_scenario) for the scenarios that fail in a batch. ``steps``: "scenario" (each
+    scenario its own step and clock, the default) or "shared" (rockwave/sim/batch.py). Never raises for a scenario
+    that fails."""
     quiet_warp()
     results: dict[str, dict] = {}
     groups: dict[str, list] = {}
@@ -102,7 +103,7 @@ def run_batch(configs: list[dict], solo) -> list[dict]:
         live = list(members)
         while live:
             try:
-                done = _run_one_batch(live)
+                done = _run_one_batch(live, steps)
             except ScenarioFailed as e:  # run again without them; they run alone below
                 alone += [live[k][0] for k in sorted(e.failures)]
                 live = [m for k, m in enumerate(live) if k not in e.failures]
@@ -119,12 +120,12 @@ def run_batch(configs: list[dict], solo) -> list[dict]:
     return [results[c["id"]] for c in configs]
 
 
-def _run_one_batch(members: list) -> list[dict]:
+def _run_one_batch(members: list, steps: str = "scenario") -> list[dict]:
     """One BatchSimulation of (config, scene) pairs, frame by frame to the end; the summaries (not yet written)."""
     t0 = time.perf_counter()
     configs, scenes = [m[0] for m in members], [m[1] for m in members]
     device = resolve_device(_device(configs[0]))
-    sim = BatchSimulation(scenes, device=device)
+    sim = BatchSimulation(scenes, device=device, steps=steps)
     hz = BatchHazard(sim)
     scene = scenes[0]
     duration = float(scene.simulation.duration_s)
@@ -141,12 +142,19 @@ def _run_one_batch(members: list) -> list[dict]:
     summaries = hz.results()
     wall = time.perf_counter() - t0
     out = []
+    own = sim.own
     for k, (c, s, h) in enumerate(zip(configs, scenes, summaries)):
         a, b = sim.tiles[k].fluid
+        if own is not None:  # its own clock (the default: rockwave/sim/batch.py)
+            steps, limiting, limited = int(own.steps[k]), own.limiting[k], dict(own.steps_limited_by[k])
+            substeps = int(own.substeps[k]) if own.multirate[k] else None
+        else:
+            steps, limiting, limited = sim.steps, sim.clock.limiting, dict(sim.clock.steps_limited_by)
+            substeps = sim.clock.substeps if sim.clock.block_substep is not None else None
         run = {"scene": str(Path(c["scene_path"]).resolve()), "device": sim.device, "fluid_particles": b - a,
-               "removed_inside_blocks": sim.removed_inside[k], "simulated_s": sim.time, "steps": sim.steps,
-               "step_limited_by": sim.clock.limiting, "steps_limited_by": dict(sim.clock.steps_limited_by),
-               "block_substeps": sim.clock.substeps if sim.clock.block_substep is not None else None,
+               "removed_inside_blocks": sim.removed_inside[k], "simulated_s": float(sim.times[k]), "steps": steps,
+               "step_limited_by": limiting, "steps_limited_by": limited, "block_substeps": substeps,
+               "batch_steps": sim.step_mode, "batch_launches": sim.steps,
                "particles_outside_domain": outside[k], "wall_s_batch": wall,
                "batch": {"scenarios": len(scenes), "position": k, "tile_offset_m": sim.tiles[k].offset.tolist(),
                          "gap_m": sim.gap, "fluid_particles": sim.n_fluid},
@@ -156,6 +164,6 @@ def _run_one_batch(members: list) -> list[dict]:
         atomic_write_text(d / "hazard.json", json.dumps(h, indent=2))
         atomic_write_text(d / "run.json", json.dumps(run, indent=2, default=str))
         out.append({"id": c["id"], "index": c["index"], "params": c["params"], "status": "ok", "error": "",
-                    "metrics": flat_metrics(h), "wall_s": wall / len(scenes), "steps": sim.steps, "device": sim.device,
+                    "metrics": flat_metrics(h), "wall_s": wall / len(scenes), "steps": steps, "device": sim.device,
                     "fluid_particles": b - a, "batch_size": len(scenes)})
     return out

@@ -1143,26 +1143,31 @@ class BlockSolver:
         radius, n_c = options.contact_points_for_dt) and, for deformable blocks, the largest strain-mode
         frequency of M_e^-1 V D (~ 3.5 c / L). step() refuses a dt above it."""
         if self._dt_crit is None:
-            m = self.model
-            nc = self.contact_points_for_dt
-            best = math.inf
-            for b in np.nonzero(m.movable)[0]:
-                kn = m.np["k_n"][b]
-                z = m.np["zeta"][b]
-                fac = math.sqrt(1.0 + z * z) - z
-                mass = m.np["mass"][b]
-                imin = float(np.linalg.eigvalsh(m.np["inertia"][b]).min())
-                r = m.np["radius"][b]
-                om = max(math.sqrt(kn * nc / mass), math.sqrt(kn * nc * r * r / imin))
-                if 2.0 / om * fac < best:
-                    best, self._dt_crit_block = 2.0 / om * fac, (int(b), "contact")
-                if m.np["kinds"][b] == 1:
-                    zs = m.specs[b].strain_damping_ratio
-                    ds = 2.0 / m.strain_omega[b] * (math.sqrt(1 + zs * zs) - zs)
-                    if ds < best:
-                        best, self._dt_crit_block = ds, (int(b), "strain")
-            self._dt_crit = best
+            self._dt_crit, self._dt_crit_block = self.critical_dt_of(np.nonzero(self.model.movable)[0])
         return self._dt_crit
+
+    def critical_dt_of(self, blocks) -> tuple[float, tuple[int, str] | None]:
+        """critical_dt() over the given block indices alone (inf where none is movable) and the block and mode that
+        set it (a batch of scenarios: each scenario's own limit, rockwave/sim/batch.py)."""
+        m = self.model
+        nc = self.contact_points_for_dt
+        best, which = math.inf, None
+        for b in (int(i) for i in blocks if m.movable[int(i)]):
+            kn = m.np["k_n"][b]
+            z = m.np["zeta"][b]
+            fac = math.sqrt(1.0 + z * z) - z
+            mass = m.np["mass"][b]
+            imin = float(np.linalg.eigvalsh(m.np["inertia"][b]).min())
+            r = m.np["radius"][b]
+            om = max(math.sqrt(kn * nc / mass), math.sqrt(kn * nc * r * r / imin))
+            if 2.0 / om * fac < best:
+                best, which = 2.0 / om * fac, (int(b), "contact")
+            if m.np["kinds"][b] == 1:
+                zs = m.specs[b].strain_damping_ratio
+                ds = 2.0 / m.strain_omega[b] * (math.sqrt(1 + zs * zs) - zs)
+                if ds < best:
+                    best, which = ds, (int(b), "strain")
+        return best, which
 
     def critical_block(self) -> tuple[int, str] | None:
         """(block index, 'contact' or 'strain'): the block and mode that set critical_dt() (None: no

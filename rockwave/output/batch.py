@@ -46,7 +46,7 @@ class BatchHazard(SampledRecorder):
         self.dim, self.up = scene.dim, scene.dim - 1
         up = self.up
         fluid = sim.fluid
-        self.interval = hazard_interval(scene)
+        self.interval = hazard_interval(sim.scenes[0])  # (shared by the template; sim.scene, the template, has no [hazard])
         spacing = float(scene.fluid.spacing_m)
         nf = fluid.n_fluid
         masses = fluid.particle_mass.numpy()
@@ -57,6 +57,7 @@ class BatchHazard(SampledRecorder):
         cross_first, cross_count, cross_pt, cross_n = [], [], [], []
         wave_rows, still, thr, col_rows = [], [], [], []
         slide_index, slide_start = [], []
+        wave_scen, col_scen, cross_scen, slide_scen = [], [], [], []  # each row's scenario
         owner = np.full(nf, -1, np.int32)
         for k, (s, t, seeds) in enumerate(zip(sim.scenes, sim.tiles, sim.seeds)):
             a, b = t.fluid
@@ -108,6 +109,8 @@ class BatchHazard(SampledRecorder):
                                        or any(r.get("still_level_m") is None for r in runups)):
                 now = gauges.launch_levels(_OwnState(sim, k)).numpy().astype(np.float64)
             errors, st_w, st_r = [], [], []
+            wave_scen += [k] * len(waves)
+            cross_scen += [k] * len(crossings)
             for i, g in enumerate(waves):
                 s0 = g.get("still_level_m")
                 if s0 is None:
@@ -131,6 +134,7 @@ class BatchHazard(SampledRecorder):
             col_start = len(col_rows)
             for o, pos in columns:
                 col_rows += list(range(first + o, first + o + len(pos)))
+                col_scen += [k] * len(pos)
             cross_first.append(len(cross_pt))
             cross_count.append(len(crossings))
             for c in crossings:
@@ -145,6 +149,7 @@ class BatchHazard(SampledRecorder):
                                                                 f"{', '.join(names)}"))
                 else:
                     slide_index.append(t.blocks[0] + names.index(sl.block))
+                    slide_scen.append(k)
             if errors:
                 raise SceneError(s.path, errors)
             if slides:
@@ -204,7 +209,41 @@ class BatchHazard(SampledRecorder):
         self.samples = 0
         self.next_t = self.t_start
         self.last_sample_t = None
+        # per-scenario steps (sim.own): each scenario samples at its own times, as its solo run
+        self.own = sim.own is not None
+        S = sim.n_scenarios
+        self.t_starts = sim.times
+        self.next_ts = self.t_starts.copy()
+        self.samples_k = np.zeros(S, np.int64)
+        self.last_ts = np.full(S, np.nan)
+        self.scen_t = wp.zeros(S, dtype=float, device=d)
+        self.scen_on = wp.zeros(S, dtype=int, device=d)
+        self.wave_scen, self.col_scen = arr(wave_scen or [0], int), arr(col_scen or [0], int)
+        self.cross_scen, self.slide_scen = arr(cross_scen or [0], int), arr(slide_scen or [0], int)
         self.after_step()
+
+    def after_step(self) -> None:
+        """Per-scenario steps: each scenario that stepped reads its slides' speeds and, at its own sample times, its
+        lines and crossings (SampledRecorder.after_step per scenario); a shared step: SampledRecorder's."""
+        if not self.own:
+            return super().after_step()
+        sim = self.sim
+        t = sim.times
+        stepped = sim.own.stepped
+        if self.slide_index:
+            self._scenario_flags(t, stepped)
+            wp.launch(batch_k.batch_block_speed, dim=len(self.slide_index),
+                      inputs=[sim.block_state.v, self.slide_d, self.slide_scen, self.scen_t, self.scen_on],
+                      outputs=[self.slide_stats], device=self.device)
+        due = stepped & (t + 1e-12 >= self.next_ts)
+        if due.any():
+            self.sample(due)
+            k = np.floor((t[due] - self.t_starts[due]) / self.interval + 1e-9) + 1
+            self.next_ts[due] = self.t_starts[due] + k * self.interval
+
+    def _scenario_flags(self, t: np.ndarray, on: np.ndarray) -> None:
+        self.scen_t.assign(t.astype(np.float32))  # (float32 on the device, as the solo run's time argument)
+        self.scen_on.assign(on.astype(np.int32))
 
     # ------------------------------------------------------------------------------------------------
     def _boundary_masses(self, masses: np.ndarray) -> list[np.ndarray]:
@@ -256,9 +295,17 @@ class BatchHazard(SampledRecorder):
         phi_s[:, : len(z)][inside] = 1.0
 
     # ------------------------------------------------------------------------------------------------
-    def sample(self) -> None:
+    def sample(self, due: np.ndarray | None = None) -> None:
+        """One sample of every line and crossing; per-scenario steps: of the scenarios in ``due`` (bool), each at its
+        own time (the lines are evaluated for all, the statistics updated for those)."""
         sim, d = self.sim, self.device
         t = float(sim.time)
+        own = self.own
+        if own:
+            if due is None:
+                due = np.ones(sim.n_scenarios, bool)
+            ts = sim.times
+            self._scenario_flags(ts, due)
         st, m = sim.state, sim.fluid
         if self.n_rows and m.n_fluid:
             self.phi_f.zero_()
@@ -270,27 +317,51 @@ class BatchHazard(SampledRecorder):
                       outputs=[self.level], device=d)
             if self.n_wave:
                 wp.launch(batch_k.gather, dim=self.n_wave, inputs=[self.level, self.wave_rows], outputs=[self.wave_level], device=d)
-                wp.launch(gauge_k.hazard_wave_update, dim=self.n_wave, inputs=[self.wave_level, self.still_d, self.thr_d, t],
-                          outputs=[self.wave_stats], device=d)
+                if own:
+                    wp.launch(batch_k.batch_wave_update, dim=self.n_wave,
+                              inputs=[self.wave_level, self.still_d, self.thr_d, self.wave_scen, self.scen_t, self.scen_on],
+                              outputs=[self.wave_stats], device=d)
+                else:
+                    wp.launch(gauge_k.hazard_wave_update, dim=self.n_wave, inputs=[self.wave_level, self.still_d, self.thr_d, t],
+                              outputs=[self.wave_stats], device=d)
             if self.n_col:
                 wp.launch(batch_k.gather, dim=self.n_col, inputs=[self.level, self.col_rows], outputs=[self.col_level], device=d)
-                wp.launch(gauge_k.hazard_column_update, dim=self.n_col, inputs=[self.col_level, 0, t],
-                          outputs=[self.col_stats], device=d)
+                if own:
+                    wp.launch(batch_k.batch_column_update, dim=self.n_col,
+                              inputs=[self.col_level, self.col_scen, self.scen_t, self.scen_on], outputs=[self.col_stats],
+                              device=d)
+                else:
+                    wp.launch(gauge_k.hazard_column_update, dim=self.n_col, inputs=[self.col_level, 0, t],
+                              outputs=[self.col_stats], device=d)
         if self.n_cross and m.n_fluid:
             self.cross_vol.zero_()
             wp.launch(batch_k.batch_side_volume, dim=(m.n_fluid, self.max_cross),
                       inputs=[st.x, st.rho, m.particle_mass, st.ids, self.owner, self.cross_first, self.cross_count,
                               self.cross_point, self.cross_normal], outputs=[self.cross_vol], device=d)
-            wp.launch(gauge_k.hazard_crossing_update, dim=self.n_cross, inputs=[self.cross_vol, t],
-                      outputs=[self.cross_stats], device=d)
-        self.samples += 1
-        self.last_sample_t = t
+            if own:
+                wp.launch(batch_k.batch_crossing_update, dim=self.n_cross,
+                          inputs=[self.cross_vol, self.cross_scen, self.scen_t, self.scen_on], outputs=[self.cross_stats],
+                          device=d)
+            else:
+                wp.launch(gauge_k.hazard_crossing_update, dim=self.n_cross, inputs=[self.cross_vol, t],
+                          outputs=[self.cross_stats], device=d)
+        if own:
+            self.samples_k[due] += 1
+            self.last_ts[due] = ts[due]
+        else:
+            self.samples += 1
+            self.last_sample_t = t
 
     # ------------------------------------------------------------------------------------------------
     def results(self) -> list[dict]:
         """Each scenario's summary, in HazardMonitor.result()'s form and its own frame (one host read)."""
         sim = self.sim
-        if self.last_sample_t is None or sim.time > self.last_sample_t + 1e-12:
+        if self.own:
+            t = sim.times
+            due = ~(t <= self.last_ts + 1e-12)  # (NaN: never sampled)
+            if due.any():
+                self.sample(due)
+        elif self.last_sample_t is None or sim.time > self.last_sample_t + 1e-12:
             self.sample()
         w = self.wave_stats.numpy().astype(np.float64)
         cols = self.col_stats.numpy().astype(np.float64)
@@ -301,8 +372,12 @@ class BatchHazard(SampledRecorder):
         out = []
         for k, p in enumerate(self.per):
             off_up = float(sim.tiles[k].offset[up])
-            res = {"t_start_s": self.t_start, "t_end_s": float(sim.time), "sample_interval_s": self.interval,
-                   "samples": self.samples, "gauges": {}, "runup": {}, "slides": {}, "crossings": {}}
+            if self.own:
+                t0, t1, n = float(self.t_starts[k]), float(sim.times[k]), int(self.samples_k[k])
+            else:
+                t0, t1, n = self.t_start, float(sim.time), self.samples
+            res = {"t_start_s": t0, "t_end_s": t1, "sample_interval_s": self.interval,
+                   "samples": n, "gauges": {}, "runup": {}, "slides": {}, "crossings": {}}
             for i, g in enumerate(p.waves):
                 row = w[p.wave_first + i]
                 res["gauges"][g.name] = {

@@ -14,14 +14,22 @@ arrays, each in its own tile of space, so that one set of launches steps them al
   its size, ulp(32 m) = 3.8e-6 m against 2.4e-7 m at 3 m). Neighbouring tiles are ``gap`` apart (default:
   8 H and the blocks' broad-phase margin, or more), so no neighbour search, water-block coupling or block contact
   ever pairs two scenarios: every pair term is cut off at H (1 + skin) or the contact distance, all smaller.
-- **One clock, a shared step**: the step is the smallest of all scenarios' limits (the fluid's CFL, force and
-  viscous limits over all particles, the coupling spring; the blocks' sub-step from the stiffest block), so each
-  scenario steps within its own limits, at a step no longer than it would take alone. With a fixed step
-  (``simulation.time_step = 'fixed'``) and the same block sub-step the batch takes each scenario's solo steps and
-  the results are those of the solo runs within float32 round-off (tests/test_batch.py); with the adaptive step
-  a scenario in a batch takes the batch's (shorter or equal) steps, and its results differ from the solo run's
-  by the time-discretisation error of the two step sequences (docs/hazard_and_sweeps.md states the measured
-  difference).
+- **Each scenario its own step and clock** (``steps="scenario"``, the default): each scenario runs the solo
+  clock's rules (rockwave/sim/clock.py; Simulation.advance's loop) on its own clock (:class:`_OwnClocks`): its
+  target from its own limits every dt_update_interval of its own steps (the fluid's CFL, force and viscous limits
+  over its own particles, kernels/sim/batch.py scenario_motion_extrema; its own blocks' DDA limit, BlockSolver
+  .critical_dt_of; the coupling spring where it has blocks), the time to the end divided into equal steps no
+  longer than the target, its own multi-rate sub-step count. One launch sequence steps all: the fluid and coupling
+  kernels read each particle's step (kernels/sph/fluid.py step_of: a per-particle array filled from its scenario's),
+  the block kernels each block's clock (kernels/dda/blocks.py clock_of), max n_k block sub-steps run and a block
+  whose scenario has taken its own gets dt = 0 (no integration, no planar projection, its contact history kept).
+  A scenario that has landed takes dt = 0 while the others go on. A scenario at its own coordinates reproduces its
+  solo run bit for bit; in its tile it differs by the float32 round-off of its translated coordinates
+  (tests/test_batch.py).
+- **Or one shared step** (``steps="shared"``): the step is the smallest of all scenarios' limits and the block
+  sub-step the stiffest block's, so each scenario steps within its own limits, at a step no longer than it would
+  take alone; its results differ from the solo run's by the difference of the two step sequences. Kept for
+  fluid-only batches on a GPU, whose chunks it replays as CUDA graphs (docs/hazard_and_sweeps.md).
 - **Scenarios share the template**: dimension, the [simulation], [gravity], [fluid] (its regions aside),
   [coupling] sections, the boundary lattice, the frame rate and the hazard sampling rhythm; anything else may differ (geometry,
   particle counts, blocks, materials, gauges). A batch of scenes that do not share it is a SceneError naming the
@@ -49,16 +57,22 @@ import warp as wp
 
 from rockwave.base.device import resolve_device
 from rockwave.base.maths import pad3, quat_to_matrix
+from rockwave.base.solver import TimeStep
 from rockwave.build import builder
 from rockwave.build.options import block_options, boundary_lattice, gravity_norm, support_radius_m
 from rockwave.build.rocks import block_specs
+from rockwave.kernels.dda import blocks as dda_k
+from rockwave.kernels.sim import batch as batch_k
 from rockwave.scene.format import DEFAULT_SAMPLE_INTERVAL_S, Node, Scene, SceneError
-from rockwave.sim.clock import Clock
+from rockwave.sim.clock import MAX_BLOCK_SUBSTEPS, Clock
 from rockwave.sim.guard import ESCAPE_FRACTION, SPEED_FACTOR
 from rockwave.sim.simulation import Simulation, SimulationOptions
 from rockwave.sim.stepping import BlockSubstepping
+from rockwave.sph.fluid import fluid_dt_limit
+from rockwave.sph.ghost import GhostFluidSolver
 
 NAME_SEP = "/"  # a batch's block names: "<scenario>/<name>"
+STEP_MODES = ("scenario", "shared")  # each scenario its own step and clock (the default), or one step for all
 
 
 class ScenarioFailed(RuntimeError):
@@ -178,7 +192,9 @@ class BatchSimulation(Simulation):
     contact law, only how often the narrow phase runs."""
 
     def __init__(self, scenes: list[Scene], device: str | None = None, options: SimulationOptions | None = None,
-                 gap: float | None = None):
+                 gap: float | None = None, steps: str = "scenario"):
+        if steps not in STEP_MODES:
+            raise ValueError(f"steps must be one of {STEP_MODES}, got {steps!r}")
         check_template(scenes)
         self.scenes = list(scenes)
         self.n_scenarios = len(scenes)
@@ -274,6 +290,144 @@ class BatchSimulation(Simulation):
         self._graphs_failed = False
         self._plain_runs: set = set()
         self._g = gravity_norm(scene)
+        self.step_mode = steps
+        self.own = _OwnClocks(self) if steps == "scenario" else None
+
+    # ---------------------------------------------------------------- each scenario its own step ------
+    @property
+    def times(self) -> np.ndarray:
+        """Each scenario's simulated time [s] (float64, (n_scenarios,)); all equal after advance()."""
+        return self.own.time.copy() if self.own is not None else np.full(self.n_scenarios, self.clock.time)
+
+    def step(self, dt: float | None = None) -> None:
+        """One step: with per-scenario steps each scenario's own current step (``dt``: every scenario that one)."""
+        if self.own is None:
+            return super().step(dt)
+        o = self.own
+        dts = o.dt.copy() if dt is None else np.full(self.n_scenarios, float(dt))
+        if dt is not None:
+            o.set_dt(np.ones(self.n_scenarios, bool), dts)
+        self._own_step(dts, np.ones(self.n_scenarios, bool))
+
+    def step_many(self, n: int) -> None:
+        """n steps (per-scenario steps: each scenario's own current step, one by one)."""
+        if self.own is None:
+            return super().step_many(n)
+        for _ in range(n):
+            self.step()
+
+    def advance(self, duration: float, watch=None) -> None:
+        """Advance every scenario by ``duration`` seconds, each landing exactly on the end time. Per-scenario steps:
+        each scenario runs the solo loop (Simulation.advance) on its own clock: its adaptive target re-evaluated
+        every dt_update_interval of its own steps from its own limits, the time left divided into equal steps no
+        longer than the target; one launch of each kernel per step steps all scenarios, a scenario that has landed
+        takes dt = 0 (masked) while the others go on. ``watch()`` after every step (``stepped``: the scenarios
+        that moved in it)."""
+        if self.own is None:
+            return super().advance(duration, watch)
+        o = self.own
+        t_end = o.time + duration  # each its own (all equal after an advance)
+        while True:
+            left = t_end - o.time
+            active = left > 1e-12 * np.maximum(1.0, t_end)
+            if not active.any():
+                break
+            o.update_targets(active)
+            n = np.maximum(1, np.ceil(left / o.target - 1e-9))
+            dts = np.where(active, left / n, 0.0)
+            o.set_dt(active, dts)
+            self._own_step(dts, active)
+            if watch is not None:
+                watch()
+        o.time[:] = t_end
+        self.clock.time = float(t_end.min())
+
+    def _own_step(self, dts: np.ndarray, active: np.ndarray) -> None:
+        """One launch sequence stepping scenario k by dts[k] (0: not at all): the fluid kernels read each
+        particle's step (kernels/sim/batch.py particle_steps), the blocks each block's clock."""
+        o = self.own
+        with wp.ScopedDevice(self.device):
+            o.dt_scen.assign(dts.astype(np.float32))  # float32 on the device as the solo clock's dt_array
+            nf = self.fluid.n_fluid
+            reorder = (wp.get_device(self.device).is_cuda and self.fluid_solver is not None and nf
+                       and self.fluid_solver.reorder_interval and self.clock.steps % self.fluid_solver.reorder_interval == 0)
+            if reorder:  # a GPU sorts the particles by cell as the solo chunks do (the order changes round-off only)
+                self.fluid_solver.reorder(self.state)
+            if nf:
+                wp.launch(batch_k.particle_steps, dim=nf, inputs=[self.state.ids, o.owner, o.dt_scen], outputs=[o.dt_particle])
+            ts = TimeStep(float(dts.max()), float(o.time.min()), o.dt_particle)
+            if self.coupling is not None:
+                self.coupling.compute(self.state, self.block_state, ts)
+            if self.fluid_solver is not None:
+                self.fluid_solver.step(self.state, ts)
+            if self.coupling is not None:
+                self.coupling.apply(self.state, ts)
+            if self.block_solver is not None:
+                self._own_block_substeps(dts, active)
+        o.tick(active, dts)
+        o.stepped = active.copy()
+        self.clock.steps += 1
+        self.clock.time = float(o.time.min())
+
+    def _own_block_substeps(self, dts: np.ndarray, active: np.ndarray) -> None:
+        """Each scenario's n_k block sub-steps of dts[k] / n_k (its own count, rockwave/sim/stepping.py with its own
+        stable block step) with the water's load held, as BlockSolver.substeps; the batch runs max n_k sub-steps,
+        a block whose scenario has taken its own has dt = 0 on its clock (kernels/dda/blocks.py clock_of) and
+        stays. The kept-pairs and carried-contacts savings are the batch's (held only while they hold for all)."""
+        o, solver, state = self.own, self.block_solver, self.block_state
+        n_k = np.where(active, o.substeps, 0)
+        N = int(n_k.max())
+        if N == 0:
+            return
+        h_k = np.where(active, dts / np.maximum(n_k, 1), 0.0)
+        interval = self.clock.update_interval
+        if N > 1 and (self.clock.steps % interval == 0 or o.pairs_hold is None):
+            o.pairs_hold, o.contacts_hold = solver.hold_checks(state, float(dts.max()), interval + 1)
+        contacts_only = N > 1 and bool(o.pairs_hold) and solver.has_free_blocks
+        hold = contacts_only and bool(o.contacts_hold)
+        held = o.held
+        if N > 1:
+            wp.copy(held[0], state.ext_force)  # integrate_blocks zeroes the load after each sub-step
+            wp.copy(held[1], state.ext_torque)
+        bo = o.block_owner
+        h_max = float(h_k.max())
+        for i in range(N):
+            if i:
+                wp.copy(state.ext_force, held[0])
+                wp.copy(state.ext_torque, held[1])
+            on = i < n_k
+            clock = np.zeros((len(bo), 3))
+            t_next = np.where(on, o.time + i * h_k + h_k, o.time)  # (the solo clock: ts.time + i h + h)
+            clock[:, 0] = t_next[bo]
+            clock[:, 1] = np.where(on, h_k, 0.0)[bo]
+            o.block_clock.assign(clock.reshape(-1).astype(np.float32))
+            # (BlockSolver's own sub-step launches, its CUDA-graph paths aside: they advance one shared clock)
+            if i and hold:
+                solver._carry_contacts(state)
+            elif i and contacts_only:
+                solver._prepare(state)
+                solver._narrow_phase(state, h_max)
+            else:
+                solver._contact_forces(state, h_max)
+            self._integrate_blocks(on[bo])
+        state.time = float(o.time.min())
+
+    def _integrate_blocks(self, moving: np.ndarray) -> None:
+        """BlockSolver._integrate with the blocks of the scenarios that have taken their sub-steps (``moving`` False)
+        left out of the planar constraint too (its renormalisation of q is not exactly idempotent)."""
+        solver, state, m, d = self.block_solver, self.block_state, self.blocks, self.device
+        if moving.all():
+            return solver._integrate(state)
+        if m.num_compounds:
+            wp.launch(dda_k.compound_loads, dim=m.num_compounds, inputs=[m.compound_start, m.compound_count, state.loads],
+                      device=d)
+        wp.launch(dda_k.integrate_blocks, dim=m.num_blocks,
+                  inputs=[solver.props, solver.motion, wp.vec3(*m.gravity), solver.block_clock, state.bodies, state.loads],
+                  device=d)
+        if m.planar:
+            o = self.own
+            o.kinds_idle.assign(np.where(moving, o.kinds, int(dda_k.KIND_FIXED)).astype(np.int32))
+            wp.launch(dda_k.planar_blocks, dim=m.num_blocks, inputs=[m.planar_z, o.kinds_idle, state.bodies], device=d)
 
     # ---------------------------------------------------------------- per scenario -------------
     def scenario_blocks(self, k: int) -> list[str]:
@@ -407,3 +561,144 @@ class BatchSimulation(Simulation):
             return (f"fluid particle {i} at {xk[i].tolist()} left the scenario's tile of the batch (its extent grown "
                     f"by {0.5 * self.gap - H:.3g} m): it could reach a neighbour"), out
         return "", out
+
+
+class _OwnClocks:
+    """Each scenario's clock in a batch with per-scenario steps (rockwave/sim/clock.py Clock's rules per scenario):
+    time, steps, dt, target, limiting and steps_limited_by, its block sub-step count from its own stable block step;
+    the limits from its own particles and blocks (the fluid's CFL, force and viscous limits over its particles, its
+    blocks' DDA limit, the coupling spring where it has blocks)."""
+
+    def __init__(self, b: BatchSimulation):
+        S = b.n_scenarios
+        d = b.device
+        sim = b.scene.simulation
+        if isinstance(b.fluid_solver, GhostFluidSolver):
+            raise SceneError(b.scenes[0].path, [("fluid.method", "a batch with per-scenario steps runs the basic SPH "
+                                                                 "method; run Ghost SPH scenarios alone")])
+        if b.fluid.particle_shifting > 0.0:
+            raise SceneError(b.scenes[0].path, [("fluid.particle_shifting", "a batch with per-scenario steps does not "
+                                                 "shift particles (the shift is not scaled by the step); run alone")])
+        if b.coupling is not None and b.coupling.walls is not None:
+            raise SceneError(b.scenes[0].path, [("coupling.block_walls", "a batch with per-scenario steps has no wall "
+                                                 "particles on moving blocks (their acceleration estimate reads one step); "
+                                                 "run alone")])
+        self.b = b
+        self.fixed = sim.time_step == "fixed"
+        self.update_interval = int(sim.dt_update_interval)
+        self.time = np.zeros(S)
+        self.steps = np.zeros(S, np.int64)
+        self.block_steps = np.zeros(S, np.int64)
+        self.limiting = ["fixed" if self.fixed else ""] * S
+        self.steps_limited_by: list[dict] = [{} for _ in range(S)]
+        nf = b.fluid.n_fluid
+        owner = np.full(max(nf, 1), 0, np.int32)
+        for k, t in enumerate(b.tiles):
+            owner[t.fluid[0]:t.fluid[1]] = k
+        self.owner = wp.array(owner, dtype=int, device=d)
+        self.n_fluid = np.array([t.fluid[1] - t.fluid[0] for t in b.tiles])
+        self.dt_scen = wp.zeros(S, dtype=float, device=d)
+        self.dt_particle = wp.zeros(max(nf, 2), dtype=float, device=d)  # > 1 entry: read per particle (step_of)
+        self.extrema = wp.zeros(2 * S, dtype=float, device=d)
+        self.has_blocks = has_blocks = np.array([t.blocks[1] > t.blocks[0] for t in b.tiles])
+        self.coupled = has_blocks & (b.coupling is not None)
+        self.multirate = has_blocks & bool(b.multirate)
+        self.block_stable = np.full(S, math.inf)
+        self.critical_block = [None] * S
+        if b.block_solver is not None:
+            safety = b.block_solver.options.dt_safety
+            for k, t in enumerate(b.tiles):
+                if has_blocks[k]:
+                    crit, self.critical_block[k] = b.block_solver.critical_dt_of(range(*t.blocks))
+                    self.block_stable[k] = safety * crit
+            nb = b.blocks.num_blocks
+            bo = np.zeros(nb, np.int64)
+            for k, t in enumerate(b.tiles):
+                bo[t.blocks[0]:t.blocks[1]] = k
+            self.block_owner = bo
+            # one clock per block (kernels/dda/blocks.py clock_of): the batch's block solver reads this one
+            self.block_clock = wp.zeros(3 * max(nb, 2), dtype=float, device=d)
+            b.block_solver.block_clock = self.block_clock
+            self.held = (wp.zeros(nb, dtype=wp.vec3, device=d), wp.zeros(nb, dtype=wp.vec3, device=d))
+            self.kinds = b.blocks.kinds.numpy()
+            self.kinds_idle = wp.zeros(nb, dtype=int, device=d)
+        self.pairs_hold = self.contacts_hold = None
+        self.stepped = np.ones(S, bool)  # the scenarios that moved in the last step (all: at the start)
+        self.substeps = np.ones(S, np.int64)
+        self.target = np.zeros(S)
+        if self.fixed:
+            self.target = np.full(S, float(sim.dt_s))
+        else:
+            self.target = self.adaptive(np.ones(S, bool), initial=True)
+        self.dt = self.target.copy()
+        self._count_substeps(np.ones(S, bool))
+
+    def limits(self, ks, initial: bool = False) -> list[dict]:
+        """Scenario k's limits {name: [s]} in the solo clock's order (fluid, blocks, coupling) for k in ks."""
+        b = self.b
+        m = b.fluid
+        if not initial and m.n_fluid:  # one read of every scenario's largest |v|^2 and |a|^2
+            self.extrema.zero_()
+            wp.launch(batch_k.scenario_motion_extrema, dim=m.n_fluid,
+                      inputs=[b.state.v, b.state.accel, b.state.ids, self.owner], outputs=[self.extrema], device=b.device)
+            ext = self.extrema.numpy().reshape(-1, 2)
+        out = []
+        for k in ks:
+            vals = {}
+            if self.n_fluid[k]:
+                if initial:
+                    vals["fluid"] = fluid_dt_limit(m, b.scene.simulation.cfl_number, 0.0, b._g)
+                else:
+                    vmax2, amax2 = float(ext[k, 0]), float(ext[k, 1])
+                    vals["fluid"] = fluid_dt_limit(m, b.fluid_solver.cfl_number, math.sqrt(vmax2), math.sqrt(amax2))
+            if self.has_blocks[k] and not self.multirate[k]:  # (multi-rate: the blocks' limit sets the sub-steps)
+                vals["blocks"] = self.block_stable[k]
+            if self.coupled[k]:
+                vals["coupling"] = b.coupling.stable_dt()
+            out.append(vals)
+        return out
+
+    def adaptive(self, mask: np.ndarray, initial: bool = False) -> np.ndarray:
+        """The smallest of each masked scenario's limits (Clock.adaptive per scenario); ``limiting`` names it."""
+        out = self.target.copy()
+        ks = np.nonzero(mask)[0]
+        for k, vals in zip(ks, self.limits(ks, initial)):
+            if not vals:
+                self.limiting[k] = ""
+                out[k] = self.b.scene.simulation.duration_s
+                continue
+            self.limiting[k] = min(vals, key=vals.get)
+            out[k] = vals[self.limiting[k]]
+        return out
+
+    def update_targets(self, active: np.ndarray) -> None:
+        """Clock.update_target per scenario: every dt_update_interval of its own steps."""
+        if self.fixed:
+            return
+        due = active & (self.steps % self.update_interval == 0)
+        if due.any():
+            self.target = self.adaptive(due)
+
+    def set_dt(self, mask: np.ndarray, dts: np.ndarray) -> None:
+        changed = mask & (dts != self.dt)
+        if changed.any():
+            self.dt[changed] = dts[changed]
+            self._count_substeps(changed)
+
+    def _count_substeps(self, mask: np.ndarray) -> None:
+        """Clock._count_substeps per scenario: ceil(dt / its own stable block step) in multi-rate stepping."""
+        for k in np.nonzero(mask & self.multirate)[0]:
+            n = max(1, math.ceil(self.dt[k] / self.block_stable[k] - 1e-9))
+            if n > MAX_BLOCK_SUBSTEPS:
+                raise SceneError(self.b.scenes[k].path, [("blocks", f"scenario {k} of the batch needs {n} block sub-steps "
+                                                                   f"in a fluid step of {self.dt[k]:.3g} s, more than "
+                                                                   f"{MAX_BLOCK_SUBSTEPS}: soften its stiffest block")])
+            self.substeps[k] = n
+
+    def tick(self, active: np.ndarray, dts: np.ndarray) -> None:
+        self.time[active] += dts[active]
+        self.steps[active] += 1
+        self.block_steps[active] += self.substeps[active]
+        for k in np.nonzero(active)[0]:
+            key = self.limiting[k] or "fixed"
+            self.steps_limited_by[k][key] = self.steps_limited_by[k].get(key, 0) + 1
