@@ -170,17 +170,19 @@ def rock_state(sim, ib: int, down: np.ndarray, h: float) -> dict:
 
 
 def run_case(device: str, margin: float, spacing: float, kn: float, duration: float, window: float,
-             settle: float = 2.0, every: float = 0.05) -> dict:
+             settle: float = 2.0, every: float = 0.05, joint_water: bool = False) -> dict:
     """One run: the water settled for ``settle`` s around the held rock (0: the seeded water's start, as before),
     then ``duration`` s with the rock free. Recorded every ``every`` s from the release: the centroid's displacement
     along the dip, split into the base's translation (its elastic part, the mean shear spring's change / k_s, and the
-    slip beyond it) and the rigid turn's share (centroid minus base), the water's kinetic energy."""
+    slip beyond it) and the rigid turn's share (centroid minus base), the water's kinetic energy. ``joint_water``:
+    coupling.joint_water (the water's pressure in the joint: the contact carries the buoyant weight)."""
     import warnings
 
     import rockwave
     from rockwave.scene.format import parse_scene
 
     scene, down = submerged_scene(margin, spacing, kn, duration=duration)
+    scene["coupling"]["joint_water"] = joint_water
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the water seeded inside the slab and the rock is reported, and expected
         sim = rockwave.Simulation(parse_scene(scene), device=device)
@@ -219,7 +221,7 @@ def run_case(device: str, margin: float, spacing: float, kn: float, duration: fl
     elastic_buoyant = m * (1.0 - RHO_WATER / RHO_ROCK) * 9.81 * math.sin(math.radians(ALPHA)) / (2.0 * k_s)
     dt_w = ts[-1] - ts[iw]
     end, wst = rec[-1], rec[iw]
-    return dict(margin_deg=margin, spacing_m=spacing, kn=kn, particles=sim.n_fluid, duration_s=duration, settle_s=settle,
+    return dict(margin_deg=margin, joint_water=joint_water, spacing_m=spacing, kn=kn, particles=sim.n_fluid, duration_s=duration, settle_s=settle,
                 wall_settle_s=wall_settle, wall_s=wall, elastic_buoyant_um=1e6 * elastic_buoyant,
                 disp_um=end["disp_um"], base_um=end["base_um"], elastic_um=end["elastic_um"], slip_um=end["slip_um"],
                 turn_share_um=end["turn_share_um"], turn_urad=end["turn_urad"], at_cap=end["at_cap"], points=end["points"],
@@ -239,6 +241,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=3.0, help="s after the release")
     ap.add_argument("--settle", type=float, default=2.0,
                     help="s of damped water around the held rock before the release (0: the seeded water's start)")
+    ap.add_argument("--joint-water", action="store_true", help="coupling.joint_water: the water's pressure in the joint")
     ap.add_argument("--window", type=float, default=None, help="creep over the last this many s (default: 10 s or duration / 3)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
@@ -250,7 +253,7 @@ def main() -> None:
     window = a.window if a.window is not None else min(10.0, a.duration / 3)
     rows = []
     for mg in a.margins:
-        r = run_case(a.device, mg, a.spacing, a.kn, a.duration, window, settle=a.settle)
+        r = run_case(a.device, mg, a.spacing, a.kn, a.duration, window, settle=a.settle, joint_water=a.joint_water)
         log(f"  margin {mg:+g} deg: {r['particles']} particles, settled {r['settle_s']:g} s; after {r['duration_s']:g} s "
             f"{r['disp_um']:.3f} um (base {r['base_um']:.3f}: elastic {r['elastic_um']:.3f}, slip {r['slip_um']:.3f}; "
             f"turn {r['turn_urad']:.2f} urad, {r['turn_share_um']:.3f} um), creep {r['creep_um_s']:.4f} um/s, slip "
@@ -261,7 +264,7 @@ def main() -> None:
     stem = a.out or str(RESULTS / f"submerged_block-{a.device.replace(':', '')}")
     md = [f"# Block under still water, alpha {ALPHA:g} deg (issue 36): {device_name(a.device)}, commit {commit()}, "
           f"spacing {a.spacing:g} m, k_n {a.kn:g} N/m per point, water settled {a.settle:g} s around the held rock, "
-          f"then {a.duration:g} s free", "",
+          f"then {a.duration:g} s free" + (", water in the joint (coupling.joint_water)" if a.joint_water else ""), "",
           "Displacements along the dip from the release, down-slope positive: the centroid's = the base's + the turn's "
           "share; the base's = its springs' elastic change + slip. Rates over the last window.", "",
           "| margin deg | particles | centroid um | base um | elastic um | slip um | turn urad (share um) | "
