@@ -2257,10 +2257,34 @@ def compound_loads(start: wp.array(dtype=int), count: wp.array(dtype=int), loads
         loads.damp_b[s + k] = bb
 
 
+@wp.func
+def unit_compensated(qh: wp.quat, ql: wp.quat):
+    # the compensated orientation q + q_lo made unit (integrate_blocks' rule): its norm's excess
+    # e2 = |q + q_lo|^2 - 1 in float64, then q_lo -= (e2 / 2) q (first order); far from unit (> 1e-5): start over
+    n2 = wp.float64(0.0)
+    for i in range(4):
+        ci = wp.float64(qh[i]) + wp.float64(ql[i])
+        n2 += ci * ci
+    hc = wp.float32(wp.float64(0.5) * (n2 - wp.float64(1.0)))
+    rl = ql - hc * qh
+    rh = qh
+    if wp.abs(hc) > 1.0e-5:
+        rh = wp.normalize(qh + ql)
+        rl = wp.quat(0.0, 0.0, 0.0, 0.0)
+    return rh, rl
+
+
 @wp.kernel
 def planar_blocks(z0: wp.array(dtype=float), kinds: wp.array(dtype=int), bodies: BlockBodies):
     """2D scenes (BlockModel.planar): blocks move in the x-y plane only (z fixed at z0, spin about z
-    only); fixed blocks are left as they are."""
+    only); fixed blocks are left as they are. The orientation q + q_lo keeps spin about z only and stays
+    unit as a compensated pair (unit_compensated). Normalising the float32 q alone threw away the norm
+    correction integrate_blocks had put in q_lo: |q + q_lo| - 1 then flipped sign every step and
+    random-walked to ~2e-6 in 0.3 s (1,400 steps), the arms R(q + q_lo) X (vertex_arm) stretched by twice
+    that, a prism's corners stepped outside and inside the face of a neighbour of the same depth by
+    ~4e-7 m (4 x the vertex test's tolerance) every other step, so the contact points changed key (vertex
+    <-> edge crossing) and depth (+-0.3 um) each step and a resting rock at a 0.5 deg margin slid at
+    ~1 mm/s (issue 36, docs/notes.md)."""
     b = wp.tid()
     if kinds[b] == KIND_FIXED:
         return
@@ -2277,9 +2301,10 @@ def planar_blocks(z0: wp.array(dtype=float), kinds: wp.array(dtype=int), bodies:
     o = w[b]
     w[b] = wp.vec3(0.0, 0.0, o[2])
     r = q[b]
-    q[b] = wp.normalize(wp.quat(0.0, 0.0, r[2], r[3]))
-    r = bodies.q_lo[b]
-    bodies.q_lo[b] = wp.quat(0.0, 0.0, r[2], r[3])
+    rl = bodies.q_lo[b]
+    qh, ql = unit_compensated(wp.quat(0.0, 0.0, r[2], r[3]), wp.quat(0.0, 0.0, rl[2], rl[3]))
+    q[b] = qh
+    bodies.q_lo[b] = ql
 
 
 @wp.kernel
