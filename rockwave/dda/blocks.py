@@ -701,10 +701,8 @@ class BlockState:
         if old is not None:
             point_cap = max(int(point_cap), int(old["pcount"].numpy()[0]))
 
-        # the contact points' positions are written by the narrow phase and read by contact_forces of the same
-        # step (the current table's): no kernel reads the previous step's, so both tables share one array
-        pos = wp.zeros(point_cap, dtype=wp.vec3, device=d)
-
+        # the contact points' positions (each table its own: contact_forces finds a point whose feature key changed
+        # by its position in the previous step's table, carry_contacts moves the previous step's points)
         def make():
             return dict(
                 keys=wp.full(cap, -1, dtype=wp.int64, device=d),
@@ -715,7 +713,7 @@ class BlockState:
                 pcount=wp.zeros(1, dtype=int, device=d),  # pool entries taken this step
                 ckey=wp.zeros(point_cap, dtype=wp.vec2i, device=d),
                 shear=wp.zeros(point_cap, dtype=wp.vec3, device=d),
-                pos=pos,
+                pos=wp.zeros(point_cap, dtype=wp.vec3, device=d),
                 depth=wp.zeros(point_cap, dtype=wp.float32, device=d),
                 fn=wp.zeros(point_cap, dtype=wp.float32, device=d),
                 vimp=wp.zeros(point_cap, dtype=wp.float32, device=d),  # closing speed at first touch
@@ -1290,7 +1288,7 @@ class BlockSolver:
                                         device=d)
                 wp.launch(dda_k.contact_forces, dim=n,
                           inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, self.motion, state.bodies, old, new,
-                                  state.loads], device=d)
+                                  state.loads, m.topology.block_size], device=d)
             if self.sync_free or n == 0:
                 break
             used = int(new.pcount.numpy()[0])  # the counter-read path: one read of the points taken
@@ -1322,7 +1320,7 @@ class BlockSolver:
                       device=d)
             wp.launch(dda_k.contact_forces, dim=n,
                       inputs=[self.pair_list, self.block_clock, self.g_mag, self.props, m.material, self.motion, state.bodies, old, new,
-                              state.loads], device=d)
+                              state.loads, m.topology.block_size], device=d)
         state.swap_tables()
 
     def holds_contacts(self, state: BlockState, dt: float, steps: int, headroom: float = 2.0) -> bool:
