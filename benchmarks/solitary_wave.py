@@ -13,7 +13,8 @@ volumes spread over two spacings either side (``water_level``) at gauges 5, 10, 
 depth less the still level read at the start, every ``read`` s). Reported: each gauge's peak against H, the celerity from the peaks' arrival times
 against c, and the kinetic energy in the particle-scale band (benchmarks/harness.py
 particle_scale_kinetic_energy) with its growth per unit time after the wave has formed, and its share of the
-wave's kinetic energy.
+wave's kinetic energy; the drift of the water's mean density and the energy budget's largest growth beyond the
+piston's work (rockwave/sim/energy.py), as a share of the scene's releasable energy.
 
 A solitary wave of permanent form in an inviscid fluid keeps H and c (to first order in H/d; measured waves
 lose ~1-2% of H per 10 depths to the flume's boundary layers at lab scale, which an inviscid run does not have).
@@ -118,6 +119,9 @@ def run(device: str, layers: int, depth: float = 0.1, height_ratio: float = 0.2,
     t_end = f["generation_s"] + (gauges[-1] - f["stroke_m"] + 2 * depth) / c
     ts, levels, noise, kin = [], [], [], []
     vol0 = m / sim.densities()
+    budget = sim.energy
+    budget.measure()
+    rho_mean0, budget_growth = float(sim.densities().mean()), []
     rest = [water_level(sim.positions()[:, 0], vol0, g, 2.0 * s) for g in gauges]  # the still level (packed start)
     t0 = time.perf_counter()
     while sim.time < t_end - 1e-9:
@@ -129,6 +133,7 @@ def run(device: str, layers: int, depth: float = 0.1, height_ratio: float = 0.2,
         levels.append([water_level(x[:, 0], vol, g, 2.0 * s) - r0 for g, r0 in zip(gauges, rest)])
         noise.append(particle_scale_kinetic_energy(x, v, m, rho, band, 2))
         kin.append(0.5 * m * float(np.sum(v ** 2)))
+        budget_growth.append(float(budget.measure(x, v, rho)["growth_j"]))
         ts.append(sim.time)
     wall = time.perf_counter() - t0
     ts, levels, noise, kin = np.asarray(ts), np.asarray(levels), np.asarray(noise), np.asarray(kin)
@@ -145,17 +150,22 @@ def run(device: str, layers: int, depth: float = 0.1, height_ratio: float = 0.2,
                 celerity_measured_m_s=cel, celerity_error=cel / c - 1.0,
                 noise_growth_per_10_depths=growth,
                 noise_share_end=float(noise[-10:].mean() / max(kin[-10:].mean(), 1e-30)) if len(ts) else math.nan,
+                mean_density_drift=float(sim.densities().mean()) / rho_mean0 - 1.0,
+                energy_growth_j=float(max(budget_growth)) if budget_growth else math.nan,
+                energy_growth_fraction=float(max(budget_growth)) / budget.scale if budget_growth and budget.scale else math.nan,
                 simulated_s=float(sim.time), steps=sim.steps, wall_s=wall, finite=bool(len(ts) and ts[-1] >= t_end - 1e-6),
                 fluid=variant or {})
 
 
 def markdown(rows: list[dict], head: str) -> str:
     out = [head, "", "| level | layers | particles | H/d | peak / H at 5, 10, ... depths | celerity error | "
-           "particle-scale KE growth per 10 depths | its share of the KE at the end | wall s |", "|---|---|---|---|---|---|---|---|---|"]
+           "particle-scale KE growth per 10 depths | its share of the KE at the end | mean density drift | energy growth beyond "
+           "the piston's work / releasable | wall s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         out.append(f"| {r.get('level', '-')} | {r['layers']} | {r['particles']} | {r['height_m'] / r['depth_m']:.2f} | "
                    + ", ".join(f"{x:.3f}" for x in r["height_ratio_at_gauges"])
                    + f" | {r['celerity_error']:+.2%} | {r['noise_growth_per_10_depths']:+.1%} | {r['noise_share_end']:.1%} | "
+                   f"{r.get('mean_density_drift', math.nan):+.2%} | {r.get('energy_growth_fraction', math.nan):.2%} | "
                    f"{r['wall_s']:.0f} |")
     return "\n".join(out) + "\n"
 

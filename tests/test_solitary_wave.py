@@ -48,3 +48,20 @@ def test_scene_is_a_tank_with_a_piston_that_moves_as_the_table_says():
     assert piston["kind"] == "kinematic" and piston["motion"]["type"] == "table"
     assert piston["motion"]["displacements_m"][-1][0] == pytest.approx(f["stroke_m"])
     assert f["length_m"] > f["stroke_m"] + f["x0_m"] + 10.0 * f["depth_m"]
+
+
+def test_delta_plus_keeps_the_waters_density_and_energy_under_a_travelling_wave():
+    """A solitary wave (H/d 0.2) made by the piston and run 5 depths at 5 layers per depth (445 particles): at the
+    `delta_plus` level the water's mean density stays within 0.3% of its start and the energy budget grows by less
+    than 2% of the releasable energy beyond the piston's work, and the wave keeps its height within 10% (measured
+    +0.03%, 1.15%, 0.993 / 0.996). The default `standard` drifts -3.6% in density and grows 24.7% here, which is why
+    its particle-scale noise grows on this case (docs/notes.md 'A solitary wave over 15 depths')."""
+    from benchmarks.solitary_wave import run
+
+    from conftest import DEVICE
+
+    r = run(DEVICE, 5, travel=5.0, variant={"fluid.fidelity": "delta_plus"})
+    assert r["finite"]
+    assert abs(r["mean_density_drift"]) < 0.003, r["mean_density_drift"]
+    assert r["energy_growth_fraction"] < 0.02, r["energy_growth_fraction"]
+    assert all(abs(h - 1.0) < 0.1 for h in r["height_ratio_at_gauges"]), r["height_ratio_at_gauges"]
