@@ -157,6 +157,10 @@ def run(device: str, layers: int, depth: float = 0.1, height_ratio: float = 0.2,
                 fluid=variant or {})
 
 
+def _pct(v, fmt: str) -> str:
+    return "-" if v is None or not math.isfinite(v) else format(v, fmt)
+
+
 def markdown(rows: list[dict], head: str) -> str:
     out = [head, "", "| level | layers | particles | H/d | peak / H at 5, 10, ... depths | celerity error | "
            "particle-scale KE growth per 10 depths | its share of the KE at the end | mean density drift | energy growth beyond "
@@ -165,7 +169,7 @@ def markdown(rows: list[dict], head: str) -> str:
         out.append(f"| {r.get('level', '-')} | {r['layers']} | {r['particles']} | {r['height_m'] / r['depth_m']:.2f} | "
                    + ", ".join(f"{x:.3f}" for x in r["height_ratio_at_gauges"])
                    + f" | {r['celerity_error']:+.2%} | {r['noise_growth_per_10_depths']:+.1%} | {r['noise_share_end']:.1%} | "
-                   f"{r.get('mean_density_drift', math.nan):+.2%} | {r.get('energy_growth_fraction', math.nan):.2%} | "
+                   f"{_pct(r.get('mean_density_drift'), '+.2%')} | {_pct(r.get('energy_growth_fraction'), '.2%')} | "
                    f"{r['wall_s']:.0f} |")
     return "\n".join(out) + "\n"
 
