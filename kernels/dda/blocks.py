@@ -2135,6 +2135,23 @@ def kinematic_motion(b: int, t: float, mo: BlockMotion):
     return wp.vec3(0.0, 0.0, 0.0), wp.vec3(0.0, 0.0, 0.0)
 
 
+@wp.func
+def unit_compensated(qh: wp.quat, ql: wp.quat):
+    # the compensated orientation q + q_lo made unit (integrate_blocks' rule): its norm's excess
+    # e2 = |q + q_lo|^2 - 1 in float64, then q_lo -= (e2 / 2) q (first order); far from unit (> 1e-5): start over
+    n2 = wp.float64(0.0)
+    for i in range(4):
+        ci = wp.float64(qh[i]) + wp.float64(ql[i])
+        n2 += ci * ci
+    hc = wp.float32(wp.float64(0.5) * (n2 - wp.float64(1.0)))
+    rl = ql - hc * qh
+    rh = qh
+    if wp.abs(hc) > 1.0e-5:  # far from unit (a quaternion set from outside): start the compensation over
+        rh = wp.normalize(qh + rl)
+        rl = wp.quat(0.0, 0.0, 0.0, 0.0)
+    return rh, rl
+
+
 @wp.kernel
 def integrate_blocks(
     props: BlockProps,
@@ -2229,17 +2246,8 @@ def integrate_blocks(
             bb = qs - qh
             ql = (qh - (qs - bb)) + (dlt - bb)  # two_sum, componentwise
             qh = qs
-        # keep q + q_lo unit: its norm's excess e2 = |q + q_lo|^2 - 1 in float64 (float32 would round it to its
-        # own size), then q_lo -= (e2 / 2) q (first order, exact to ~1e-14)
-        n2 = wp.float64(0.0)
-        for i in range(4):
-            ci = wp.float64(qh[i]) + wp.float64(ql[i])
-            n2 += ci * ci
-        hc = wp.float32(wp.float64(0.5) * (n2 - wp.float64(1.0)))
-        ql = ql - hc * qh
-        if wp.abs(hc) > 1.0e-5:  # far from unit (a quaternion set from outside): start the compensation over
-            qh = wp.normalize(qh + ql)
-            ql = wp.quat(0.0, 0.0, 0.0, 0.0)
+        # keep q + q_lo unit (in float64: float32 would round the norm's excess to its own size)
+        qh, ql = unit_compensated(qh, ql)
         q[b] = qh
         bodies.q_lo[b] = ql
         if kind == KIND_DEFORMABLE:
@@ -2289,22 +2297,6 @@ def compound_loads(start: wp.array(dtype=int), count: wp.array(dtype=int), loads
         loads.damp_c[s + k] = C
         loads.damp_b[s + k] = bb
 
-
-@wp.func
-def unit_compensated(qh: wp.quat, ql: wp.quat):
-    # the compensated orientation q + q_lo made unit (integrate_blocks' rule): its norm's excess
-    # e2 = |q + q_lo|^2 - 1 in float64, then q_lo -= (e2 / 2) q (first order); far from unit (> 1e-5): start over
-    n2 = wp.float64(0.0)
-    for i in range(4):
-        ci = wp.float64(qh[i]) + wp.float64(ql[i])
-        n2 += ci * ci
-    hc = wp.float32(wp.float64(0.5) * (n2 - wp.float64(1.0)))
-    rl = ql - hc * qh
-    rh = qh
-    if wp.abs(hc) > 1.0e-5:
-        rh = wp.normalize(qh + ql)
-        rl = wp.quat(0.0, 0.0, 0.0, 0.0)
-    return rh, rl
 
 
 @wp.kernel
