@@ -105,10 +105,22 @@ def test_resting_block_does_not_creep(kind, coop):
     # (before the fix: 18.5 um/s, steady), and its displacement stays within its corners' elastic share + 0.05 mm
     # (measured 0.033 mm: the uphill corners carry mu times their small normal force, the downhill ones the rest).
     # coop: every pair through the cooperative narrow phase (kernels/dda/blocks_coop.py), one lane on the CPU
+    # A deformable block's contacts have explicit dashpots (c dt <= m / n) and stick while their spring alone is
+    # within the Coulomb cap (kernels/dda/blocks.py contact_forces; the implicit rigid ones count the dashpot's
+    # trial force too): from the plain start, while gravity loads its springs, it slips 0.28 mm beyond elastic
+    # (measured 0.276 mm), which the settled start (the default) removes (test below)
     opt = BlockOptions(start="plain", coop_min_vertices=0 if coop else None)
     disp, creep, state, model, ts, ds = run_on_slope(3.0, 1.0, options=opt, kind=kind)
     assert abs(creep) < 1.0e-6, creep
-    assert disp - elastic(model) < 5.0e-5, (disp, elastic(model))
+    assert disp - elastic(model) < (4.0e-4 if kind == "deformable" else 5.0e-5), (disp, elastic(model))
+
+
+def test_resting_deformable_block_from_the_settled_start_stays_within_its_elastic_deflection():
+    # the same deformable cube from the settled start (the default): no start-up slip, and no creep
+    disp, creep, state, model, ts, ds = run_on_slope(3.0, 1.0, start="settled", kind="deformable")
+    print("deformable settled: beyond elastic [um]", 1e6 * (disp - elastic(model)), "creep [um/s]", 1e6 * creep)
+    assert abs(creep) < 1.0e-6, creep
+    assert abs(disp - elastic(model)) < 5.0e-5, (disp, elastic(model))
 
 
 @pytest.mark.parametrize("kind, coop", [("rigid", False), ("rigid", True)])

@@ -1784,10 +1784,15 @@ def contact_forces(
         # Coulomb: a point sticks while its spring and its dashpot together stay within the cap; beyond it the
         # point slides at the cap, in the direction of that trial force, with no dashpot. Never a force above the
         # trial force: mu F_n applied to a point that a smaller force stops reverses it within the explicit step
-        # and makes energy (docs/notes.md 'A locked jointed mass explodes')
+        # and makes energy (docs/notes.md 'A locked jointed mass explodes'). With explicit dashpots (deformable
+        # blocks, c dt <= m / n) the spring alone is tested: the trial's dashpot share, written into a stuck
+        # spring set to its cap, ratchets a block on a shaking base (docs/notes.md 'Deformable Newmark ratchet')
         ftr = fs - cs0 * vt
         lftr = wp.length(ftr)
-        if locked or lftr <= fmax:
+        ltest = lftr
+        if not implicit:
+            ltest = wp.length(fs)
+        if locked or ltest <= fmax:
             stuck_mask = stuck_mask | (1 << k)
             n_stuck += 1
         elif lftr > 0.0:

@@ -72,6 +72,7 @@ from rockwave.sph.fluid import fluid_dt_limit
 from rockwave.sph.ghost import GhostFluidSolver
 
 NAME_SEP = "/"  # a batch's block names: "<scenario>/<name>"
+PLAN_RING = 8  # pinned host buffers of the per-scenario step plan, used in turn
 STEP_MODES = ("scenario", "shared")  # each scenario its own step and clock (the default), or one step for all
 
 
@@ -347,7 +348,8 @@ class BatchSimulation(Simulation):
         particle's step (kernels/sim/batch.py particle_steps), the blocks each block's clock."""
         o = self.own
         with wp.ScopedDevice(self.device):
-            o.dt_scen.assign(dts.astype(np.float32))  # float32 on the device as the solo clock's dt_array
+            o.upload_plan(dts, active)  # one host-to-device copy per step: each scenario's time, sub-steps and step
+            wp.launch(batch_k.scenario_steps, dim=self.n_scenarios, inputs=[o.plan], outputs=[o.dt_scen])
             nf = self.fluid.n_fluid
             reorder = (wp.get_device(self.device).is_cuda and self.fluid_solver is not None and nf
                        and self.fluid_solver.reorder_interval and self.clock.steps % self.fluid_solver.reorder_interval == 0)
@@ -396,11 +398,9 @@ class BatchSimulation(Simulation):
                 wp.copy(state.ext_force, held[0])
                 wp.copy(state.ext_torque, held[1])
             on = i < n_k
-            clock = np.zeros((len(bo), 3))
-            t_next = np.where(on, o.time + i * h_k + h_k, o.time)  # (the solo clock: ts.time + i h + h)
-            clock[:, 0] = t_next[bo]
-            clock[:, 1] = np.where(on, h_k, 0.0)[bo]
-            o.block_clock.assign(clock.reshape(-1).astype(np.float32))
+            # each block's clock from its scenario's plan, on the device (the solo clock: ts.time + i h + h)
+            wp.launch(batch_k.block_clocks, dim=len(bo), inputs=[i, o.plan, o.block_owner_wp], outputs=[o.block_clock],
+                      device=self.device)
             # (BlockSolver's own sub-step launches, its CUDA-graph paths aside: they advance one shared clock)
             if i and hold:
                 solver._carry_contacts(state)
@@ -409,10 +409,10 @@ class BatchSimulation(Simulation):
                 solver._narrow_phase(state, h_max)
             else:
                 solver._contact_forces(state, h_max)
-            self._integrate_blocks(on[bo])
+            self._integrate_blocks(on[bo], i)
         state.time = float(o.time.min())
 
-    def _integrate_blocks(self, moving: np.ndarray) -> None:
+    def _integrate_blocks(self, moving: np.ndarray, i: int) -> None:
         """BlockSolver._integrate with the blocks of the scenarios that have taken their sub-steps (``moving`` False)
         left out of the planar constraint too (its renormalisation of q is not exactly idempotent)."""
         solver, state, m, d = self.block_solver, self.block_state, self.blocks, self.device
@@ -426,7 +426,8 @@ class BatchSimulation(Simulation):
                   device=d)
         if m.planar:
             o = self.own
-            o.kinds_idle.assign(np.where(moving, o.kinds, int(dda_k.KIND_FIXED)).astype(np.int32))
+            wp.launch(batch_k.idle_kinds, dim=m.num_blocks, inputs=[i, o.plan, o.block_owner_wp, m.kinds,
+                                                                   int(dda_k.KIND_FIXED)], outputs=[o.kinds_idle], device=d)
             wp.launch(dda_k.planar_blocks, dim=m.num_blocks, inputs=[m.planar_z, o.kinds_idle, state.bodies], device=d)
 
     # ---------------------------------------------------------------- per scenario -------------
@@ -600,6 +601,14 @@ class _OwnClocks:
         self.dt_scen = wp.zeros(S, dtype=float, device=d)
         self.dt_particle = wp.zeros(max(nf, 2), dtype=float, device=d)  # > 1 entry: read per particle (step_of)
         self.extrema = wp.zeros(2 * S, dtype=float, device=d)
+        # each scenario's step plan (time, block sub-step length, sub-step count, step), float64 as the host clock:
+        # one copy per step through a ring of pinned host buffers (asynchronous on a GPU; a buffer is written again
+        # only once the copy out of it has run)
+        self.plan = wp.zeros(S, dtype=wp.vec4d, device=d)
+        pinned = wp.get_device(d).is_cuda
+        self.plan_hosts = [wp.zeros(S, dtype=wp.vec4d, device="cpu", pinned=pinned) for _ in range(PLAN_RING)]
+        self.plan_events = [None] * PLAN_RING
+        self.plan_uploads = 0
         self.has_blocks = has_blocks = np.array([t.blocks[1] > t.blocks[0] for t in b.tiles])
         self.coupled = has_blocks & (b.coupling is not None)
         self.multirate = has_blocks & bool(b.multirate)
@@ -616,11 +625,11 @@ class _OwnClocks:
             for k, t in enumerate(b.tiles):
                 bo[t.blocks[0]:t.blocks[1]] = k
             self.block_owner = bo
+            self.block_owner_wp = wp.array(bo.astype(np.int32), dtype=int, device=d)
             # one clock per block (kernels/dda/blocks.py clock_of): the batch's block solver reads this one
             self.block_clock = wp.zeros(3 * max(nb, 2), dtype=float, device=d)
             b.block_solver.block_clock = self.block_clock
             self.held = (wp.zeros(nb, dtype=wp.vec3, device=d), wp.zeros(nb, dtype=wp.vec3, device=d))
-            self.kinds = b.blocks.kinds.numpy()
             self.kinds_idle = wp.zeros(nb, dtype=int, device=d)
         self.pairs_hold = self.contacts_hold = None
         self.stepped = np.ones(S, bool)  # the scenarios that moved in the last step (all: at the start)
@@ -694,6 +703,24 @@ class _OwnClocks:
                                                                    f"in a fluid step of {self.dt[k]:.3g} s, more than "
                                                                    f"{MAX_BLOCK_SUBSTEPS}: soften its stiffest block")])
             self.substeps[k] = n
+
+    def upload_plan(self, dts: np.ndarray, active: np.ndarray) -> None:
+        """Copy each scenario's plan for this step to the device: its time, block sub-step length dts / n and count n
+        (0 for a scenario not stepping), and its step."""
+        j = self.plan_uploads % PLAN_RING
+        if self.plan_events[j] is not None:
+            wp.synchronize_event(self.plan_events[j])
+        n_k = np.where(active, self.substeps, 0)
+        host = self.plan_hosts[j].numpy()
+        host[:, 0] = self.time
+        host[:, 1] = np.where(active, dts / np.maximum(n_k, 1), 0.0)
+        host[:, 2] = n_k
+        host[:, 3] = dts
+        wp.copy(self.plan, self.plan_hosts[j])
+        if wp.get_device(self.b.device).is_cuda:
+            with wp.ScopedDevice(self.b.device):
+                self.plan_events[j] = wp.record_event()
+        self.plan_uploads += 1
 
     def tick(self, active: np.ndarray, dts: np.ndarray) -> None:
         self.time[active] += dts[active]
