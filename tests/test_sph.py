@@ -345,3 +345,23 @@ def test_density_floor_refused_where_it_cannot_act():
         with pytest.raises(rockwave.SceneError, match=r"fluid\.density_floor") as e:
             rockwave.parse_scene(bad)
         assert text in str(e.value)
+
+
+def test_device_bytes_count_every_fluid_array_once():
+    """FluidSolver.device_bytes (benchmarks/fluid_bytes.py's per-level table, issue 40): the lists are the slots
+    and counts exactly (4 B x (capacity + 1) per fluid particle), a buffer made after the first step (the shifting's,
+    at delta_plus) is counted, and the parts add up to the total."""
+    out = {}
+    for level in ("standard", "delta_plus"):
+        sim = rockwave.Simulation(rockwave.parse_scene(tank_2d(fidelity=level)), device=DEVICE)
+        sim.step_many(2)
+        s = sim.fluid_solver
+        b = s.device_bytes(sim.state)
+        nf = sim.fluid.n_fluid
+        assert b["lists"] == 4 * (s.neighbour_cap + 1) * nf
+        assert b["total"] == sum(v for k, v in b.items() if k not in ("total", "per_particle"))
+        assert b["per_particle"] == pytest.approx(b["total"] / nf)
+        assert b["state"] >= nf * (3 * 12 + 3 * 4)  # at least x, v, accel and rho, pressure, drho_dt of the fluid
+        out[level] = b
+    # delta_plus keeps the shifting's four per-particle buffers (lambda, two gradients, the shift: 40 B) more
+    assert out["delta_plus"]["solver"] - out["standard"]["solver"] >= 40 * nf

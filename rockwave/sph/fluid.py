@@ -475,6 +475,7 @@ class FluidSolver:
         self.cell = model.support_radius * o.cell_ratio
         dims = _grid_dims(model.domain_lo, model.domain_hi, self.cell, model.dim)
         self.grid = wp.HashGrid(*dims, device=d)
+        self.grid_dims = dims
         self.grid.reserve(model.n_total)
         self._extrema = wp.zeros(2, dtype=float, device=d)
         self._in_original_order = True  # False after a reorder, until unsort
@@ -826,6 +827,36 @@ class FluidSolver:
         m = self.model
         state.rho.assign(np.asarray(rho, dtype=np.float32))
         wp.launch(sph.equation_of_state_pass, dim=m.n_fluid, inputs=[state.rho, m.params], outputs=[state.pressure], device=m.device)
+
+    def device_bytes(self, state: FluidState) -> dict:
+        """Device memory of the fluid [bytes], each Warp array counted once at its capacity: the neighbour lists
+        (``lists``: slots and counts), the rest of the solver's buffers (``solver``), the model (``model``: boundary
+        lattice, masses, parameters) and the state (``state``); ``hash_grid``: Warp's HashGrid, estimated (its
+        buffers are not Warp arrays: a cell index, a point index and their sort's double buffers per reserved
+        point, a start and an end per cell); ``total`` and ``per_particle`` (total / fluid particles)."""
+        seen = set()
+
+        def walk(obj, skip=()):
+            tot = 0
+            items = obj.items() if isinstance(obj, dict) else vars(obj).items()
+            for name, a in items:
+                if isinstance(a, dict):
+                    tot += walk(a)
+                elif isinstance(a, (list, tuple)):
+                    tot += walk(dict(enumerate(a)))
+                elif isinstance(a, wp.array) and a.ptr is not None and id(a) not in seen and name not in skip:
+                    seen.add(id(a))
+                    tot += a.capacity
+            return tot
+
+        m = self.model
+        out = dict(lists=walk(dict(slots=self._nbr, counts=self._nbr_count)), state=walk(state), model=walk(m))
+        out["solver"] = walk(self, skip=("model",))
+        cells = int(np.prod(self.grid_dims)) if getattr(self, "grid_dims", None) is not None else 0
+        out["hash_grid"] = 16 * int(m.n_total) + 8 * cells
+        out["total"] = sum(out.values())
+        out["per_particle"] = out["total"] / max(m.n_fluid, 1)
+        return out
 
     # ---------------------------------------------------------------- read-only views -----------
     # The solver's own arrays for diagnostics and tests (read them; the step owns them).
