@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from rockwave.kernels.sph.fluid import SPHParams, kernel_grad, kernel_w
+from rockwave.kernels.sph.fluid import SPHParams, kernel_grad, kernel_w, step_of
 
 wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
 
@@ -111,6 +111,14 @@ def speed_max(v: wp.array(dtype=wp.vec3), n: int, stride: int, out: wp.array(dty
 
 
 @wp.kernel
+def scenario_speed_max(v: wp.array(dtype=wp.vec3), ids: wp.array(dtype=int), owner: wp.array(dtype=int),
+                       out: wp.array(dtype=float)):
+    """out[k] = max |v_i|^2 over scenario k's fluid particles (owner: scenario by seeded index; zeroed by the caller)."""
+    i = wp.tid()
+    wp.atomic_max(out, owner[ids[i]], wp.length_sq(v[i]))
+
+
+@wp.kernel
 def shift_displacement(
     count: wp.array(dtype=int),
     nbr: wp.array(dtype=int),
@@ -119,6 +127,9 @@ def shift_displacement(
     grad_c: wp.array(dtype=wp.vec3),
     grad_s: wp.array(dtype=wp.vec3),
     v2max: wp.array(dtype=float),
+    ids: wp.array(dtype=int),
+    owner: wp.array(dtype=int),
+    dt: wp.array(dtype=float),
     p: SPHParams,
     coef: float,
     dx: float,
@@ -128,12 +139,14 @@ def shift_displacement(
     (lambda_i < SPLASH_LAMBDA) none; a particle that is at the free surface or has a surface particle within H (the
     band of one support under the surface) only along the surface: its normal component removed, n the
     W-weighted mean of the surface normals -grad C / |grad C| of the surface particles around it (itself included).
-    At most MAX_SHIFT spacings."""
+    At most MAX_SHIFT spacings. A batch of scenarios with their own steps (rockwave/sim/batch.py): Ma from the
+    particle's scenario's largest speed (v2max[owner[ids[i]]]; one entry: the solo run's), and no shift while its
+    scenario does not step (its dt 0: step_of)."""
     i = wp.tid()
     n = count.shape[0]
     c = count[i]
     li = lam[i]
-    if li < SPLASH_LAMBDA or c > nbr.shape[0] // n:
+    if li < SPLASH_LAMBDA or c > nbr.shape[0] // n or step_of(dt, i) == 0.0:
         dr[i] = wp.vec3(0.0)
         return
     xi = x[i]
@@ -155,7 +168,10 @@ def shift_displacement(
                     gl = wp.length(grad_c[j])
                     if gl > 0.0:
                         ns -= kernel_w(r2, p) / gl * grad_c[j]
-    ma = wp.sqrt(v2max[0]) / p.sound_speed
+    k = int(0)
+    if v2max.shape[0] > 1:
+        k = owner[ids[i]]
+    ma = wp.sqrt(v2max[k]) / p.sound_speed
     d = -(coef * ma * p.H * p.H) * grad_s[i]
     if band != 0:
         nl = wp.length(ns)

@@ -293,6 +293,12 @@ class BatchSimulation(Simulation):
         self._g = gravity_norm(scene)
         self.step_mode = steps
         self.own = _OwnClocks(self) if steps == "scenario" else None
+        if self.fluid_solver is not None and self.fluid.particle_shifting > 0.0 and self.fluid.n_fluid:
+            # each scenario's shift from its own largest speed, none while it does not step (kernels/sph/shifting.py)
+            owner = np.zeros(self.fluid.n_fluid, np.int32)
+            for k, t in enumerate(self.tiles):
+                owner[t.fluid[0]:t.fluid[1]] = k
+            self.fluid_solver.shift_by_scenario(wp.array(owner, dtype=int, device=self.device), self.n_scenarios)
 
     # ---------------------------------------------------------------- each scenario its own step ------
     @property
@@ -577,9 +583,6 @@ class _OwnClocks:
         if isinstance(b.fluid_solver, GhostFluidSolver):
             raise SceneError(b.scenes[0].path, [("fluid.method", "a batch with per-scenario steps runs the basic SPH "
                                                                  "method; run Ghost SPH scenarios alone")])
-        if b.fluid.particle_shifting > 0.0:
-            raise SceneError(b.scenes[0].path, [("fluid.particle_shifting", "a batch with per-scenario steps does not "
-                                                 "shift particles (the shift is not scaled by the step); run alone")])
         if b.coupling is not None and b.coupling.walls is not None:
             raise SceneError(b.scenes[0].path, [("coupling.block_walls", "a batch with per-scenario steps has no wall "
                                                  "particles on moving blocks (their acceleration estimate reads one step); "

@@ -942,32 +942,47 @@ class FluidSolver:
         indicator, concentration gradients, then the shift with its free-surface band; kernels/sph/shifting.py),
         applied after the integration (the ``shift`` pass). Nothing without it."""
         if self.model.particle_shifting > 0.0:
-            self.particle_shift(state)
+            self.particle_shift(state, dt)
 
     def _shift_pass(self, state: FluidState, dt: wp.array) -> None:
         if self.model.particle_shifting > 0.0:
             self._launch(shifting.apply_shift, self.model.n_fluid, [self._shift_dr, state.x])
 
-    def particle_shift(self, state: FluidState) -> None:
-        """The shifts of this step into ``shift_displacements`` (positions unchanged; the lists must be current)."""
+    def shift_by_scenario(self, owner: wp.array, n_scenarios: int) -> None:
+        """A batch of scenarios with their own steps (rockwave/sim/batch.py): each particle's shift from its own
+        scenario's largest speed (``owner``: the scenario of each seeded particle), none while its step is 0."""
+        self._shift_owner = owner
+        self._shift_v2 = wp.zeros(max(int(n_scenarios), 2), dtype=float, device=self.model.device)
+
+    def particle_shift(self, state: FluidState, dt: wp.array | None = None) -> None:
+        """The shifts of this step into ``shift_displacements`` (positions unchanged; the lists must be current).
+        ``dt``: the step array (a particle whose step is 0 is not shifted); None: shifted."""
         m = self.model
+        if getattr(self, "_shift_owner", None) is None:
+            self._shift_owner = wp.zeros(1, dtype=int, device=m.device)
         if getattr(self, "_shift_dr", None) is None:
             nf, d = m.n_fluid, m.device
             self._shift_lam = wp.zeros(nf, dtype=float, device=d)
             self._shift_gc = wp.zeros(nf, dtype=wp.vec3, device=d)
             self._shift_gs = wp.zeros(nf, dtype=wp.vec3, device=d)
             self._shift_dr = wp.zeros(nf, dtype=wp.vec3, device=d)
-            self._shift_v2 = wp.zeros(1, dtype=float, device=d)
+            if getattr(self, "_shift_v2", None) is None:
+                self._shift_v2 = wp.zeros(1, dtype=float, device=d)
+            self._shift_one = wp.ones(1, dtype=float, device=d)  # the step when none is given: any non-zero
             self._shift_wdx = float(lattice_kernel_value(m.params, m.spacing, d))
         self._launch(shifting.surface_and_concentration, m.n_fluid,
                      [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, m.params, self._shift_wdx],
                      [self._shift_lam, self._shift_gc, self._shift_gs])
         self._shift_v2.zero_()
-        stride = min(m.n_fluid, 16384)
-        self._launch(shifting.speed_max, stride, [state.v, m.n_fluid, stride, self._shift_v2])
+        if self._shift_v2.shape[0] > 1:  # by scenario (shift_by_scenario)
+            self._launch(shifting.scenario_speed_max, m.n_fluid, [state.v, state.ids, self._shift_owner, self._shift_v2])
+        else:
+            stride = min(m.n_fluid, 16384)
+            self._launch(shifting.speed_max, stride, [state.v, m.n_fluid, stride, self._shift_v2])
         self._launch(shifting.shift_displacement, m.n_fluid,
                      [self._nbr_count, self._nbr, state.x, self._shift_lam, self._shift_gc, self._shift_gs,
-                      self._shift_v2, m.params, m.particle_shifting, m.spacing], [self._shift_dr])
+                      self._shift_v2, state.ids, self._shift_owner, self._shift_one if dt is None else dt, m.params,
+                      m.particle_shifting, m.spacing], [self._shift_dr])
 
     def _pair_forces_pass(self, state: FluidState, dt: wp.array) -> None:
         """Acceleration and XSPH velocity of every fluid particle from its neighbours (the lists, then the
