@@ -713,6 +713,40 @@ def crossing_depth(
 
 
 @wp.func
+def patch_crossing(pa: wp.vec3, qa: wp.vec3, pb: wp.vec3, qb: wp.vec3, t1: wp.vec3, t2: wp.vec3, tol: float):
+    # is the crossing of edge (pa, qa) of A with edge (pb, qb) of B, projected on the common plane (t1, t2), a vertex
+    # of the contact patch? Yes when each edge's ends lie on opposite sides of the other edge's line, each farther
+    # than tol / 2 from it. The distance is measured across the line, as the vertex test measures its tolerance
+    # (column_through: a vertex up to tol outside a face's plane is in): an end within tol / 2 of the other edge's
+    # line is that end's vertex, found up to tol outside, so the two tests overlap by tol / 2 at any angle. A window
+    # along the edges (the former rule) let two edges collinear to ~1e-6 rad and within a fraction of a um of each
+    # other (continuous joints) cross anywhere along them, with the last bits of their 2D determinant: a point at
+    # full depth appeared and vanished every few steps (issue 36, docs/notes.md). Returns ok and the crossing's
+    # parameters s on A's edge, u on B's, from the ends' signed distances (well conditioned at any angle:
+    # s = d(pa) / (d(pa) - d(qa)), Sutherland & Hodgman 1974's intersection of an edge with a clip line).
+    ea = wp.vec2(wp.dot(qa - pa, t1), wp.dot(qa - pa, t2))
+    eb = wp.vec2(wp.dot(qb - pb, t1), wp.dot(qb - pb, t2))
+    ra = wp.vec2(wp.dot(pa - pb, t1), wp.dot(pa - pb, t2))  # pa - pb in the plane
+    la = wp.length(ea)
+    lb = wp.length(eb)
+    # |eb| x the signed distances of A's ends from B's line, and |ea| x those of B's ends from A's line
+    da0 = eb[0] * ra[1] - eb[1] * ra[0]
+    da1 = da0 + (eb[0] * ea[1] - eb[1] * ea[0])
+    db0 = ra[0] * ea[1] - ra[1] * ea[0]  # ea x (pb - pa)
+    db1 = db0 + (ea[0] * eb[1] - ea[1] * eb[0])
+    ha = 0.5 * tol * lb
+    hb = 0.5 * tol * la
+    ok = da0 * da1 < 0.0 and db0 * db1 < 0.0
+    ok = ok and wp.abs(da0) > ha and wp.abs(da1) > ha and wp.abs(db0) > hb and wp.abs(db1) > hb
+    s = float(0.0)
+    u = float(0.0)
+    if ok:
+        s = da0 / (da0 - da1)
+        u = db0 / (db0 - db1)
+    return ok, s, u
+
+
+@wp.func
 def fcp_touching(
     n: wp.vec3,
     gap: float,
@@ -1453,7 +1487,6 @@ def narrow_phase(
             qa = pair_vertex(wv, dA, ua)
             if wp.dot(n, qa) < loB - tol or va < ua:
                 # edge (va, ua) once: from its lower end if both ends are in the patch
-                ea = qa - pa
                 for kk in range(cB):
                     vb = sB + kk
                     pb = pair_vertex(wv, dB, vb)
@@ -1465,37 +1498,17 @@ def narrow_phase(
                         ub = he_dest(g, he_vertex, he_next)
                         qb = pair_vertex(wv, dB, ub)
                         if wp.dot(n, qb) > hiA + tol or vb < ub:
-                            eb = qb - pb
-                            # solve pa + s ea = pb + u eb in the plane (2D)
-                            a0 = wp.dot(ea, t1)
-                            a1 = wp.dot(ea, t2)
-                            b0 = wp.dot(eb, t1)
-                            b1 = wp.dot(eb, t2)
-                            r0 = wp.dot(pb - pa, t1)
-                            r1 = wp.dot(pb - pa, t2)
-                            det = a0 * (-b1) - a1 * (-b0)
-                            if wp.abs(det) > 1.0e-6 * wp.length(ea) * wp.length(eb):
-                                s = (r0 * (-b1) - r1 * (-b0)) / det
-                                u = (a0 * r1 - a1 * r0) / det
-                                # inside both edges by more than half the vertices' tolerance tol: a crossing
-                                # nearer an end is that end's vertex, which column_through accepts up to tol outside
-                                # the face. The two tests overlap by tol / 2 (there add_contact keeps the vertex), so
-                                # float32 rounding at the thresholds cannot drop both. With a relative window of 1e-5
-                                # here, a corner between tol and 1e-5 x its edge outside the neighbour's face
-                                # (0.9 - 5 um for 0.5 m blocks: coincident faces of continuous joints, shifted by um
-                                # as a jointed mass settles) was found neither as a vertex nor as a crossing, and a
-                                # block could rest on two points of a face (issue 36, docs/notes.md)
-                                sa = 0.5 * tol / wp.length(ea)
-                                sb = 0.5 * tol / wp.length(eb)
-                                if s > sa and s < 1.0 - sa and u > sb and u < 1.0 - sb:
-                                    xa_ = pa + s * ea
-                                    xb_ = pb + u * eb
-                                    d = wp.min(crossing_depth(va, ua, vb, ub, dA, dB, s, u, n, verts), over + tol)
-                                    if d > 0.0:
-                                        ha = wp.min(h, he_twin[h])
-                                        hb2 = wp.min(g, he_twin[g])
-                                        nc, px, py, pz, pd, pka, pkb = add_contact(
-                                            nc, 0.5 * (xa_ + xb_), d, ha, hb2, dup_tol, px, py, pz, pd, pka, pkb)
+                            # a vertex of the patch where the projected edges cross (patch_crossing)
+                            ok, s, u = patch_crossing(pa, qa, pb, qb, t1, t2, tol)
+                            if ok:
+                                xa_ = pa + s * (qa - pa)
+                                xb_ = pb + u * (qb - pb)
+                                d = wp.min(crossing_depth(va, ua, vb, ub, dA, dB, s, u, n, verts), over + tol)
+                                if d > 0.0:
+                                    ha = wp.min(h, he_twin[h])
+                                    hb2 = wp.min(g, he_twin[g])
+                                    nc, px, py, pz, pd, pka, pkb = add_contact(
+                                        nc, 0.5 * (xa_ + xb_), d, ha, hb2, dup_tol, px, py, pz, pd, pka, pkb)
                         g = he_next[he_twin[g]]
                         if g == g0:
                             break

@@ -28,6 +28,7 @@ from rockwave.kernels.dda.blocks import (
     minkowski_edge_face,
     pair_origin,
     pair_vertex,
+    patch_crossing,
     sat_recheck,
 )
 
@@ -496,29 +497,16 @@ def narrow_phase_coop(
                 ub = he_dest(g, he_vertex, he_next)
                 qb = pair_vertex(wv, dB, ub)
                 if (wp.dot(n, qa) < loB - tol or va < ua) and (wp.dot(n, qb) > hiA + tol or vb < ub):
-                    ea = qa - pa
-                    eb = qb - pb
-                    a0 = wp.dot(ea, t1)
-                    a1 = wp.dot(ea, t2)
-                    b0 = wp.dot(eb, t1)
-                    b1 = wp.dot(eb, t2)
-                    r0 = wp.dot(pb - pa, t1)
-                    r1 = wp.dot(pb - pa, t2)
-                    det = a0 * (-b1) - a1 * (-b0)
-                    if wp.abs(det) > 1.0e-6 * wp.length(ea) * wp.length(eb):
-                        s = (r0 * (-b1) - r1 * (-b0)) / det
-                        u = (a0 * r1 - a1 * r0) / det
-                        sa = 0.5 * tol / wp.length(ea)  # inside both edges by more than tol / 2 (narrow_phase)
-                        sb = 0.5 * tol / wp.length(eb)
-                        if s > sa and s < 1.0 - sa and u > sb and u < 1.0 - sb:
-                            xa_ = pa + s * ea
-                            xb_ = pb + u * eb
-                            d = wp.min(crossing_depth(va, ua, vb, ub, dA, dB, s, u, n, verts), over + tol)
-                            if d > 0.0:
-                                ok = 1
-                                p = 0.5 * (xa_ + xb_)
-                                ha = wp.min(h, he_twin[h])
-                                hb2 = wp.min(g, he_twin[g])
+                    cr, s, u = patch_crossing(pa, qa, pb, qb, t1, t2, tol)  # a vertex of the patch (narrow_phase)
+                    if cr:
+                        xa_ = pa + s * (qa - pa)
+                        xb_ = pb + u * (qb - pb)
+                        d = wp.min(crossing_depth(va, ua, vb, ub, dA, dB, s, u, n, verts), over + tol)
+                        if d > 0.0:
+                            ok = 1
+                            p = 0.5 * (xa_ + xb_)
+                            ha = wp.min(h, he_twin[h])
+                            hb2 = wp.min(g, he_twin[g])
         t_ok = wp.tile(ok)
         t_p = wp.tile(p, preserve_type=True)
         t_d = wp.tile(d)
