@@ -286,7 +286,8 @@ def line(r: dict) -> str:
              "dam_break": f"front bias T>=1.5 {f('front_bias_late', '+.3f')} rms {f('error_rms', '.3f')} "
                           f"speed x{f('front_speed_ratio', '.3f')} delay {f('front_delay_s', '.4f')} s",
              "spheric": f"H mean {f('h_rms', '.3f')} max {f('h_max', '.3f')} P1 t {f('p1_impact_error', '+.3f')} "
-                        f"peak {f('p1_peak_error', '+.3f')} noise {f('p1_noise', '.3f')}"}[r["case"]]
+                        f"peak {f('p1_peak_error', '+.3f')} (arrival {f('p1_first_error', '+.3f')}, after "
+                        f"{f('p1_after_error', '+.3f')}) noise {f('p1_noise', '.3f')}"}[r["case"]]
     ex = f" {r['exception']}" if r.get("exception") else ""
     ex += f"  {r.get('class', '')}" + (f" ({'; '.join(r['why'])})" if r.get("why") else "")
     return (f"{r['case']:13s} {r['formulation']:22s} {r['label']:>12s} n={r.get('particles', 0):7d} "
