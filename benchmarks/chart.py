@@ -61,6 +61,13 @@ FORMULATIONS: dict[str, dict] = {
                         "fluid.gradient_correction": False, "fluid.particle_shifting": 0.1},
     # the level without shifting (on the CPU the shift adds ~11 K points of decay per period to the standing wave)
     "delta_plus_K0": {"fluid.fidelity": "delta_plus", "fluid.particle_shifting": 0.0},
+    # issue 38, third round (docs/notes.md 'delta-plus, third round'): Adami wall particles on the moving blocks (the
+    # wave maker's piston: scenes/wave_maker_small.toml has the penalty alone), and the level's P1 arrival against
+    # its artificial viscosity (standard's alpha 0.01) and its gradient correction
+    "standard_bw": {"fluid.fidelity": "standard", "coupling.block_walls": True},
+    "delta_plus_bw": {"fluid.fidelity": "delta_plus", "coupling.block_walls": True},
+    "delta_plus_a01": {"fluid.fidelity": "delta_plus", "fluid.viscosity.artificial_alpha": 0.01},
+    "delta_plus_nokgc": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False},
 }
 CASES = ("standing_wave", "wave_maker", "dam_break", "spheric")
 STANDING = dict(depth=0.2, kh=0.9, mode=1, a=0.02, c0=12.0, signal="projection")  # first sloshing mode
