@@ -61,6 +61,13 @@ FORMULATIONS: dict[str, dict] = {
                         "fluid.gradient_correction": False, "fluid.particle_shifting": 0.1},
     # the level without shifting (on the CPU the shift adds ~11 K points of decay per period to the standing wave)
     "delta_plus_K0": {"fluid.fidelity": "delta_plus", "fluid.particle_shifting": 0.0},
+    # issue 38, third round (docs/notes.md 'delta-plus, third round'): Adami wall particles on the moving blocks (the
+    # wave maker's piston: scenes/wave_maker_small.toml has the penalty alone), and the level's P1 arrival against
+    # its artificial viscosity (standard's alpha 0.01) and its gradient correction
+    "standard_bw": {"fluid.fidelity": "standard", "coupling.block_walls": True},
+    "delta_plus_bw": {"fluid.fidelity": "delta_plus", "coupling.block_walls": True},
+    "delta_plus_a01": {"fluid.fidelity": "delta_plus", "fluid.viscosity.artificial_alpha": 0.01},
+    "delta_plus_nokgc": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False},
 }
 CASES = ("standing_wave", "wave_maker", "dam_break", "spheric")
 STANDING = dict(depth=0.2, kh=0.9, mode=1, a=0.02, c0=12.0, signal="projection")  # first sloshing mode
@@ -286,7 +293,8 @@ def line(r: dict) -> str:
              "dam_break": f"front bias T>=1.5 {f('front_bias_late', '+.3f')} rms {f('error_rms', '.3f')} "
                           f"speed x{f('front_speed_ratio', '.3f')} delay {f('front_delay_s', '.4f')} s",
              "spheric": f"H mean {f('h_rms', '.3f')} max {f('h_max', '.3f')} P1 t {f('p1_impact_error', '+.3f')} "
-                        f"peak {f('p1_peak_error', '+.3f')} noise {f('p1_noise', '.3f')}"}[r["case"]]
+                        f"peak {f('p1_peak_error', '+.3f')} (arrival {f('p1_first_error', '+.3f')}, after "
+                        f"{f('p1_after_error', '+.3f')}) noise {f('p1_noise', '.3f')}"}[r["case"]]
     ex = f" {r['exception']}" if r.get("exception") else ""
     ex += f"  {r.get('class', '')}" + (f" ({'; '.join(r['why'])})" if r.get("why") else "")
     return (f"{r['case']:13s} {r['formulation']:22s} {r['label']:>12s} n={r.get('particles', 0):7d} "

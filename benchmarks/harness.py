@@ -28,6 +28,9 @@ Error metrics (also defined in docs/benchmarks.md, 'Error metrics'):
   impact; ``p1_fine``), as the measurement's from its 1 kHz rows (``p1_peak_instant_pa``: the largest single
   1 ms reading, for comparison; a WCSPH impact pressure rings at the acoustic period, ~0.3 ms at 0.012 m).
   Without fine samples (older records) the largest single 10 ms sample stands for the peak.
+  ``p1_first_error`` / ``p1_after_error`` (issue 38, ``p1_phases``): the mean of P1 over the first 10 ms after
+  the impact time (the arrival, one +-5 ms window) and over 40-140 ms after it (the quasi-steady load), each
+  against the sensor's over the same span after its own impact time: which part of the signal a peak error is.
   ``p1_noise`` (issue 38): the pressure noise after the impact, ``pressure_noise`` of the 1 ms P1 reads over the
   20 ms from the simulated impact time: RMS(p - p_lp) / RMS(p_lp), p_lp = P1 low-passed at 200 Hz (zero-phase
   second-order Butterworth); the part of the signal above ~200 Hz (up to the 500 Hz of 1 ms reads) relative to
@@ -258,6 +261,33 @@ def p1_impact(times: np.ndarray, p1: np.ndarray, pr: np.ndarray, fine: tuple | N
         else:
             pk = float(p1[ws].max()) if ws.any() else math.nan
         out.update(p1_peak_pa=pk, p1_peak_exp_pa=pk_exp, p1_peak_error=pk / pk_exp - 1.0)
+    if ft is not None and math.isfinite(t_sim) and math.isfinite(t_exp):
+        out.update(p1_phases(ft, fp, t_sim, pr, t_exp))
+    return out
+
+
+P1_FIRST_S = 0.01  # the arrival: the first 10 ms after each one's impact time (one +-5 ms window)
+P1_AFTER_S = (0.04, 0.14)  # the quasi-steady load after it: 40-140 ms after each one's impact time
+
+
+def _mean_between(t: np.ndarray, p: np.ndarray, a: float, b: float) -> float:
+    w = (t >= a - 1e-9) & (t < b - 1e-9)
+    return float(np.mean(p[w])) if w.any() else math.nan
+
+
+def p1_phases(ft: np.ndarray, fp: np.ndarray, t_sim: float, pr: np.ndarray, t_exp: float) -> dict:
+    """Where a P1 peak error comes from (module docstring): the mean of P1 over the arrival (the first
+    P1_FIRST_S after the impact time, the simulation's from its 1 ms reads and its own impact time, the sensor's
+    likewise) and over the quasi-steady load after it (P1_AFTER_S after the impact time), each against the
+    sensor's: ``p1_first_error``, ``p1_after_error`` (NaN where the reads do not cover the window)."""
+    out = {}
+    for key, (a, b) in (("first", (0.0, P1_FIRST_S)), ("after", P1_AFTER_S)):
+        ms = _mean_between(ft, fp, t_sim + a, t_sim + b)
+        me = _mean_between(pr[:, 0], pr[:, 1], t_exp + a, t_exp + b)
+        if ft[-1] < t_sim + b - 2e-3:
+            ms = math.nan
+        out[f"p1_{key}_pa"], out[f"p1_{key}_exp_pa"] = ms, me
+        out[f"p1_{key}_error"] = ms / me - 1.0 if math.isfinite(ms) and me > 0 else math.nan
     return out
 
 

@@ -90,6 +90,33 @@ def test_p1_peak_from_fine_samples_is_a_window_mean_as_the_measurement():
     assert e2["p1_peak_pa"] < e["p1_peak_pa"] + 0.1 * e2["p1_peak_instant_pa"], (e, e2)
 
 
+def test_p1_phases_tell_the_arrival_from_the_load_after_it():
+    """p1_phases splits a P1 reading into the arrival (the first 10 ms after the impact time) and the
+    quasi-steady load 40-140 ms after it, each against the sensor's: the sensor's own record scores zero in both; an
+    arrival spike (3 ms at 5x the peak) shows in the first and not after; a load 20% high from the arrival on shows
+    +20% after."""
+    wl, pr = H.load_spheric()
+    t = np.arange(0.01, 1.0, 0.01)
+    ft = np.round(np.arange(0.3, 0.6 + 1e-9, 0.001), 6)
+    fp = np.interp(ft, pr[:, 0], pr[:, 1])
+    e = H.p1_impact(t, H._window_mean(pr, 1, t), pr, (ft, fp))
+    # (the arrival's steep rise read every 1 ms against the sensor's own rows: a few per cent)
+    assert abs(e["p1_first_error"]) < 0.05 and abs(e["p1_after_error"]) < 0.01, e
+    t0 = e["p1_impact_t_s"]
+    spiked = fp.copy()
+    arrival = (ft >= t0) & (ft < t0 + 0.003)
+    spiked[arrival] = 5.0 * pr[:, 1].max()
+    e2 = H.p1_impact(t, H._window_mean(pr, 1, t), pr, (ft, spiked))
+    assert e2["p1_first_error"] > 0.5 and abs(e2["p1_after_error"]) < 0.01, e2
+    high = np.where(ft >= t0, 1.2 * fp, fp)
+    e3 = H.p1_impact(t, H._window_mean(pr, 1, t), pr, (ft, high))
+    assert abs(e3["p1_after_error"] - 0.2) < 0.01 and abs(e3["p1_first_error"] - 0.2) < 0.05, e3
+    # reads that stop before the window leave it open
+    short = ft < 0.45
+    e4 = H.p1_impact(t, H._window_mean(pr, 1, t), pr, (ft[short], fp[short]))
+    assert math.isnan(e4["p1_after_error"]) and math.isfinite(e4["p1_first_error"])
+
+
 # ------------------------------------------------------------- result files: incremental writes, merge ----
 def _acc_rows():
     rows = [{"variant": v, "resolution": f"a/{n}", "particles": n * n * 2, "error": e, "wall_per_sim_s": w, "class": "stable",
