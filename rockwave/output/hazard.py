@@ -287,6 +287,11 @@ class HazardMonitor(SampledRecorder):
 
     def restore(self, arrays: dict, meta: dict) -> None:
         mine = self._arrays()
+        if "slide_motion" in mine and "slide_motion" not in arrays:  # a checkpoint from before the motion record
+            n = len(self.slide_index)
+            rows = np.full(((int(meta["samples"]) + 16) * n, 7), np.nan, np.float32)
+            self.slide_motion = wp.array(rows, dtype=float, device=self.device)
+            mine.pop("slide_motion")
         if set(arrays) - {"slide_start"} != set(mine):
             raise CheckpointError(f"the checkpoint's hazard statistics ({sorted(arrays)}) do not match the scene's [hazard] "
                                   f"({sorted(mine)})")
