@@ -103,7 +103,7 @@ def test_subaerial_run_from_the_cli_reads_finite_gauges_and_writes_the_motion(tm
 
 def test_submarine_scene_builds_and_the_water_holds_the_wedge_back():
     """The submarine scene at 0.2 m for 0.2 s: the gauges off the slide's path read finite values (the centre-line
-    one at x/b = 1.2 stands over the wedge's front at the start and reads dry: its water rests on the wedge), and
+    one at x/b = 1.2 stands over the wedge's front at the start: 0.1 m of water over it, half a spacing, reads dry), and
     the wedge, wholly under water, accelerates slower than its buoyant weight alone would drive it,
     g (1 - rho_w/rho_b)(sin theta - Cn cos theta) = 2.21 m/s^2 (added mass and drag), measured 1.27."""
     d = _scene("submarine")
