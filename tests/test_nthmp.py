@@ -105,7 +105,7 @@ def test_submarine_scene_builds_and_the_water_holds_the_wedge_back():
     """The submarine scene at 0.2 m for 0.2 s: the gauges off the slide's path read finite values (the centre-line
     one at x/b = 1.2 stands over the wedge's front at the start: 0.1 m of water over it, half a spacing, reads dry), and
     the wedge, wholly under water, accelerates slower than its buoyant weight alone would drive it,
-    g (1 - rho_w/rho_b)(sin theta - Cn cos theta) = 2.21 m/s^2 (added mass and drag), measured 1.27."""
+    g (1 - rho_w/rho_b)(sin theta - Cn cos theta) = 2.21 m/s^2 (added mass and drag), measured 1.28."""
     d = _scene("submarine")
     sim = rockwave.Simulation(parse_scene(d, str(ROOT / "scenes" / "nthmp_slide_submarine.toml")), device=DEVICE)
     hz = HazardMonitor(sim)
