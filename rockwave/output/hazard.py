@@ -311,7 +311,7 @@ class HazardMonitor(SampledRecorder):
     # ------------------------------------------------------------------------------------------------
     def _motion(self, i: int) -> dict:
         """Slide i's motion record: t, centroid, velocity at every sample; with ``along`` the displacement and the
-        speed along its unit vector u (s = (c - c_0).u from the first sample, v_s = v.u)."""
+        speed along its unit vector u (s = (c - c_0).u, c_0 the centroid at the start, v_s = v.u)."""
         n = len(self.slide_index)
         rows = self.slide_motion.numpy()[: self.samples * n].astype(np.float64).reshape(self.samples, n, 7)[:, i]
         dim = self.dim
@@ -320,7 +320,8 @@ class HazardMonitor(SampledRecorder):
         if u is not None:
             c, v = rows[:, 1:4], rows[:, 4:7]
             m["along"] = u[:dim]
-            m["along_m"] = (c - c[0]) @ u if len(c) else c[:, 0]
+            c0 = np.asarray(self.slide_start[i], float)[:3]  # the centroid at t_start (float64)
+            m["along_m"] = (c - c0) @ u
             m["speed_along_m_s"] = v @ u
         return m
 
