@@ -13,12 +13,14 @@ then summarised for the comparison with the laboratory (docs/validation.md 'NTHM
   their extremes then are not the free surface's; the record keeps the time series at 0.02 s to cut them);
 - the run-up lines at y = 0, b/2, b: the highest water up the slope above the still level and where.
 
-    python -m benchmarks.nthmp_slide --device cuda:0                              # both cases at 0.025 m (~2 M particles)
-    python -m benchmarks.nthmp_slide --device cuda:0 --spacing 0.04 0.025 0.02    # a resolution series (2 x 3 runs)
+    python -m benchmarks.nthmp_slide --device cuda:0 --cases subaerial            # 0.025 m (~2 M particles), ~3-5 min on an H200
+    python -m benchmarks.nthmp_slide --device cuda:0 --cases submarine
+    python -m benchmarks.nthmp_slide --device cuda:0 --spacing 0.04               # both starts, ~2-3 min
+    python -m benchmarks.nthmp_slide --device cuda:0 --spacing 0.02 --cases subaerial   # ~4.1 M particles, ~6-8 min
     python -m benchmarks.nthmp_slide --device cpu --spacing 0.2 --duration 0.3    # the pipeline on a CPU, ~20 s
 
-writes benchmarks/results/<date>-<device>-nthmp_slide.json and .md (``--out`` another stem) and each run's
-outputs under runs/nthmp_slide/<case>-<spacing>/ (``--runs`` another folder).
+writes benchmarks/results/<date>-<device>-nthmp_slide-<cases>-<spacings>.json and .md (``--out`` another stem) and
+each run's outputs under runs/nthmp_slide/<case>-<spacing>/ (``--runs`` another folder).
 """
 
 from __future__ import annotations
@@ -176,7 +178,8 @@ def main() -> None:
 
     wp.config.quiet = True
     rows = []
-    stem = a.out or str(RESULTS / f"{datetime.date.today()}-{a.device.replace(':', '')}-nthmp_slide")
+    stem = a.out or str(RESULTS / (f"{datetime.date.today()}-{a.device.replace(':', '')}-nthmp_slide-{'-'.join(a.cases)}-"
+                                   + "-".join(f"{dx:g}m" for dx in a.spacing)))
     for dx in a.spacing:
         for case in a.cases:
             r = run_case(case, dx, a.device, a.duration, Path(a.runs), reuse=a.reuse)
