@@ -335,6 +335,28 @@ def hazard_block_speed(v: wp.array(dtype=wp.vec3), index: wp.array(dtype=int), t
 
 
 @wp.kernel
+def hazard_slide_record(
+    x: wp.array(dtype=wp.vec3),
+    x_lo: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    index: wp.array(dtype=int),
+    row: int,
+    t: float,
+    motion: wp.array2d(dtype=float),
+):
+    """One sample of each watched block's motion (one thread per slide; index: its block): row row * n + i of
+    motion holds t, the centroid x + x_lo [m] and the velocity v [m/s] (n = number of slides)."""
+    i = wp.tid()
+    r = row * index.shape[0] + i
+    b = index[i]
+    c = x[b] + x_lo[b]
+    motion[r, 0] = t
+    for k in range(3):
+        motion[r, 1 + k] = c[k]
+        motion[r, 4 + k] = v[b][k]
+
+
+@wp.kernel
 def hazard_side_volume(
     x: wp.array(dtype=wp.vec3),
     rho: wp.array(dtype=float),

@@ -25,7 +25,7 @@ from rockwave.base.files import atomic_write_text
 from rockwave.build import preflight
 from rockwave.output import recorders as rec
 from rockwave.output import surface as surf
-from rockwave.output.hazard import HazardMonitor
+from rockwave.output.hazard import HazardMonitor, slide_motion_csv
 from rockwave.scene.format import SCHEMA
 from rockwave.sim import checkpoint as ckpt
 
@@ -34,6 +34,7 @@ COST_STEPS = 5  # steps after the first whose measured cost feeds the run-length
 
 
 HAZARD_FILE = "hazard.json"  # the [hazard] summary (rockwave/output/hazard.py), also under "hazard" in run.json
+SLIDE_MOTION_FILE = "slide_motion.csv"  # [[hazard.slides]]: each slide's centroid and velocity at every sample
 MANIFEST = ".rockwave-outputs.json"  # the outputs a run writes into its folder (removed by the next fresh run there)
 
 
@@ -182,6 +183,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     o = scene.output
     if resumed is None:  # before the recorders make their files and folders
         names = ["run.json", ckpt.FILE_NAME] + ([HAZARD_FILE] if scene.hazard is not None else [])
+        if scene.hazard is not None and scene.hazard.get("slides"):
+            names.append(SLIDE_MOTION_FILE)
         if o.usd:
             names += [o.usd, Path(o.usd).stem + ".clips"]
         if sim.gauge_names and o.gauges_csv:
@@ -356,6 +359,9 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
     if hazard is not None:
         summary["hazard"] = hazard.result()
         atomic_write_text(out / HAZARD_FILE, json.dumps(summary["hazard"], indent=2))
+        motion = slide_motion_csv(summary["hazard"])
+        if motion:
+            atomic_write_text(out / SLIDE_MOTION_FILE, motion)
     atomic_write_text(_summary_path(out), json.dumps(summary, indent=2))
     if interrupted:
         raise KeyboardInterrupt

@@ -15,7 +15,11 @@ reduced on the device while the run goes, never from stored frames.
   does not count, nor water in the air above a dry bed. The column's position and the per-column maxima
   (a map of run-up along the shore) are reported.
 - Slides (``[[hazard.slides]]``): a block's centroid at the start and at the end (runout = the distance
-  between them) and its peak speed |v| with its time, sampled after every step (every chunk of steps on a GPU).
+  between them) and its peak speed |v| with its time, sampled after every step (every chunk of steps on a GPU);
+  and its motion at every sample time (``motion``: time, centroid, velocity; with ``along``, a direction such as
+  down the slope, also the displacement s(t) = (c(t) - c(t_start)).u and the speed v(t).u along its unit vector
+  u): the slide's kinematics to set against a friction law or a measured s(t). Kept on the device in a buffer
+  that grows by doubling; a batch (rockwave/output/batch.py) does not keep it.
 - Crossings (``[[hazard.crossings]]``): the water volume on the positive side of a vertical line (2D) or
   plane (3D) through ``position_m`` with horizontal ``normal``: sum m_j/rho_j over the particles with
   (x_j - p).n > 0. Reported: the net volume moved across since the start V - V0 at the end, and its largest
@@ -212,6 +216,15 @@ class HazardMonitor(SampledRecorder):
             s0[:, 1] = np.nan
             self.slide_stats = wp.array(s0, dtype=float, device=d)
             self.slide_start = sim.block_state.positions_numpy()[self.slide_index]
+            # the motion record: one row per sample and slide (t, centroid, velocity), grown by doubling
+            dur = float(getattr(scene.simulation, "duration_s", 0.0) or 0.0)
+            cap = max(16, int(math.ceil(max(dur - self.t_start, 0.0) / self.interval)) + 4)
+            self.slide_motion = wp.zeros((cap * len(self.slides), 7), dtype=float, device=d)
+            self.slide_along = []
+            for sl in self.slides:
+                u = sl.get("along")
+                u = None if u is None else np.asarray(pad3(u), float)
+                self.slide_along.append(None if u is None else u / np.linalg.norm(u))
         self.samples = 0
         self.next_t = self.t_start
         self.last_sample_t = None
@@ -229,6 +242,15 @@ class HazardMonitor(SampledRecorder):
                           outputs=[self.wave_stats], device=d)
             for (off, pos), st in zip(self.columns, self.col_stats):
                 wp.launch(gauge_k.hazard_column_update, dim=len(pos), inputs=[level, off, t], outputs=[st], device=d)
+        if self.slide_index:
+            n = len(self.slide_index)
+            if (self.samples + 1) * n > self.slide_motion.shape[0]:
+                grown = wp.zeros((2 * self.slide_motion.shape[0], 7), dtype=float, device=d)
+                wp.copy(grown, self.slide_motion)
+                self.slide_motion = grown
+            bs = sim.block_state
+            wp.launch(gauge_k.hazard_slide_record, dim=n, inputs=[bs.x, bs.x_lo, bs.v, self.slide_d, self.samples, t],
+                      outputs=[self.slide_motion], device=d)
         if self.crossings:
             m = sim.fluid
             self.cross_vol.zero_()
@@ -247,6 +269,7 @@ class HazardMonitor(SampledRecorder):
         out.update({f"col_stats_{i}": a for i, a in enumerate(self.col_stats)})
         if self.slide_index:
             out["slide_stats"] = self.slide_stats
+            out["slide_motion"] = self.slide_motion
         return out
 
     def capture(self):
@@ -264,10 +287,18 @@ class HazardMonitor(SampledRecorder):
 
     def restore(self, arrays: dict, meta: dict) -> None:
         mine = self._arrays()
+        if "slide_motion" in mine and "slide_motion" not in arrays:  # a checkpoint from before the motion record
+            n = len(self.slide_index)
+            rows = np.full(((int(meta["samples"]) + 16) * n, 7), np.nan, np.float32)
+            self.slide_motion = wp.array(rows, dtype=float, device=self.device)
+            mine.pop("slide_motion")
         if set(arrays) - {"slide_start"} != set(mine):
             raise CheckpointError(f"the checkpoint's hazard statistics ({sorted(arrays)}) do not match the scene's [hazard] "
                                   f"({sorted(mine)})")
         for k, a in mine.items():
+            if k == "slide_motion" and tuple(a.shape) != tuple(np.shape(arrays[k])):  # a buffer grown to another size
+                self.slide_motion = wp.array(np.asarray(arrays[k], np.float32), dtype=float, device=self.device)
+                continue
             a.assign(arrays[k])
         self.t_start, self.next_t, self.samples = float(meta["t_start"]), float(meta["next_t"]), int(meta["samples"])
         self.last_sample_t = None if meta["last_sample_t"] is None else float(meta["last_sample_t"])
@@ -278,6 +309,22 @@ class HazardMonitor(SampledRecorder):
             self.slide_start = np.array(arrays["slide_start"])
 
     # ------------------------------------------------------------------------------------------------
+    def _motion(self, i: int) -> dict:
+        """Slide i's motion record: t, centroid, velocity at every sample; with ``along`` the displacement and the
+        speed along its unit vector u (s = (c - c_0).u, c_0 the centroid at the start, v_s = v.u)."""
+        n = len(self.slide_index)
+        rows = self.slide_motion.numpy()[: self.samples * n].astype(np.float64).reshape(self.samples, n, 7)[:, i]
+        dim = self.dim
+        m = {"t_s": rows[:, 0], "centroid_m": rows[:, 1:1 + dim], "velocity_m_s": rows[:, 4:4 + dim]}
+        u = self.slide_along[i]
+        if u is not None:
+            c, v = rows[:, 1:4], rows[:, 4:7]
+            m["along"] = u[:dim]
+            c0 = np.asarray(self.slide_start[i], float)[:3]  # the centroid at t_start (float64)
+            m["along_m"] = (c - c0) @ u
+            m["speed_along_m_s"] = v @ u
+        return m
+
     def result(self) -> dict:
         """The summary (host read of the statistics; a last sample first when the time moved since the last)."""
         sim = self.sim
@@ -317,13 +364,40 @@ class HazardMonitor(SampledRecorder):
                 p0, p1 = self.slide_start[i][: self.dim], end[i][: self.dim]
                 out["slides"][sl.block] = {"initial_position_m": p0, "final_position_m": p1,
                                            "runout_m": float(np.linalg.norm(p1 - p0)),
-                                           "peak_speed_m_s": s[i, 0], "peak_speed_time_s": s[i, 1]}
+                                           "peak_speed_m_s": s[i, 0], "peak_speed_time_s": s[i, 1],
+                                           "motion": self._motion(i)}
         if self.crossings:
             c = self.cross_stats.numpy().astype(np.float64)
             for i, cr in enumerate(self.crossings):
                 out["crossings"][cr.name] = {"initial_volume_m3": c[i, 0], "net_volume_m3": c[i, 1],
                                              "max_volume_m3": c[i, 2], "max_volume_time_s": c[i, 3]}
         return _clean(out)
+
+
+def slide_motion_csv(result: dict) -> str:
+    """The slides' motion records of a hazard result as CSV text: t_s, then per slide <block>.x_m ... <block>.vz_m_s
+    and, where it has ``along``, <block>.along_m and <block>.speed_along_m_s (one row per sample). '' if no slide."""
+    slides = {k: s["motion"] for k, s in result.get("slides", {}).items() if s.get("motion") and s["motion"]["t_s"]}
+    if not slides:
+        return ""
+    first = next(iter(slides.values()))
+    n = len(first["t_s"])
+    dim = len(first["centroid_m"][0])
+    axes = "xyz"[:dim]
+    head, cols = ["t_s"], [first["t_s"]]
+    for name, m in slides.items():
+        for k, a in enumerate(axes):
+            head.append(f"{name}.{a}_m")
+            cols.append([r[k] for r in m["centroid_m"]])
+        for k, a in enumerate(axes):
+            head.append(f"{name}.v{a}_m_s")
+            cols.append([r[k] for r in m["velocity_m_s"]])
+        if "along_m" in m:
+            head += [f"{name}.along_m", f"{name}.speed_along_m_s"]
+            cols += [m["along_m"], m["speed_along_m_s"]]
+    fmt = lambda v: "" if v is None else f"{v:.9g}"  # noqa: E731
+    lines = [",".join(head)] + [",".join(fmt(c[r]) for c in cols) for r in range(n)]
+    return "\n".join(lines) + "\n"
 
 
 def flat_metrics(result: dict) -> dict:

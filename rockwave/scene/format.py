@@ -282,8 +282,9 @@ SCHEMA: dict[str, Key] = {
                     end_m=Key("vec", "the other end", length="dim", required=True),
                     columns=Key("int", "vertical lines along it (default: one per particle spacing, at most 256)", min=2, max=1024),
                     still_level_m=Key("float", "still water level for the run-up above it (default: the highest reading along the line at the start)")),
-        slides=_list("blocks whose initial and final centroid, runout (distance between them) and peak speed are reported",
-                     block=Key("str", "block name (an array's blocks are name_0, name_1, ...)", required=True)),
+        slides=_list("blocks whose initial and final centroid, runout (distance between them), peak speed and motion (time, centroid, velocity at every sample: hazard.json 'motion', slide_motion.csv) are reported",
+                     block=Key("str", "block name (an array's blocks are name_0, name_1, ...)", required=True),
+                     along=Key("vec", "a direction (any length), e.g. down the slope: the motion also gives the displacement s(t) = (c(t) - c(0)).u and the speed v(t).u along its unit vector u", length="dim")),
         crossings=_list("water volume moved across a vertical line (2D) or plane (3D): V - V0 of the water on the side the normal points to (2D: per metre of depth)",
                         name=Key("str", "crossing name", required=True),
                         position_m=Key("vec", "a point of the line or plane", length="dim", required=True),
@@ -1086,6 +1087,9 @@ def check_hazard_keys(err, s, dim: int) -> None:
                                                  f"component 0), e.g. {[1.0] + [0.0] * (dim - 1)}")
     names = [b.get("name") for b in (s.get("blocks") or []) + (s.get("rock_mass") or [])]  # rock masses: name_i
     for i, sl in enumerate(hz.get("slides") or []):
+        u = sl.get("along")
+        if u is not None and math.sqrt(sum(x * x for x in u)) == 0:
+            err(f"hazard.slides[{i}].along", f"{u}: expected a non-zero direction")
         bn = sl.get("block")
         if isinstance(bn, str) and not any(isinstance(e, str) and block_name_matches(bn, e) for e in names):
             err(f"hazard.slides[{i}].block", f"{bn!r} is not the name of a block; the scene's blocks: "
