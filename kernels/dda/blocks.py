@@ -713,36 +713,55 @@ def crossing_depth(
 
 
 @wp.func
-def patch_crossing(pa: wp.vec3, qa: wp.vec3, pb: wp.vec3, qb: wp.vec3, t1: wp.vec3, t2: wp.vec3, tol: float):
-    # is the crossing of edge (pa, qa) of A with edge (pb, qb) of B, projected on the common plane (t1, t2), a vertex
+def patch_crossing(va: int, ua: int, vb: int, ub: int, dA: wp.vec3, dB: wp.vec3, t1: wp.vec3, t2: wp.vec3, tol: float,
+                   verts: WorldVerts):
+    # is the crossing of A's edge (va, ua) with B's edge (vb, ub), projected on the common plane (t1, t2), a vertex
     # of the contact patch? Yes when each edge's ends lie on opposite sides of the other edge's line, each farther
     # than tol / 2 from it. The distance is measured across the line, as the vertex test measures its tolerance
     # (column_through: a vertex up to tol outside a face's plane is in): an end within tol / 2 of the other edge's
     # line is that end's vertex, found up to tol outside, so the two tests overlap by tol / 2 at any angle. A window
     # along the edges (the former rule) let two edges collinear to ~1e-6 rad and within a fraction of a um of each
     # other (continuous joints) cross anywhere along them, with the last bits of their 2D determinant: a point at
-    # full depth appeared and vanished every few steps (issue 36, docs/notes.md). Returns ok and the crossing's
-    # parameters s on A's edge, u on B's, from the ends' signed distances (well conditioned at any angle:
-    # s = d(pa) / (d(pa) - d(qa)), Sutherland & Hodgman 1974's intersection of an edge with a clip line).
-    ea = wp.vec2(wp.dot(qa - pa, t1), wp.dot(qa - pa, t2))
-    eb = wp.vec2(wp.dot(qb - pb, t1), wp.dot(qb - pb, t2))
-    ra = wp.vec2(wp.dot(pa - pb, t1), wp.dot(pa - pb, t2))  # pa - pb in the plane
-    la = wp.length(ea)
-    lb = wp.length(eb)
+    # full depth appeared and vanished every few steps (issue 36, docs/notes.md). The distances in float64 from the
+    # arms' hi and lo parts, as crossing_depth (in float32 on ~0.5 m pair-frame coordinates an end 0.34 um from the
+    # other line was rounded across tol / 2 = 0.43 um in some steps). Returns ok and the crossing's parameters s on
+    # A's edge, u on B's, from the ends' signed distances (well conditioned at any angle: s = d(pa) / (d(pa) - d(qa)),
+    # Sutherland & Hodgman 1974's intersection of an edge with a clip line).
+    wv = verts.arm
+    wl = verts.arm_lo
+    pa = vec64(wv[va]) + vec64(wl[va])
+    qa = vec64(wv[ua]) + vec64(wl[ua])
+    pb = vec64(wv[vb]) + vec64(wl[vb])
+    qb = vec64(wv[ub]) + vec64(wl[ub])
+    e1 = vec64(t1)
+    e2 = vec64(t2)
+    ea = qa - pa
+    eb = qb - pb
+    r = (vec64(dA) - vec64(dB)) + (pa - pb)  # pa - pb in the pair frame
+    ea0 = wp.dot(ea, e1)
+    ea1 = wp.dot(ea, e2)
+    eb0 = wp.dot(eb, e1)
+    eb1 = wp.dot(eb, e2)
+    ra0 = wp.dot(r, e1)
+    ra1 = wp.dot(r, e2)
+    la = wp.sqrt(ea0 * ea0 + ea1 * ea1)
+    lb = wp.sqrt(eb0 * eb0 + eb1 * eb1)
     # |eb| x the signed distances of A's ends from B's line, and |ea| x those of B's ends from A's line
-    da0 = eb[0] * ra[1] - eb[1] * ra[0]
-    da1 = da0 + (eb[0] * ea[1] - eb[1] * ea[0])
-    db0 = ra[0] * ea[1] - ra[1] * ea[0]  # ea x (pb - pa)
-    db1 = db0 + (ea[0] * eb[1] - ea[1] * eb[0])
-    ha = 0.5 * tol * lb
-    hb = 0.5 * tol * la
-    ok = da0 * da1 < 0.0 and db0 * db1 < 0.0
+    da0 = eb0 * ra1 - eb1 * ra0
+    da1 = da0 + (eb0 * ea1 - eb1 * ea0)
+    db0 = ra0 * ea1 - ra1 * ea0  # ea x (pb - pa)
+    db1 = db0 + (ea0 * eb1 - ea1 * eb0)
+    half = wp.float64(0.5) * wp.float64(tol)
+    ha = half * lb
+    hb = half * la
+    zero = wp.float64(0.0)
+    ok = da0 * da1 < zero and db0 * db1 < zero
     ok = ok and wp.abs(da0) > ha and wp.abs(da1) > ha and wp.abs(db0) > hb and wp.abs(db1) > hb
     s = float(0.0)
     u = float(0.0)
     if ok:
-        s = da0 / (da0 - da1)
-        u = db0 / (db0 - db1)
+        s = wp.float32(da0 / (da0 - da1))
+        u = wp.float32(db0 / (db0 - db1))
     return ok, s, u
 
 
@@ -1499,7 +1518,7 @@ def narrow_phase(
                         qb = pair_vertex(wv, dB, ub)
                         if wp.dot(n, qb) > hiA + tol or vb < ub:
                             # a vertex of the patch where the projected edges cross (patch_crossing)
-                            ok, s, u = patch_crossing(pa, qa, pb, qb, t1, t2, tol)
+                            ok, s, u = patch_crossing(va, ua, vb, ub, dA, dB, t1, t2, tol, verts)
                             if ok:
                                 xa_ = pa + s * (qa - pa)
                                 xb_ = pb + u * (qb - pb)

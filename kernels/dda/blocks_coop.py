@@ -497,7 +497,7 @@ def narrow_phase_coop(
                 ub = he_dest(g, he_vertex, he_next)
                 qb = pair_vertex(wv, dB, ub)
                 if (wp.dot(n, qa) < loB - tol or va < ua) and (wp.dot(n, qb) > hiA + tol or vb < ub):
-                    cr, s, u = patch_crossing(pa, qa, pb, qb, t1, t2, tol)  # a vertex of the patch (narrow_phase)
+                    cr, s, u = patch_crossing(va, ua, vb, ub, dA, dB, t1, t2, tol, verts)  # a vertex of the patch (narrow_phase)
                     if cr:
                         xa_ = pa + s * (qa - pa)
                         xb_ = pb + u * (qb - pb)
