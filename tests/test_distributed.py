@@ -279,3 +279,38 @@ def test_wall_impulse_is_summed_over_ranks(tmp_path):
     weight_impulse = len(a["x"]) * 0.01 * 0.01 * 1000.0 * 9.81 * t  # the water's weight x t (2D: per metre)
     assert up > 0.2 * weight_impulse, (up, weight_impulse)  # the shelf carries the water
     assert abs(float(b["wall_impulse"][1]) - up) <= 1e-3 * up, (b["wall_impulse"], a["wall_impulse"])
+
+
+def test_shift_takes_the_fastest_particle_of_every_rank():
+    """Particle shifting's Mach number (kernels/sph/shifting.py: dr = -K Ma H^2 grad C) is the whole scene's, as in
+    one process: a rank whose own water is still (its fastest particle 0.1 m/s) shifts with the other rank's 1.2 m/s
+    (RankFluidSolver.reduce_shift_speed, an allreduce MAX; before, each rank used its own fastest particle). Checked
+    with a stand-in for the communicator that holds the other rank's value; the solver's shift reads the reduced
+    value (FluidSolver.particle_shift calls the hook)."""
+    from types import SimpleNamespace
+
+    import warp as wp
+
+    import rockwave
+    from rockwave.sim.distributed import RankFluidSolver
+    from helpers import tank_2d
+
+    class OtherRank:
+        def Allreduce(self, send, recv, op=None):
+            recv[:] = np.maximum(send, 1.2 ** 2)
+
+    v2 = wp.array([0.1 ** 2], dtype=float, device="cpu")
+    RankFluidSolver.reduce_shift_speed(SimpleNamespace(comm=OtherRank()), v2)
+    assert v2.numpy()[0] == pytest.approx(1.44)
+    # the hook sets the Ma of the shift: the displacements scale with sqrt(v2max)
+    sim = rockwave.Simulation(rockwave.parse_scene(tank_2d(fidelity="delta_plus", regions=[
+        {"box_min_m": [0.0, 0.0], "box_max_m": [0.1, 0.1], "velocity_m_s": [0.1, 0.0]}])), device="cpu")
+    sim.step_many(2)
+    s = sim.fluid_solver
+    s.particle_shift(sim.state)
+    local = np.linalg.norm(s.shift_displacements.numpy(), axis=1).max()
+    s.reduce_shift_speed = lambda a: RankFluidSolver.reduce_shift_speed(SimpleNamespace(comm=OtherRank()), a)
+    s.particle_shift(sim.state)
+    reduced = np.linalg.norm(s.shift_displacements.numpy(), axis=1).max()
+    vmax = np.linalg.norm(sim.velocities(), axis=1).max()
+    assert local > 0.0 and reduced / local == pytest.approx(1.2 / vmax, rel=0.05)

@@ -449,7 +449,7 @@ class DistributedFluid:
         full.fill_(self.fluid_mass)
         model = replace(m, n_fluid=cap, n_boundary=nb, params=_copy_params(m.params, cap), particle_mass=full,
                         initial_positions=init, initial_velocities=np.zeros((1, 3)), domain_lo=lo, domain_hi=hi)
-        self.solver = RankFluidSolver(model, self.options, exchange=self.exchange_densities)
+        self.solver = RankFluidSolver(model, self.options, exchange=self.exchange_densities, comm=self.comm)
         self._capacity = cap
         self.solver.retarget(n, mass)
         self.local = self.solver.model
@@ -639,10 +639,22 @@ class RankFluidSolver(FluidSolver):
     the density and force passes (a ``halo_densities`` pass before the wall pressure), and the list rebuild decided
     by all ranks together (``check_lists`` before the step; ``build_now`` in the step)."""
 
-    def __init__(self, model, options, exchange):
+    def __init__(self, model, options, exchange, comm=None):
         super().__init__(model, options)
         self.insert_pass("halo_densities", lambda state, dt: exchange(state, self), before="wall_pressure")
         self.build_now = True
+        self.comm = comm
+
+    def reduce_shift_speed(self, v2max: wp.array) -> None:
+        """The shift's Ma from the fastest particle of the whole scene (allreduce MAX; the rank's own, halo
+        included, is what FluidSolver found), as the one-process run takes it: without it each rank shifted by
+        its own fastest particle's Ma."""
+        if self.comm is None:
+            return
+        MPI = require_mpi()
+        out = np.zeros(1)
+        self.comm.Allreduce(v2max.numpy()[:1].astype(np.float64), out, op=MPI.MAX)
+        v2max.assign(np.array([out[0]], dtype=np.float32))
 
     def retarget(self, n: int, mass: wp.array) -> None:
         """The solver of n fluid slots (at most the count it was made for) with the particle masses ``mass``

@@ -948,6 +948,10 @@ class FluidSolver:
         if self.model.particle_shifting > 0.0:
             self._launch(shifting.apply_shift, self.model.n_fluid, [self._shift_dr, state.x])
 
+    def reduce_shift_speed(self, v2max: wp.array) -> None:
+        """The shift's largest |v|^2 over the whole scene from this solver's (one process: itself; a rank of a
+        distributed run: the maximum over the ranks, rockwave/sim/distributed.py)."""
+
     def shift_by_scenario(self, owner: wp.array, n_scenarios: int) -> None:
         """A batch of scenarios with their own steps (rockwave/sim/batch.py): each particle's shift from its own
         scenario's largest speed (``owner``: the scenario of each seeded particle), none while its step is 0."""
@@ -979,6 +983,7 @@ class FluidSolver:
         else:
             stride = min(m.n_fluid, 16384)
             self._launch(shifting.speed_max, stride, [state.v, m.n_fluid, stride, self._shift_v2])
+            self.reduce_shift_speed(self._shift_v2)
         self._launch(shifting.shift_displacement, m.n_fluid,
                      [self._nbr_count, self._nbr, state.x, self._shift_lam, self._shift_gc, self._shift_gs,
                       self._shift_v2, state.ids, self._shift_owner, self._shift_one if dt is None else dt, m.params,
