@@ -293,6 +293,7 @@ def test_shift_takes_the_fastest_particle_of_every_rank():
 
     import rockwave
     from rockwave.sim.distributed import RankFluidSolver
+
     from helpers import tank_2d
 
     class OtherRank:
