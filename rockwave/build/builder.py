@@ -33,7 +33,13 @@ from rockwave.build.options import (
     warn_unstable_step,
 )
 from rockwave.build.rocks import block_specs, compound_bodies, inside_blocks_message, tank_overlap_hint
-from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance, seed_clearance_m
+from rockwave.coupling.penalty import (
+    Coupling,
+    CouplingOptions,
+    block_signed_distance,
+    seed_clearance_m,
+    seeding_clearance_m,
+)
 from rockwave.coupling.walls import BlockWalls
 from rockwave.dda.blocks import (
     BlockModel,
@@ -89,25 +95,41 @@ def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up
     return out
 
 
-def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: float, layers: int) -> np.ndarray:
+def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: float, layers: int,
+                      lattices: list | None = None, region: np.ndarray | None = None, clearance: float = 0.0) -> np.ndarray:
     """Wall particles inside the faces of the fixed blocks, for Adami walls (``fluid.boundary = "adami"``): a
     lattice of ``step`` over each fixed block, kept within ``layers * step`` under its surface (the kernel
     support), so that water on a fixed slope, floor or tank wall made of blocks feels the extrapolated wall
     pressure (Adami et al. 2012) as it does at the [tank] walls; the penalty force of the coupling stays as the
     guard against penetration. Only where the water can reach: within its seeded bounding box grown by its own
-    largest extent (farther faces keep the penalty alone). A point inside an earlier fixed block is left out
-    (no double walls where blocks overlap). Moving blocks get theirs from :func:`moving_block_walls`."""
+    largest extent (farther faces keep the penalty alone). A point inside an earlier fixed block (or within the
+    clearance of one) is left out (no double walls where blocks overlap). Moving blocks get theirs from
+    :func:`moving_block_walls`.
+
+    The lattice is the water's own continued into the block: ``lattices`` (each region's (origin, steps),
+    sampling.region_lattice) and ``region`` (each fluid particle's region, positions ``fluid_x`` before the packed
+    start) pick, per block, the lattice of the fluid particle nearest to it, when the walls' step is the water's
+    (tank.boundary_spacing_ratio 1); and every lattice point closer to the block than ``clearance`` (where the
+    seeding removed the water, :func:`remove_inside_blocks`) is a wall particle: water and wall then share one
+    lattice split at one distance, with no hole and no overlap between them on a face at any angle (issue 41: a
+    tilted face cut the lattice at any offset and left up to half a layer empty between the water and the wall
+    points; the water fell into it). Without them (or another wall step): the lattice of ``step`` through
+    ``fluid_x[0]``, points inside the blocks only."""
     dim = scene.dim
     if parts.blocks is None or len(fluid_x) == 0:
         return np.zeros((0, 3))
     specs = [s for s in parts.blocks.specs if s.kind == "fixed" and not s.tank]  # the [tank] has its own particles
     if not specs:
         return np.zeros((0, 3))
+    own = (lattices is not None and region is not None and len(region) == len(fluid_x)
+           and abs(step - scene.fluid.spacing_m) <= 1e-9 * step)
+    if not own:
+        clearance = 0.0
     lo_f, hi_f = fluid_x.min(axis=0), fluid_x.max(axis=0)
     grow = float(np.max(hi_f[:dim] - lo_f[:dim]))
     reach_lo, reach_hi = lo_f - grow, hi_f + grow
     depth = layers * step
-    anchor = np.asarray(fluid_x[0], float)[:dim]
+    anchor, steps = np.asarray(fluid_x[0], float)[:dim], np.full(dim, float(step))
     planes, out = [], []
     for spec in specs:
         R = quat_to_matrix(spec.orientation)
@@ -117,25 +139,29 @@ def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: f
             side = np.abs(n[:, 2]) < 0.5
             n, d = n[side], d[side]
         verts = np.asarray(spec.geometry.vertices, float) @ R.T + np.asarray(spec.position, float)
-        lo = np.maximum(verts.min(axis=0), reach_lo)[:dim]
-        hi = np.minimum(verts.max(axis=0), reach_hi)[:dim]
+        lo = np.maximum(verts.min(axis=0) - clearance, reach_lo)[:dim]
+        hi = np.minimum(verts.max(axis=0) + clearance, reach_hi)[:dim]
         if np.any(hi <= lo):
             planes.append((n, d))
             continue
+        if own:  # the lattice of the water nearest to this block
+            near = int(np.argmin((fluid_x @ n.T - d).max(axis=1)))
+            origin, st = lattices[int(region[near])]
+            anchor, steps = np.asarray(origin, float)[:dim], np.asarray(st, float)[:dim]
         # the water's own lattice continued into the block: water filling a box up to a face sits step/2 from it,
         # and so do the first wall layer's particles on the other side
-        k0 = np.floor((lo - anchor) / step)
-        k1 = np.ceil((hi - anchor) / step)
-        axes = [anchor[i] + np.arange(k0[i], k1[i] + 1) * step for i in range(dim)]
+        k0 = np.floor((lo - anchor) / steps)
+        k1 = np.ceil((hi - anchor) / steps)
+        axes = [anchor[i] + np.arange(k0[i], k1[i] + 1) * steps[i] for i in range(dim)]
         g = np.meshgrid(*axes, indexing="ij")
         pts = np.zeros((g[0].size, 3))
         for i in range(dim):
             pts[:, i] = g[i].ravel()
         sd = (pts @ n.T - d).max(axis=1)
-        pts = pts[(sd < 0.0) & (sd > -depth)]
-        for n2, d2 in planes:  # inside an earlier fixed block: already wall
+        pts = pts[(sd < clearance) & (sd > -depth)]
+        for n2, d2 in planes:  # inside an earlier fixed block (or within the clearance of it): already wall
             if len(pts) and len(n2):
-                pts = pts[(pts @ n2.T - d2).max(axis=1) >= 0.0]
+                pts = pts[(pts @ n2.T - d2).max(axis=1) >= clearance]
         planes.append((n, d))
         out.append(pts)
     return np.concatenate(out) if out else np.zeros((0, 3))
@@ -218,22 +244,29 @@ def block_walls_on(scene: Scene, options: SolverOptions | None = None) -> bool:
 def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Fluid positions, velocities, depths below their region's top (for the hydrostatic start),
     and boundary positions for a scene (positions (n, 3), z = 0 in 2D)."""
+    return _seed_particles(scene, device)[:4]
+
+
+def _seed_particles(scene: Scene, device: str):
+    """:func:`seed_particles` and the index of each fluid particle's region (its lattice: sampling.region_lattice)."""
     fl, dim = scene.fluid, scene.dim
     up = dim - 1
     spacing = fl.spacing_m
-    xs, vs, ds = [], [], []
-    for r in fl.regions:
+    xs, vs, ds, rs = [], [], [], []
+    for k, r in enumerate(fl.regions):
         try:
             p = sampling.fill_region(r, spacing, dim, device)
         except sampling.MeshInputError as e:
             raise SceneError(scene.path, [("fluid.regions", str(e))]) from None
         xs.append(p)
+        rs.append(np.full(len(p), k, np.int64))
         ds.append(p[:, up].max() + 0.5 * spacing - p[:, up] if len(p) else np.zeros(0))
         vel = pad3(r.velocity_m_s) if r.velocity_m_s is not None else [0.0, 0.0, 0.0]
         vs.append(np.tile(np.asarray(vel, float), (len(p), 1)))
     x = np.concatenate(xs) if xs else np.zeros((0, 3))
     v = np.concatenate(vs) if vs else np.zeros((0, 3))
     depth = np.concatenate(ds) if ds else np.zeros(0)
+    region = np.concatenate(rs) if rs else np.zeros(0, np.int64)
     # Boundary particles: tank walls and obstacles.
     t = scene.tank
     bstep, layers = boundary_lattice(scene)
@@ -250,7 +283,7 @@ def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, n
             keep = sampling.mesh_signed_distance(tm, x, device) < 0
     except sampling.MeshInputError as e:
         raise SceneError(scene.path, [("tank.mesh", str(e))]) from None
-    x, v, depth = x[keep], v[keep], depth[keep]
+    x, v, depth, region = x[keep], v[keep], depth[keep], region[keep]
     for i, ob in enumerate(scene.obstacles):
         try:
             if ob.box_min_m is not None:
@@ -260,9 +293,9 @@ def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, n
             inside = sampling.inside_obstacle(x, ob, dim, device)
         except sampling.MeshInputError as e:
             raise SceneError(scene.path, [(f"obstacles[{i}].mesh", str(e))]) from None
-        x, v, depth = x[~inside], v[~inside], depth[~inside]
+        x, v, depth, region = x[~inside], v[~inside], depth[~inside], region[~inside]
     b = np.concatenate(parts) if parts else np.zeros((0, 3))
-    return x, v, depth, b
+    return x, v, depth, b, region
 
 
 @dataclass
@@ -339,9 +372,14 @@ def seed_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions |
     """Every particle of the scene's water and walls on the host, as :func:`build_fluid` places them (``parts``: the
     blocks already built; its ``removed_inside_blocks`` is set). rockwave/sim/batch.py seeds each scenario of a batch
     with it, in the scenario's own frame, before moving it to its tile."""
-    xf, vf, depth, xb = seed_particles(scene, device)
+    xf, vf, depth, xb, region = _seed_particles(scene, device)
+    lattices = [sampling.region_lattice(r, scene.fluid.spacing_m, scene.dim) for r in scene.fluid.regions]
+    clearance = 0.0
     if parts.blocks is not None:
-        xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth, options)
+        clearance = seeding_clearance(scene, lattices, xf, options)
+        xf, vf, depth, region = remove_inside_blocks(scene, parts, xf, vf, depth, options, region=region,
+                                                     clearance=clearance)
+    x_lattice = xf  # before the packed start moves the columns: the wall lattice continues it
     if scene.fluid.packed_start and len(xf):
 
         rho0 = scene.fluid.rest_density_kg_m3
@@ -350,7 +388,8 @@ def seed_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions |
         xf = packed_start(xf, depth, lambda d: hydrostatic_density(params, g * d) / rho0, scene.fluid.spacing_m, scene.dim - 1)
     bstep, layers = boundary_lattice(scene)
     if scene.fluid.boundary == "adami" and parts.blocks is not None:
-        xw = fixed_block_walls(scene, parts, xf, bstep, layers)
+        xw = fixed_block_walls(scene, parts, x_lattice, bstep, layers, lattices=lattices, region=region,
+                               clearance=clearance)
         if len(xw):
             xb = np.concatenate([xb, xw]) if len(xb) else xw
     xm = mb = None
@@ -436,16 +475,29 @@ def block_model(scene: Scene, device: str, parts: Parts, options: SolverOptions 
     parts.blocks, parts.block_state = blocks, blocks.state()
 
 
-def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options: SolverOptions | None = None):
-    """Drop fluid particles inside a block, or closer to its faces than half the contact distance
-    (rockwave/coupling/penalty.py); the count goes to ``parts.removed_inside_blocks`` and run.json."""
-
+def seeding_clearance(scene: Scene, lattices: list, xf: np.ndarray, options: SolverOptions | None = None) -> float:
+    """How close to a block's face water is seeded [m] (rockwave/coupling/penalty.py seeding_clearance_m: the contact
+    distance on the seeding lattice, where the penalty spring is at rest)."""
     ratio = solver_coupling_options(scene, options).contact_distance_ratio
+    steps = [float(np.min(st[:scene.dim])) for _, st in lattices]
+    return seeding_clearance_m(ratio, scene.fluid.spacing_m, steps, float(np.abs(xf).max()) if len(xf) else 1.0)
+
+
+def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options: SolverOptions | None = None,
+                         region: np.ndarray | None = None, clearance: float | None = None):
+    """Drop fluid particles inside a block, or closer to its faces than ``clearance`` (None: the contact distance d0,
+    :func:`seeding_clearance`); the count goes to ``parts.removed_inside_blocks`` and run.json. ``region``: each
+    particle's region index, filtered with them (then returned as a fourth array)."""
+    if clearance is None:
+        ratio = solver_coupling_options(scene, options).contact_distance_ratio
+        clearance = seed_clearance_m(ratio, scene.fluid.spacing_m)
     dist, _ = block_signed_distance(parts.blocks, parts.block_state, xf)
-    keep = dist >= seed_clearance_m(ratio, scene.fluid.spacing_m)
+    keep = dist >= clearance
     parts.removed_inside_blocks = n = int((~keep).sum())
     if n:
         warnings.warn(inside_blocks_message(n, len(keep)), stacklevel=2)
+    if region is not None:
+        return xf[keep], vf[keep], depth[keep], region[keep]
     return xf[keep], vf[keep], depth[keep]
 
 

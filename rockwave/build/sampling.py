@@ -67,6 +67,24 @@ def _pad(v, dim):
     return np.asarray(list(v) + [0.0] * (3 - dim), dtype=np.float64)
 
 
+def region_lattice(region, spacing: float, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """The lattice :func:`fill_region` seeds a region on: (origin (3,), steps (3,)), its points origin + k steps,
+    each axis's step fitted to the region's extent as :func:`lattice_axis` fits it (2D: z = 0, step = spacing)."""
+    if region.get("box_min_m") is not None:
+        lo, hi = np.asarray(region["box_min_m"], float), np.asarray(region["box_max_m"], float)
+    else:
+        m = load_trimesh(region["mesh"], region["mesh_scale"], region["mesh_offset_m"])
+        lo, hi = np.asarray(m.bounds[0], float), np.asarray(m.bounds[1], float)
+    origin, steps = np.zeros(3), np.full(3, float(spacing))
+    for i in range(len(lo)):
+        n = max(int(round((hi[i] - lo[i]) / spacing)), 1)
+        steps[i] = (hi[i] - lo[i]) / n
+        origin[i] = lo[i] + 0.5 * steps[i]
+    if dim == 2:
+        origin[2], steps[2] = 0.0, float(spacing)
+    return origin, steps
+
+
 def fill_region(region, spacing: float, dim: int, device) -> np.ndarray:
     """Fluid particles on a lattice of the given spacing inside a box or a closed mesh."""
     if region.get("box_min_m") is not None:
