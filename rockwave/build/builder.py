@@ -145,9 +145,10 @@ def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: f
             planes.append((n, d))
             continue
         if own:  # the lattice of the water nearest to this block
-            near = int(np.argmin((fluid_x @ n.T - d).max(axis=1)))
-            origin, st = lattices[int(region[near])]
-            anchor, steps = np.asarray(origin, float)[:dim], np.asarray(st, float)[:dim]
+            k = int(region[int(np.argmin((fluid_x @ n.T - d).max(axis=1)))])
+            st = np.asarray(lattices[k][1], float)[:dim]
+            anchor = np.asarray(fluid_x[int(np.argmax(region == k))], float)[:dim]  # the region's first particle
+            steps = np.where(np.abs(st - step) <= 1e-9 * step, step, st)  # a step that fits exactly: the step itself
         # the water's own lattice continued into the block: water filling a box up to a face sits step/2 from it,
         # and so do the first wall layer's particles on the other side
         k0 = np.floor((lo - anchor) / steps)
