@@ -234,13 +234,19 @@ def test_held_contacts_only_while_no_pair_can_close():
     v[b] = [0.0, -gap / (2.0 * dt * 11) * 1.05, 0.0]  # closing the gap within the 11 steps (headroom 2)
     st.v.assign(v)
     assert not bs.holds_contacts(st, dt, 11)
-    # on the slope, in contact: found every sub-step while it settles onto it (its points closing faster than the
-    # resting-contact speed v_rest = |g| / sqrt(n k_n / m_eff), as at an impact), carried once it slides
+    # on the slope, in contact: found every sub-step while it closes onto it (its points closing faster than the
+    # resting-contact speed v_rest = |g| / sqrt(n k_n / m_eff), as at an impact: here at 5 cm/s; the water's start
+    # kicked it so before issue 41's seeding at the contact distance), carried once it slides
     sliding = _sim(_slide_dict())
     sliding.step()
     bs, st = sliding.block_solver, sliding.block_state
     assert any(len(c["points"]) for c in bs.contacts(st))
+    v0 = st.v.numpy()
+    v = v0.copy()
+    v[1] -= 0.05 * bs.contacts(st)[0]["normal"]
+    st.v.assign(v)
     assert not bs.holds_contacts(st, sliding.dt, 11)
+    st.v.assign(v0)
     sliding.advance(0.05)
     assert any(len(c["points"]) for c in bs.contacts(st)) and np.linalg.norm(sliding.block_velocities()[1]) > 0.05
     assert bs.holds_contacts(st, sliding.dt, 11)
