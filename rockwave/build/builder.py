@@ -397,8 +397,10 @@ def seed_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions |
 
 
 def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None,
-                seeds: FluidSeeds | None = None) -> None:
-    """The fluid model, its start state and solver (``seeds``: given, e.g. a batch's tiles; None: :func:`seed_fluid`)."""
+                seeds: FluidSeeds | None = None, list_capacity: int | None = None) -> None:
+    """The fluid model, its start state and solver (``seeds``: given, e.g. a batch's tiles; None: :func:`seed_fluid`;
+    ``list_capacity``: the solver's neighbour slots per particle, None: FluidSolver's; a distributed rank's start,
+    whose steps run on another solver, takes 1)."""
     if seeds is None:
         seeds = seed_fluid(scene, device, parts, options)
     parts.moving_wall_blocks = seeds.moving_blocks
@@ -413,7 +415,7 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions 
         gopts = ghost_options(scene, _given(options, "ghost", GhostOptions))  # the [fluid.ghost] settings from the scene
         solver = GhostFluidSolver(fluid, options=fopts, ghost_options=gopts)
     else:
-        solver = FluidSolver(fluid, options=fopts)
+        solver = FluidSolver(fluid, options=fopts, list_capacity=list_capacity)
     state = fluid.state()
     if fluid.n_fluid:
         if fluid.density is Density.SUMMATION:

@@ -717,12 +717,16 @@ class DistributedSimulation(Simulation):
     (it returns when rank 0 calls ``close()``).
 
     ``transport``: "auto", "nccl", "cuda-mpi" or "host" (rockwave/sim/transport.py). ``balance_by``: "time" (measured
-    per-rank compute time) or "count" (owned particles); ``balance_tolerance`` None: the faces never move."""
+    per-rank compute time) or "count" (owned particles); ``balance_tolerance`` None: the faces never move.
+    ``slab_build``: each rank seeds only its slab (rockwave/build/slab.py; default); False: every rank builds the
+    whole scene and rank 0 scatters it (the earlier start, kept for comparisons; also what scenes the slab build
+    does not cover take)."""
 
     def __init__(self, scene, device: str | None = None, options: SimulationOptions | None = None, comm=None,
                  balance_tolerance: float | None = 0.1, balance_interval: int = 20, transport: str = "auto",
-                 balance_by: str = "time"):
+                 balance_by: str = "time", slab_build: bool = True):
         MPI = require_mpi()
+        self._slab_wanted = bool(slab_build)
         if balance_by not in BALANCE_BY:
             raise ValueError(f"balance_by {balance_by!r}: expected one of {', '.join(BALANCE_BY)}")
         self.balance_tolerance, self.balance_interval = balance_tolerance, max(int(balance_interval), 1)
@@ -775,7 +779,7 @@ class DistributedSimulation(Simulation):
         would be vertical)."""
         self._slab = None
         fl = scene.fluid
-        if (fl is None or not fl.regions or fl.method == "ghost" or builder.block_walls_on(scene, self.options)
+        if (not self._slab_wanted or fl is None or not fl.regions or fl.method == "ghost" or builder.block_walls_on(scene, self.options)
                 or (scene.dim == 2 and any(r.get("box_min_m") is None for r in fl.regions))):
             return super()._build_parts(scene)
         dev, opts = self.device, self.options
@@ -791,7 +795,7 @@ class DistributedSimulation(Simulation):
             inner = [slab.quantile_from_counts(coords, counts, r / self.size) for r in range(1, self.size)]
             faces = float32_faces(inner)
             seeds, ids, held = slab.seed_fluid_slab(scene, dev, parts, layout, axis, faces, self.rank, opts)
-            builder.build_fluid(scene, dev, parts, opts, seeds)
+            builder.build_fluid(scene, dev, parts, opts, seeds, list_capacity=1)  # the rank's solver steps it
             parts.state.ids.assign(ids.astype(np.int32))
             # the whole scene's box (the cell keys and grids of every rank): all water and walls, grown by H
             m, xb = parts.fluid, layout.boundary
