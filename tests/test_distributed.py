@@ -168,6 +168,13 @@ def test_dam_break_two_ranks_equal_one(tmp_path, fluid):
     _assert_same_particles(one, two)
     for k in ("x", "v", "rho"):
         assert np.abs(one[k] - two[k]).max() <= np.abs(one[k] - ulp[k]).max(), k
+    # each rank seeded its own slab only (rockwave/build/slab.py): 100 of the 200 particles (20 columns of 10; the
+    # face at the median), holding at most the lattice points of its slab and two spacings beyond (2 x 10 more),
+    # never the whole scene's (the earlier start seeded all 200 on every rank)
+    n = len(one["x"])
+    assert bool(two["slab_build"])
+    assert two["built"].tolist() == [n // 2, n // 2]
+    assert two["built_held"].max() <= n // 2 + 2 * 10 < n
 
 
 @pytest.mark.parametrize("ranks", [2, 3])
