@@ -41,7 +41,11 @@ Hydrodynamics simulations", IEEE TPDS 25(1)):
   after each advance the owned particles are gathered (Gatherv) into rank 0's full FluidState, so readers, gauges,
   recorders, run.json and checkpoints on rank 0 are those of a one-rank run. A checkpoint is the full state: it
   resumes on any number of ranks (rank 0 scatters it again when its clock differs from the last one it
-  distributed). The other ranks drop the whole scene's fluid arrays after the first scatter.
+  distributed).
+* Start: each rank seeds only its slab (rockwave/build/slab.py: the faces from the whole scene's per-column
+  counts, the particles with the whole seeding's positions, densities and ids); rank 0 then holds the whole
+  state for its outputs (no neighbour lists), filled by the first gather. ``slab_build=False`` (and the scenes the
+  slab build does not cover) build the whole scene on every rank, rank 0 scatters it, the others drop it.
 
 Results differ from one rank within float32 round-off, not bit for bit: a rank's neighbour lists hold the same
 pairs in another order, so the float32 sums over neighbours are added in another order; the block loads are summed
