@@ -73,7 +73,7 @@ from rockwave.scene.format import Scene, load_scene
 from rockwave.sim import checkpoint as ckpt
 from rockwave.sim.simulation import Simulation, SimulationOptions
 from rockwave.sim.transport import KINDS, make_transport
-from rockwave.sph.fluid import FluidOptions, FluidSolver, FluidState, fluid_dt_limit
+from rockwave.sph.fluid import Density, FluidOptions, FluidSolver, FluidState, fluid_dt_limit
 
 GATHER_WALL_S = 1.0  # rank 0 refreshes its full state inside an advance at most this often (the run loop's watch)
 BALANCE_BY = ("time", "count")
@@ -753,6 +753,8 @@ class DistributedSimulation(Simulation):
         self.dfluid = DistributedFluid(self, self.comm, transport)
         if self._slab is not None:  # each rank seeded its own slab: it starts from it
             self.dfluid.set_owned(state_rows(self.state, self.fluid.n_fluid))
+            if self.fluid.density is Density.SUMMATION:  # the start's sums with the halo (a slab alone misses some)
+                self.dfluid.solver.compute_density(self.dfluid.state)
             self.built = {"seeded": int(self.fluid.n_fluid), "held_points": int(self._slab["held"]),
                           "layout_window_points": int(self._slab["window"]), "whole": int(self.dfluid.n_global),
                           "slab_build": True}
