@@ -89,12 +89,20 @@ def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up
     # the shrinks summed up each run from its first particle, run by run (a sum over one column only: the same
     # float64 values whatever other columns are seeded with it, as a slab's seeding needs)
     pos = np.arange(len(z)) - first
-    total = np.zeros(len(z))
-    by_pos = np.argsort(pos, kind="stable")
-    bounds = np.searchsorted(pos[by_pos], np.arange(pos.max() + 2))
-    for k in range(1, pos.max() + 1):
-        i = by_pos[bounds[k]: bounds[k + 1]]
-        total[i] = total[i - 1] + shrink[i - 1]
+    step = np.concatenate([[0.0], shrink])
+    step[pos == 0] = 0.0  # each particle's gap below it within its run (0 at a run's first)
+    runs, longest = int(run[-1]) + 1, int(pos.max()) + 1
+    if runs * longest <= 4 * len(z) + 4096:  # a row per run, summed along the row (sequentially, as the loop)
+        rows = np.zeros((runs, longest))
+        rows[run, pos] = step
+        total = np.cumsum(rows, axis=1)[run, pos]
+    else:  # runs of very unequal lengths: position by position up the runs
+        total = np.zeros(len(z))
+        by_pos = np.argsort(pos, kind="stable")
+        bounds = np.searchsorted(pos[by_pos], np.arange(longest + 1))
+        for k in range(1, longest):
+            i = by_pos[bounds[k]: bounds[k + 1]]
+            total[i] = total[i - 1] + step[i]
     out = np.array(x, dtype=np.float64, copy=True)
     out[order, up] = z - total
     return out
