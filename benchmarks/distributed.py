@@ -150,8 +150,10 @@ def _peak_bytes(report: str) -> dict:
 
 
 def _memory(a, comm) -> int:
-    """--memory: each rank's peak Warp bytes and resident host bytes at build and over --steps steps."""
+    """--memory: each rank's peak Warp bytes and resident host bytes at build and over --steps steps; rank 0: one
+    gather's seconds and its peak numpy bytes (tracemalloc)."""
     import resource
+    import tracemalloc
 
     import warp as wp
 
@@ -170,9 +172,15 @@ def _memory(a, comm) -> int:
         rss_build = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
         df = sim.dfluid
         n, own = df.n_global, df.n_own
+        gather = {}
         if sim.rank == 0:
             dt = sim.dt
-            sim.advance(a.steps * dt, gather=True)
+            sim.advance(a.steps * dt, gather=False)
+            tracemalloc.start()  # numpy's host arrays of one gather (rank 0: Gatherv rows, sorted, into its state)
+            t0 = time.perf_counter()
+            sim.gather()
+            gather = {"gather_s": time.perf_counter() - t0, "gather_host_peak_bytes": tracemalloc.get_traced_memory()[1]}
+            tracemalloc.stop()
             sim.close()
         else:
             sim.serve()
@@ -184,8 +192,11 @@ def _memory(a, comm) -> int:
             "layout_window_points": sim.built["layout_window_points"], "build_s": build_s,
             "warp_peak_build_bytes": build.get(dev, 0.0), "warp_peak_run_bytes": run.get(dev, 0.0),
             "host_rss_peak_build_bytes": rss_build, "host_rss_peak_run_bytes": rss_run,
-            "rank_bytes_per_owned_particle": round(df.bytes_per_particle(), 1)}
-    for k in ("warp_peak_build_bytes", "warp_peak_run_bytes", "host_rss_peak_build_bytes", "host_rss_peak_run_bytes"):
+            "rank_bytes_per_owned_particle": round(df.bytes_per_particle(), 1), **gather}
+    for k in ("warp_peak_build_bytes", "warp_peak_run_bytes", "host_rss_peak_build_bytes", "host_rss_peak_run_bytes",
+              "gather_host_peak_bytes"):
+        if k not in mine:
+            continue
         mine[k.replace("_bytes", "_per_particle")] = round(mine[k] / n, 1)
     ranks = comm.gather(mine, root=0)
     if sim.rank != 0:
