@@ -581,41 +581,40 @@ class DistributedFluid:
         self.set_owned(mine)
 
     def gather(self) -> None:
-        """Rank 0's full FluidState := the union of the owned particles, in id order (an output: one host copy)."""
+        """Rank 0's full FluidState := the union of the owned particles, in id order (an output): rank 0 takes one
+        rank's rows at a time (its own from its device; the others' through a host buffer of that rank's rows),
+        and a kernel writes each row to the slot of its id (kd.unpack_by_id): no host array of the whole scene."""
         MPI = require_mpi()
-        rows = self._pack_full(self._own_idx).numpy() if self.n_own else np.zeros((0, kd.FULL_COLS), np.float32)
+        rows = self._pack_full(self._own_idx) if self.n_own else wp.zeros((0, kd.FULL_COLS), dtype=float,
+                                                                             device=self.device)
         counts = np.array(self.comm.allgather(self.n_own), np.int64)
         migrated = self.comm.reduce(self.migrated, op=MPI.SUM, root=0)
-        out = None
-        if self.rank == 0:
-            out = np.empty((int(counts.sum()), kd.FULL_COLS), np.float32)
-            sizes = counts * kd.FULL_COLS
-            displ = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-            self.comm.Gatherv([np.ascontiguousarray(rows), MPI.FLOAT], [out, (sizes, displ), MPI.FLOAT], root=0)
-        else:
-            self.comm.Gatherv([np.ascontiguousarray(rows), MPI.FLOAT], None, root=0)
         if self.rank != 0:
+            if self.n_own:
+                self.comm.Send([np.ascontiguousarray(rows.numpy()), MPI.FLOAT], dest=0, tag=41)
             return
         self.migrated_total = int(migrated)
-        st, nf = self.sim.state, self.n_global
-        ids = out[:, 11].astype(np.int64) * ID_SPLIT + out[:, 12].astype(np.int64)
-        if len(ids) != nf or not np.array_equal(np.sort(ids), np.arange(nf)):
-            raise RuntimeError(f"rank 0 gathered {len(ids)} particles for {nf}: a particle was lost or duplicated")
-        out = out[np.argsort(ids)]
-        x = st.x.numpy()
-        x[:nf] = out[:, 0:3]
-        v = st.v.numpy()
-        v[:nf] = out[:, 3:6]
-        st.x.assign(x)
-        st.v.assign(v)
-        st.rho.assign(np.ascontiguousarray(out[:, 6]))
-        st.accel.assign(np.ascontiguousarray(out[:, 7:10]))
-        st.pressure.assign(np.ascontiguousarray(out[:, 10]))
-        st.ids.assign(np.arange(nf, dtype=np.int32))
+        st, nf, d = self.sim.state, self.n_global, self.device
+        seen = wp.zeros(max(nf, 1), dtype=int, device=d)
+        for r in range(self.size):
+            if counts[r] == 0:
+                continue
+            if r == 0:
+                buf = rows
+            else:
+                host = np.empty((int(counts[r]), kd.FULL_COLS), np.float32)
+                self.comm.Recv([host, MPI.FLOAT], source=r, tag=41)
+                buf = wp.array(host, dtype=float, device=d)
+            self._launch(kd.unpack_by_id, buf.shape[0], [buf, nf, st.x, st.v, st.rho, st.accel, st.pressure, st.ids,
+                                                         seen])
+        got = seen.numpy()[:nf]
+        if int(counts.sum()) != nf or not (got == 1).all():
+            raise RuntimeError(f"rank 0 gathered {int(counts.sum())} particles for {nf}: a particle was lost or "
+                               "duplicated")
         self.sim.fluid_solver._in_original_order = True
         self.sim.fluid_solver.invalidate_lists()
         if getattr(self.sim, "_fill_initial", False):  # a slab build: the start's positions (EnergyBudget's reference)
-            self.sim.fluid.initial_positions[:nf] = out[:, 0:3]
+            self.sim.fluid.initial_positions[:nf] = st.x.numpy()[:nf]
             self.sim._fill_initial = False
 
     def bytes_per_particle(self) -> float:
