@@ -38,7 +38,8 @@ Hydrodynamics simulations", IEEE TPDS 25(1)):
   bit-identical loads) and every rank integrates the blocks identically. The walls' impulse on the water
   (CouplingOptions.track_walls, Coupling.wall_impulse) is summed over the ranks the same way.
 * Rank 0 drives: ``advance`` and ``step`` on rank 0 broadcast a command that the other ranks follow (``serve``);
-  after each advance the owned particles are gathered (Gatherv) into rank 0's full FluidState, so readers, gauges,
+  after each advance the owned particles are gathered (one rank's rows at a time, written by id on rank 0's
+  device: kd.unpack_by_id) into rank 0's full FluidState, so readers, gauges,
   recorders, run.json and checkpoints on rank 0 are those of a one-rank run. A checkpoint is the full state: it
   resumes on any number of ranks (rank 0 scatters it again when its clock differs from the last one it
   distributed).
