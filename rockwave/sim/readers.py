@@ -249,7 +249,10 @@ class Gauges:
     layer) reads dry. NaN when dry. Still water whose top particle layer is at z_top reads z_top + s/2.
     The column must start within 2H of the bed, the lowest point of the line not inside a wall (boundary
     particles, or a fixed DDA block: a floor, beach or wall of blocks); water on the line that rests on
-    nothing (a jet over a dry bed) reads NaN. A moving block across the line ends the column at its underside.
+    nothing (a jet over a dry bed) reads NaN. Moving blocks are solid too (MovingSolids, at every read from their
+    poses): phi = phi_f / (1 - phi_s - phi_m), phi_m = 1 inside a block and the kernel's half-space share F(dist)
+    within H outside it; so over a submerged block the reading is the surface above it, and a line through a block
+    that is out of the water there (the water pressed against it, its top dry) reads NaN (docs/outputs.md).
     A 'pressure' gauge is the Shepard-normalised SPH interpolation of the pressure at its position [Pa], over
     the fluid particles and, with Adami walls, the wall particles (whose pressure continues the fluid's), so a
     sensor placed on a wall surface reads the wall pressure there.
