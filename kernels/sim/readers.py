@@ -164,7 +164,7 @@ def moving_solid_profile(
     k1 = wp.min(int(wp.floor((c[up] + r - z0) / dz)), line_n[g] - 1)
     fs = face_first[s]
     for k in range(k0, k1 + 1):
-        x = o
+        x = wp.vec3(o[0], o[1], o[2])
         x[up] = z0 + float(k) * dz
         dist = float(-1.0e30)
         for f in range(face_count[s]):
