@@ -193,11 +193,14 @@ class MovingSolids:
         self.solid_block = arr(np.asarray(moving, np.int32))
         self.solid_radius = arr(np.asarray(radius, np.float32), float)
         self.face_first, self.face_count = arr(np.asarray(first, np.int32)), arr(np.asarray(count, np.int32))
-        flat, sf, sc = [], [], []
-        for lst in line_solids:
-            sf.append(len(flat))
+        flat, sf, sc, seen = [], [], [], {}
+        for lst in line_solids:  # lines with the same blocks share their entries (a solo run: all lines)
+            key = tuple(lst)
+            if key not in seen:
+                seen[key] = len(flat)
+                flat += list(lst)
+            sf.append(seen[key])
             sc.append(len(lst))
-            flat += list(lst)
         self.max_count = max(sc) if sc else 0
         self.solid_first, self.solid_count = arr(np.asarray(sf, np.int32)), arr(np.asarray(sc, np.int32))
         self.solid_list = arr(np.asarray(flat or [0], np.int32))
