@@ -162,9 +162,10 @@ class MovingSolids:
     """The moving blocks (every block not 'fixed': rigid, deformable, kinematic, compound parts) as solid on the
     height gauges' lines, evaluated at each read from the blocks' poses (kernels/sim/readers.py
     moving_solid_profile): at a sample a signed distance ``dist`` from block b (max over its face planes, rigidly
-    moved), the block's solid fraction is phi_m = F(dist), F(d) the kernel's weight beyond a plane d from the
-    kernel's centre (1/2 on the face, 1 from H inside, 0 from H outside; the kernel's slabs integrated once,
-    kernel_slabs): what a flat face's wall particles would add to phi_s. Where blocks meet, the largest.
+    moved), the block's solid fraction is phi_m = 1 inside (dist < 0) and F(dist) within H outside, F(d) the
+    kernel's weight beyond a plane d from the kernel's centre (1/2 on the face, 0 from H out; the scene's kernel
+    integrated once in slabs, kernel_slabs): what a flat face's wall particles would add to phi_s. Where blocks
+    meet, the largest.
 
     ``line_solids[g]``: the blocks line g may meet (all moving blocks; a batch line: its scenario's). Rows of
     ``phi`` follow the lines; ``launch(block_state)`` fills it."""
