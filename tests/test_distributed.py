@@ -173,6 +173,29 @@ def test_dam_break_two_ranks_equal_one(tmp_path, fluid):
     _assert_same_particles(one, two)
     for k in ("x", "v", "rho"):
         assert np.abs(one[k] - two[k]).max() <= np.abs(one[k] - ulp[k]).max(), k
+    # each rank seeded its own slab only (rockwave/build/slab.py): 100 of the 200 particles (20 columns of 10; the
+    # face at the median), holding at most the lattice points of its slab and two spacings beyond (2 x 10 more),
+    # never the whole scene's (the earlier start seeded all 200 on every rank)
+    n = len(one["x"])
+    assert bool(two["slab_build"])
+    assert two["built"].tolist() == [n // 2, n // 2]
+    assert two["built_held"].max() <= n // 2 + 2 * 10 < n
+
+
+@pytest.mark.parametrize("fluid", ["", 'density = "summation"'])
+def test_slab_build_starts_as_the_whole_scene(tmp_path, fluid):
+    """Each rank seeds only its slab (rockwave/build/slab.py); the start gathered on rank 0 is the one-process
+    start to the bit: positions (the packed start), velocities, densities (hydrostatic, or summed with the halo)."""
+    scene = _scene(tmp_path, "start", DAM.replace("spacing_m = 0.01", f"spacing_m = 0.01\n{fluid}"))
+    out, plain = tmp_path / "ranks.npz", tmp_path / "plain.npz"
+    _mpi(["-m", "rockwave.sim.distributed", str(scene), "--duration", "0", "--out", str(out)], tmp_path)
+    r = subprocess.run([sys.executable, "-m", "rockwave.sim.distributed", str(scene), "--duration", "0", "--plain",
+                        "--out", str(plain)], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    two, one = dict(np.load(out)), dict(np.load(plain))
+    assert bool(two["slab_build"]) and two["built"].tolist() == [100, 100]
+    for k in ("x", "v", "rho"):
+        assert np.array_equal(two[k], one[k]), k
 
 
 @pytest.mark.parametrize("ranks", [2, 3])

@@ -57,7 +57,8 @@ from rockwave.sph.fluid import (
 from rockwave.sph.ghost import GhostFluidSolver, GhostOptions
 
 
-def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up: int) -> np.ndarray:
+def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up: int,
+                 origin: np.ndarray | None = None) -> np.ndarray:
     """Fluid positions ``x`` (n, 3) with each vertical run of lattice particles packed at its hydrostatic density
     (fluid.packed_start): along a column of the lattice, from the run's lowest particle up, each gap of dx
     becomes dx rho0/rho at the gap's mid-depth, ``rho_ratio(depth)`` = rho/rho0 (depth: below the region's top,
@@ -68,11 +69,13 @@ def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up
     read +11.5%); such runs keep the uniform lattice. Why pack: on the uniform lattice the continuity density
     rho(d) > rho0 is out of step with the spacing, and the momentum form's balance then needs
     p = rho0 g d (1 + 2 g d/c0^2), 1.5% too much at the floor of a 0.3 m tank at c0 = 20 m/s (docs/notes.md
-    "Water at rest on the H200")."""
+    "Water at rest on the H200"). ``origin``: the lowest coordinates (3,) of the whole scene's water, from which the
+    columns are counted (None: of ``x``; a slab's seeding gives the whole scene's, rockwave/build/slab.py)."""
     if len(x) < 2:
         return x
     side = [a for a in range(3) if a != up]
-    col = np.round((x[:, side] - x[:, side].min(axis=0)) / spacing).astype(np.int64)  # whole steps from the lowest
+    ref = x[:, side].min(axis=0) if origin is None else np.asarray(origin, float)[side]
+    col = np.round((x[:, side] - ref) / spacing).astype(np.int64)  # whole steps from the lowest
     order = np.lexsort((x[:, up], col[:, 1], col[:, 0]))
     z, d, c = x[order, up], depth[order], col[order]
     gap = np.diff(z)
@@ -82,32 +85,54 @@ def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up
     last = np.r_[np.nonzero(~linked)[0], len(z) - 1]  # each run's top particle
     free = d[last] < spacing  # runs that end at the free surface
     shrink = np.where(free[run[1:]], shrink, 0.0)
-    total = np.concatenate([[0.0], np.cumsum(shrink)])
     first = np.searchsorted(run, run)  # each particle's run's first (lowest) particle
+    # the shrinks summed up each run from its first particle, run by run (a sum over one column only: the same
+    # float64 values whatever other columns are seeded with it, as a slab's seeding needs)
+    pos = np.arange(len(z)) - first
+    step = np.concatenate([[0.0], shrink])
+    step[pos == 0] = 0.0  # each particle's gap below it within its run (0 at a run's first)
+    runs, longest = int(run[-1]) + 1, int(pos.max()) + 1
+    if runs * longest <= 4 * len(z) + 4096:  # a row per run, summed along the row (sequentially, as the loop)
+        rows = np.zeros((runs, longest))
+        rows[run, pos] = step
+        total = np.cumsum(rows, axis=1)[run, pos]
+    else:  # runs of very unequal lengths: position by position up the runs
+        total = np.zeros(len(z))
+        by_pos = np.argsort(pos, kind="stable")
+        bounds = np.searchsorted(pos[by_pos], np.arange(longest + 1))
+        for k in range(1, longest):
+            i = by_pos[bounds[k]: bounds[k + 1]]
+            total[i] = total[i - 1] + step[i]
     out = np.array(x, dtype=np.float64, copy=True)
-    out[order, up] = z - (total - total[first])
+    out[order, up] = z - total
     return out
 
 
-def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: float, layers: int) -> np.ndarray:
+def water_bounds(fluid_x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lowest, highest, first particle) of the seeded water: what the walls of the blocks are placed by."""
+    return fluid_x.min(axis=0), fluid_x.max(axis=0), np.asarray(fluid_x[0], float)
+
+
+def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x, step: float, layers: int) -> np.ndarray:
     """Wall particles inside the faces of the fixed blocks, for Adami walls (``fluid.boundary = "adami"``): a
     lattice of ``step`` over each fixed block, kept within ``layers * step`` under its surface (the kernel
     support), so that water on a fixed slope, floor or tank wall made of blocks feels the extrapolated wall
     pressure (Adami et al. 2012) as it does at the [tank] walls; the penalty force of the coupling stays as the
     guard against penetration. Only where the water can reach: within its seeded bounding box grown by its own
     largest extent (farther faces keep the penalty alone). A point inside an earlier fixed block is left out
-    (no double walls where blocks overlap). Moving blocks get theirs from :func:`moving_block_walls`."""
+    (no double walls where blocks overlap). Moving blocks get theirs from :func:`moving_block_walls`. ``fluid_x``:
+    the water's positions, or its :func:`water_bounds` (a slab's seeding: the whole scene's)."""
     dim = scene.dim
     if parts.blocks is None or len(fluid_x) == 0:
         return np.zeros((0, 3))
+    lo_f, hi_f, anchor = fluid_x if isinstance(fluid_x, tuple) else water_bounds(fluid_x)
     specs = [s for s in parts.blocks.specs if s.kind == "fixed" and not s.tank]  # the [tank] has its own particles
     if not specs:
         return np.zeros((0, 3))
-    lo_f, hi_f = fluid_x.min(axis=0), fluid_x.max(axis=0)
     grow = float(np.max(hi_f[:dim] - lo_f[:dim]))
     reach_lo, reach_hi = lo_f - grow, hi_f + grow
     depth = layers * step
-    anchor = np.asarray(fluid_x[0], float)[:dim]
+    anchor = anchor[:dim]
     planes, out = [], []
     for spec in specs:
         R = quat_to_matrix(spec.orientation)
@@ -234,35 +259,53 @@ def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, n
     x = np.concatenate(xs) if xs else np.zeros((0, 3))
     v = np.concatenate(vs) if vs else np.zeros((0, 3))
     depth = np.concatenate(ds) if ds else np.zeros(0)
-    # Boundary particles: tank walls and obstacles.
-    t = scene.tank
+    keep = fluid_keep(scene, device, x)
+    return x[keep], v[keep], depth[keep], boundary_particles(scene, device)
+
+
+def boundary_particles(scene: Scene, device: str) -> np.ndarray:
+    """Boundary particles of the tank walls and obstacles (n, 3) (z = 0 in 2D)."""
+    t, up = scene.tank, scene.dim - 1
     bstep, layers = boundary_lattice(scene)
     parts = []
     try:
-        if t is None:  # walls from fixed blocks (rockwave/coupling/penalty.py)
-            keep = np.ones(len(x), bool)
-        elif t.box_min_m is not None:
+        if t is not None and t.box_min_m is not None:
             parts.append(sampling.box_shell(t.box_min_m, t.box_max_m, bstep, layers, True, t.open_top, up))
-            keep = np.all((x[:, :dim] > np.asarray(t.box_min_m)) & (x[:, :dim] < np.asarray(t.box_max_m)), axis=1)
-        else:
+        elif t is not None:
             parts.append(sampling.mesh_shell(t.mesh, t.mesh_scale, t.mesh_offset_m, bstep, layers, True, device))
-            tm = sampling.load_trimesh(t.mesh, t.mesh_scale, t.mesh_offset_m)
-            keep = sampling.mesh_signed_distance(tm, x, device) < 0
     except sampling.MeshInputError as e:
         raise SceneError(scene.path, [("tank.mesh", str(e))]) from None
-    x, v, depth = x[keep], v[keep], depth[keep]
     for i, ob in enumerate(scene.obstacles):
         try:
             if ob.box_min_m is not None:
                 parts.append(sampling.box_shell(ob.box_min_m, ob.box_max_m, bstep, layers, False, False, up))
             else:
                 parts.append(sampling.mesh_shell(ob.mesh, ob.mesh_scale, ob.mesh_offset_m, bstep, layers, False, device))
-            inside = sampling.inside_obstacle(x, ob, dim, device)
         except sampling.MeshInputError as e:
             raise SceneError(scene.path, [(f"obstacles[{i}].mesh", str(e))]) from None
-        x, v, depth = x[~inside], v[~inside], depth[~inside]
-    b = np.concatenate(parts) if parts else np.zeros((0, 3))
-    return x, v, depth, b
+    return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+
+def fluid_keep(scene: Scene, device: str, x: np.ndarray) -> np.ndarray:
+    """Mask of the lattice points ``x`` (n, 3) that stay water: inside the tank, outside every obstacle (a pointwise
+    test: the whole scene's seeding and a slab's (rockwave/build/slab.py) keep the same points)."""
+    t, dim = scene.tank, scene.dim
+    try:
+        if t is None:  # walls from fixed blocks (rockwave/coupling/penalty.py)
+            keep = np.ones(len(x), bool)
+        elif t.box_min_m is not None:
+            keep = np.all((x[:, :dim] > np.asarray(t.box_min_m)) & (x[:, :dim] < np.asarray(t.box_max_m)), axis=1)
+        else:
+            tm = sampling.load_trimesh(t.mesh, t.mesh_scale, t.mesh_offset_m)
+            keep = sampling.mesh_signed_distance(tm, x, device) < 0
+    except sampling.MeshInputError as e:
+        raise SceneError(scene.path, [("tank.mesh", str(e))]) from None
+    for i, ob in enumerate(scene.obstacles):
+        try:
+            keep &= ~sampling.inside_obstacle(x, ob, dim, device)
+        except sampling.MeshInputError as e:
+            raise SceneError(scene.path, [(f"obstacles[{i}].mesh", str(e))]) from None
+    return keep
 
 
 @dataclass
@@ -362,8 +405,10 @@ def seed_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions |
 
 
 def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None,
-                seeds: FluidSeeds | None = None) -> None:
-    """The fluid model, its start state and solver (``seeds``: given, e.g. a batch's tiles; None: :func:`seed_fluid`)."""
+                seeds: FluidSeeds | None = None, list_capacity: int | None = None) -> None:
+    """The fluid model, its start state and solver (``seeds``: given, e.g. a batch's tiles; None: :func:`seed_fluid`;
+    ``list_capacity``: the solver's neighbour slots per particle, None: FluidSolver's; a distributed rank's start,
+    whose steps run on another solver, takes 1)."""
     if seeds is None:
         seeds = seed_fluid(scene, device, parts, options)
     parts.moving_wall_blocks = seeds.moving_blocks
@@ -378,7 +423,7 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions 
         gopts = ghost_options(scene, _given(options, "ghost", GhostOptions))  # the [fluid.ghost] settings from the scene
         solver = GhostFluidSolver(fluid, options=fopts, ghost_options=gopts)
     else:
-        solver = FluidSolver(fluid, options=fopts)
+        solver = FluidSolver(fluid, options=fopts, list_capacity=list_capacity)
     state = fluid.state()
     if fluid.n_fluid:
         if fluid.density is Density.SUMMATION:
