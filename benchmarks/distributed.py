@@ -20,6 +20,13 @@ migration, new halos, new lists), the transport that ran, and rank 0's device by
     mpiexec -n 2 python -m benchmarks.distributed --particles 8e6 --weak --device cuda      # weak
     mpiexec -n 2 python -m benchmarks.distributed --particles 1e6 --device cuda --compare   # 2 GPUs vs 1, 100 steps
     python -m benchmarks.distributed --particles 2e4 --device cpu --steps 20 --no-plain     # a smoke run
+    mpiexec -n 2 python -m benchmarks.distributed --particles 2e5 --device cpu --memory --steps 3  # bytes per rank
+
+``--memory``: each rank's peak bytes while it builds the scene and while it steps: the Warp allocations
+(wp.ScopedMemoryTracker's peak: the GPU's memory on CUDA, host memory on the CPU) and the process's peak resident
+host memory (ru_maxrss), per particle of the whole scene and per particle the rank owns, for the slab build
+(default) or every rank building the whole scene (``--whole-build``, the earlier start); run both in separate
+launches (a process's peak never goes down).
 """
 
 from __future__ import annotations
@@ -126,6 +133,85 @@ def _compare(sim, a, comm) -> int:
     return 0
 
 
+def _peak_bytes(report: str) -> dict:
+    """Peak bytes per device from a wp.ScopedMemoryTracker report ("Peak usage:" lines: device, value, unit)."""
+    units = {"B": 1, "KB": 1024, "MB": 1024**2, "GB": 1024**3, "TB": 1024**4}
+    out, on = {}, False
+    for line in report.splitlines():
+        if line.strip().startswith("Peak usage"):
+            on = True
+            continue
+        if on:
+            parts = line.split()
+            if len(parts) != 3 or parts[2] not in units:
+                break
+            out[parts[0]] = float(parts[1]) * units[parts[2]]
+    return out
+
+
+def _memory(a, comm) -> int:
+    """--memory: each rank's peak Warp bytes and resident host bytes at build and over --steps steps; rank 0: one
+    gather's seconds and its peak numpy bytes (tracemalloc)."""
+    import resource
+    import tracemalloc
+
+    import warp as wp
+
+    from rockwave.sim.distributed import DistributedSimulation
+
+    size = comm.Get_size()
+    reports: list[str] = []
+    with wp.ScopedMemoryTracker("build", print=False, report_func=reports.append) as tracker:
+        t0 = time.perf_counter()
+        sim = DistributedSimulation(_scene(a.particles * (size if a.weak else 1), a.scene), device=a.device,
+                                    comm=comm, transport=a.transport, balance_by=a.balance_by,
+                                    slab_build=not a.whole_build)
+        build_s = time.perf_counter() - t0
+        tracker.report()
+        build = _peak_bytes(reports[-1])
+        rss_build = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+        df = sim.dfluid
+        n, own = df.n_global, df.n_own
+        gather = {}
+        if sim.rank == 0:
+            dt = sim.dt
+            sim.advance(a.steps * dt, gather=False)
+            tracemalloc.start()  # numpy's host arrays of one gather (rank 0: Gatherv rows, sorted, into its state)
+            t0 = time.perf_counter()
+            sim.gather()
+            gather = {"gather_s": time.perf_counter() - t0, "gather_host_peak_bytes": tracemalloc.get_traced_memory()[1]}
+            tracemalloc.stop()
+            sim.close()
+        else:
+            sim.serve()
+        tracker.report()
+        run = _peak_bytes(reports[-1])
+        rss_run = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    dev = sim.device if sim.device in build else next(iter(build), sim.device)
+    mine = {"rank": sim.rank, "owned": own, "seeded": sim.built["seeded"], "held_points": sim.built["held_points"],
+            "layout_window_points": sim.built["layout_window_points"], "build_s": build_s,
+            "warp_peak_build_bytes": build.get(dev, 0.0), "warp_peak_run_bytes": run.get(dev, 0.0),
+            "host_rss_peak_build_bytes": rss_build, "host_rss_peak_run_bytes": rss_run,
+            "rank_bytes_per_owned_particle": round(df.bytes_per_particle(), 1), **gather}
+    for k in ("warp_peak_build_bytes", "warp_peak_run_bytes", "host_rss_peak_build_bytes", "host_rss_peak_run_bytes",
+              "gather_host_peak_bytes"):
+        if k not in mine:
+            continue
+        mine[k.replace("_bytes", "_per_particle")] = round(mine[k] / n, 1)
+    ranks = comm.gather(mine, root=0)
+    if sim.rank != 0:
+        return 0
+    res = {"benchmark": "distributed-memory", "scene": a.scene, "ranks": size, "device": a.device,
+           "device_name": device_name(a.device), "date": date.today().isoformat(), "commit": commit(),
+           "build": "whole scene on every rank" if a.whole_build else "slab per rank", "particles": n,
+           "steps": a.steps, "per_rank": ranks}
+    print(json.dumps(res))
+    tag = "whole" if a.whole_build else "slab"
+    out = a.out or RESULTS / f"{res['date']}-{a.device.replace(':', '')}-distributed-memory-{tag}-{size}ranks.json"
+    write_json(res, out)
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.distributed")
     ap.add_argument("--particles", type=float, required=True, help="fluid particles in all (or per rank with --weak)")
@@ -142,6 +228,10 @@ def main(argv=None) -> int:
     ap.add_argument("--compare", action="store_true", help="correctness instead of speed: the ranks and the plain "
                     "Simulation advance the same --steps x the initial dt from the start; their particles are "
                     "compared, with two plain runs one float32 ulp apart as the round-off yardstick")
+    ap.add_argument("--memory", action="store_true", help="peak bytes per rank at build and over --steps steps "
+                    "(Warp allocations and resident host memory) instead of speed")
+    ap.add_argument("--whole-build", action="store_true", help="every rank builds the whole scene, rank 0 scatters "
+                    "it (the earlier start; default: each rank seeds its slab)")
     a = ap.parse_args(argv)
     import warp as wp
 
@@ -150,9 +240,11 @@ def main(argv=None) -> int:
 
     comm = require_mpi().COMM_WORLD
     size = comm.Get_size()
+    if a.memory:
+        return _memory(a, comm)
     target = a.particles * (size if a.weak else 1)
     sim = DistributedSimulation(_scene(target, a.scene), device=a.device, comm=comm, transport=a.transport,
-                                balance_by=a.balance_by)
+                                balance_by=a.balance_by, slab_build=not a.whole_build)
     if sim.rank != 0:
         sim.serve()
         del sim

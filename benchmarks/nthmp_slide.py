@@ -9,8 +9,9 @@ then summarised for the comparison with the laboratory (docs/validation.md 'NTHM
   s(t) = (u_t^2/a_0) ln cosh(a_0 t/u_t) fitted to the whole s(t) (the usual summary of a measured slide motion),
   the peak speed, and the time the wedge's front reaches the slope's toe (x = 4.88 m) if it does;
 - the wave gauges (x/b = 1.2 at y/b = 0, 0.5, 1, 1.5; x/b = 2 on the centre line): first arrival, highest crest,
-  deepest trough and their times (the centre-line gauges read the water under the wedge while it is under them:
-  their extremes then are not the free surface's; the record keeps the time series at 0.02 s to cut them);
+  deepest trough and their times (the centre-line gauges take the wedge as bed: the free surface over it while it
+  passes under them, NaN while its top under the line is out of the water; the record keeps the time series at
+  0.02 s);
 - the run-up lines at y = 0, b/2, b: the highest water up the slope above the still level and where.
 
     python -m benchmarks.nthmp_slide --device cuda:0 --cases subaerial            # 0.025 m (~2 M particles), ~3-5 min on an H200
@@ -145,7 +146,7 @@ def markdown(rows: list[dict], device_label: str, commit_id: str) -> str:
     for r in rows:
         md.append(f"- {r['case']} {r['spacing_m']:g} m: " + ", ".join(f"t {e['t_s']:.2f}: {e['s_m']:.3f} / {e['v_m_s']:.2f}"
                                                                        for e in r["slide_table"]))
-    md += ["", "Wave gauges (eta, m; times s; centre-line gauges read the water under the wedge while it is under them):", "",
+    md += ["", "Wave gauges (eta, m; times s; centre-line gauges read the free surface over the wedge as it passes under them):", "",
            "| case | spacing m | gauge | arrival | crest (t) | trough (t) |", "|---|---|---|---|---|---|"]
     for r in rows:
         for name, g in r["gauges"].items():

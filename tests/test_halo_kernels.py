@@ -29,6 +29,27 @@ def _wp(a, dtype):
     return wp.array(a, dtype=dtype, device=D)
 
 
+def test_unpack_by_id_writes_each_row_to_its_ids_slot():
+    """Rank 0's gather (kd.unpack_by_id): rows in any order land in the slots of their ids (ids beyond 2^20, split
+    in two float32 parts), seen counts each id's rows (a doubled row: 2, a lost one: 0), an id beyond n is dropped."""
+    n = 2**20 + 8
+    x, v, rho, a, p, _ = _particles(6, seed=3)
+    gid = np.array([2**20 + 7, 5, 2**20 - 1, 0, 5, n + 3], np.int32)  # 5 twice; n + 3 out of range
+    src = [_wp(x, wp.vec3), _wp(v, wp.vec3), _wp(rho, float), _wp(a, wp.vec3), _wp(p, float), _wp(gid, int)]
+    buf = wp.zeros((6, kd.FULL_COLS), dtype=float, device=D)
+    wp.launch(kd.pack_full, 6, [_wp(np.arange(6, dtype=np.int32), int), src[5], *src[:5], buf], device=D)
+    dst = [wp.zeros(n, dtype=t, device=D) for t in (wp.vec3, wp.vec3, float, wp.vec3, float, int)]
+    seen = wp.zeros(n, dtype=int, device=D)
+    wp.launch(kd.unpack_by_id, 6, [buf, n, *dst, seen], device=D)
+    for k in (0, 2, 3):
+        i = gid[k]
+        for s, d in zip((x, v, rho, a, p), dst[:5]):
+            assert np.array_equal(d.numpy()[i], s[k])
+        assert dst[5].numpy()[i] == i
+    got = seen.numpy()
+    assert got[5] == 2 and got[[2**20 + 7, 2**20 - 1, 0]].tolist() == [1, 1, 1] and got.sum() == 5
+
+
 def test_pack_unpack_round_trip():
     n, off = 37, 5
     x, v, rho, a, p, gid = _particles(n)

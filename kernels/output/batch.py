@@ -40,6 +40,8 @@ def batch_line_profile(
 def batch_line_level(
     fluid: wp.array2d(dtype=float),
     solid: wp.array2d(dtype=float),
+    moving: wp.array2d(dtype=float),
+    has_moving: int,
     n_samples: wp.array(dtype=int),
     z0: wp.array(dtype=float),
     dz: wp.array(dtype=float),
@@ -48,7 +50,7 @@ def batch_line_level(
 ):
     """The top of the continuous water column on each line with its own samples (readers.py gauge_level)."""
     g = wp.tid()
-    out[g] = column_top(fluid, solid, g, n_samples[g], z0[g], dz[g], reach[g])
+    out[g] = column_top(fluid, solid, moving, has_moving, g, n_samples[g], z0[g], dz[g], reach[g])
 
 
 @wp.kernel

@@ -102,6 +102,25 @@ def unpack_full(buf: wp.array2d(dtype=float), offset: int, gid: wp.array(dtype=i
 
 
 @wp.kernel
+def unpack_by_id(buf: wp.array2d(dtype=float), n: int, x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                 rho: wp.array(dtype=float), a: wp.array(dtype=wp.vec3), p: wp.array(dtype=float),
+                 ids: wp.array(dtype=int), seen: wp.array(dtype=int)):
+    """Slot id := row k of buf (pack_full's layout), id its global id (rank 0's whole state, in id order); seen[id]
+    counts the rows of each id (a lost or doubled particle leaves a 0 or a 2); an id outside [0, n) is dropped."""
+    k = wp.tid()
+    i = int(buf[k, 11]) * ID_SPLIT + int(buf[k, 12])
+    if i < 0 or i >= n:
+        return
+    x[i] = wp.vec3(buf[k, 0], buf[k, 1], buf[k, 2])
+    v[i] = wp.vec3(buf[k, 3], buf[k, 4], buf[k, 5])
+    rho[i] = buf[k, 6]
+    a[i] = wp.vec3(buf[k, 7], buf[k, 8], buf[k, 9])
+    p[i] = buf[k, 10]
+    ids[i] = i
+    wp.atomic_add(seen, i, 1)
+
+
+@wp.kernel
 def classify(x: wp.array(dtype=wp.vec3), axis: int, lo: float, hi: float, halo: float,
              keep: wp.array(dtype=int), down: wp.array(dtype=int), up: wp.array(dtype=int),
              halo_down: wp.array(dtype=int), halo_up: wp.array(dtype=int)):

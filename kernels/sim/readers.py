@@ -76,19 +76,122 @@ def gauge_solid_profile(
     line_add(x[b], particle_mass[offset + b] / p.rest_density, gauge_pos[g], up, z0, dz, p, prof, g)
 
 
+@wp.kernel
+def kernel_slabs(p: SPHParams, m: int, out: wp.array(dtype=float)):
+    """The kernel's weight in slab i of m across its support, z in [-H + i dz, -H + (i + 1) dz], dz = 2H/m (one
+    thread per slab; midpoint rule, m points each way): dz A(z_i), A(z) = 2 pi int_|z|^H W(rho) rho drho over the
+    plane at height z (3D; rho^2 = r^2 + z^2), or 2 int_0^sqrt(H^2 - z^2) W(sqrt(r^2 + z^2)) dr over the line (2D).
+    Summed from the top, F(d) = int_d^H A(z) dz is the kernel-weighted volume of a half-space whose face lies d
+    below the kernel's centre (moving_solid_profile; rockwave/sim/readers.py MovingSolids)."""
+    i = wp.tid()
+    H = p.H
+    dz = 2.0 * H / float(m)
+    z = -H + (float(i) + 0.5) * dz
+    acc = float(0.0)
+    if p.dim == 3:
+        dr = (H - wp.abs(z)) / float(m)
+        for j in range(m):
+            rho = wp.abs(z) + (float(j) + 0.5) * dr
+            acc += 2.0 * wp.pi * kernel_w(rho * rho, p) * rho * dr
+    else:
+        half = wp.sqrt(wp.max(H * H - z * z, 0.0))
+        dr = half / float(m)
+        for j in range(m):
+            r = (float(j) + 0.5) * dr
+            acc += 2.0 * kernel_w(r * r + z * z, p) * dr
+    out[i] = acc * dz
+
+
 @wp.func
-def water_fraction(fluid: wp.array2d(dtype=float), solid: wp.array2d(dtype=float), g: int, k: int) -> float:
-    """phi_f / (1 - phi_s): the water's share of the space that is not wall (phi_f where there is no wall;
-    next to a wall, whose particles take part of the kernel support, bulk water still reads 1); 0 inside a wall."""
+def half_space_fraction(d: float, table: wp.array(dtype=float), H: float) -> float:
+    """F(d): the share of the kernel's weight on the far side of a plane d from its centre (d < 0: the centre is
+    behind the plane), linear in the table of F at d_i = -H + i 2H/(n - 1); 1 at d <= -H, 0 at d >= H."""
+    n = table.shape[0]
+    u = (d + H) / (2.0 * H) * float(n - 1)
+    if u <= 0.0:
+        return 1.0
+    if u >= float(n - 1):
+        return 0.0
+    i = int(wp.floor(u))
+    w = u - float(i)
+    return table[i] * (1.0 - w) + table[wp.min(i + 1, n - 1)] * w
+
+
+@wp.kernel
+def moving_solid_profile(
+    line_pos: wp.array(dtype=wp.vec3),
+    line_z0: wp.array(dtype=float),
+    line_dz: wp.array(dtype=float),
+    line_n: wp.array(dtype=int),
+    solid_first: wp.array(dtype=int),
+    solid_count: wp.array(dtype=int),
+    solid_list: wp.array(dtype=int),
+    solid_block: wp.array(dtype=int),
+    solid_radius: wp.array(dtype=float),
+    face_first: wp.array(dtype=int),
+    face_count: wp.array(dtype=int),
+    plane_n: wp.array(dtype=wp.vec3),
+    plane_d: wp.array(dtype=float),
+    bx: wp.array(dtype=wp.vec3),
+    up: int,
+    H: float,
+    table: wp.array(dtype=float),
+    prof: wp.array2d(dtype=float),
+):
+    """The moving blocks' solid fraction along each vertical line (launched over lines x the most moving blocks of
+    a line; line g's are the solids solid_list[solid_first[g] + i], i < solid_count[g], each a block solid_block[s]
+    with its bounding radius about the centroid and its world face planes): with dist = max_k (n_k . x - d_k) the
+    sample's signed distance to the block (convex: exact inside and over a face, short of the true distance off
+    an edge), phi_m = 1 inside (dist < 0: the line is in the block there) and F(dist) within H outside, F the
+    kernel's weight beyond a plane at that distance (half_space_fraction): the share a flat face takes of the
+    kernel support, as the static walls' particles do in phi_s. Where blocks meet, the largest (atomic max; prof
+    zeroed first)."""
+    g, i = wp.tid()
+    if i >= solid_count[g]:
+        return
+    s = solid_list[solid_first[g] + i]
+    b = solid_block[s]
+    o = line_pos[g]
+    c = bx[b]
+    off = c - o
+    off[up] = 0.0
+    r = solid_radius[s] + H
+    if wp.length_sq(off) >= r * r:
+        return  # the line passes farther than H from the block's bounding sphere
+    z0 = line_z0[g]
+    dz = line_dz[g]
+    k0 = wp.max(int(wp.ceil((c[up] - r - z0) / dz)), 0)
+    k1 = wp.min(int(wp.floor((c[up] + r - z0) / dz)), line_n[g] - 1)
+    fs = face_first[s]
+    for k in range(k0, k1 + 1):
+        x = wp.vec3(o[0], o[1], o[2])
+        x[up] = z0 + float(k) * dz
+        dist = float(-1.0e30)
+        for f in range(face_count[s]):
+            dist = wp.max(dist, wp.dot(plane_n[fs + f], x) - plane_d[fs + f])
+        if dist < 0.0:
+            wp.atomic_max(prof, g, k, 1.0)  # inside: solid
+        elif dist < H:
+            wp.atomic_max(prof, g, k, half_space_fraction(dist, table, H))
+
+
+@wp.func
+def water_fraction(fluid: wp.array2d(dtype=float), solid: wp.array2d(dtype=float), moving: wp.array2d(dtype=float),
+                   has_moving: int, g: int, k: int) -> float:
+    """phi_f / (1 - phi_s - phi_m): the water's share of the space that is not wall or moving block (phi_f where
+    there is neither; next to a wall or a block face, which takes part of the kernel support, bulk water still
+    reads 1); 0 inside a wall or a block."""
     open_ = 1.0 - solid[g, k]
+    if has_moving != 0:
+        open_ -= moving[g, k]
     if open_ < SOLID_CUTOFF:
         return 0.0
     return fluid[g, k] / open_
 
 
 @wp.func
-def column_top(fluid: wp.array2d(dtype=float), solid: wp.array2d(dtype=float), g: int, n: int, z0: float, dz: float,
-               reach: int) -> float:
+def column_top(fluid: wp.array2d(dtype=float), solid: wp.array2d(dtype=float), moving: wp.array2d(dtype=float),
+               has_moving: int, g: int, n: int, z0: float, dz: float, reach: int) -> float:
     """The top of the continuous water column on line g, sampled at z0 + k dz for k < n (gauge_level)."""
     level = float(wp.nan)
     bed = int(-1)
@@ -96,8 +199,11 @@ def column_top(fluid: wp.array2d(dtype=float), solid: wp.array2d(dtype=float), g
     top = int(-1)  # the sample of the last crossing (-1: none yet)
     prev = float(0.0)
     for k in range(n):
-        f = water_fraction(fluid, solid, g, k)
-        inside = 1.0 - solid[g, k] < SOLID_CUTOFF
+        f = water_fraction(fluid, solid, moving, has_moving, g, k)
+        open_ = 1.0 - solid[g, k]
+        if has_moving != 0:
+            open_ -= moving[g, k]
+        inside = open_ < SOLID_CUTOFF
         if inside:
             bed = -1  # inside a wall: the bed is above
             wet = 0
@@ -128,6 +234,8 @@ def column_top(fluid: wp.array2d(dtype=float), solid: wp.array2d(dtype=float), g
 def gauge_level(
     fluid: wp.array2d(dtype=float),
     solid: wp.array2d(dtype=float),
+    moving: wp.array2d(dtype=float),
+    has_moving: int,
     is_height: wp.array(dtype=int),
     z0: float,
     dz: float,
@@ -145,7 +253,7 @@ def gauge_level(
     g = wp.tid()
     if is_height[g] == 0:
         return
-    out[g] = column_top(fluid, solid, g, fluid.shape[1], z0, dz, reach)
+    out[g] = column_top(fluid, solid, moving, has_moving, g, fluid.shape[1], z0, dz, reach)
 
 
 @wp.kernel

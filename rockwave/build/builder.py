@@ -30,16 +30,11 @@ from rockwave.build.options import (
     ghost_options,
     gravity_norm,
     sph_params,
+    support_radius_m,
     warn_unstable_step,
 )
 from rockwave.build.rocks import block_specs, compound_bodies, inside_blocks_message, tank_overlap_hint
-from rockwave.coupling.penalty import (
-    Coupling,
-    CouplingOptions,
-    block_signed_distance,
-    seed_clearance_m,
-    seeding_clearance_m,
-)
+from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance, seeding_clearance_m
 from rockwave.coupling.walls import BlockWalls
 from rockwave.dda.blocks import (
     BlockModel,
@@ -63,7 +58,8 @@ from rockwave.sph.fluid import (
 from rockwave.sph.ghost import GhostFluidSolver, GhostOptions
 
 
-def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up: int) -> np.ndarray:
+def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up: int,
+                 origin: np.ndarray | None = None) -> np.ndarray:
     """Fluid positions ``x`` (n, 3) with each vertical run of lattice particles packed at its hydrostatic density
     (fluid.packed_start): along a column of the lattice, from the run's lowest particle up, each gap of dx
     becomes dx rho0/rho at the gap's mid-depth, ``rho_ratio(depth)`` = rho/rho0 (depth: below the region's top,
@@ -74,11 +70,13 @@ def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up
     read +11.5%); such runs keep the uniform lattice. Why pack: on the uniform lattice the continuity density
     rho(d) > rho0 is out of step with the spacing, and the momentum form's balance then needs
     p = rho0 g d (1 + 2 g d/c0^2), 1.5% too much at the floor of a 0.3 m tank at c0 = 20 m/s (docs/notes.md
-    "Water at rest on the H200")."""
+    "Water at rest on the H200"). ``origin``: the lowest coordinates (3,) of the whole scene's water, from which the
+    columns are counted (None: of ``x``; a slab's seeding gives the whole scene's, rockwave/build/slab.py)."""
     if len(x) < 2:
         return x
     side = [a for a in range(3) if a != up]
-    col = np.round((x[:, side] - x[:, side].min(axis=0)) / spacing).astype(np.int64)  # whole steps from the lowest
+    ref = x[:, side].min(axis=0) if origin is None else np.asarray(origin, float)[side]
+    col = np.round((x[:, side] - ref) / spacing).astype(np.int64)  # whole steps from the lowest
     order = np.lexsort((x[:, up], col[:, 1], col[:, 0]))
     z, d, c = x[order, up], depth[order], col[order]
     gap = np.diff(z)
@@ -88,15 +86,35 @@ def packed_start(x: np.ndarray, depth: np.ndarray, rho_ratio, spacing: float, up
     last = np.r_[np.nonzero(~linked)[0], len(z) - 1]  # each run's top particle
     free = d[last] < spacing  # runs that end at the free surface
     shrink = np.where(free[run[1:]], shrink, 0.0)
-    total = np.concatenate([[0.0], np.cumsum(shrink)])
     first = np.searchsorted(run, run)  # each particle's run's first (lowest) particle
+    # the shrinks summed up each run from its first particle, run by run (a sum over one column only: the same
+    # float64 values whatever other columns are seeded with it, as a slab's seeding needs)
+    pos = np.arange(len(z)) - first
+    step = np.concatenate([[0.0], shrink])
+    step[pos == 0] = 0.0  # each particle's gap below it within its run (0 at a run's first)
+    runs, longest = int(run[-1]) + 1, int(pos.max()) + 1
+    if runs * longest <= 4 * len(z) + 4096:  # a row per run, summed along the row (sequentially, as the loop)
+        rows = np.zeros((runs, longest))
+        rows[run, pos] = step
+        total = np.cumsum(rows, axis=1)[run, pos]
+    else:  # runs of very unequal lengths: position by position up the runs
+        total = np.zeros(len(z))
+        by_pos = np.argsort(pos, kind="stable")
+        bounds = np.searchsorted(pos[by_pos], np.arange(longest + 1))
+        for k in range(1, longest):
+            i = by_pos[bounds[k]: bounds[k + 1]]
+            total[i] = total[i - 1] + step[i]
     out = np.array(x, dtype=np.float64, copy=True)
-    out[order, up] = z - (total - total[first])
+    out[order, up] = z - total
     return out
 
 
-def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: float, layers: int,
-                      lattices: list | None = None, region: np.ndarray | None = None, clearance: float = 0.0) -> np.ndarray:
+def water_bounds(fluid_x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lowest, highest, first particle) of the seeded water: what the walls of the blocks are placed by."""
+    return fluid_x.min(axis=0), fluid_x.max(axis=0), np.asarray(fluid_x[0], float)
+
+
+def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x, step: float, layers: int, clearance: float = 0.0) -> np.ndarray:
     """Wall particles inside the faces of the fixed blocks, for Adami walls (``fluid.boundary = "adami"``): a
     lattice of ``step`` over each fixed block, kept within ``layers * step`` under its surface (the kernel
     support), so that water on a fixed slope, floor or tank wall made of blocks feels the extrapolated wall
@@ -104,32 +122,34 @@ def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: f
     guard against penetration. Only where the water can reach: within its seeded bounding box grown by its own
     largest extent (farther faces keep the penalty alone). A point inside an earlier fixed block (or within the
     clearance of one) is left out (no double walls where blocks overlap). Moving blocks get theirs from
-    :func:`moving_block_walls`.
+    :func:`moving_block_walls`. ``fluid_x``: the water's positions, or its :func:`water_bounds` (a slab's seeding:
+    the whole scene's).
 
-    The lattice is the water's own continued into the block: ``lattices`` (each region's (origin, steps),
-    sampling.region_lattice) and ``region`` (each fluid particle's region, positions ``fluid_x`` before the packed
-    start) pick, per block, the lattice of the fluid particle nearest to it, when the walls' step is the water's
-    (tank.boundary_spacing_ratio 1); and every lattice point closer to the block than ``clearance`` (where the
-    seeding removed the water, :func:`remove_inside_blocks`) is a wall particle: water and wall then share one
-    lattice split at one distance, with no hole and no overlap between them on a face at any angle (issue 41: a
-    tilted face cut the lattice at any offset and left up to half a layer empty between the water and the wall
-    points; the water fell into it). Without them (or another wall step): the lattice of ``step`` through
-    ``fluid_x[0]``, points inside the blocks only."""
+    The lattice is the water's own continued into the block (when the walls' step is the water's spacing,
+    tank.boundary_spacing_ratio 1): that of the first region whose lattice, grown by the kernel support, meets the
+    block's bounding box (sampling.region_lattice: its fitted steps; through the water's first particle for the
+    first region, as before), and every lattice point closer to the block than ``clearance`` (where the seeding
+    removed the water, :func:`seeding_clearance`) is a wall particle too: water and wall share one lattice split at
+    one distance, with no hole and no overlap between them on a face at any angle (issue 41: a tilted face cuts the
+    lattice at any offset; with the wall points inside the face only, a band up to the clearance wide was left
+    empty and the water fell into it). Otherwise: the lattice of ``step`` through the first particle, points inside
+    the blocks only."""
     dim = scene.dim
     if parts.blocks is None or len(fluid_x) == 0:
         return np.zeros((0, 3))
+    lo_f, hi_f, first = fluid_x if isinstance(fluid_x, tuple) else water_bounds(fluid_x)
     specs = [s for s in parts.blocks.specs if s.kind == "fixed" and not s.tank]  # the [tank] has its own particles
     if not specs:
         return np.zeros((0, 3))
-    own = (lattices is not None and region is not None and len(region) == len(fluid_x)
-           and abs(step - scene.fluid.spacing_m) <= 1e-9 * step)
+    own = abs(step - scene.fluid.spacing_m) <= 1e-9 * step
+    lattices = [sampling.region_lattice(r, scene.fluid.spacing_m, dim) for r in scene.fluid.regions] if own else []
     if not own:
         clearance = 0.0
-    lo_f, hi_f = fluid_x.min(axis=0), fluid_x.max(axis=0)
+    H = support_radius_m(scene)
     grow = float(np.max(hi_f[:dim] - lo_f[:dim]))
     reach_lo, reach_hi = lo_f - grow, hi_f + grow
     depth = layers * step
-    anchor, steps = np.asarray(fluid_x[0], float)[:dim], np.full(dim, float(step))
+    anchor, steps = np.asarray(first, float)[:dim], np.full(dim, float(step))
     planes, out = [], []
     for spec in specs:
         R = quat_to_matrix(spec.orientation)
@@ -144,10 +164,11 @@ def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x: np.ndarray, step: f
         if np.any(hi <= lo):
             planes.append((n, d))
             continue
-        if own:  # the lattice of the water nearest to this block
-            k = int(region[int(np.argmin((fluid_x @ n.T - d).max(axis=1)))])
+        if lattices:  # the lattice of the first region the block meets
+            k = next((i for i, (a, _, b) in enumerate(lattices)
+                      if np.all(a[:dim] - H <= hi) and np.all(b[:dim] + H >= lo)), 0)
             st = np.asarray(lattices[k][1], float)[:dim]
-            anchor = np.asarray(fluid_x[int(np.argmax(region == k))], float)[:dim]  # the region's first particle
+            anchor = np.asarray(first if k == 0 else lattices[k][0], float)[:dim]
             steps = np.where(np.abs(st - step) <= 1e-9 * step, step, st)  # a step that fits exactly: the step itself
         # the water's own lattice continued into the block: water filling a box up to a face sits step/2 from it,
         # and so do the first wall layer's particles on the other side
@@ -245,58 +266,69 @@ def block_walls_on(scene: Scene, options: SolverOptions | None = None) -> bool:
 def seed_particles(scene: Scene, device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Fluid positions, velocities, depths below their region's top (for the hydrostatic start),
     and boundary positions for a scene (positions (n, 3), z = 0 in 2D)."""
-    return _seed_particles(scene, device)[:4]
-
-
-def _seed_particles(scene: Scene, device: str):
-    """:func:`seed_particles` and the index of each fluid particle's region (its lattice: sampling.region_lattice)."""
     fl, dim = scene.fluid, scene.dim
     up = dim - 1
     spacing = fl.spacing_m
-    xs, vs, ds, rs = [], [], [], []
-    for k, r in enumerate(fl.regions):
+    xs, vs, ds = [], [], []
+    for r in fl.regions:
         try:
             p = sampling.fill_region(r, spacing, dim, device)
         except sampling.MeshInputError as e:
             raise SceneError(scene.path, [("fluid.regions", str(e))]) from None
         xs.append(p)
-        rs.append(np.full(len(p), k, np.int64))
         ds.append(p[:, up].max() + 0.5 * spacing - p[:, up] if len(p) else np.zeros(0))
         vel = pad3(r.velocity_m_s) if r.velocity_m_s is not None else [0.0, 0.0, 0.0]
         vs.append(np.tile(np.asarray(vel, float), (len(p), 1)))
     x = np.concatenate(xs) if xs else np.zeros((0, 3))
     v = np.concatenate(vs) if vs else np.zeros((0, 3))
     depth = np.concatenate(ds) if ds else np.zeros(0)
-    region = np.concatenate(rs) if rs else np.zeros(0, np.int64)
-    # Boundary particles: tank walls and obstacles.
-    t = scene.tank
+    keep = fluid_keep(scene, device, x)
+    return x[keep], v[keep], depth[keep], boundary_particles(scene, device)
+
+
+def boundary_particles(scene: Scene, device: str) -> np.ndarray:
+    """Boundary particles of the tank walls and obstacles (n, 3) (z = 0 in 2D)."""
+    t, up = scene.tank, scene.dim - 1
     bstep, layers = boundary_lattice(scene)
     parts = []
     try:
-        if t is None:  # walls from fixed blocks (rockwave/coupling/penalty.py)
-            keep = np.ones(len(x), bool)
-        elif t.box_min_m is not None:
+        if t is not None and t.box_min_m is not None:
             parts.append(sampling.box_shell(t.box_min_m, t.box_max_m, bstep, layers, True, t.open_top, up))
-            keep = np.all((x[:, :dim] > np.asarray(t.box_min_m)) & (x[:, :dim] < np.asarray(t.box_max_m)), axis=1)
-        else:
+        elif t is not None:
             parts.append(sampling.mesh_shell(t.mesh, t.mesh_scale, t.mesh_offset_m, bstep, layers, True, device))
-            tm = sampling.load_trimesh(t.mesh, t.mesh_scale, t.mesh_offset_m)
-            keep = sampling.mesh_signed_distance(tm, x, device) < 0
     except sampling.MeshInputError as e:
         raise SceneError(scene.path, [("tank.mesh", str(e))]) from None
-    x, v, depth, region = x[keep], v[keep], depth[keep], region[keep]
     for i, ob in enumerate(scene.obstacles):
         try:
             if ob.box_min_m is not None:
                 parts.append(sampling.box_shell(ob.box_min_m, ob.box_max_m, bstep, layers, False, False, up))
             else:
                 parts.append(sampling.mesh_shell(ob.mesh, ob.mesh_scale, ob.mesh_offset_m, bstep, layers, False, device))
-            inside = sampling.inside_obstacle(x, ob, dim, device)
         except sampling.MeshInputError as e:
             raise SceneError(scene.path, [(f"obstacles[{i}].mesh", str(e))]) from None
-        x, v, depth, region = x[~inside], v[~inside], depth[~inside], region[~inside]
-    b = np.concatenate(parts) if parts else np.zeros((0, 3))
-    return x, v, depth, b, region
+    return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+
+def fluid_keep(scene: Scene, device: str, x: np.ndarray) -> np.ndarray:
+    """Mask of the lattice points ``x`` (n, 3) that stay water: inside the tank, outside every obstacle (a pointwise
+    test: the whole scene's seeding and a slab's (rockwave/build/slab.py) keep the same points)."""
+    t, dim = scene.tank, scene.dim
+    try:
+        if t is None:  # walls from fixed blocks (rockwave/coupling/penalty.py)
+            keep = np.ones(len(x), bool)
+        elif t.box_min_m is not None:
+            keep = np.all((x[:, :dim] > np.asarray(t.box_min_m)) & (x[:, :dim] < np.asarray(t.box_max_m)), axis=1)
+        else:
+            tm = sampling.load_trimesh(t.mesh, t.mesh_scale, t.mesh_offset_m)
+            keep = sampling.mesh_signed_distance(tm, x, device) < 0
+    except sampling.MeshInputError as e:
+        raise SceneError(scene.path, [("tank.mesh", str(e))]) from None
+    for i, ob in enumerate(scene.obstacles):
+        try:
+            keep &= ~sampling.inside_obstacle(x, ob, dim, device)
+        except sampling.MeshInputError as e:
+            raise SceneError(scene.path, [(f"obstacles[{i}].mesh", str(e))]) from None
+    return keep
 
 
 @dataclass
@@ -373,14 +405,11 @@ def seed_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions |
     """Every particle of the scene's water and walls on the host, as :func:`build_fluid` places them (``parts``: the
     blocks already built; its ``removed_inside_blocks`` is set). rockwave/sim/batch.py seeds each scenario of a batch
     with it, in the scenario's own frame, before moving it to its tile."""
-    xf, vf, depth, xb, region = _seed_particles(scene, device)
-    lattices = [sampling.region_lattice(r, scene.fluid.spacing_m, scene.dim) for r in scene.fluid.regions]
+    xf, vf, depth, xb = seed_particles(scene, device)
     clearance = 0.0
     if parts.blocks is not None:
-        clearance = seeding_clearance(scene, lattices, xf, options)
-        xf, vf, depth, region = remove_inside_blocks(scene, parts, xf, vf, depth, options, region=region,
-                                                     clearance=clearance)
-    x_lattice = xf  # before the packed start moves the columns: the wall lattice continues it
+        clearance = seeding_clearance(scene, options)
+        xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth, options, clearance)
     if scene.fluid.packed_start and len(xf):
 
         rho0 = scene.fluid.rest_density_kg_m3
@@ -389,8 +418,7 @@ def seed_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions |
         xf = packed_start(xf, depth, lambda d: hydrostatic_density(params, g * d) / rho0, scene.fluid.spacing_m, scene.dim - 1)
     bstep, layers = boundary_lattice(scene)
     if scene.fluid.boundary == "adami" and parts.blocks is not None:
-        xw = fixed_block_walls(scene, parts, x_lattice, bstep, layers, lattices=lattices, region=region,
-                               clearance=clearance)
+        xw = fixed_block_walls(scene, parts, xf, bstep, layers, clearance)
         if len(xw):
             xb = np.concatenate([xb, xw]) if len(xb) else xw
     xm = mb = None
@@ -402,8 +430,10 @@ def seed_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions |
 
 
 def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions | None = None,
-                seeds: FluidSeeds | None = None) -> None:
-    """The fluid model, its start state and solver (``seeds``: given, e.g. a batch's tiles; None: :func:`seed_fluid`)."""
+                seeds: FluidSeeds | None = None, list_capacity: int | None = None) -> None:
+    """The fluid model, its start state and solver (``seeds``: given, e.g. a batch's tiles; None: :func:`seed_fluid`;
+    ``list_capacity``: the solver's neighbour slots per particle, None: FluidSolver's; a distributed rank's start,
+    whose steps run on another solver, takes 1)."""
     if seeds is None:
         seeds = seed_fluid(scene, device, parts, options)
     parts.moving_wall_blocks = seeds.moving_blocks
@@ -418,7 +448,7 @@ def build_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions 
         gopts = ghost_options(scene, _given(options, "ghost", GhostOptions))  # the [fluid.ghost] settings from the scene
         solver = GhostFluidSolver(fluid, options=fopts, ghost_options=gopts)
     else:
-        solver = FluidSolver(fluid, options=fopts)
+        solver = FluidSolver(fluid, options=fopts, list_capacity=list_capacity)
     state = fluid.state()
     if fluid.n_fluid:
         if fluid.density is Density.SUMMATION:
@@ -476,29 +506,26 @@ def block_model(scene: Scene, device: str, parts: Parts, options: SolverOptions 
     parts.blocks, parts.block_state = blocks, blocks.state()
 
 
-def seeding_clearance(scene: Scene, lattices: list, xf: np.ndarray, options: SolverOptions | None = None) -> float:
+def seeding_clearance(scene: Scene, options: SolverOptions | None = None) -> float:
     """How close to a block's face water is seeded [m] (rockwave/coupling/penalty.py seeding_clearance_m: the contact
-    distance on the seeding lattice, where the penalty spring is at rest)."""
+    distance on the seeding lattice, where the penalty spring is at rest), from the regions' lattices alone (a slab's
+    seeding, rockwave/build/slab.py, finds the same)."""
     ratio = solver_coupling_options(scene, options).contact_distance_ratio
-    steps = [float(np.min(st[:scene.dim])) for _, st in lattices]
-    return seeding_clearance_m(ratio, scene.fluid.spacing_m, steps, float(np.abs(xf).max()) if len(xf) else 1.0)
+    steps, scale = sampling.lattice_steps_and_scale(scene.fluid.regions, scene.fluid.spacing_m, scene.dim)
+    return seeding_clearance_m(ratio, scene.fluid.spacing_m, steps, scale)
 
 
 def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options: SolverOptions | None = None,
-                         region: np.ndarray | None = None, clearance: float | None = None):
-    """Drop fluid particles inside a block, or closer to its faces than ``clearance`` (None: the contact distance d0,
-    :func:`seeding_clearance`); the count goes to ``parts.removed_inside_blocks`` and run.json. ``region``: each
-    particle's region index, filtered with them (then returned as a fourth array)."""
+                         clearance: float | None = None):
+    """Drop fluid particles inside a block, or closer to its faces than ``clearance`` (None: :func:`seeding_clearance`,
+    the contact distance); the count goes to ``parts.removed_inside_blocks`` and run.json."""
     if clearance is None:
-        ratio = solver_coupling_options(scene, options).contact_distance_ratio
-        clearance = seed_clearance_m(ratio, scene.fluid.spacing_m)
+        clearance = seeding_clearance(scene, options)
     dist, _ = block_signed_distance(parts.blocks, parts.block_state, xf)
     keep = dist >= clearance
     parts.removed_inside_blocks = n = int((~keep).sum())
     if n:
         warnings.warn(inside_blocks_message(n, len(keep)), stacklevel=2)
-    if region is not None:
-        return xf[keep], vf[keep], depth[keep], region[keep]
     return xf[keep], vf[keep], depth[keep]
 
 

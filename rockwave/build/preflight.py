@@ -439,13 +439,12 @@ def check_water_outside_blocks(scene: Scene, meshes: dict | None = None, model=N
     ratio = coupling_options(scene).contact_distance_ratio
     errors = []
     dropped = 0
-    steps = [float(np.min(sampling.region_lattice(r, scene.fluid.spacing_m, scene.dim)[1][:scene.dim]))
-             for r in scene.fluid.regions]
+    steps, scale = sampling.lattice_steps_and_scale(scene.fluid.regions, scene.fluid.spacing_m, scene.dim)
+    clearance = seeding_clearance_m(ratio, scene.fluid.spacing_m, steps, scale)  # as the builder's seeding_clearance
     for _, key, x, _ in _region_points(scene, meshes):
         if len(x) == 0:
             continue
         dist, _ = block_signed_distance(model, state, x)
-        clearance = seeding_clearance_m(ratio, scene.fluid.spacing_m, steps, float(np.abs(x).max()))
         inside = int((dist < clearance).sum())
         dropped += inside
         if warn and 0 < inside < len(x):

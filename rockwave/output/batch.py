@@ -32,7 +32,7 @@ from rockwave.kernels.sim import readers as gauge_k
 from rockwave.output.hazard import SampledRecorder, _clean
 from rockwave.scene.format import DEFAULT_MAX_COLUMNS, SceneError
 from rockwave.sim.batch import hazard_interval
-from rockwave.sim.readers import Gauges
+from rockwave.sim.readers import Gauges, MovingSolids, moving_blocks
 
 
 class BatchHazard(SampledRecorder):
@@ -53,6 +53,7 @@ class BatchHazard(SampledRecorder):
         bmass = self._boundary_masses(masses)
         self.per = []  # per scenario: its entries and their rows
         rows_pos, rows_z0, rows_dz, rows_n, rows_reach, phi_s_rows = [], [], [], [], [], []
+        line_movers = []  # each line's moving blocks (its scenario's)
         line_first, line_count = [], []
         cross_first, cross_count, cross_pt, cross_n = [], [], [], []
         wave_rows, still, thr, col_rows = [], [], [], []
@@ -96,7 +97,12 @@ class BatchHazard(SampledRecorder):
                 gauges = Gauges(s, view, d, gauges=lines)
                 phi_s = gauges.phi_s.numpy()
                 self._fixed_blocks(k, gauges, phi_s)
+                movers = [] if sim.blocks is None else moving_blocks(sim.blocks.specs[t.blocks[0]:t.blocks[1]])
+                if movers:  # the still levels below read the scenario's own moving blocks in its own frame
+                    self._own_movers(k, gauges, movers)
+                movers = [t.blocks[0] + j for j in movers]
                 for i, ln in enumerate(lines):
+                    line_movers.append(movers)
                     rows_pos.append(np.asarray(pad3(ln.position_m), float) + off)
                     rows_z0.append(gauges.z0 + off[up])
                     rows_dz.append(gauges.dz)
@@ -175,6 +181,13 @@ class BatchHazard(SampledRecorder):
             self.phi_s = wp.array(solid, dtype=float, device=d)
             self.phi_f = wp.zeros((n_rows, ns), dtype=float, device=d)
             self.level = wp.zeros(n_rows, dtype=float, device=d)
+            movers = sorted({b for lst in line_movers for b in lst})
+            self.moving = None  # the moving blocks on the lines (rockwave/sim/readers.py MovingSolids)
+            if movers:
+                where = {b: i for i, b in enumerate(movers)}
+                self.moving = MovingSolids(sim.blocks, movers, [[where[b] for b in lst] for lst in line_movers],
+                                           self.line_pos, np.asarray(rows_z0), np.asarray(rows_dz), np.asarray(rows_n), ns,
+                                           up, fluid.params, d)
         nw, ncol = max(len(wave_rows), 1), max(len(col_rows), 1)
         self.n_wave, self.n_col = len(wave_rows), len(col_rows)
         self.wave_rows, self.col_rows = arr(wave_rows or [0], int), arr(col_rows or [0], int)
@@ -262,6 +275,19 @@ class BatchHazard(SampledRecorder):
             out[:] = masses[nf:nf + nb]
         return [out[t.boundary[0]:t.boundary[1]] for t in sim.tiles]
 
+    def _own_movers(self, k: int, gauges, movers: list[int]) -> None:
+        """Scenario k's moving blocks (``movers``: indices among its blocks) on its Gauges' lines, posed in its own
+        frame, for the start-up reading."""
+        sim, d = self.sim, self.device
+        a, b = sim.tiles[k].blocks
+        n = len(gauges.names)
+        gauges.moving = MovingSolids(SimpleNamespace(specs=sim.blocks.specs[a:b]), movers, [list(range(len(movers)))] * n,
+                                     gauges.pos, np.full(n, gauges.z0), np.full(n, gauges.dz), np.full(n, gauges.n_samples),
+                                     gauges.n_samples, gauges.up, sim.fluid.params, d)
+        gauges.block_state = SimpleNamespace(
+            x=wp.array(sim.block_positions(k).astype(np.float32), dtype=wp.vec3, device=d),
+            q=wp.array(sim.block_state.orientations_numpy()[a:b].astype(np.float32), dtype=wp.quat, device=d))
+
     def _fixed_blocks(self, k: int, gauges, phi_s: np.ndarray) -> None:
         """Samples inside a fixed block count as wall (Gauges._add_fixed_blocks: the block nearest to the sample by
         signed distance, here over the scenario's own blocks in its own frame)."""
@@ -312,9 +338,10 @@ class BatchHazard(SampledRecorder):
             wp.launch(batch_k.batch_line_profile, dim=(m.n_fluid, self.max_lines),
                       inputs=[st.x, st.rho, m.particle_mass, st.ids, self.owner, self.line_first, self.line_count,
                               self.line_pos, self.line_z0, self.line_dz, self.up, m.params], outputs=[self.phi_f], device=d)
+            moving = self.moving.launch(sim.block_state) if self.moving is not None else self.phi_s
             wp.launch(batch_k.batch_line_level, dim=self.n_rows,
-                      inputs=[self.phi_f, self.phi_s, self.line_n, self.line_z0, self.line_dz, self.line_reach],
-                      outputs=[self.level], device=d)
+                      inputs=[self.phi_f, self.phi_s, moving, int(self.moving is not None), self.line_n, self.line_z0,
+                              self.line_dz, self.line_reach], outputs=[self.level], device=d)
             if self.n_wave:
                 wp.launch(batch_k.gather, dim=self.n_wave, inputs=[self.level, self.wave_rows], outputs=[self.wave_level], device=d)
                 if own:

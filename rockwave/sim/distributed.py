@@ -38,10 +38,15 @@ Hydrodynamics simulations", IEEE TPDS 25(1)):
   bit-identical loads) and every rank integrates the blocks identically. The walls' impulse on the water
   (CouplingOptions.track_walls, Coupling.wall_impulse) is summed over the ranks the same way.
 * Rank 0 drives: ``advance`` and ``step`` on rank 0 broadcast a command that the other ranks follow (``serve``);
-  after each advance the owned particles are gathered (Gatherv) into rank 0's full FluidState, so readers, gauges,
+  after each advance the owned particles are gathered (one rank's rows at a time, written by id on rank 0's
+  device: kd.unpack_by_id) into rank 0's full FluidState, so readers, gauges,
   recorders, run.json and checkpoints on rank 0 are those of a one-rank run. A checkpoint is the full state: it
   resumes on any number of ranks (rank 0 scatters it again when its clock differs from the last one it
-  distributed). The other ranks drop the whole scene's fluid arrays after the first scatter.
+  distributed).
+* Start: each rank seeds only its slab (rockwave/build/slab.py: the faces from the whole scene's per-column
+  counts, the particles with the whole seeding's positions, densities and ids); rank 0 then holds the whole
+  state for its outputs (no neighbour lists), filled by the first gather. ``slab_build=False`` (and the scenes the
+  slab build does not cover) build the whole scene on every rank, rank 0 scatters it, the others drop it.
 
 Results differ from one rank within float32 round-off, not bit for bit: a rank's neighbour lists hold the same
 pairs in another order, so the float32 sums over neighbours are added in another order; the block loads are summed
@@ -61,6 +66,7 @@ import numpy as np
 import warp as wp
 
 from rockwave.base.device import resolve_device
+from rockwave.build import builder, slab
 from rockwave.build.options import coupling_options
 from rockwave.kernels.sim import distributed as kd
 from rockwave.kernels.sph import fluid as sph
@@ -68,7 +74,7 @@ from rockwave.scene.format import Scene, load_scene
 from rockwave.sim import checkpoint as ckpt
 from rockwave.sim.simulation import Simulation, SimulationOptions
 from rockwave.sim.transport import KINDS, make_transport
-from rockwave.sph.fluid import FluidOptions, FluidSolver, FluidState, fluid_dt_limit
+from rockwave.sph.fluid import Density, FluidOptions, FluidSolver, FluidState, fluid_dt_limit
 
 GATHER_WALL_S = 1.0  # rank 0 refreshes its full state inside an advance at most this often (the run loop's watch)
 BALANCE_BY = ("time", "count")
@@ -128,13 +134,18 @@ def halo_width(model, options: FluidOptions) -> tuple[float, int]:
 class SlabDecomposition:
     """Slab faces along ``axis`` and the halo width; ``owner(c)`` maps coordinates to ranks."""
 
-    def __init__(self, x_fluid: np.ndarray, size: int, dim: int, halo: float, axis: int | None = None):
-        ext = x_fluid[:, :dim].max(axis=0) - x_fluid[:, :dim].min(axis=0) if len(x_fluid) else np.ones(dim)
-        self.axis = int(np.argmax(ext)) if axis is None else int(axis)
+    def __init__(self, x_fluid: np.ndarray | None, size: int, dim: int, halo: float, axis: int | None = None,
+                 inner=None):
+        """``inner``: the inner faces given (a slab build: from the whole scene's plane counts, with ``axis``);
+        else the quantiles of ``x_fluid``."""
+        if inner is None:
+            ext = x_fluid[:, :dim].max(axis=0) - x_fluid[:, :dim].min(axis=0) if len(x_fluid) else np.ones(dim)
+            axis = int(np.argmax(ext)) if axis is None else int(axis)
+            c = np.sort(x_fluid[:, axis]) if len(x_fluid) else np.zeros(1)
+            inner = [float(np.quantile(c, r / size)) for r in range(1, size)]
+        self.axis = int(axis)
         self.size = size
         self.halo = float(halo)
-        c = np.sort(x_fluid[:, self.axis]) if len(x_fluid) else np.zeros(1)
-        inner = [float(np.quantile(c, r / size)) for r in range(1, size)]
         self.faces = float32_faces(inner)
         widths = np.diff(self.faces)[1:-1]
         if len(widths) and widths.min() < self.halo:
@@ -216,8 +227,14 @@ class DistributedFluid:
         self.device = m.device
         self.options = replace(sim.fluid_solver.options, reorder_interval=0, recorded_launches=False, min_cells=4096)
         width, self.depth = halo_width(m, self.options)
-        self.dec = SlabDecomposition(m.initial_positions[: m.n_fluid], self.size, m.dim, width)
-        self.fluid_mass = float(sim.fluid_solver.model.particle_mass.numpy()[0])
+        built = getattr(sim, "_slab", None)  # a slab build: the faces from the whole scene's plane counts
+        if built is not None:
+            self.dec = SlabDecomposition(None, self.size, m.dim, width, axis=built["axis"], inner=built["inner"])
+            self.n_global = int(built["layout"].n_fluid)
+        else:
+            self.dec = SlabDecomposition(m.initial_positions[: m.n_fluid], self.size, m.dim, width)
+            self.n_global = m.n_fluid
+        self.fluid_mass = float(np.float32(m.params.fluid_mass))
         self._xb_all = np.asarray(m.initial_positions[m.n_fluid: m.n_total], float)
         self._mb_all = m.particle_mass.numpy()[m.n_fluid:]
         self.lower = self.rank - 1 if self.rank > 0 else None
@@ -552,16 +569,7 @@ class DistributedFluid:
         rows = None
         counts = np.zeros(self.size, np.int64)
         if self.rank == 0:
-            st, nf = full_state, self.global_model.n_fluid
-            ids = st.ids.numpy()
-            rows = np.zeros((nf, kd.FULL_COLS), np.float32)
-            rows[:, 0:3] = st.x.numpy()[:nf]
-            rows[:, 3:6] = st.v.numpy()[:nf]
-            rows[:, 6] = st.rho.numpy()
-            rows[:, 7:10] = st.accel.numpy()
-            rows[:, 10] = st.pressure.numpy()
-            rows[:, 11], rows[:, 12] = ids // ID_SPLIT, ids % ID_SPLIT
-            rows = rows[np.argsort(ids, kind="stable")]  # in id order: the ranks' slots in a reproducible order
+            rows = state_rows(full_state, self.n_global)
             own = self.dec.owner(rows[:, self.dec.axis].astype(np.float64))
             order = np.argsort(own, kind="stable")
             rows = np.ascontiguousarray(rows[order])
@@ -574,40 +582,41 @@ class DistributedFluid:
         self.set_owned(mine)
 
     def gather(self) -> None:
-        """Rank 0's full FluidState := the union of the owned particles, in id order (an output: one host copy)."""
+        """Rank 0's full FluidState := the union of the owned particles, in id order (an output): rank 0 takes one
+        rank's rows at a time (its own from its device; the others' through a host buffer of that rank's rows),
+        and a kernel writes each row to the slot of its id (kd.unpack_by_id): no host array of the whole scene."""
         MPI = require_mpi()
-        rows = self._pack_full(self._own_idx).numpy() if self.n_own else np.zeros((0, kd.FULL_COLS), np.float32)
+        rows = self._pack_full(self._own_idx) if self.n_own else wp.zeros((0, kd.FULL_COLS), dtype=float,
+                                                                             device=self.device)
         counts = np.array(self.comm.allgather(self.n_own), np.int64)
         migrated = self.comm.reduce(self.migrated, op=MPI.SUM, root=0)
-        out = None
-        if self.rank == 0:
-            out = np.empty((int(counts.sum()), kd.FULL_COLS), np.float32)
-            sizes = counts * kd.FULL_COLS
-            displ = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-            self.comm.Gatherv([np.ascontiguousarray(rows), MPI.FLOAT], [out, (sizes, displ), MPI.FLOAT], root=0)
-        else:
-            self.comm.Gatherv([np.ascontiguousarray(rows), MPI.FLOAT], None, root=0)
         if self.rank != 0:
+            if self.n_own:
+                self.comm.Send([np.ascontiguousarray(rows.numpy()), MPI.FLOAT], dest=0, tag=41)
             return
         self.migrated_total = int(migrated)
-        m, st = self.global_model, self.sim.state
-        nf = m.n_fluid
-        ids = out[:, 11].astype(np.int64) * ID_SPLIT + out[:, 12].astype(np.int64)
-        if len(ids) != nf or not np.array_equal(np.sort(ids), np.arange(nf)):
-            raise RuntimeError(f"rank 0 gathered {len(ids)} particles for {nf}: a particle was lost or duplicated")
-        out = out[np.argsort(ids)]
-        x = st.x.numpy()
-        x[:nf] = out[:, 0:3]
-        v = st.v.numpy()
-        v[:nf] = out[:, 3:6]
-        st.x.assign(x)
-        st.v.assign(v)
-        st.rho.assign(np.ascontiguousarray(out[:, 6]))
-        st.accel.assign(np.ascontiguousarray(out[:, 7:10]))
-        st.pressure.assign(np.ascontiguousarray(out[:, 10]))
-        st.ids.assign(np.arange(nf, dtype=np.int32))
+        st, nf, d = self.sim.state, self.n_global, self.device
+        seen = wp.zeros(max(nf, 1), dtype=int, device=d)
+        for r in range(self.size):
+            if counts[r] == 0:
+                continue
+            if r == 0:
+                buf = rows
+            else:
+                host = np.empty((int(counts[r]), kd.FULL_COLS), np.float32)
+                self.comm.Recv([host, MPI.FLOAT], source=r, tag=41)
+                buf = wp.array(host, dtype=float, device=d)
+            self._launch(kd.unpack_by_id, buf.shape[0], [buf, nf, st.x, st.v, st.rho, st.accel, st.pressure, st.ids,
+                                                         seen])
+        got = seen.numpy()[:nf]
+        if int(counts.sum()) != nf or not (got == 1).all():
+            raise RuntimeError(f"rank 0 gathered {int(counts.sum())} particles for {nf}: a particle was lost or "
+                               "duplicated")
         self.sim.fluid_solver._in_original_order = True
         self.sim.fluid_solver.invalidate_lists()
+        if getattr(self.sim, "_fill_initial", False):  # a slab build: the start's positions (EnergyBudget's reference)
+            self.sim.fluid.initial_positions[:nf] = st.x.numpy()[:nf]
+            self.sim._fill_initial = False
 
     def bytes_per_particle(self) -> float:
         """Device bytes this rank holds for its water (rank arrays, solver lists and grids, exchange buffers) per
@@ -632,6 +641,20 @@ class DistributedFluid:
 
 
 ID_SPLIT = 1 << 20  # kernels/sim/distributed.py: a global id in two float32 parts
+
+
+def state_rows(st: FluidState, nf: int) -> np.ndarray:
+    """Host rows (kd.FULL_COLS layout) of the nf fluid particles of ``st``, in id order (the ranks' slots in a
+    reproducible order)."""
+    ids = st.ids.numpy()[:nf].astype(np.int64)
+    rows = np.zeros((nf, kd.FULL_COLS), np.float32)
+    rows[:, 0:3] = st.x.numpy()[:nf]
+    rows[:, 3:6] = st.v.numpy()[:nf]
+    rows[:, 6] = st.rho.numpy()[:nf]
+    rows[:, 7:10] = st.accel.numpy()[:nf]
+    rows[:, 10] = st.pressure.numpy()[:nf]
+    rows[:, 11], rows[:, 12] = ids // ID_SPLIT, ids % ID_SPLIT
+    return rows[np.argsort(ids, kind="stable")]
 
 
 class RankFluidSolver(FluidSolver):
@@ -698,12 +721,16 @@ class DistributedSimulation(Simulation):
     (it returns when rank 0 calls ``close()``).
 
     ``transport``: "auto", "nccl", "cuda-mpi" or "host" (rockwave/sim/transport.py). ``balance_by``: "time" (measured
-    per-rank compute time) or "count" (owned particles); ``balance_tolerance`` None: the faces never move."""
+    per-rank compute time) or "count" (owned particles); ``balance_tolerance`` None: the faces never move.
+    ``slab_build``: each rank seeds only its slab (rockwave/build/slab.py; default); False: every rank builds the
+    whole scene and rank 0 scatters it (the earlier start, kept for comparisons; also what scenes the slab build
+    does not cover take)."""
 
     def __init__(self, scene, device: str | None = None, options: SimulationOptions | None = None, comm=None,
                  balance_tolerance: float | None = 0.1, balance_interval: int = 20, transport: str = "auto",
-                 balance_by: str = "time"):
+                 balance_by: str = "time", slab_build: bool = True):
         MPI = require_mpi()
+        self._slab_wanted = bool(slab_build)
         if balance_by not in BALANCE_BY:
             raise ValueError(f"balance_by {balance_by!r}: expected one of {', '.join(BALANCE_BY)}")
         self.balance_tolerance, self.balance_interval = balance_tolerance, max(int(balance_interval), 1)
@@ -724,17 +751,95 @@ class DistributedSimulation(Simulation):
                              "coupling.block_walls = false or run on one rank")
         self._cfl = self.fluid_solver.cfl_number
         self.dfluid = DistributedFluid(self, self.comm, transport)
-        self.dfluid.partition(self.state)
-        if self.rank != 0:  # the whole scene's water lives on rank 0 alone (its outputs); the others drop it
-            self._release_global_water()
-        else:  # rank 0 keeps the whole state for its outputs and checkpoints, not the whole scene's neighbour lists
-            self.fluid_solver.set_list_capacity(1)
+        if self._slab is not None:  # each rank seeded its own slab: it starts from it
+            self.dfluid.set_owned(state_rows(self.state, self.fluid.n_fluid))
+            if self.fluid.density is Density.SUMMATION:  # the start's sums with the halo (a slab alone misses some)
+                self.dfluid.solver.compute_density(self.dfluid.state)
+            self.built = {"seeded": int(self.fluid.n_fluid), "held_points": int(self._slab["held"]),
+                          "layout_window_points": int(self._slab["window"]), "whole": int(self.dfluid.n_global),
+                          "slab_build": True}
+            if self.rank == 0:
+                self._output_water()
+            else:
+                self._release_global_water()
+            self.dfluid.gather()  # rank 0's whole state for its outputs (host rows, then its device)
+        else:
+            self.built = {"seeded": int(self.fluid.n_fluid), "held_points": int(self.fluid.n_fluid),
+                          "layout_window_points": 0, "whole": int(self.fluid.n_fluid), "slab_build": False}
+            self.dfluid.partition(self.state)
+            if self.rank != 0:  # the whole scene's water lives on rank 0 alone (its outputs); the others drop it
+                self._release_global_water()
+            else:  # rank 0 keeps the whole state for its outputs and checkpoints, not the whole scene's neighbour lists
+                self.fluid_solver.set_list_capacity(1)
         self._synced_time = self.clock.time
         self._last_gather = time.perf_counter()
         self._gather_every_step = scene.hazard is not None  # the hazard monitor reads the state after every step
         self._collective = False
         self._busy = False  # rank 0 is inside a command the other ranks follow
         self.timings = self.dfluid.timings
+
+    def _build_parts(self, scene: Scene):
+        """Each rank seeds only its slab of the water (rockwave/build/slab.py): the faces from the whole scene's
+        plane counts, the particles with the whole seeding's positions and ids; the whole scene's build where the
+        slab build does not apply (no water, Ghost SPH, moving blocks' walls, mesh regions in 2D, slabs that
+        would be vertical)."""
+        self._slab = None
+        fl = scene.fluid
+        if (not self._slab_wanted or fl is None or not fl.regions or fl.method == "ghost" or builder.block_walls_on(scene, self.options)
+                or (scene.dim == 2 and any(r.get("box_min_m") is None for r in fl.regions))):
+            return super()._build_parts(scene)
+        dev, opts = self.device, self.options
+        parts = builder.Parts()
+        with wp.ScopedDevice(dev):
+            if scene.blocks or scene.rock_mass:
+                builder.build_blocks(scene, dev, parts, opts)
+            layout = slab.fluid_layout(scene, dev, parts, opts)
+            axis = int(np.argmax((layout.hi - layout.lo)[: scene.dim]))
+            if axis == scene.dim - 1:
+                return super()._build_parts(scene)
+            coords, counts = layout.plane_counts(axis)
+            inner = [slab.quantile_from_counts(coords, counts, r / self.size) for r in range(1, self.size)]
+            faces = float32_faces(inner)
+            seeds, ids, held = slab.seed_fluid_slab(scene, dev, parts, layout, axis, faces, self.rank, opts)
+            builder.build_fluid(scene, dev, parts, opts, seeds, list_capacity=1)  # the rank's solver steps it
+            parts.state.ids.assign(ids.astype(np.int32))
+            # the whole scene's box (the cell keys and grids of every rank): all water and walls, grown by H
+            m, xb = parts.fluid, layout.boundary
+            lo = np.minimum(layout.lo, xb.min(axis=0)) if len(xb) else layout.lo
+            hi = np.maximum(layout.hi, xb.max(axis=0)) if len(xb) else layout.hi
+            m.domain_lo, m.domain_hi = lo - m.support_radius, hi + m.support_radius
+            if parts.blocks is not None:
+                builder.build_coupling(scene, parts, opts)
+        self._slab = {"layout": layout, "axis": axis, "inner": inner, "held": held, "window": layout.peak_points}
+        return parts
+
+    def _output_water(self) -> None:
+        """Rank 0 after a slab build: the whole scene's water as a state to read (outputs, checkpoints; the
+        gather fills it), with a solver of one list slot (no neighbour lists of the whole scene)."""
+        loc, lst = self.fluid, self.state
+        n, nb, d = self.dfluid.n_global, loc.n_boundary, self.device
+        xb = np.asarray(loc.initial_positions[loc.n_fluid:], float)
+        init = np.zeros((n + nb, 3))  # the fluid rows from the first gather (energy.py reads the lowest)
+        init[n:] = xb
+        mass = wp.empty(n + nb, dtype=float, device=d)
+        mass.fill_(self.dfluid.fluid_mass)
+        if nb:
+            wp.copy(mass, loc.particle_mass, n, loc.n_fluid, nb)
+        full = replace(loc, n_fluid=n, params=_copy_params(loc.params, n), particle_mass=mass,
+                       initial_positions=init, initial_velocities=np.zeros((1, 3)))
+        st = FluidState(
+            x=wp.zeros(n + nb, dtype=wp.vec3, device=d), v=wp.zeros(n + nb, dtype=wp.vec3, device=d),
+            rho=wp.zeros(n, dtype=float, device=d), pressure=wp.zeros(n, dtype=float, device=d),
+            accel=wp.zeros(n, dtype=wp.vec3, device=d), xsph_dv=wp.zeros(n, dtype=wp.vec3, device=d),
+            drho_dt=wp.zeros(n, dtype=float, device=d), ids=wp.zeros(n, dtype=int, device=d),
+            wall_pressure=wp.clone(lst.wall_pressure), wall_velocity=wp.clone(lst.wall_velocity))
+        if nb:
+            wp.copy(st.x, lst.x, n, loc.n_fluid, nb)
+        solver = FluidSolver(full, self.fluid_solver.options, list_capacity=1)
+        self.fluid, self.state, self.fluid_solver = full, st, solver
+        if self.coupling is not None:
+            self.coupling.fluid = full
+        self._fill_initial = True
 
     def _release_global_water(self) -> None:
         """Ranks > 0: free the whole scene's fluid state and its solver (lists, grids) once partitioned."""
@@ -752,7 +857,7 @@ class DistributedSimulation(Simulation):
         return {"ranks": self.size, "transport": self.transport, "axis": df.dec.axis, "halo_m": df.dec.halo,
                 "faces": [float(f) for f in df.dec.faces[1:-1]], "relayouts": df.relayouts, "steps": df.steps,
                 "rebalances": df.rebalances, "solver_reuses": df.solver_reuses, "balance_by": self.balance_by, "migrated": df.migrated_total,
-                "rank0_owned": df.n_own, "rank0_halo": df.n_halo,
+                "rank0_owned": df.n_own, "rank0_halo": df.n_halo, "rank0_build": self.built,
                 "rank0_bytes_per_particle": round(df.bytes_per_particle(), 1),
                 "rank0_seconds": {k: round(v, 4) for k, v in df.timings.items()}}
 
@@ -824,6 +929,9 @@ class DistributedSimulation(Simulation):
         bs = self.block_state
         before = [bs.ext_force.numpy().astype(np.float64), bs.ext_torque.numpy().astype(np.float64)]
         impulse0 = self.coupling.wall_impulse.copy()
+        if self.coupling.dv.shape[0] < self.dfluid.n_own:  # a slab build sized it for the seeded particles
+            self.coupling.dv = wp.zeros(int(self.dfluid.SOLVER_HEADROOM * self.dfluid.n_own) + 256, dtype=wp.vec3,
+                                        device=self.device)
         self.coupling.fluid, keep = replace(local, n_fluid=self.dfluid.n_own), self.coupling.fluid
         try:
             self.coupling.compute(state, bs, ts)
@@ -971,6 +1079,9 @@ def _main(argv=None) -> int:
     sim = (Simulation(a.scene, device=a.device, options=options) if a.plain else
            DistributedSimulation(a.scene, device=a.device, options=options, balance_tolerance=a.balance,
                                  balance_by=a.balance_by, transport=a.transport))
+    if not a.plain:  # each rank's seeded particles and the most lattice points its build held
+        built = sim.comm.gather(sim.built["seeded"], root=0)
+        held = sim.comm.gather(sim.built["held_points"], root=0)
     if not a.plain and sim.rank != 0:
         sim.serve()
         return 0
@@ -983,7 +1094,8 @@ def _main(argv=None) -> int:
         df = sim.dfluid
         save.update(migrated=df.migrated_total, axis=df.dec.axis, rebalances=df.rebalances, faces=df.dec.faces,
                     relayouts=df.relayouts, rank_steps=df.steps, transport=sim.transport, solver_reuses=df.solver_reuses,
-                    bytes_per_particle=df.bytes_per_particle())
+                    bytes_per_particle=df.bytes_per_particle(),
+                    built=np.array(built), built_held=np.array(held), slab_build=sim.built["slab_build"])
         sim.close()
     np.savez(a.out, **save)
     return 0

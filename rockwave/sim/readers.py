@@ -28,6 +28,7 @@ import warp as wp
 from rockwave.base.maths import pad3, quat_to_matrix
 from rockwave.coupling.penalty import block_signed_distance
 from rockwave.dda.geometry import box, shifted
+from rockwave.kernels.coupling import penalty as penalty_k
 from rockwave.kernels.sim import readers as gauge_k
 from rockwave.kernels.sph import fluid as sph
 
@@ -157,6 +158,84 @@ class ForceGauges:
         return out
 
 
+class MovingSolids:
+    """The moving blocks (every block not 'fixed': rigid, deformable, kinematic, compound parts) as solid on the
+    height gauges' lines, evaluated at each read from the blocks' poses (kernels/sim/readers.py
+    moving_solid_profile): at a sample a signed distance ``dist`` from block b (max over its face planes, rigidly
+    moved), the block's solid fraction is phi_m = 1 inside (dist < 0) and F(dist) within H outside, F(d) the
+    kernel's weight beyond a plane d from the kernel's centre (1/2 on the face, 0 from H out; the scene's kernel
+    integrated once in slabs, kernel_slabs): what a flat face's wall particles would add to phi_s. Where blocks
+    meet, the largest.
+
+    ``line_solids[g]``: the blocks line g may meet (all moving blocks; a batch line: its scenario's). Rows of
+    ``phi`` follow the lines; ``launch(block_state)`` fills it."""
+
+    SLABS = 256  # F tabulated at SLABS + 1 distances across [-H, H]
+
+    def __init__(self, blocks, moving: list[int], line_solids: list[list[int]], line_pos: wp.array, z0: np.ndarray,
+                 dz: np.ndarray, n: np.ndarray, n_samples: int, up: int, params, device):
+        self.blocks, self.device, self.up = blocks, device, up
+        self.H = float(params.H)
+        arr = lambda a, dt=int: wp.array(np.asarray(a), dtype=dt, device=device)  # noqa: E731
+        fb, normals, offsets, first, count, radius = [], [], [], [], [], []
+        for b in moving:
+            g = blocks.specs[b].geometry
+            first.append(len(fb))
+            count.append(g.num_faces)
+            fb += [b] * g.num_faces
+            normals.append(np.asarray(g.face_normals, np.float32))
+            offsets.append(np.asarray(g.face_offsets, np.float32))
+            radius.append(float(np.linalg.norm(np.asarray(g.vertices, float), axis=1).max()))  # about the centroid
+        self.face_block = arr(np.asarray(fb, np.int32))
+        self.body_normal = wp.array(np.concatenate(normals), dtype=wp.vec3, device=device)
+        self.body_offset = arr(np.concatenate(offsets), float)
+        self.plane_n = wp.zeros(len(fb), dtype=wp.vec3, device=device)
+        self.plane_d = wp.zeros(len(fb), dtype=float, device=device)
+        self.solid_block = arr(np.asarray(moving, np.int32))
+        self.solid_radius = arr(np.asarray(radius, np.float32), float)
+        self.face_first, self.face_count = arr(np.asarray(first, np.int32)), arr(np.asarray(count, np.int32))
+        flat, sf, sc, seen = [], [], [], {}
+        for lst in line_solids:  # lines with the same blocks share their entries (a solo run: all lines)
+            key = tuple(lst)
+            if key not in seen:
+                seen[key] = len(flat)
+                flat += list(lst)
+            sf.append(seen[key])
+            sc.append(len(lst))
+        self.max_count = max(sc) if sc else 0
+        self.solid_first, self.solid_count = arr(np.asarray(sf, np.int32)), arr(np.asarray(sc, np.int32))
+        self.solid_list = arr(np.asarray(flat or [0], np.int32))
+        self.line_pos = line_pos
+        self.z0, self.dz = arr(np.asarray(z0, np.float32), float), arr(np.asarray(dz, np.float32), float)
+        self.n = arr(np.asarray(n, np.int32))
+        self.phi = wp.zeros((len(line_solids), n_samples), dtype=float, device=device)
+        slabs = wp.zeros(self.SLABS, dtype=float, device=device)
+        wp.launch(gauge_k.kernel_slabs, dim=self.SLABS, inputs=[params, self.SLABS], outputs=[slabs], device=device)
+        w = slabs.numpy().astype(np.float64)
+        F = np.concatenate([np.cumsum(w[::-1])[::-1], [0.0]]) / w.sum()  # F(d_i), d_i = -H + i 2H/SLABS
+        self.table = arr(F.astype(np.float32), float)
+
+    def launch(self, block_state) -> wp.array:
+        """phi_m along the lines now (device launches only); returns ``phi``."""
+        d = self.device
+        self.phi.zero_()
+        if self.max_count == 0:
+            return self.phi
+        wp.launch(penalty_k.face_planes, dim=self.face_block.shape[0],
+                  inputs=[self.face_block, self.body_normal, self.body_offset, block_state.x, block_state.q],
+                  outputs=[self.plane_n, self.plane_d], device=d)
+        wp.launch(gauge_k.moving_solid_profile, dim=(self.phi.shape[0], self.max_count),
+                  inputs=[self.line_pos, self.z0, self.dz, self.n, self.solid_first, self.solid_count, self.solid_list,
+                          self.solid_block, self.solid_radius, self.face_first, self.face_count, self.plane_n,
+                          self.plane_d, block_state.x, self.up, self.H, self.table], outputs=[self.phi], device=d)
+        return self.phi
+
+
+def moving_blocks(specs) -> list[int]:
+    """Indices of the blocks that move (not 'fixed'; the [tank]'s blocks are fixed)."""
+    return [b for b, spec in enumerate(specs) if spec.kind != "fixed" and not getattr(spec, "tank", False)]
+
+
 class Gauges:
     """The scene's gauges (``[[output.gauges]]``) evaluated on the device.
 
@@ -174,7 +253,10 @@ class Gauges:
     layer) reads dry. NaN when dry. Still water whose top particle layer is at z_top reads z_top + s/2.
     The column must start within 2H of the bed, the lowest point of the line not inside a wall (boundary
     particles, or a fixed DDA block: a floor, beach or wall of blocks); water on the line that rests on
-    nothing (a jet over a dry bed) reads NaN. A moving block across the line ends the column at its underside.
+    nothing (a jet over a dry bed) reads NaN. Moving blocks are solid too (MovingSolids, at every read from their
+    poses): phi = phi_f / (1 - phi_s - phi_m), phi_m = 1 inside a block and the kernel's half-space share F(dist)
+    within H outside it; so over a submerged block the reading is the surface above it, and a line through a block
+    that is out of the water there (the water pressed against it, its top dry) reads NaN (docs/outputs.md).
     A 'pressure' gauge is the Shepard-normalised SPH interpolation of the pressure at its position [Pa], over
     the fluid particles and, with Adami walls, the wall particles (whose pressure continues the fluid's), so a
     sensor placed on a wall surface reads the wall pressure there.
@@ -215,6 +297,12 @@ class Gauges:
                       outputs=[self.phi_s], device=device)
         if any(heights) and blocks is not None and any(spec.kind == "fixed" and not spec.tank for spec in blocks.specs):
             self._add_fixed_blocks(blocks, block_state, heights)
+        self.moving = None  # the moving blocks' fraction along the lines, at each read (MovingSolids)
+        movers = moving_blocks(blocks.specs) if any(heights) and blocks is not None and block_state is not None else []
+        if movers:
+            self.moving = MovingSolids(blocks, movers, [list(range(len(movers))) if h else [] for h in heights], self.pos,
+                                       np.full(rows, self.z0), np.full(rows, self.dz), np.full(rows, self.n_samples),
+                                       self.n_samples, up, fluid.params, device)
         self.out = wp.zeros(rows, dtype=float, device=device)
         self.sums = wp.zeros((rows, 2), dtype=float, device=device)
         pinned = wp.get_device(device).is_cuda
@@ -279,16 +367,21 @@ class Gauges:
             wp.launch(gauge_k.gauge_fluid_profile, dim=(m.n_fluid, len(self.names)),
                       inputs=[state.x, state.rho, m.particle_mass, self.pos, self.is_height, self.up, self.z0, self.dz,
                               m.params], outputs=[self.phi_f], device=self.device)
-            wp.launch(gauge_k.gauge_level, dim=len(self.names), inputs=[self.phi_f, self.phi_s, self.is_height, self.z0, self.dz,
-                                                                   self.reach], outputs=[self.out], device=self.device)
+            moving = self.moving.launch(self.block_state) if self.moving is not None else self.phi_s
+            wp.launch(gauge_k.gauge_level, dim=len(self.names),
+                      inputs=[self.phi_f, self.phi_s, moving, int(self.moving is not None), self.is_height, self.z0,
+                              self.dz, self.reach], outputs=[self.out], device=self.device)
         return self.out
 
     def profiles(self, state) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(z, phi_f, phi_s) along the height gauges' lines now (host copies; rows in gauge order): for
-        inspecting a reading."""
+        """(z, phi_f, phi_s) along the height gauges' lines now (host copies; rows in gauge order; phi_s the solid
+        fraction: the static walls' and the moving blocks' phi_m): for inspecting a reading."""
         self.read(state)
         z = self.z0 + self.dz * np.arange(self.n_samples)
-        return z, self.phi_f.numpy().copy(), self.phi_s.numpy().copy()
+        solid = self.phi_s.numpy().copy()
+        if self.moving is not None:
+            solid += self.moving.phi.numpy()
+        return z, self.phi_f.numpy().copy(), solid
 
 
 class PendingRead:

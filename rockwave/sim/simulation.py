@@ -87,7 +87,7 @@ class Simulation:
         self.device = resolve_device(device if device is not None else scene.simulation.device)
 
         self.estimate = preflight.check_scene(scene, self.device)
-        parts = builder.build(scene, self.device, self.options)
+        parts = self._build_parts(scene)
         self.fluid, self.state, self.fluid_solver = parts.fluid, parts.state, parts.fluid_solver
         self.blocks, self.block_state, self.block_solver = parts.blocks, parts.block_state, parts.block_solver
         self.coupling = parts.coupling
@@ -103,6 +103,11 @@ class Simulation:
         self._graphs: dict = {}  # captured CUDA graphs of chunks and single steps (_replay)
         self._graphs_failed = False
         self._plain_runs: set = set()  # kinds of launches run plainly once (their kernels are loaded)
+
+    def _build_parts(self, scene: Scene):
+        """The scene's models, states and solvers (rockwave/build/builder.py; a rank of a distributed run builds
+        only its slab of the water)."""
+        return builder.build(scene, self.device, self.options)
 
     # ---------------------------------------------------------------- the clock's questions ----
     @property

@@ -456,7 +456,10 @@ class FluidSolver:
     capture or restore (rockwave/sim/checkpoint.py: a resumed run rebuilds where the running one does, so a
     resume stays bit-identical). s = 0: rebuild every step."""
 
-    def __init__(self, model: FluidModel, options: FluidOptions | None = None, neighbour_skin: float | None = None):
+    def __init__(self, model: FluidModel, options: FluidOptions | None = None, neighbour_skin: float | None = None,
+                 list_capacity: int | None = None):
+        """``list_capacity``: neighbour slots per particle (None: from the lattice, _init_lists); a solver that
+        only holds a state for reading (rank 0's whole water in a distributed run) takes 1."""
         o = options or FluidOptions()
         if neighbour_skin is not None:
             o = replace(o, neighbour_skin=float(neighbour_skin))
@@ -501,7 +504,7 @@ class FluidSolver:
             self._xq = wp.array(xb.astype(np.float32), dtype=wp.vec3, device=d)
         self.passes = self._default_passes()  # the step: an ordered list of named passes (FluidSolver.step)
         self._block_dim = 128 if is_cuda else 256  # force pass: 0.84 vs 0.91 ms at 256 (H100, 2.16 M)
-        self._init_lists()
+        self._init_lists(list_capacity)
 
     default_reorder_interval = 10  # FluidOptions.reorder_interval = None
     default_recorded_launches = False  # FluidOptions.recorded_launches = None
