@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from rockwave.kernels.sph.fluid import BOUNDARY_ADAMI, SPHParams, kernel_grad, kernel_w, own_correction, step_of, store_density
+from rockwave.kernels.sph.fluid import SPHParams, kernel_grad, kernel_w, step_of
 
 wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
 
@@ -193,77 +193,3 @@ def apply_shift(dr: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3)):
     """x_i += dr_i (after the step's integration: dr_i was found at the step's start positions)."""
     i = wp.tid()
     x[i] = x[i] + dr[i]
-
-
-@wp.kernel
-def shift_field_gradients(
-    count: wp.array(dtype=int),
-    nbr: wp.array(dtype=int),
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    rho: wp.array(dtype=float),
-    particle_mass: wp.array(dtype=float),
-    wall_pr2: wp.array(dtype=wp.vec2),
-    kgc: wp.array(dtype=wp.mat33),
-    p: SPHParams,
-    grad_rho: wp.array(dtype=wp.vec3),
-    grad_v: wp.array(dtype=wp.mat33),
-):
-    """The gradients that carry a shifted particle's fields to its new place (the consistent shift, module docstring):
-    grad rho_i = L_i sum_j V_j (rho_j - rho_i) grad_i W_ij over the fluid neighbours (V_j = m/rho_j) and the Adami wall
-    particles (rho_b = rho0 wall_pr2[b][1], the density of their extrapolated pressure; V_b = m_b/rho0), and
-    (grad v_i)_ab = sum_j V_j (v_j - v_i)_a (L_i grad_i W_ij)_b over the fluid neighbours; L_i the kernel-gradient
-    correction (the identity without it). A particle whose list overflowed gets zero gradients (it is not shifted)."""
-    i = wp.tid()
-    n = count.shape[0]
-    c = count[i]
-    if c > nbr.shape[0] // n:
-        grad_rho[i] = wp.vec3(0.0)
-        grad_v[i] = wp.mat33(0.0)
-        return
-    xi = x[i]
-    ri = rho[i]
-    vi = v[i]
-    li = own_correction(kgc, i, p)
-    H2 = p.H * p.H
-    gr = wp.vec3(0.0)
-    gv = wp.mat33(0.0)
-    for k in range(c):
-        j = nbr[k * n + i]
-        rij = xi - x[j]
-        r2 = wp.length_sq(rij)
-        if r2 < H2 and r2 > 0.0:
-            g = li * kernel_grad(rij, wp.sqrt(r2), p)
-            if j < p.n_fluid:
-                vol = p.fluid_mass / rho[j]
-                gr += (vol * (rho[j] - ri)) * g
-                gv += vol * wp.outer(v[j] - vi, g)
-            elif p.boundary == BOUNDARY_ADAMI:
-                vol = particle_mass[j] / p.rest_density
-                gr += (vol * (p.rest_density * wall_pr2[j - p.n_fluid][1] - ri)) * g
-    grad_rho[i] = gr
-    grad_v[i] = gv
-
-
-@wp.kernel
-def apply_shift_consistent(
-    dr: wp.array(dtype=wp.vec3),
-    grad_rho: wp.array(dtype=wp.vec3),
-    grad_v: wp.array(dtype=wp.mat33),
-    with_velocity: int,
-    p: SPHParams,
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    rho: wp.array(dtype=float),
-    pressure: wp.array(dtype=float),
-    pr2: wp.array(dtype=float),
-):
-    """x_i += dr_i with the particle's density carried to its new place, rho_i += dr_i . grad rho_i (and with
-    ``with_velocity`` its velocity, v_i += (grad v_i) dr_i), first-order Taylor expansions about the old place
-    (module docstring); the pressure follows the density (store_density)."""
-    i = wp.tid()
-    d = dr[i]
-    x[i] = x[i] + d
-    store_density(i, rho[i] + wp.dot(d, grad_rho[i]), p, rho, pressure, pr2)
-    if with_velocity != 0:
-        v[i] = v[i] + grad_v[i] * d

@@ -944,20 +944,9 @@ class FluidSolver:
         if self.model.particle_shifting > 0.0:
             self.particle_shift(state, dt)
 
-    # What a shifted particle carries to its new place (kernels/sph/shifting.py apply_shift_consistent): "density"
-    # (rho_i += dr_i . grad rho_i), "velocity" (v_i += grad v_i dr_i); empty: nothing (the shift of Sun et al. 2017)
-    shift_carries: tuple = ("density",)
-
     def _shift_pass(self, state: FluidState, dt: wp.array) -> None:
-        m = self.model
-        if m.particle_shifting <= 0.0:
-            return
-        if not self.shift_carries:
-            self._launch(shifting.apply_shift, m.n_fluid, [self._shift_dr, state.x])
-            return
-        self._launch(shifting.apply_shift_consistent, m.n_fluid,
-                     [self._shift_dr, self._shift_grho, self._shift_gv, int("velocity" in self.shift_carries), m.params],
-                     [state.x, state.v, state.rho, state.pressure, self._pr2])
+        if self.model.particle_shifting > 0.0:
+            self._launch(shifting.apply_shift, self.model.n_fluid, [self._shift_dr, state.x])
 
     def reduce_shift_speed(self, v2max: wp.array) -> None:
         """The shift's largest |v|^2 over the whole scene from this solver's (one process: itself; a rank of a
@@ -981,8 +970,6 @@ class FluidSolver:
             self._shift_gc = wp.zeros(nf, dtype=wp.vec3, device=d)
             self._shift_gs = wp.zeros(nf, dtype=wp.vec3, device=d)
             self._shift_dr = wp.zeros(nf, dtype=wp.vec3, device=d)
-            self._shift_grho = wp.zeros(nf, dtype=wp.vec3, device=d)
-            self._shift_gv = wp.zeros(nf, dtype=wp.mat33, device=d)
             if getattr(self, "_shift_v2", None) is None:
                 self._shift_v2 = wp.zeros(1, dtype=float, device=d)
             self._shift_one = wp.ones(1, dtype=float, device=d)  # the step when none is given: any non-zero
@@ -1001,10 +988,6 @@ class FluidSolver:
                      [self._nbr_count, self._nbr, state.x, self._shift_lam, self._shift_gc, self._shift_gs,
                       self._shift_v2, state.ids, self._shift_owner, self._shift_one if dt is None else dt, m.params,
                       m.particle_shifting, m.spacing], [self._shift_dr])
-        if self.shift_carries:
-            self._launch(shifting.shift_field_gradients, m.n_fluid,
-                         [self._nbr_count, self._nbr, state.x, state.v, state.rho, m.particle_mass, self._wall_pr2,
-                          self.kgc, m.params], [self._shift_grho, self._shift_gv])
 
     def _pair_forces_pass(self, state: FluidState, dt: wp.array) -> None:
         """Acceleration and XSPH velocity of every fluid particle from its neighbours (the lists, then the
