@@ -253,7 +253,10 @@ def test_a_rigid_slides_maximum_wave_depends_on_its_front_at_equal_P(tmp_path):
     relation's a_M (measured +63% here, +120% with gauges to 8 h, +131% at 10 per depth, +147 to +201% on the H200
     at 10-40 per depth); the tapered slide's maximum is about half of it (-13% here, +23% with gauges to 8 h, +3%
     at 10 per depth, -27% at 20). The relations carry no shape (docs/validation.md, 'Why the maximum reads +30 to
-    +200%')."""
+    +200%'). Those figures predate the seeding at the contact distance (issue 41, 2026-11-29): the still water of this
+    channel without the slide moved at up to 3.8 m/s (90 degree front's channel) and 2.6 m/s over the first 0.5 s,
+    blasted off the tilted plane by the penalty spring, now at 0.05 m/s; since, here: box +135%, tapered -43% (ratio
+    4.1), both maxima at 3 h."""
     import csv
 
     p = tmp_path / "front.toml"
@@ -264,13 +267,17 @@ def test_a_rigid_slides_maximum_wave_depends_on_its_front_at_equal_P(tmp_path):
     box, tapered = rows[90.0], rows[30.0]
     assert float(box["P"]) == pytest.approx(float(tapered["P"]), rel=1e-12)
     assert float(box["a_M_m"]) > 1.4 * float(tapered["a_M_m"]), (box["a_M_m"], tapered["a_M_m"])  # measured 1.87
-    assert float(box["a_M_err"]) > 0.3 and abs(float(tapered["a_M_err"])) < 0.3, (box["a_M_err"], tapered["a_M_err"])
-    assert float(box["x_M_m"]) < float(tapered["x_M_m"])  # the box's maximum at the first compared gauge (3 h)
+    assert float(box["a_M_err"]) > 0.3 and abs(float(tapered["a_M_err"])) < 0.5, (box["a_M_err"], tapered["a_M_err"])
+    assert float(box["x_M_m"]) == pytest.approx(3 * 0.2)  # the box's maximum at the first compared gauge (3 h) (the
+    # tapered slide's was farther before issue 41's seeding; since, at 3 h too)
 
 
 def _resting_at_the_toe(squeeze: bool):
     """The F 1.25, 60 degree box of the convergence study placed at rest where it comes to rest (its base on the
-    plane, its lower front corner at the toe), one step: the positions before it and the coupling impulses."""
+    plane, its lower front corner at the toe), one step: the positions before it and the coupling impulses. The
+    water is seeded down to half the contact distance (as before issue 41's seeding at the contact distance, which
+    starts the water out of the penalty's reach), so that it touches the faces as it does when the box arrives."""
+    import rockwave.build.builder as builder
     from rockwave.scene.format import parse_scene
     from rockwave.sim.simulation import Simulation
 
@@ -284,7 +291,12 @@ def _resting_at_the_toe(squeeze: bool):
     c = toe - 0.5 * length * t + 0.5 * s * n
     slide["position_m"], slide["velocity_m_s"] = [float(c[0]), float(c[1]), 0.0], [0.0, 0.0, 0.0]
     scene["coupling"] = {**scene.get("coupling", {}), "squeeze_out": squeeze}
-    sim = Simulation(parse_scene(scene), device="cpu")
+    clearance = builder.seeding_clearance
+    builder.seeding_clearance = lambda *a, **k: 0.5 * clearance(*a, **k)
+    try:
+        sim = Simulation(parse_scene(scene), device="cpu")
+    finally:
+        builder.seeding_clearance = clearance
     x = sim.state.x.numpy()[: sim.n_fluid, :2].astype(np.float64)
     sim.step()
     return x - toe, sim.coupling.dv.numpy()[: sim.n_fluid, :2].astype(np.float64)

@@ -395,7 +395,9 @@ def test_water_in_the_joint_lets_a_submerged_block_slide_at_its_buoyant_limit():
     it it slides: measured 23 mm in 0.6 s and 63 mm in 1.2 s (dry it would accelerate at g (1 - rho_w / rho_s)
     (sin 20 - cos 20 tan 17) = 0.33 m/s^2; the water's drag and added mass slow it), and stays on the slab (the uplift
     is not more than the buoyant weight's normal part: it does not lift off). 3 deg above (23 deg) with the joint's
-    water it holds (measured 7.7 mm after 1.2 s, the sloshing start's push, then at rest; docs/notes.md)."""
+    water it holds (measured 7.7 mm after 1.2 s, the sloshing start's push, then at rest; docs/notes.md). Since the
+    water is seeded at the contact distance (issue 41: before, the particles in the penalty spring of the tilted slab
+    and rock pushed at the start), 11.4 mm in 0.6 s, still accelerating (3.4 mm in the last 0.1 s)."""
     import warnings
 
     from benchmarks.submerged_block import submerged_scene
@@ -416,6 +418,6 @@ def test_water_in_the_joint_lets_a_submerged_block_slide_at_its_buoyant_limit():
         ds.append(float((sim.block_positions()[ib] - x0) @ down))
         lift.append(float((sim.block_positions()[ib] - x0) @ normal))
     print("joint water, 17 deg: down the dip [mm]", np.round(1e3 * np.array(ds), 3).tolist())
-    assert ds[-1] > 0.012, ds  # slides (measured 23 mm in 0.6 s)
+    assert ds[-1] > 0.008, ds  # slides (measured 11.4 mm in 0.6 s; 23 mm with the start's push before issue 41)
     assert ds[-1] - ds[-3] > 0.004, ds  # and is still moving over the last 0.2 s
     assert max(abs(v) for v in lift) < 1.0e-3, lift  # on the slab: no lift-off

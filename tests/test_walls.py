@@ -308,3 +308,51 @@ def test_open_tank_walls_rise_on_the_waters_lattice(dim):
     np.testing.assert_allclose(z, rows, atol=1e-12)
     assert np.all(np.isin(np.round(water, 12), np.round(z, 12)))
     assert z.max() + 0.5 * s >= 0.4 and z.max() - 0.5 * s < 0.4
+
+
+def _slope_tank(angle_deg: float, s: float, depth: float = 0.61, length: float = 1.6) -> tuple[dict, float, float]:
+    """2D tank of still water over a fixed prism whose face rises at angle_deg from the floor at x_toe (the NTHMP
+    slope's cross-section, scaled); the region's depth is no whole number of spacings, so its lattice meets the face
+    at every offset along it. Returns (scene, tan angle, x_toe)."""
+    t = float(np.tan(np.radians(angle_deg)))
+    x_toe = 0.3 + depth / t
+    verts = [[x_toe, 0.0], [-0.2, 0.0], [-0.2, t * (x_toe + 0.2)]]
+    d = {
+        "simulation": {"dimension": 2, "duration_s": 1.0},
+        "fluid": {"spacing_m": s, "eos": {"speed_of_sound_m_s": 10.0 * float(np.sqrt(G * depth))},
+                  "regions": [{"box_min_m": [0.0, 0.0], "box_max_m": [length, depth]}]},
+        "tank": {"box_min_m": [0.0, 0.0], "box_max_m": [length, 1.5 * depth]},
+        "blocks": [{"name": "slope", "shape": "prism", "kind": "fixed",
+                    "vertices_m": [[x, y, z] for z in (-0.05, 0.05) for x, y in verts]}],
+    }
+    return d, t, x_toe
+
+
+@pytest.mark.parametrize("angle, depth", [(26.565, 0.62), (45.0, 0.62), (26.565, 0.61)])
+def test_still_water_over_a_tilted_fixed_block_stays_at_rest(angle, depth):
+    """Issue 41: still water over a fixed block's tilted face starts at rest. The axis-aligned lattice cuts a tilted
+    face at an offset that depends on the geometry: seeded down to half the contact distance (d0/2 = s/4), the
+    particles between d0/2 and d0 met the penalty spring at t = 0 and were blasted off the face (0.62 m deep: 12 and 8
+    such particles; fastest 3.3 and 0.8 m/s after 30 ms, the water body's mean vertical velocity +0.08 and +0.10 m/s;
+    the NTHMP slope's water at 4-5 m/s, 120 kPa over hydrostatic); and the fixed block's wall lattice (points inside
+    the face only) left a band empty between the wall and the water, into which the water fell (0.61 m deep: no
+    particle in the spring, fastest 0.50 m/s, mean -0.015 m/s). Now water is seeded no closer than d0 and the wall
+    particles fill the water's own lattice up to it (rockwave/build/builder.py seeding_clearance, fixed_block_walls):
+    fastest 0.020-0.024 m/s after 30 ms and 0.040-0.042 m/s after 0.1 s, as the same tank without the block (0.024
+    and 0.042 m/s). 2D, 0.03 m, c0 = 10 (g h)^1/2 = 24-25 m/s; no particle below the face after 0.1 s."""
+    s = 0.03
+    d, t, x_toe = _slope_tank(angle, s, depth=depth)
+    sim = rockwave.Simulation(rockwave.parse_scene(d), device=DEVICE)
+
+    def above_face(x):  # signed distance above the face y = t (x_toe - x)
+        return (x[:, 1] - t * (x_toe - x[:, 0])) / np.sqrt(1.0 + t * t)
+
+    assert above_face(sim.positions()).min() >= 0.5 * s * (1.0 - 0.02)  # the clearance: d0 on the fitted lattice
+    sim.advance(0.03)
+    v = sim.velocities()
+    speed = np.linalg.norm(v, axis=1)
+    assert speed.max() < 0.05, speed.max()  # (g h)^1/2 = 2.5 m/s
+    assert abs(float(v[:, 1].mean())) < 0.005, v[:, 1].mean()
+    sim.advance(0.07)
+    assert above_face(sim.positions()).min() > 0.0
+    assert np.linalg.norm(sim.velocities(), axis=1).max() < 0.1

@@ -30,10 +30,11 @@ from rockwave.build.options import (
     ghost_options,
     gravity_norm,
     sph_params,
+    support_radius_m,
     warn_unstable_step,
 )
 from rockwave.build.rocks import block_specs, compound_bodies, inside_blocks_message, tank_overlap_hint
-from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance, seed_clearance_m
+from rockwave.coupling.penalty import Coupling, CouplingOptions, block_signed_distance, seeding_clearance_m
 from rockwave.coupling.walls import BlockWalls
 from rockwave.dda.blocks import (
     BlockModel,
@@ -113,26 +114,42 @@ def water_bounds(fluid_x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return fluid_x.min(axis=0), fluid_x.max(axis=0), np.asarray(fluid_x[0], float)
 
 
-def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x, step: float, layers: int) -> np.ndarray:
+def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x, step: float, layers: int, clearance: float = 0.0) -> np.ndarray:
     """Wall particles inside the faces of the fixed blocks, for Adami walls (``fluid.boundary = "adami"``): a
     lattice of ``step`` over each fixed block, kept within ``layers * step`` under its surface (the kernel
     support), so that water on a fixed slope, floor or tank wall made of blocks feels the extrapolated wall
     pressure (Adami et al. 2012) as it does at the [tank] walls; the penalty force of the coupling stays as the
     guard against penetration. Only where the water can reach: within its seeded bounding box grown by its own
-    largest extent (farther faces keep the penalty alone). A point inside an earlier fixed block is left out
-    (no double walls where blocks overlap). Moving blocks get theirs from :func:`moving_block_walls`. ``fluid_x``:
-    the water's positions, or its :func:`water_bounds` (a slab's seeding: the whole scene's)."""
+    largest extent (farther faces keep the penalty alone). A point inside an earlier fixed block (or within the
+    clearance of one) is left out (no double walls where blocks overlap). Moving blocks get theirs from
+    :func:`moving_block_walls`. ``fluid_x``: the water's positions, or its :func:`water_bounds` (a slab's seeding:
+    the whole scene's).
+
+    The lattice is the water's own continued into the block (when the walls' step is the water's spacing,
+    tank.boundary_spacing_ratio 1): that of the first region whose lattice, grown by the kernel support, meets the
+    block's bounding box (sampling.region_lattice: its fitted steps; through the water's first particle for the
+    first region, as before), and every lattice point closer to the block than ``clearance`` (where the seeding
+    removed the water, :func:`seeding_clearance`) is a wall particle too: water and wall share one lattice split at
+    one distance, with no hole and no overlap between them on a face at any angle (issue 41: a tilted face cuts the
+    lattice at any offset; with the wall points inside the face only, a band up to the clearance wide was left
+    empty and the water fell into it). Otherwise: the lattice of ``step`` through the first particle, points inside
+    the blocks only."""
     dim = scene.dim
     if parts.blocks is None or len(fluid_x) == 0:
         return np.zeros((0, 3))
-    lo_f, hi_f, anchor = fluid_x if isinstance(fluid_x, tuple) else water_bounds(fluid_x)
+    lo_f, hi_f, first = fluid_x if isinstance(fluid_x, tuple) else water_bounds(fluid_x)
     specs = [s for s in parts.blocks.specs if s.kind == "fixed" and not s.tank]  # the [tank] has its own particles
     if not specs:
         return np.zeros((0, 3))
+    own = abs(step - scene.fluid.spacing_m) <= 1e-9 * step
+    lattices = [sampling.region_lattice(r, scene.fluid.spacing_m, dim) for r in scene.fluid.regions] if own else []
+    if not own:
+        clearance = 0.0
+    H = support_radius_m(scene)
     grow = float(np.max(hi_f[:dim] - lo_f[:dim]))
     reach_lo, reach_hi = lo_f - grow, hi_f + grow
     depth = layers * step
-    anchor = anchor[:dim]
+    anchor, steps = np.asarray(first, float)[:dim], np.full(dim, float(step))
     planes, out = [], []
     for spec in specs:
         R = quat_to_matrix(spec.orientation)
@@ -142,25 +159,31 @@ def fixed_block_walls(scene: Scene, parts: "Parts", fluid_x, step: float, layers
             side = np.abs(n[:, 2]) < 0.5
             n, d = n[side], d[side]
         verts = np.asarray(spec.geometry.vertices, float) @ R.T + np.asarray(spec.position, float)
-        lo = np.maximum(verts.min(axis=0), reach_lo)[:dim]
-        hi = np.minimum(verts.max(axis=0), reach_hi)[:dim]
+        lo = np.maximum(verts.min(axis=0) - clearance, reach_lo)[:dim]
+        hi = np.minimum(verts.max(axis=0) + clearance, reach_hi)[:dim]
         if np.any(hi <= lo):
             planes.append((n, d))
             continue
+        if lattices:  # the lattice of the first region the block meets
+            k = next((i for i, (a, _, b) in enumerate(lattices)
+                      if np.all(a[:dim] - H <= hi) and np.all(b[:dim] + H >= lo)), 0)
+            st = np.asarray(lattices[k][1], float)[:dim]
+            anchor = np.asarray(first if k == 0 else lattices[k][0], float)[:dim]
+            steps = np.where(np.abs(st - step) <= 1e-9 * step, step, st)  # a step that fits exactly: the step itself
         # the water's own lattice continued into the block: water filling a box up to a face sits step/2 from it,
         # and so do the first wall layer's particles on the other side
-        k0 = np.floor((lo - anchor) / step)
-        k1 = np.ceil((hi - anchor) / step)
-        axes = [anchor[i] + np.arange(k0[i], k1[i] + 1) * step for i in range(dim)]
+        k0 = np.floor((lo - anchor) / steps)
+        k1 = np.ceil((hi - anchor) / steps)
+        axes = [anchor[i] + np.arange(k0[i], k1[i] + 1) * steps[i] for i in range(dim)]
         g = np.meshgrid(*axes, indexing="ij")
         pts = np.zeros((g[0].size, 3))
         for i in range(dim):
             pts[:, i] = g[i].ravel()
         sd = (pts @ n.T - d).max(axis=1)
-        pts = pts[(sd < 0.0) & (sd > -depth)]
-        for n2, d2 in planes:  # inside an earlier fixed block: already wall
+        pts = pts[(sd < clearance) & (sd > -depth)]
+        for n2, d2 in planes:  # inside an earlier fixed block (or within the clearance of it): already wall
             if len(pts) and len(n2):
-                pts = pts[(pts @ n2.T - d2).max(axis=1) >= 0.0]
+                pts = pts[(pts @ n2.T - d2).max(axis=1) >= clearance]
         planes.append((n, d))
         out.append(pts)
     return np.concatenate(out) if out else np.zeros((0, 3))
@@ -383,8 +406,10 @@ def seed_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions |
     blocks already built; its ``removed_inside_blocks`` is set). rockwave/sim/batch.py seeds each scenario of a batch
     with it, in the scenario's own frame, before moving it to its tile."""
     xf, vf, depth, xb = seed_particles(scene, device)
+    clearance = 0.0
     if parts.blocks is not None:
-        xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth, options)
+        clearance = seeding_clearance(scene, options)
+        xf, vf, depth = remove_inside_blocks(scene, parts, xf, vf, depth, options, clearance)
     if scene.fluid.packed_start and len(xf):
 
         rho0 = scene.fluid.rest_density_kg_m3
@@ -393,7 +418,7 @@ def seed_fluid(scene: Scene, device: str, parts: Parts, options: SolverOptions |
         xf = packed_start(xf, depth, lambda d: hydrostatic_density(params, g * d) / rho0, scene.fluid.spacing_m, scene.dim - 1)
     bstep, layers = boundary_lattice(scene)
     if scene.fluid.boundary == "adami" and parts.blocks is not None:
-        xw = fixed_block_walls(scene, parts, xf, bstep, layers)
+        xw = fixed_block_walls(scene, parts, xf, bstep, layers, clearance)
         if len(xw):
             xb = np.concatenate([xb, xw]) if len(xb) else xw
     xm = mb = None
@@ -481,13 +506,23 @@ def block_model(scene: Scene, device: str, parts: Parts, options: SolverOptions 
     parts.blocks, parts.block_state = blocks, blocks.state()
 
 
-def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options: SolverOptions | None = None):
-    """Drop fluid particles inside a block, or closer to its faces than half the contact distance
-    (rockwave/coupling/penalty.py); the count goes to ``parts.removed_inside_blocks`` and run.json."""
-
+def seeding_clearance(scene: Scene, options: SolverOptions | None = None) -> float:
+    """How close to a block's face water is seeded [m] (rockwave/coupling/penalty.py seeding_clearance_m: the contact
+    distance on the seeding lattice, where the penalty spring is at rest), from the regions' lattices alone (a slab's
+    seeding, rockwave/build/slab.py, finds the same)."""
     ratio = solver_coupling_options(scene, options).contact_distance_ratio
+    steps, scale = sampling.lattice_steps_and_scale(scene.fluid.regions, scene.fluid.spacing_m, scene.dim)
+    return seeding_clearance_m(ratio, scene.fluid.spacing_m, steps, scale)
+
+
+def remove_inside_blocks(scene: Scene, parts: Parts, xf, vf, depth, options: SolverOptions | None = None,
+                         clearance: float | None = None):
+    """Drop fluid particles inside a block, or closer to its faces than ``clearance`` (None: :func:`seeding_clearance`,
+    the contact distance); the count goes to ``parts.removed_inside_blocks`` and run.json."""
+    if clearance is None:
+        clearance = seeding_clearance(scene, options)
     dist, _ = block_signed_distance(parts.blocks, parts.block_state, xf)
-    keep = dist >= seed_clearance_m(ratio, scene.fluid.spacing_m)
+    keep = dist >= clearance
     parts.removed_inside_blocks = n = int((~keep).sum())
     if n:
         warnings.warn(inside_blocks_message(n, len(keep)), stacklevel=2)

@@ -29,7 +29,7 @@ from rockwave.build import sampling
 from rockwave.build.options import boundary_lattice, coupling_options, fluid_parameters, gravity_norm, support_radius_m
 from rockwave.build.rockmass import estimate_block_count
 from rockwave.build.rocks import block_specs, decomposition_of, inside_blocks_message, tank_overlap_hint
-from rockwave.coupling.penalty import block_signed_distance, seed_clearance_m
+from rockwave.coupling.penalty import block_signed_distance, seeding_clearance_m
 from rockwave.dda import blocks as B
 from rockwave.dda import geometry
 from rockwave.dda.blocks import BlockModel, BlockOverlapError, BlockSolver, check_initial_overlap_on_device
@@ -423,7 +423,7 @@ def check_regions_hold_water(scene: Scene, meshes: dict, device: str = "cpu") ->
 
 
 def check_water_outside_blocks(scene: Scene, meshes: dict | None = None, model=None, warn: bool = False) -> int:
-    """A fluid region all of whose particles lie inside blocks, or closer to their faces than half
+    """A fluid region all of whose particles lie inside blocks, or closer to their faces than
     the contact distance (removed at seeding, rockwave/build/builder.py remove_inside_blocks), is an
     error naming the region. Builds the block model on the CPU when none is given. ``warn``: a region that
     loses some of its particles so is a one-line warning with the count (as the run prints it). Returns the
@@ -439,18 +439,19 @@ def check_water_outside_blocks(scene: Scene, meshes: dict | None = None, model=N
     ratio = coupling_options(scene).contact_distance_ratio
     errors = []
     dropped = 0
+    steps, scale = sampling.lattice_steps_and_scale(scene.fluid.regions, scene.fluid.spacing_m, scene.dim)
+    clearance = seeding_clearance_m(ratio, scene.fluid.spacing_m, steps, scale)  # as the builder's seeding_clearance
     for _, key, x, _ in _region_points(scene, meshes):
         if len(x) == 0:
             continue
         dist, _ = block_signed_distance(model, state, x)
-        clearance = seed_clearance_m(ratio, scene.fluid.spacing_m)
         inside = int((dist < clearance).sum())
         dropped += inside
         if warn and 0 < inside < len(x):
             warnings.warn(inside_blocks_message(inside, len(x), key), stacklevel=2)
         if not (dist >= clearance).any():
             errors.append((key, f"seeds no water particle: every lattice point at spacing {scene.fluid.spacing_m:g} m "
-                                f"(fluid.spacing_m) is inside a block or within half the contact distance of one; "
+                                f"(fluid.spacing_m) is inside a block or within the contact distance of one; "
                                 f"move the blocks or the region, or make the spacing finer"))
     if errors:
         raise SceneError(scene.path, errors)

@@ -218,7 +218,7 @@ def _convex_obstacle(ob, name: str):
 def inside_blocks_message(n: int, total: int, where: str = "fluid.regions") -> str:
     """The one-line warning of water seeded inside blocks (the run and ``validate``)."""
     return (f"{where}: {n:,} of {total:,} water particles ({100.0 * n / max(total, 1):.3g}%) lie inside blocks or within "
-            f"half the contact distance of their faces and are not seeded (removed_inside_blocks in run.json); shrink "
+            f"the contact distance of their faces and are not seeded (removed_inside_blocks in run.json); shrink "
             f"the region or move the blocks if that water was meant to be there")
 
 

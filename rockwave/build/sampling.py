@@ -67,6 +67,35 @@ def _pad(v, dim):
     return np.asarray(list(v) + [0.0] * (3 - dim), dtype=np.float64)
 
 
+def region_lattice(region, spacing: float, dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lattice :func:`fill_region` seeds a region on: (first point (3,), steps (3,), last point (3,)), its points
+    first + k steps, each axis's step fitted to the region's extent (a mesh region: its bounds) as :func:`lattice_axis`
+    fits it, the same floats (2D: z = 0, step = spacing)."""
+    if region.get("box_min_m") is not None:
+        lo, hi = np.asarray(region["box_min_m"], float), np.asarray(region["box_max_m"], float)
+    else:
+        m = load_trimesh(region["mesh"], region["mesh_scale"], region["mesh_offset_m"])
+        lo, hi = np.asarray(m.bounds[0], float), np.asarray(m.bounds[1], float)
+    first, last, steps = np.zeros(3), np.zeros(3), np.full(3, float(spacing))
+    for i in range(len(lo)):
+        a = lattice_axis(lo[i], hi[i], spacing)
+        steps[i] = (hi[i] - lo[i]) / len(a)
+        first[i], last[i] = a[0], a[-1]
+    if dim == 2:
+        first[2] = last[2] = 0.0
+        steps[2] = float(spacing)
+    return first, steps, last
+
+
+def lattice_steps_and_scale(regions, spacing: float, dim: int) -> tuple[list, float]:
+    """Each region's smallest fitted lattice step and the largest coordinate of their lattices (the seeding's
+    clearance from block faces, rockwave/coupling/penalty.py seeding_clearance_m, is computed from them)."""
+    lat = [region_lattice(r, spacing, dim) for r in regions]
+    steps = [float(np.min(st[:dim])) for _, st, _ in lat]
+    scale = max([float(np.abs(np.concatenate([a, b])).max()) for a, _, b in lat] + [1.0])
+    return steps, scale
+
+
 def fill_region(region, spacing: float, dim: int, device) -> np.ndarray:
     """Fluid particles on a lattice of the given spacing inside a box or a closed mesh."""
     if region.get("box_min_m") is not None:

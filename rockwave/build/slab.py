@@ -36,11 +36,11 @@ from rockwave.build.builder import (
     fixed_block_walls,
     fluid_keep,
     packed_start,
-    solver_coupling_options,
+    seeding_clearance,
 )
 from rockwave.build.options import boundary_lattice, gravity_norm, sph_params
 from rockwave.build.rocks import inside_blocks_message
-from rockwave.coupling.penalty import block_signed_distance, seed_clearance_m
+from rockwave.coupling.penalty import block_signed_distance
 from rockwave.scene.format import Scene, SceneError
 from rockwave.sph.fluid import hydrostatic_density
 
@@ -176,9 +176,8 @@ def _window(scene: Scene, device, parts: Parts, options, regions, axis: int, lo:
     keep = fluid_keep(scene, device, x)
     removed = 0
     if parts.blocks is not None and len(x):
-        ratio = solver_coupling_options(scene, options).contact_distance_ratio
         dist, _ = block_signed_distance(parts.blocks, parts.block_state, x[keep])
-        inb = dist < seed_clearance_m(ratio, s)
+        inb = dist < seeding_clearance(scene, options)  # as the whole scene's seeding (builder.remove_inside_blocks)
         removed_mask = np.zeros(len(x), bool)
         removed_mask[np.flatnonzero(keep)[inb]] = True
         keep &= ~removed_mask
@@ -278,7 +277,7 @@ def fluid_layout(scene: Scene, device: str, parts: Parts, options=None) -> Fluid
     bstep, layers = boundary_lattice(scene)
     bounds = (lo.copy(), hi.copy(), np.asarray(first, float))
     if scene.fluid.boundary == "adami" and parts.blocks is not None:
-        xw = fixed_block_walls(scene, parts, bounds, bstep, layers)
+        xw = fixed_block_walls(scene, parts, bounds, bstep, layers, seeding_clearance(scene, options))
         if len(xw):
             xb = np.concatenate([xb, xw]) if len(xb) else xw
     if parts.blocks is not None and block_walls_on(scene, options):

@@ -424,9 +424,23 @@ class Coupling:
 
 
 def seed_clearance_m(contact_distance_ratio: float, spacing_m: float) -> float:
-    """Water is seeded no closer to a block's faces than half the contact distance, d0/2 [m] (the builder drops the
-    particles closer; preflight refuses a region that would keep none)."""
-    return 0.5 * contact_distance_ratio * spacing_m
+    """Water is seeded no closer to a block's faces than the contact distance d0 [m], where the penalty spring is at
+    rest (the builder drops the particles closer, rockwave/build/builder.py seeding_clearance, and puts wall
+    particles there on a fixed block; preflight refuses a region that would keep none). Half of it (d0/2) let
+    particles start in the spring on a tilted face (issue 41)."""
+    return contact_distance_ratio * spacing_m
+
+
+def seeding_clearance_m(contact_distance_ratio: float, spacing_m: float, lattice_steps, coordinate_scale_m: float) -> float:
+    """The clearance the seeding keeps from block faces [m]: the contact distance d0 = contact_distance_ratio x the
+    seeding lattice's step (its smallest fitted step ``lattice_steps``, at most ``spacing_m``), so that the penalty
+    spring is at rest at t = 0. A particle seeded between d0/2 and d0 of a tilted face (an axis-aligned lattice cuts a
+    tilted face at any offset) met the spring force K_s (d0 - dist), up to m c0^2 / (4 s), a pressure of order
+    rho0 c0^2 / 8 over the face (issue 41: still water on the NTHMP slope was blasted off it at 4-5 m/s). On a face the
+    lattice fills up to (a region's edge on it) a particle lies half a step away, at this clearance, and stays: less
+    the float32 round-off of the distances (block_signed_distance) at coordinates of ``coordinate_scale_m``."""
+    step = min([float(spacing_m)] + [float(h) for h in lattice_steps])
+    return seed_clearance_m(contact_distance_ratio, step) - 8.0 * float(np.finfo(np.float32).eps) * max(coordinate_scale_m, 1.0)
 
 
 def block_signed_distance(blocks, block_state, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
