@@ -277,11 +277,11 @@ def with_groups(cfg: dict, groups: list) -> dict:
 
 
 def merge(records: list) -> dict:
-    """The rows of several records of one device and duration (parts run side by side) as one record."""
+    """The rows of several records of one device (parts run side by side, each its own duration: every row keeps
+    its duration_s) as one record."""
     devs = {r.get("device") for r in records}
-    durs = {float(r["config"]["duration"]) for r in records}
-    if len(devs) > 1 or len(durs) > 1:
-        raise ValueError(f"records of different devices {sorted(map(str, devs))} or durations {sorted(durs)}")
+    if len(devs) > 1:
+        raise ValueError(f"records of different devices {sorted(map(str, devs))}")
     rows = [row for r in records for row in r["rows"]]
     seen = set()
     for row in rows:
@@ -290,7 +290,8 @@ def merge(records: list) -> dict:
             raise ValueError(f"row {key} in two records")
         seen.add(key)
     return dict(rows=rows, skipped=[s for r in records for s in r.get("skipped", [])], config=records[0]["config"],
-                device=records[0].get("device"), commit=",".join(dict.fromkeys(str(r.get("commit")) for r in records)))
+                configs=[r["config"] for r in records], device=records[0].get("device"),
+                commit=",".join(dict.fromkeys(str(r.get("commit")) for r in records)))
 
 
 def groups_of(cfg: dict) -> dict:
@@ -378,7 +379,7 @@ def table(rows: list) -> str:
         kp = r["k_n_m"] if isinstance(r["k_n_m"], float) and "stiffness" in r else None
         by.setdefault((r["width_m"], r["aspect"], r["slope_deg"], r["margin_deg"], str(k), kp), {})[r["start"]] = r
     head = ("| width m | h/w | slope deg | margin deg | stiffness | k N/m per point | settled: beyond elastic mm | slip mm | creep um/s | "
-            "plain: beyond elastic mm | slip mm | creep um/s | steps | settle steps |\n|" + "---|" * 14 + "\n")
+            "plain: beyond elastic mm | slip mm | creep um/s | steps | s | settle steps |\n|" + "---|" * 15 + "\n")
     lines = []
     for key, d in by.items():
         s, p = d.get("settled", {}), d.get("plain", {})
@@ -390,6 +391,7 @@ def table(rows: list) -> str:
         lines.append(f"| {key[0]:g} | {key[1]:g} | {key[2]:g} | {key[3]:g} | {key[4]} | {kp} | {f(s, 'beyond_elastic_mm', '.4f')} | "
                      f"{f(s, 'slip_mm', '.4f')} | {f(s, 'creep_um_s', '.4f')} | {f(p, 'beyond_elastic_mm', '.4f')} | "
                      f"{f(p, 'slip_mm', '.4f')} | {f(p, 'creep_um_s', '.4f')} | {s.get('steps', p.get('steps', '-'))} | "
+                     f"{format(s.get('duration_s', p.get('duration_s', float('nan'))), '.3g')} | "
                      f"{s.get('settle_steps', '-')}{' (floor)' if s.get('floor') else ''} |")
     return head + "\n".join(lines) + "\n"
 
@@ -422,8 +424,10 @@ def main() -> None:
         rec = merge([json.load(open(f)) for f in a.merge])
         stem = a.out or str(RESULTS / "static_friction-merged")
         cfg = rec["config"]
-        md = (f"# Static friction (issue 36): {rec['device']}, commit {rec['commit']}, {cfg['duration']:g} s per case, "
-              f"creep over the last {cfg['creep_window']:g} s\n\nMerged from {', '.join(a.merge)}.\n\n")
+        spans = sorted({(float(c["duration"]), float(c["creep_window"])) for c in rec["configs"]})
+        span = ", ".join(f"{d:g} s (creep over the last {w:g} s)" for d, w in spans)
+        md = (f"# Static friction (issue 36): {rec['device']}, commit {rec['commit']}, {span} per case (column 's')"
+              f"\n\nMerged from {', '.join(a.merge)}.\n\n")
         md += summary(rec["rows"]) + table(rec["rows"])
         with open(stem + ".md", "w") as f:
             f.write(md)

@@ -454,5 +454,7 @@ def test_static_friction_groups_starts_and_merge():
     assert len(rec["rows"]) == 2 and rec["device"] == "cuda:0"
     with pytest.raises(ValueError):
         S.merge([part([row]), part([row])])
+    rec = S.merge([part([row]), part([dict(row, start="settled")], dur=20.0)])  # each part its own span
+    assert [c["duration"] for c in rec["configs"]] == [60.0, 20.0]
     with pytest.raises(ValueError):
-        S.merge([part([row]), part([dict(row, start="settled")], dur=20.0)])
+        S.merge([part([row]), dict(part([dict(row, start="settled")]), device="cpu")])
