@@ -41,11 +41,14 @@ static)
     python -m benchmarks.static_friction --merge "$P"-part-*.json --out "$P" | head -8
     ;;
 cost)
-    OLD=$(cd "${2:?give the old tree (an export of 3997016)}" && pwd)
+    OLD=$(cd "${2:?give the old tree (an export of 3997016: git archive 3997016 | tar -x -C DIR)}" && pwd)
     ABS=$(cd "$OUT" && pwd)
+    # the old tree's rockwave.kernels is its kernels/ only through an install; run from its folder, the installed
+    # (new) package would supply the new kernels, so link its own in
+    [ -e "$OLD/rockwave/kernels" ] || ln -s ../kernels "$OLD/rockwave/kernels"
     set_args=(--set 'block_counts=[200000]' --set block_steps=50 --set block_settle=300 --set 'fluid_spacings=[]'
               --set 'coupled=[]' --set 'mem_fluid=[]' --set 'mem_blocks=[]')
-    (cd "$OLD" && python -m benchmarks run --device cuda:0 --suite full --only scaling "${set_args[@]}" \
+    (cd "$OLD" && PYTHONPATH="$OLD" python -m benchmarks run --device cuda:0 --suite full --only scaling "${set_args[@]}" \
         --out "$ABS/$D-cuda0-full-scaling-200k-side-by-side-old-3997016.json" > "$ABS/cost-old.log" 2>&1) &
     python -m benchmarks run --device cuda:0 --suite full --only scaling "${set_args[@]}" \
         --out "$ABS/$D-cuda0-full-scaling-200k-side-by-side-new.json" > "$ABS/cost-new.log" 2>&1 &
