@@ -42,6 +42,13 @@ estimated wall time at ``--step-cost-us`` without running anything.
     python -m benchmarks.static_friction --device cuda:0 --subset h200 --duration 60   # ~6-8 min on an H200
     python -m benchmarks.static_friction --subset full --duration 60 --estimate        # rows, steps, minutes
     python -m benchmarks.static_friction --device cpu --subset quick --duration 6      # a small CPU subset
+    python -m benchmarks.static_friction --device cuda:0 --groups 5:default 20:1e10Pa/m --starts settled \
+        --out benchmarks/results/part-a                                                # chosen groups and starts
+    python -m benchmarks.static_friction --merge part-a.json part-b.json --out benchmarks/results/whole
+
+``--groups W:SPEC ...`` runs exactly those (width, stiffness) groups over the full matrix's aspects, slopes and
+margins; ``--starts`` one start or both; ``--merge`` joins the records of such parts (one device, one duration)
+into one table, so that the parts can run side by side as separate processes on one GPU.
 
 The table goes to benchmarks/results/static_friction-<device>[-<subset>].md (and .json).
 """
@@ -248,6 +255,45 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
     return rows
 
 
+def parse_groups(specs: list) -> list:
+    """``["0.2:default", "1:1e10Pa/m"]`` -> [[0.2, "default"], [1.0, "1e10Pa/m"]] (the CLI's --groups)."""
+    out = []
+    for s in specs:
+        w, sep, k = str(s).partition(":")
+        if not sep or not k:
+            raise ValueError(f"--groups takes WIDTH:STIFFNESS (e.g. 0.2:default, 1:1e10Pa/m, 1:1e8/pt), not {s!r}")
+        k_point(float(w), k)  # the stiffness spec must read
+        out.append([float(w), k])
+    return out
+
+
+def with_groups(cfg: dict, groups: list) -> dict:
+    """cfg restricted to exactly ``groups`` ([[width, spec], ...]): their widths and stiffnesses, per-point specs at any
+    width (the full matrix leaves them out above 1 m)."""
+    cfg = dict(cfg, groups=groups, widths=sorted({float(g[0]) for g in groups}))
+    cfg["stiffness"] = list(dict.fromkeys(str(g[1]) for g in groups))
+    cfg.pop("point_max_width", None)
+    return cfg
+
+
+def merge(records: list) -> dict:
+    """The rows of several records of one device (parts run side by side, each its own duration: every row keeps
+    its duration_s) as one record."""
+    devs = {r.get("device") for r in records}
+    if len(devs) > 1:
+        raise ValueError(f"records of different devices {sorted(map(str, devs))}")
+    rows = [row for r in records for row in r["rows"]]
+    seen = set()
+    for row in rows:
+        key = (row["width_m"], row["aspect"], row["slope_deg"], row["margin_deg"], row["stiffness"], row["start"])
+        if key in seen:
+            raise ValueError(f"row {key} in two records")
+        seen.add(key)
+    return dict(rows=rows, skipped=[s for r in records for s in r.get("skipped", [])], config=records[0]["config"],
+                configs=[r["config"] for r in records], device=records[0].get("device"),
+                commit=",".join(dict.fromkeys(str(r.get("commit")) for r in records)))
+
+
 def groups_of(cfg: dict) -> dict:
     """{(width, stiffness spec): [cases]} of the matrix."""
     groups: dict = {}
@@ -286,7 +332,7 @@ def run(device: str, cfg: dict) -> dict:
                 skipped.append(dict(width_m=w, stiffness=str(k or "default"), steps=steps, dt_s=dt))
                 log(f"  w {w:g} {k}: {steps} steps of {dt:.3g} s > {cfg['max_group_steps']}: skipped")
                 continue
-        for start in ("plain", "settled"):
+        for start in cfg.get("starts", ("plain", "settled")):
             r = run_group(device, group, start, float(cfg["duration"]), float(cfg["creep_window"]))
             for row in r:
                 log(f"  w {row['width_m']:g} h/w {row['aspect']:g} slope {row['slope_deg']:g} +{row['margin_deg']:g} "
@@ -333,7 +379,7 @@ def table(rows: list) -> str:
         kp = r["k_n_m"] if isinstance(r["k_n_m"], float) and "stiffness" in r else None
         by.setdefault((r["width_m"], r["aspect"], r["slope_deg"], r["margin_deg"], str(k), kp), {})[r["start"]] = r
     head = ("| width m | h/w | slope deg | margin deg | stiffness | k N/m per point | settled: beyond elastic mm | slip mm | creep um/s | "
-            "plain: beyond elastic mm | slip mm | creep um/s | steps | settle steps |\n|" + "---|" * 14 + "\n")
+            "plain: beyond elastic mm | slip mm | creep um/s | steps | s | settle steps |\n|" + "---|" * 15 + "\n")
     lines = []
     for key, d in by.items():
         s, p = d.get("settled", {}), d.get("plain", {})
@@ -345,6 +391,7 @@ def table(rows: list) -> str:
         lines.append(f"| {key[0]:g} | {key[1]:g} | {key[2]:g} | {key[3]:g} | {key[4]} | {kp} | {f(s, 'beyond_elastic_mm', '.4f')} | "
                      f"{f(s, 'slip_mm', '.4f')} | {f(s, 'creep_um_s', '.4f')} | {f(p, 'beyond_elastic_mm', '.4f')} | "
                      f"{f(p, 'slip_mm', '.4f')} | {f(p, 'creep_um_s', '.4f')} | {s.get('steps', p.get('steps', '-'))} | "
+                     f"{format(s.get('duration_s', p.get('duration_s', float('nan'))), '.3g')} | "
                      f"{s.get('settle_steps', '-')}{' (floor)' if s.get('floor') else ''} |")
     return head + "\n".join(lines) + "\n"
 
@@ -363,8 +410,30 @@ def main() -> None:
     ap.add_argument("--step-cost-us", type=float, default=500.0, help="GPU cost of a step for --estimate (H200: ~500 us)")
     ap.add_argument("--widths", type=float, nargs="+", default=None)
     ap.add_argument("--slopes", type=float, nargs="+", default=None)
+    ap.add_argument("--groups", nargs="+", default=None, metavar="W:SPEC",
+                    help="exactly these (width, stiffness) groups, e.g. 0.2:default 1:1e10Pa/m (the full matrix's aspects, slopes, margins)")
+    ap.add_argument("--starts", nargs="+", choices=["plain", "settled"], default=None, help="one start or both (default both)")
+    ap.add_argument("--merge", nargs="+", default=None, metavar="JSON", help="join these records into one (--out) and exit")
     ap.add_argument("--out", default=None, help="result stem (default benchmarks/results/static_friction-<device>)")
     a = ap.parse_args()
+    if a.merge:
+        import json
+
+        from benchmarks.common import RESULTS, write_json
+
+        rec = merge([json.load(open(f)) for f in a.merge])
+        stem = a.out or str(RESULTS / "static_friction-merged")
+        cfg = rec["config"]
+        spans = sorted({(float(c["duration"]), float(c["creep_window"])) for c in rec["configs"]})
+        span = ", ".join(f"{d:g} s (creep over the last {w:g} s)" for d, w in spans)
+        md = (f"# Static friction (issue 36): {rec['device']}, commit {rec['commit']}, {span} per case (column 's')"
+              f"\n\nMerged from {', '.join(a.merge)}.\n\n")
+        md += summary(rec["rows"]) + table(rec["rows"])
+        with open(stem + ".md", "w") as f:
+            f.write(md)
+        write_json(rec, stem + ".json")
+        print(md)
+        return
     import warp as wp
 
     from benchmarks.common import RESULTS, commit, device_name, write_json
@@ -384,6 +453,11 @@ def main() -> None:
     if a.stiffness:
         cfg["stiffness"] = a.stiffness
         cfg.pop("groups", None)
+    if a.groups:
+        cfg = with_groups(dict(CONFIG["full"], duration=cfg["duration"], creep_window=cfg["creep_window"]),
+                          parse_groups(a.groups))
+    if a.starts:
+        cfg["starts"] = a.starts
     if a.max_group_steps is not None:
         cfg["max_group_steps"] = a.max_group_steps
     if a.estimate:

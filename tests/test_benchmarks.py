@@ -425,3 +425,36 @@ def test_at_rest_part_reads_hydrostatics_on_a_small_tank():
     md = markdown({"suite": "quick", "device": "cpu", "device_name": "a CPU", "date": "d", "commit": "c", "at_rest": part})
     assert f"| standard | default | 2 | 20 | {r['particles']} | 0.20 | {r['corner']:.4f} |" in md, md
     assert r["reads"] == 20 and r["gauge_error_max_last"] < 0.05, r
+
+
+def test_static_friction_groups_starts_and_merge():
+    # --groups runs exactly the named (width, stiffness) groups over the full matrix's aspects, slopes and margins
+    # (a per-point spec at any width); --merge joins parts of one device and duration, each row once
+    import pytest
+
+    from benchmarks import static_friction as S
+
+    groups = S.parse_groups(["0.2:default", "5:1e8/pt", "20:1e10Pa/m"])
+    assert groups == [[0.2, "default"], [5.0, "1e8/pt"], [20.0, "1e10Pa/m"]]
+    cfg = S.with_groups(dict(S.CONFIG["full"]), groups)
+    by = S.groups_of(cfg)
+    assert sorted(by) == [(0.2, "default"), (5.0, "1e8/pt"), (20.0, "1e10Pa/m")]
+    full = S.groups_of(S.CONFIG["full"])
+    assert by[(0.2, "default")] == full[(0.2, "default")]  # the same cases as in the full matrix
+    assert len(by[(5.0, "1e8/pt")]) == len(full[(5.0, "default")])
+    for bad in (["0.2"], ["1:"], ["1:soft"]):
+        with pytest.raises(ValueError):
+            S.parse_groups(bad)
+    row = dict(width_m=1.0, aspect=1.0, slope_deg=35.0, margin_deg=0.1, stiffness="default", start="plain")
+
+    def part(rows, dur=60.0):
+        return dict(rows=rows, config=dict(duration=dur, creep_window=10.0), device="cuda:0", commit="c")
+
+    rec = S.merge([part([row]), part([dict(row, start="settled")])])
+    assert len(rec["rows"]) == 2 and rec["device"] == "cuda:0"
+    with pytest.raises(ValueError):
+        S.merge([part([row]), part([row])])
+    rec = S.merge([part([row]), part([dict(row, start="settled")], dur=20.0)])  # each part its own span
+    assert [c["duration"] for c in rec["configs"]] == [60.0, 20.0]
+    with pytest.raises(ValueError):
+        S.merge([part([row]), dict(part([dict(row, start="settled")]), device="cpu")])
