@@ -76,8 +76,8 @@ def test_dry_slide_keeps_its_launch_speed_and_follows_the_friction_law():
 def test_slide_into_the_inlet_from_the_cli(tmp_path):
     """`python -m rockwave run` at 0.06 m for 0.2 s with USD frames: every water particle stays in the inlet, the
     front blocks, in the water by then, are slowed below the dry slope's law (measured 0.57 m against 0.90 m), every
-    gauge and run-up line of
-    hazard.json reads a finite value, and `preview --strip 3` draws the first, middle and last frames in one PNG."""
+    gauge and run-up line of hazard.json reads a finite value (at this spacing the x = 0.5 m gauge a 0.22 m crest and
+    a trough to the floor behind the slide; the run-up lines, 0.2 s before the wave reaches them, the still shore), and `preview --strip 3` draws the first, middle and last frames in one PNG."""
     d = _scene()
     d["output"]["frame_rate_hz"] = 10.0
     scene = tmp_path / "lituya_coarse.toml"

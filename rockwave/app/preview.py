@@ -353,7 +353,7 @@ def render_strip(run_dir: str | os.PathLike, n: int = 6, color: str = "speed", a
     width_in = 8.0
     panel_in = float(np.clip(width_in * span[1] / span[0], 1.2, 6.0))
     fig, axes = plt.subplots(len(views), 1, figsize=(width_in + 1.5, panel_in * len(views) + 0.6), dpi=dpi,
-                             squeeze=False, sharex=True)
+                             squeeze=False, sharex=True, layout="constrained")
     names = "xyz"
     sc = None
     for ax, (d, p2, c, blocks) in zip(axes[:, 0], views):
@@ -367,10 +367,17 @@ def render_strip(run_dir: str | os.PathLike, n: int = 6, color: str = "speed", a
                                    facecolor=(0.6, 0.6, 0.6, 0.5), edgecolor="0.25", linewidth=1.0))
         sc = ax.scatter(p2[:, 0], p2[:, 1], c=c, s=max((h * pts_per_m) ** 2, 0.3), cmap="viridis", linewidths=0,
                         marker="o", **limits)
+        # a block wholly in front of or behind the water along the view, to two spacings (a side wall of the tank's
+        # fixed blocks), is outlined only: filled, its projection would veil the whole view
+        if depth_axis is not None and len(d["x"]):
+            wlo, whi = d["x"][:, depth_axis].min(), d["x"][:, depth_axis].max()
         for bv in blocks:
             hull = _hull(bv[:, [a, b]])
             if len(hull) >= 3:
-                ax.add_patch(Polygon(hull, closed=True, facecolor=(0.55, 0.5, 0.45, 0.35), edgecolor="k", linewidth=1.0))
+                aside = depth_axis is not None and len(d["x"]) and (bv[:, depth_axis].min() >= whi - 2 * h
+                                                                          or bv[:, depth_axis].max() <= wlo + 2 * h)
+                ax.add_patch(Polygon(hull, closed=True, fill=not aside, facecolor=(0.55, 0.5, 0.45, 0.35),
+                                     edgecolor="0.5" if aside else "k", linewidth=0.6 if aside else 1.0))
         ax.set_ylabel(f"{names[b]} (m)")
         ax.set_title(f"t = {d['time_s']:.3g} s (frame {d['frame']})", fontsize=8, loc="left")
     axes[-1, 0].set_xlabel(f"{names[a]} (m)")
