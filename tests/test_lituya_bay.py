@@ -25,7 +25,7 @@ from helpers import ROOT, to_toml
 G = 9.81
 THETA = math.radians(40.0)
 SCENE = ROOT / "scenes" / "lituya_bay.toml"
-COARSE_M = 0.06  # ~3,000 water particles (the shipped 0.006 m: ~3 M)
+COARSE_M = 0.06  # ~3,000 water particles (the shipped 0.009 m: 0.88 M)
 V0 = 110.0 / math.sqrt(675.0)  # the prototype's impact speed at 1:675 (Froude): 4.234 m/s
 
 
