@@ -303,8 +303,9 @@ def strip_frames(first: int, last: int, n: int) -> list[int]:
 def render_strip(run_dir: str | os.PathLike, n: int = 6, color: str = "speed", axis: str = "y",
                  slice_at: float | None = None, out: str | os.PathLike | None = None, dpi: int = 80) -> Path:
     """n frames of a run, evenly spread from the first to the last, stacked in one PNG (a frame strip: default
-    ``RUN_DIR/strip_<n>_<colour>_<axis>.png``), on one colour scale (speed: 0 to the largest over the frames;
-    pressure: the 2nd-98th percentiles over them) and one view (the union of the frames' extents); blocks outlined
+    ``RUN_DIR/strip_<n>_<colour>_<axis>.png``), on one colour scale (speed: 0 to the 99.5th percentile over the frames;
+    pressure: the 2nd-98th percentiles over them) and one view (the first frame's water, the blocks and the scene's
+    boxes, 5% more on each side); blocks outlined
     as their projected hulls, the tank and box obstacles drawn. Returns its path."""
     import matplotlib
 
@@ -343,12 +344,17 @@ def render_strip(run_dir: str | os.PathLike, n: int = 6, color: str = "speed", a
     if color == "pressure":
         limits = color_limits(allc, color)
     else:
-        limits = {"vmin": 0.0, "vmax": float(allc.max()) if len(allc) and allc.max() > 0 else 1.0}
+        top = float(np.percentile(allc, 99.5)) if len(allc) else 0.0  # (spray thrown out of the tank aside)
+        limits = {"vmin": 0.0, "vmax": top if top > 0 else 1.0}
     boxes = frames[0].get("boxes", [])
-    pts = [p for _, p, _, _ in views] + [bv[:, [a, b]] for _, _, _, bl in views for bv in bl]
+    # one view for all frames: the first frame's water, every frame's blocks and the scene's boxes, 5% more on each
+    # side (water thrown out of the tank later, which would shrink the scene to a corner, falls outside it)
+    pts = [views[0][1]] + [bv[:, [a, b]] for _, _, _, bl in views for bv in bl]
     pts += [np.array([[lo_b[a], lo_b[b]], [hi_b[a], hi_b[b]]]) for lo_b, hi_b, _ in boxes]
     pts = np.concatenate([p for p in pts if len(p)]) if any(len(p) for p in pts) else np.zeros((1, 2))
-    lo, hi = pts.min(axis=0) - 2 * h, pts.max(axis=0) + 2 * h
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    pad = 0.05 * (hi - lo) + 2 * h
+    lo, hi = lo - pad, hi + pad
     span = np.maximum(hi - lo, 1e-6)
     width_in = 8.0
     panel_in = float(np.clip(width_in * span[1] / span[0], 1.2, 6.0))
@@ -370,7 +376,7 @@ def render_strip(run_dir: str | os.PathLike, n: int = 6, color: str = "speed", a
         # a block wholly in front of or behind the water along the view, to two spacings (a side wall of the tank's
         # fixed blocks), is outlined only: filled, its projection would veil the whole view
         if depth_axis is not None and len(d["x"]):
-            wlo, whi = d["x"][:, depth_axis].min(), d["x"][:, depth_axis].max()
+            wlo, whi = np.percentile(d["x"][:, depth_axis], [0.5, 99.5])  # (a few particles out of the tank aside)
         for bv in blocks:
             hull = _hull(bv[:, [a, b]])
             if len(hull) >= 3:
