@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import rockwave
-from rockwave.app.preview import render_strip, strip_frames
+from rockwave.app.preview import PreviewError, render_strip, strip_frames
 from rockwave.output.hazard import HazardMonitor
 from rockwave.scene.format import parse_scene
 
@@ -110,5 +110,9 @@ def test_slide_into_the_inlet_from_the_cli(tmp_path):
     assert f["time_s"] == pytest.approx(0.2)
     first, last = f["frames"]
     assert strip_frames(first, last, 3) == [first, (first + last) // 2, last]
-    png = render_strip(out, 3, out=tmp_path / "strip.png")
-    assert png.stat().st_size > 10_000
+    r = subprocess.run([sys.executable, "-m", "rockwave", "preview", str(out), "--strip", "3", "--out", str(tmp_path / "strip.png")],
+                       capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert (tmp_path / "strip.png").stat().st_size > 10_000
+    with pytest.raises(PreviewError):
+        render_strip(out, 0)
