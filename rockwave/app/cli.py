@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from rockwave.app.plot import plot_gauges
-from rockwave.app.preview import PreviewError, render_preview
+from rockwave.app.preview import PreviewError, render_preview, render_strip
 from rockwave.app.sweep import cli as sweep_cli
 from rockwave.app.validate import check_built, validate
 from rockwave.base.device import DeviceError, WarpCacheError, init_warp, quiet_warp, resolve_device
@@ -123,7 +123,8 @@ def _parser() -> argparse.ArgumentParser:
     pv.add_argument("--color", choices=("speed", "pressure"), default="speed", help="particle colour (default: speed)")
     pv.add_argument("--axis", choices=("x", "y", "z"), default="y", help="3D: look along this axis (default: y, the x-z side view)")
     pv.add_argument("--slice", type=float, default=None, dest="slice_at", help="3D: only particles within one spacing of the plane at this position along --axis")
-    pv.add_argument("--out", default=None, help="PNG path (default: RUN_DIR/preview_NNNNN.png)")
+    pv.add_argument("--out", default=None, help="PNG path (default: RUN_DIR/preview_NNNNN.png, or RUN_DIR/strip_N_<colour>_<axis>.png)")
+    pv.add_argument("--strip", type=int, default=None, metavar="N", help="a frame strip: N frames from the first to the last, stacked in one PNG on one colour scale (instead of --frame)")
     pl = sub.add_parser("plot", help="draw a run's gauge time series (with the scene's reference data) as a PNG")
     pl.add_argument("run_dir", help="a run's output folder (holds gauges.csv / blocks.csv and run.json)")
     pl.add_argument("--scene", default=None, help="scene file for gauge kinds and references (default: the one in run.json)")
@@ -178,7 +179,10 @@ def _main(args) -> int:
         try:
             if args.command == "preview":
 
-                path = render_preview(args.run_dir, args.frame, args.color, args.axis, args.slice_at, args.out)
+                if args.strip is not None:
+                    path = render_strip(args.run_dir, args.strip, args.color, args.axis, args.slice_at, args.out)
+                else:
+                    path = render_preview(args.run_dir, args.frame, args.color, args.axis, args.slice_at, args.out)
             else:
 
                 path = plot_gauges(args.run_dir, args.out, scene=args.scene)

@@ -291,3 +291,113 @@ def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: 
     plt.close(fig)
     os.replace(tmp, out)
     return out
+
+
+def strip_frames(first: int, last: int, n: int) -> list[int]:
+    """n frame numbers spread evenly from first to last (both in; fewer when the run has fewer frames)."""
+    if n < 1:
+        raise PreviewError(f"--strip {n}: expected at least 1 frame")
+    return sorted({int(round(f)) for f in np.linspace(first, last, n)})
+
+
+def render_strip(run_dir: str | os.PathLike, n: int = 6, color: str = "speed", axis: str = "y",
+                 slice_at: float | None = None, out: str | os.PathLike | None = None, dpi: int = 80) -> Path:
+    """n frames of a run, evenly spread from the first to the last, stacked in one PNG (a frame strip: default
+    ``RUN_DIR/strip_<n>_<colour>_<axis>.png``), on one colour scale (speed: 0 to the 99.5th percentile over the frames;
+    pressure: the 2nd-98th percentiles over them) and one view (the first frame's water, the blocks and the scene's
+    boxes, 5% more on each side); blocks outlined
+    as their projected hulls, the tank and box obstacles drawn. Returns its path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Polygon, Rectangle
+
+    if color not in ("speed", "pressure"):
+        raise PreviewError(f"--color {color!r}: expected speed or pressure")
+    if axis not in _AXES:
+        raise PreviewError(f"--axis {axis!r}: expected x, y or z")
+    first, last = load_frame(run_dir, None)["frames"]
+    frames = [load_frame(run_dir, f) for f in strip_frames(first, last, n)]
+    dim, h = frames[0]["dim"], frames[0]["spacing"]
+    depth_axis = None if dim == 2 else _AXES[axis]
+    a, b = (0, 1) if dim == 2 else [k for k in range(3) if k != depth_axis]
+    views = []
+    for d in frames:
+        x = d["x"]
+        if color == "pressure":
+            if d["pressure"] is None:
+                raise PreviewError("the stage has no particle pressure (primvars:pressure); use --color speed")
+            c = d["pressure"]
+        else:
+            c = np.linalg.norm(d["v"], axis=1)
+        blocks = d["blocks"]
+        if depth_axis is not None:
+            if slice_at is not None:
+                keep = np.abs(x[:, depth_axis] - slice_at) <= h
+                x, c = x[keep], c[keep]
+                blocks = [bv for bv in blocks if bv[:, depth_axis].min() <= slice_at <= bv[:, depth_axis].max()]
+            order = np.argsort(-x[:, depth_axis])  # far first, near last (as render_preview)
+            x, c = x[order], c[order]
+        views.append((d, x[:, [a, b]], c, blocks))
+    allc = np.concatenate([c for _, _, c, _ in views]) if views else np.zeros(0)
+    if color == "pressure":
+        limits = color_limits(allc, color)
+    else:
+        top = float(np.percentile(allc, 99.5)) if len(allc) else 0.0  # (spray thrown out of the tank aside)
+        limits = {"vmin": 0.0, "vmax": top if top > 0 else 1.0}
+    boxes = frames[0].get("boxes", [])
+    # one view for all frames: the first frame's water, every frame's blocks and the scene's boxes, 5% more on each
+    # side (water thrown out of the tank later, which would shrink the scene to a corner, falls outside it)
+    pts = [views[0][1]] + [bv[:, [a, b]] for _, _, _, bl in views for bv in bl]
+    pts += [np.array([[lo_b[a], lo_b[b]], [hi_b[a], hi_b[b]]]) for lo_b, hi_b, _ in boxes]
+    pts = np.concatenate([p for p in pts if len(p)]) if any(len(p) for p in pts) else np.zeros((1, 2))
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    pad = 0.05 * (hi - lo) + 2 * h
+    lo, hi = lo - pad, hi + pad
+    span = np.maximum(hi - lo, 1e-6)
+    width_in = 8.0
+    panel_in = float(np.clip(width_in * span[1] / span[0], 1.2, 6.0))
+    fig, axes = plt.subplots(len(views), 1, figsize=(width_in + 1.5, panel_in * len(views) + 0.6), dpi=dpi,
+                             squeeze=False, sharex=True, layout="constrained")
+    names = "xyz"
+    sc = None
+    for ax, (d, p2, c, blocks) in zip(axes[:, 0], views):
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_aspect("equal")
+        fig.canvas.draw()
+        pts_per_m = (ax.get_window_extent().width * 72.0 / fig.dpi) / span[0]
+        for lo_b, hi_b, what in boxes:
+            ax.add_patch(Rectangle((lo_b[a], lo_b[b]), hi_b[a] - lo_b[a], hi_b[b] - lo_b[b], fill=what == "obstacle",
+                                   facecolor=(0.6, 0.6, 0.6, 0.5), edgecolor="0.25", linewidth=1.0))
+        sc = ax.scatter(p2[:, 0], p2[:, 1], c=c, s=max((h * pts_per_m) ** 2, 0.3), cmap="viridis", linewidths=0,
+                        marker="o", **limits)
+        # a block wholly in front of or behind the water along the view, to two spacings (a side wall of the tank's
+        # fixed blocks), is outlined only: filled, its projection would veil the whole view
+        if depth_axis is not None and len(d["x"]):
+            wlo, whi = np.percentile(d["x"][:, depth_axis], [0.5, 99.5])  # (a few particles out of the tank aside)
+        for bv in blocks:
+            hull = _hull(bv[:, [a, b]])
+            if len(hull) >= 3:
+                aside = depth_axis is not None and len(d["x"]) and (bv[:, depth_axis].min() >= whi - 2 * h
+                                                                          or bv[:, depth_axis].max() <= wlo + 2 * h)
+                ax.add_patch(Polygon(hull, closed=True, fill=not aside, facecolor=(0.55, 0.5, 0.45, 0.35),
+                                     edgecolor="0.5" if aside else "k", linewidth=0.6 if aside else 1.0))
+        ax.set_ylabel(f"{names[b]} (m)")
+        ax.set_title(f"t = {d['time_s']:.3g} s (frame {d['frame']})", fontsize=8, loc="left")
+    axes[-1, 0].set_xlabel(f"{names[a]} (m)")
+    view = "x-y plane" if dim == 2 else (f"view along {axis}" if slice_at is None else f"slice {axis} = {slice_at:g} m")
+    fig.suptitle(f"{Path(frames[0]['stage']).parent.name}: {len(views)} frames, {view}", fontsize=9)
+    if sc is not None:
+        fig.colorbar(sc, ax=axes[:, 0].tolist(), label="speed (m/s)" if color == "speed" else "pressure (Pa, 2nd-98th percentiles)",
+                     shrink=0.6)
+    if out is None:
+        out = Path(run_dir) / (f"strip_{len(views)}_{color}" + ("" if dim == 2 else f"_{axis}") + ".png")
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.stem}.tmp.png")
+    fig.savefig(tmp, dpi=dpi)
+    plt.close(fig)
+    os.replace(tmp, out)
+    return out
