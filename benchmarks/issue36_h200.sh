@@ -20,6 +20,7 @@
 # 3997016, the tree the issue was filed on), started together (300 settling steps, 50 timed; ~95 s each when run
 # side by side on 2026-11-29): ns per contact point, new over old (the issue's bound 1.2x).
 set -u
+PY=${PYTHON:-python3}   # the GPU image has python3 only
 OUT=${OUT:-benchmarks/results}
 D=$(date -u +%F)
 mkdir -p "$OUT"
@@ -28,18 +29,18 @@ case "${1:-}" in
 static)
     P="$OUT/$D-cuda0-static-friction-stiff"
     # one short run builds the kernels, so the processes load them from the cache
-    python -m benchmarks.static_friction --device cuda:0 --groups 20:1e10Pa/m --duration 0.01 --starts plain \
+    "$PY" -m benchmarks.static_friction --device cuda:0 --groups 20:1e10Pa/m --duration 0.01 --starts plain \
         --out "$OUT/warm" > "$OUT/warm.log" 2>&1
     rm -f "$OUT/warm.md" "$OUT/warm.json"
     for s in plain settled; do
         for g in ${GROUPS:-1:1e10Pa/m,25 0.2:1e10Pa/m,11 0.2:default,6.8}; do
             grp=${g%,*}; dur=${g#*,}; tag=$(echo "$grp" | tr ':/.' '___')
-            python -m benchmarks.static_friction --device cuda:0 --groups "$grp" --duration "$dur" --starts "$s" \
+            "$PY" -m benchmarks.static_friction --device cuda:0 --groups "$grp" --duration "$dur" --starts "$s" \
                 --out "$P-part-$tag-$s" > "$P-part-$tag-$s.log" 2>&1 &
         done
     done
     wait
-    python -m benchmarks.static_friction --merge "$P"-part-*.json --out "$P" | head -8
+    "$PY" -m benchmarks.static_friction --merge "$P"-part-*.json --out "$P" | head -8
     ;;
 cost)
     OLD=$(cd "${2:?give the old tree (an export of 3997016: git archive 3997016 | tar -x -C DIR)}" && pwd)
@@ -49,9 +50,9 @@ cost)
     [ -e "$OLD/rockwave/kernels" ] || ln -s ../kernels "$OLD/rockwave/kernels"
     set_args=(--set 'block_counts=[200000]' --set block_steps=50 --set block_settle=300 --set 'fluid_spacings=[]'
               --set 'coupled=[]' --set 'mem_fluid=[]' --set 'mem_blocks=[]')
-    (cd "$OLD" && PYTHONPATH="$OLD" python -m benchmarks run --device cuda:0 --suite full --only scaling "${set_args[@]}" \
+    (cd "$OLD" && PYTHONPATH="$OLD" "$PY" -m benchmarks run --device cuda:0 --suite full --only scaling "${set_args[@]}" \
         --out "$ABS/$D-cuda0-full-scaling-200k-side-by-side-old-3997016.json" > "$ABS/cost-old.log" 2>&1) &
-    python -m benchmarks run --device cuda:0 --suite full --only scaling "${set_args[@]}" \
+    "$PY" -m benchmarks run --device cuda:0 --suite full --only scaling "${set_args[@]}" \
         --out "$ABS/$D-cuda0-full-scaling-200k-side-by-side-new.json" > "$ABS/cost-new.log" 2>&1 &
     wait
     tail -3 "$ABS/cost-old.log" "$ABS/cost-new.log"
