@@ -88,3 +88,14 @@ def fmt_value(v, fmt: str = ".3f", missing: str = "-") -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return missing
     return format(v, fmt)
+
+
+def write_record(stem: str, rows: list, head: str, markdown, device: str, args) -> None:
+    """A benchmark's record: ``stem``.md (``head`` and the table ``markdown(rows, head)``) and ``stem``.json (the
+    rows with device, commit, date and the command's arguments); the table is also printed."""
+    table = markdown(rows, head)
+    with open(stem + ".md", "w") as fh:
+        fh.write(table)
+    write_json(dict(rows=rows, device=device, device_name=device_name(device), commit=commit(),
+                    date=time.strftime("%Y-%m-%d"), args=vars(args)), stem + ".json")
+    print(table)

@@ -72,7 +72,7 @@ def main() -> None:
     a = ap.parse_args()
     import warp as wp
 
-    from benchmarks.common import RESULTS, commit, device_name, write_json
+    from benchmarks.common import RESULTS, commit, device_name, write_record
 
     wp.config.quiet = True
     rows = [count(a.device, a.spacing, lv) for lv in a.levels]
@@ -80,11 +80,7 @@ def main() -> None:
     stem = a.out or str(RESULTS / f"{date}-{a.device.replace(':', '')}-fluid_bytes")
     head = (f"# Device bytes per fluid particle by level, 3D dam break at {a.spacing:g} m (issue 40): "
             f"{device_name(a.device)}, commit {commit()}, {date}")
-    with open(stem + ".md", "w") as fh:
-        fh.write(markdown(rows, head))
-    write_json(dict(rows=rows, device=a.device, device_name=device_name(a.device), commit=commit(), date=date,
-                    args=vars(a)), stem + ".json")
-    print(markdown(rows, head))
+    write_record(stem, rows, head, markdown, a.device, a)
 
 
 if __name__ == "__main__":

@@ -186,7 +186,7 @@ def main() -> None:
     a = ap.parse_args()
     import warp as wp
 
-    from benchmarks.common import RESULTS, commit, device_name, write_json
+    from benchmarks.common import RESULTS, commit, device_name, write_record
 
     wp.config.quiet = True
     rows = []
@@ -200,11 +200,7 @@ def main() -> None:
     stem = a.out or str(RESULTS / f"{date}-{a.device.replace(':', '')}-solitary_wave")
     head = (f"# Solitary wave, H/d {a.height:g}, {a.travel:g} depths (issue 38): {device_name(a.device)}, commit {commit()}, "
             f"{date}")
-    with open(stem + ".md", "w") as fh:
-        fh.write(markdown(rows, head))
-    write_json(dict(rows=rows, device=a.device, device_name=device_name(a.device), commit=commit(), date=date,
-                    args=vars(a)), stem + ".json")
-    print(markdown(rows, head))
+    write_record(stem, rows, head, markdown, a.device, a)
 
 
 if __name__ == "__main__":

@@ -207,6 +207,20 @@ def default_name(frame: int, dim: int, color: str, axis: str = "y", slice_at: fl
     return f"preview_{frame:05d}_{color}{view}.png"
 
 
+def _slice_and_order(x: np.ndarray, c: np.ndarray, blocks: list, depth_axis: int | None, slice_at: float | None,
+                     h: float) -> tuple[np.ndarray, np.ndarray, list]:
+    """The particles (and blocks) a 3D view shows: those within ``h`` of the slice when one is asked for, drawn
+    looking from the low side along the depth axis (far, high first; near last). 2D (no depth axis): as given."""
+    if depth_axis is None:
+        return x, c, blocks
+    if slice_at is not None:
+        keep = np.abs(x[:, depth_axis] - slice_at) <= h
+        x, c = x[keep], c[keep]
+        blocks = [bv for bv in blocks if bv[:, depth_axis].min() <= slice_at <= bv[:, depth_axis].max()]
+    order = np.argsort(-x[:, depth_axis])
+    return x[order], c[order], blocks
+
+
 def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: str = "speed", axis: str = "y",
                    slice_at: float | None = None, out: str | os.PathLike | None = None, dpi: int = 120) -> Path:
     """Draw one frame to a PNG (default ``RUN_DIR/preview_NNNNN.png``); returns its path."""
@@ -236,14 +250,7 @@ def render_preview(run_dir: str | os.PathLike, frame: int | None = None, color: 
         depth_axis = _AXES[axis]
         a, b = [k for k in range(3) if k != depth_axis]
         view = f"view along {axis}" if slice_at is None else f"slice {axis} = {slice_at:g} m (+- {h:g} m)"
-    blocks = d["blocks"]
-    if depth_axis is not None:
-        if slice_at is not None:
-            keep = np.abs(x[:, depth_axis] - slice_at) <= h
-            x, c = x[keep], c[keep]
-            blocks = [bv for bv in blocks if bv[:, depth_axis].min() <= slice_at <= bv[:, depth_axis].max()]
-        order = np.argsort(-x[:, depth_axis])  # looking from the low side: far (high) first, near last
-        x, c = x[order], c[order]
+    x, c, blocks = _slice_and_order(x, c, d["blocks"], depth_axis, slice_at, h)
     pts2 = x[:, [a, b]]
     boxes = [(lo_b, hi_b, what) for lo_b, hi_b, what in d.get("boxes", []) if depth_axis is None or slice_at is None
              or lo_b[depth_axis] - h <= slice_at <= hi_b[depth_axis] + h]  # (a slice shows the obstacles it cuts)
@@ -331,14 +338,7 @@ def render_strip(run_dir: str | os.PathLike, n: int = 6, color: str = "speed", a
             c = d["pressure"]
         else:
             c = np.linalg.norm(d["v"], axis=1)
-        blocks = d["blocks"]
-        if depth_axis is not None:
-            if slice_at is not None:
-                keep = np.abs(x[:, depth_axis] - slice_at) <= h
-                x, c = x[keep], c[keep]
-                blocks = [bv for bv in blocks if bv[:, depth_axis].min() <= slice_at <= bv[:, depth_axis].max()]
-            order = np.argsort(-x[:, depth_axis])  # far first, near last (as render_preview)
-            x, c = x[order], c[order]
+        x, c, blocks = _slice_and_order(x, c, d["blocks"], depth_axis, slice_at, h)
         views.append((d, x[:, [a, b]], c, blocks))
     allc = np.concatenate([c for _, _, c, _ in views]) if views else np.zeros(0)
     if color == "pressure":
