@@ -14,7 +14,7 @@
 # processes on one H200 (records of 2026-11-28/29). 60 s needs 0.7-2.6 M steps per start, so the spans are cut so
 # that every process takes ~290k steps (python -m benchmarks.static_friction --groups ... --estimate): 1 m 25 s,
 # 0.2 m 11 s (10 GPa/m) and 6.8 s (default); creep over the last span / 6. Expected: ~1.75 M steps in all,
-# ~7.5 min, plus ~1.5 min for the first process's kernel build. GROUPS="W:SPEC,SECONDS ..." overrides the list.
+# ~7.5 min, plus ~1.5 min for the first process's kernel build. I36_GROUPS="W:SPEC,SECONDS ..." overrides the list (not GROUPS: bash reserves it).
 #
 # cost: benchmarks/scaling.py's jointed slope of 200,481 blocks at this tree and at OLD_TREE (an export of
 # 3997016, the tree the issue was filed on), started together (300 settling steps, 50 timed; ~95 s each when run
@@ -33,7 +33,7 @@ static)
         --out "$OUT/warm" > "$OUT/warm.log" 2>&1
     rm -f "$OUT/warm.md" "$OUT/warm.json"
     for s in plain settled; do
-        for g in ${GROUPS:-1:1e10Pa/m,25 0.2:1e10Pa/m,11 0.2:default,6.8}; do
+        for g in ${I36_GROUPS:-1:1e10Pa/m,25 0.2:1e10Pa/m,11 0.2:default,6.8}; do
             grp=${g%,*}; dur=${g#*,}; tag=$(echo "$grp" | tr ':/.' '___')
             "$PY" -m benchmarks.static_friction --device cuda:0 --groups "$grp" --duration "$dur" --starts "$s" \
                 --out "$P-part-$tag-$s" > "$P-part-$tag-$s.log" 2>&1 &
