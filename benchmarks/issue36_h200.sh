@@ -50,7 +50,7 @@ cost)
     [ -e "$OLD/rockwave/kernels" ] || ln -s ../kernels "$OLD/rockwave/kernels"
     set_args=(--set 'block_counts=[200000]' --set block_steps=50 --set block_settle=300 --set 'fluid_spacings=[]'
               --set 'coupled=[]' --set 'mem_fluid=[]' --set 'mem_blocks=[]')
-    (cd "$OLD" && PYTHONPATH="$OLD" "$PY" -m benchmarks run --device cuda:0 --suite full --only scaling "${set_args[@]}" \
+    (cd "$OLD" && PYTHONPATH="$OLD${PYTHONPATH:+:$PYTHONPATH}" "$PY" -m benchmarks run --device cuda:0 --suite full --only scaling "${set_args[@]}" \
         --out "$ABS/$D-cuda0-full-scaling-200k-side-by-side-old-3997016.json" > "$ABS/cost-old.log" 2>&1) &
     "$PY" -m benchmarks run --device cuda:0 --suite full --only scaling "${set_args[@]}" \
         --out "$ABS/$D-cuda0-full-scaling-200k-side-by-side-new.json" > "$ABS/cost-new.log" 2>&1 &
