@@ -185,7 +185,8 @@ def test_pressure_density_diffusion_is_antisymmetric_and_takes_nothing_from_wate
             out = wp.zeros(model.n_fluid, dtype=float)
             wp.launch(diffusion.density_diffusion_rate, model.n_fluid,
                       inputs=[solver.list_counts, solver.list_entries, st.x, st.rho, model.particle_mass,
-                              wp.zeros(1, dtype=wp.vec2), 0, model.params, 0.1, form], outputs=[out])
+                              wp.zeros(1, dtype=wp.vec2), 0, model.params, 0.1, form, 0, wp.zeros(1, dtype=wp.vec3)],
+                      outputs=[out])
             rates[form] = out.numpy()
     r = rates[1]
     assert abs(r.sum()) < 1e-5 * np.abs(r).sum(), (r.sum(), np.abs(r).sum())
@@ -205,7 +206,8 @@ def test_pressure_density_diffusion_is_antisymmetric_and_takes_nothing_from_wate
         out = wp.zeros(model.n_fluid, dtype=float)
         wp.launch(diffusion.density_diffusion_rate, model.n_fluid,
                   inputs=[solver.list_counts, solver.list_entries, st.x, st.rho, model.particle_mass,
-                          wp.zeros(1, dtype=wp.vec2), 0, model.params, 0.1, 1], outputs=[out])
+                          wp.zeros(1, dtype=wp.vec2), 0, model.params, 0.1, 1, 0, wp.zeros(1, dtype=wp.vec3)],
+                  outputs=[out])
     inner = dist < 0.05 - model.support_radius - 0.1 * s
     assert inner.sum() >= 3 and np.abs(out.numpy()[inner]).max() == 0.0
     assert out.numpy()[patch & ~inner].min() >= 0.0
