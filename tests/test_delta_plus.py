@@ -252,7 +252,7 @@ def test_renormalised_diffusion_vanishes_for_a_linear_density_and_stays_antisymm
     the renormalised gradient is exact and the rate vanishes (to 1e-3 of the plain term's) where the support is full
     and also along the block's straight edges away from its corners (a cut support: there the plain term is a
     one-sided flux, 640-790 kg/m^3/s here; the renormalised one 0.03); with noise added the pair terms stay antisymmetric (sum_i V_i rate_i = 0)
-    and the rate opposes the noise."""
+    and the rate opposes the noise. The key without a diffusion to change is a SceneError naming it."""
     from rockwave.kernels.sph import diffusion
 
     rng = np.random.default_rng(7)
@@ -264,6 +264,10 @@ def test_renormalised_diffusion_vanishes_for_a_linear_density_and_stays_antisymm
          "tank": {"box_min_m": [-0.1, -0.1], "box_max_m": [0.3, 0.3]}}
     fl = rockwave.parse_scene(d).fluid
     assert fl.density_diffusion_renormalised
+    assert not rockwave.parse_scene(_tank()).fluid.density_diffusion_renormalised  # off at the level
+    with pytest.raises(rockwave.SceneError) as e:  # no diffusion to change: an error naming the key
+        rockwave.parse_scene(_tank(fidelity="standard", density_diffusion_renormalised=True))
+    assert any(k == "fluid.density_diffusion_renormalised" for k, _ in e.value.errors)
     g = np.arange(n) * s + 0.5 * s
     gx, gy = np.meshgrid(g, g, indexing="ij")
     x = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)

@@ -791,6 +791,10 @@ def _check_method_options(v: _Validator, fl: Node) -> None:
     if isinstance(dd, (int, float)) and dd > 0 and fl.get("density") == "summation":
         v.err("fluid.density_diffusion", "diffuses the continuity density; with fluid.density = 'summation' the density "
                                          "is recomputed each step: remove it or set fluid.density = 'continuity'")
+    if raw.get("density_diffusion_renormalised") and not (isinstance(dd, (int, float)) and dd > 0):
+        v.err("fluid.density_diffusion_renormalised", "changes the density diffusion's term, and there is no diffusion "
+                                                      "(fluid.density_diffusion is 0 here): set fluid.density_diffusion > 0 "
+                                                      "or remove it")
 
 
 # the largest EOS constant (B or k, Pa) the float32 pressure arithmetic takes with room to spare
