@@ -68,6 +68,17 @@ FORMULATIONS: dict[str, dict] = {
     "delta_plus_bw": {"fluid.fidelity": "delta_plus", "coupling.block_walls": True},
     "delta_plus_a01": {"fluid.fidelity": "delta_plus", "fluid.viscosity.artificial_alpha": 0.01},
     "delta_plus_nokgc": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False},
+    # issue 38, sixth round: the plain (pairwise antisymmetric) momentum and continuity equations with Antuono et al.'s
+    # renormalised diffusion (the corrected gradient in the diffusion alone), alpha 0 / 0.01 / 0.02; and the level
+    # without the correction at alpha 0.01 (the viscosity's share without the renormalised diffusion)
+    "delta_plus_renorm": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False,
+                          "fluid.density_diffusion_renormalised": True},
+    "delta_plus_renorm_a01": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False,
+                              "fluid.density_diffusion_renormalised": True, "fluid.viscosity.artificial_alpha": 0.01},
+    "delta_plus_renorm_a02": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False,
+                              "fluid.density_diffusion_renormalised": True, "fluid.viscosity.artificial_alpha": 0.02},
+    "delta_plus_nokgc_a01": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False,
+                             "fluid.viscosity.artificial_alpha": 0.01},
 }
 CASES = ("standing_wave", "wave_maker", "dam_break", "spheric")
 STANDING = dict(depth=0.2, kh=0.9, mode=1, a=0.02, c0=12.0, signal="projection")  # first sloshing mode

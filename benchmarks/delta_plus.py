@@ -42,6 +42,18 @@ VARIANTS = {
     "delta_plus": {"fluid.fidelity": "delta_plus"},  # the level now: pressure + kgc + K 0.02
     "delta_plus_K0": {"fluid.fidelity": "delta_plus", "fluid.particle_shifting": 0.0},
     "delta_plus_K0.1": {"fluid.fidelity": "delta_plus", "fluid.particle_shifting": 0.1},
+    # sixth round (docs/notes.md 'delta-plus, sixth round'): the plain momentum and continuity equations (no
+    # correction) with Antuono et al.'s renormalised diffusion, alpha 0 / 0.01 / 0.02 (benchmarks/chart.py's
+    # formulations of the same names), and the level without the correction at alpha 0 / 0.01
+    "delta_plus_nokgc": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False},
+    "delta_plus_nokgc_a01": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False,
+                             "fluid.viscosity.artificial_alpha": 0.01},
+    "delta_plus_renorm": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False,
+                          "fluid.density_diffusion_renormalised": True},
+    "delta_plus_renorm_a01": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False,
+                              "fluid.density_diffusion_renormalised": True, "fluid.viscosity.artificial_alpha": 0.01},
+    "delta_plus_renorm_a02": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False,
+                              "fluid.density_diffusion_renormalised": True, "fluid.viscosity.artificial_alpha": 0.02},
 }
 CONFIG = {
     "quick": dict(dp_variants=["standard", "delta_plus_1128", "delta_plus", "delta_plus_K0"], dp_standing_ppd=12, dp_standing_periods=2.0, dp_dam_n=20,
@@ -103,7 +115,14 @@ def wall_impact(dev: str, variant: dict, n: int, t_end: float) -> dict:
 def rest(dev: str, variant: dict, layers: int, t_end: float) -> dict:
     from benchmarks.at_rest import measure
 
-    keys = {k.split(".", 1)[1]: v for k, v in variant.items() if k.startswith("fluid.") and k != "fluid.fidelity"}
+    keys: dict = {}
+    for k, v in variant.items():  # the [fluid] keys, dotted sub-keys (viscosity.artificial_alpha) as tables
+        if k.startswith("fluid.") and k != "fluid.fidelity":
+            *path, last = k.split(".")[1:]
+            node = keys
+            for p in path:
+                node = node.setdefault(p, {})
+            node[last] = v
     r = measure(dev, 2, layers, t_end, variant.get("fluid.fidelity", "standard"), None, keys)
     return {k: r.get(k) for k in ("corner", "floor_mid", "side_mid", "wall_error_max", "speed_rms_c0",
                                   "drift_spacings", "wall_per_sim_s")}

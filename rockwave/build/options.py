@@ -72,6 +72,7 @@ def fluid_parameters(fluid: Node | dict) -> FluidParameters:
         density_diffusion=float(fluid.get("density_diffusion", 0.0) or 0.0),
         particle_shifting=float(fluid.get("particle_shifting", 0.0) or 0.0),
         density_diffusion_form=fluid.get("density_diffusion_form") or "hydrostatic",
+        density_diffusion_renormalised=bool(fluid.get("density_diffusion_renormalised")),
     )
 
 

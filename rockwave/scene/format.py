@@ -121,19 +121,20 @@ _REGION_KEYS = dict(
 FIDELITY = {
     "draft": dict(kernel="muller", support_radius_ratio=2.0, density_diffusion=0.0, boundary="akinci", artificial_alpha=0.0,
                   density_floor=False, gradient_correction=False, packed_start=False, wall_volume="mass",
-                  particle_shifting=0.0, density_diffusion_form="hydrostatic"),
+                  particle_shifting=0.0, density_diffusion_form="hydrostatic", density_diffusion_renormalised=False),
     "standard": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
                      density_floor=False, gradient_correction=False, packed_start=True, wall_volume="geometric",
-                     particle_shifting=0.0, density_diffusion_form="hydrostatic"),
+                     particle_shifting=0.0, density_diffusion_form="hydrostatic", density_diffusion_renormalised=False),
     "high": dict(kernel="wendland", support_radius_ratio=4.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
                  density_floor=False, gradient_correction=False, packed_start=True, wall_volume="geometric",
-                 particle_shifting=0.0, density_diffusion_form="hydrostatic"),
+                 particle_shifting=0.0, density_diffusion_form="hydrostatic", density_diffusion_renormalised=False),
     "waves": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.0, boundary="adami", artificial_alpha=0.01,
                   density_floor=True, gradient_correction=True, packed_start=True, wall_volume="geometric",
-                  particle_shifting=0.0, density_diffusion_form="hydrostatic"),
+                  particle_shifting=0.0, density_diffusion_form="hydrostatic", density_diffusion_renormalised=False),
     "delta_plus": dict(kernel="wendland", support_radius_ratio=3.0, density_diffusion=0.1, boundary="adami",
                        artificial_alpha=0.0, density_floor=False, gradient_correction=True, packed_start=True,
-                       wall_volume="geometric", particle_shifting=0.02, density_diffusion_form="pressure"),
+                       wall_volume="geometric", particle_shifting=0.02, density_diffusion_form="pressure",
+                       density_diffusion_renormalised=False),
 }
 
 SCHEMA: dict[str, Key] = {
@@ -160,7 +161,7 @@ SCHEMA: dict[str, Key] = {
         "weakly compressible SPH water (leave the section out for a scene of blocks alone)", optional=True,
         spacing_m=Key("float", "initial particle spacing", required=True, min=0, min_open=True),
         rest_density_kg_m3=Key("float", "rest density rho0", default=1000.0, min=0, min_open=True),
-        fidelity=Key("str", "speed against accuracy without SPH internals: sets the defaults of kernel, support_radius_ratio, density_diffusion, density_diffusion_form, particle_shifting, gradient_correction, boundary, wall_volume, packed_start and viscosity.artificial_alpha (any of them given in the scene wins); 'draft': the old fast formulation (Mueller kernels at 2 spacings, frozen Akinci walls, no diffusion, uniform start); 'standard': Wendland C2 at 3 spacings, Adami walls keeping their volume, the start packed at its hydrostatic density, alpha 0.01; 'high': as standard at 4 spacings; 'waves': standard with gradient_correction and density_floor, for wave propagation (Ghost SPH takes it without the two); 'delta_plus' (opt-in): standard with gradient_correction (no density floor), delta-SPH diffusion 0.1 of the pressure's density (density_diffusion_form = 'pressure', walls included), particle shifting 0.02 with a free-surface band and alpha 0 (Ghost SPH takes it without the correction, the shifting and the diffusion); docs/validation.md 'Accuracy against cost' compares the levels", default="standard", choices=tuple(FIDELITY)),
+        fidelity=Key("str", "speed against accuracy without SPH internals: sets the defaults of kernel, support_radius_ratio, density_diffusion, density_diffusion_form, density_diffusion_renormalised, particle_shifting, gradient_correction, boundary, wall_volume, packed_start and viscosity.artificial_alpha (any of them given in the scene wins); 'draft': the old fast formulation (Mueller kernels at 2 spacings, frozen Akinci walls, no diffusion, uniform start); 'standard': Wendland C2 at 3 spacings, Adami walls keeping their volume, the start packed at its hydrostatic density, alpha 0.01; 'high': as standard at 4 spacings; 'waves': standard with gradient_correction and density_floor, for wave propagation (Ghost SPH takes it without the two); 'delta_plus' (opt-in): standard with gradient_correction (no density floor), delta-SPH diffusion 0.1 of the pressure's density (density_diffusion_form = 'pressure', walls included), particle shifting 0.02 with a free-surface band and alpha 0 (Ghost SPH takes it without the correction, the shifting and the diffusion); docs/validation.md 'Accuracy against cost' compares the levels", default="standard", choices=tuple(FIDELITY)),
         kernel=Key("str", "'muller': poly6 density, spiky pressure gradient, viscosity Laplacian (Mueller 2003); 'cubic_spline': Monaghan cubic spline for all; 'wendland': Wendland C2 (no pairing instability at large support_radius_ratio) for all; h = H/2 for the last two (default: from fidelity)", choices=("muller", "cubic_spline", "wendland")),
         support_radius_ratio=Key("float", "kernel support radius / spacing (2.0 gives ~30 neighbours in 3D, ~12 in 2D; 3.0 ~113 and ~28; above 1: at 1 the nearest neighbours sit on the support's edge; default: from fidelity)", min=1.0, max=5.0, min_open=True),
         boundary=Key("str", "wall treatment of the tank and obstacle particles: 'adami': generalized wall boundary (Adami, Hu & Adams 2012), each wall particle carries the pressure extrapolated from the fluid plus the hydrostatic part, so walls and corners get the fluid's pressure (needs walls as thick as the kernel support); 'akinci': frozen particles pushing with -Psi_b p_i/rho_i^2 grad W (Akinci et al. 2012; cheaper, wall pressure less accurate: docs/physics.md 'Walls'); default: from fidelity", choices=("adami", "akinci")),
@@ -175,6 +176,7 @@ SCHEMA: dict[str, Key] = {
         density_diffusion=Key("float", "delta of the delta-SPH density diffusion with continuity density (Molteni & Colagrossi 2009, hydrostatic part removed as Fourtakas et al. 2019): d rho_i/dt += delta (H/2) c0 sum_j 2 (rho_j - rho_i - rho0 g.x_ji/c0^2) x_ji.grad_i W_ij/r^2 V_j; 0.1 typical, 0 = off; continuity density only (kernels/sph/diffusion.py; default: from fidelity, 0 with summation density)", min=0.0, max=1.0),
         particle_shifting=Key("float", "K of the particle shifting (delta-plus-SPH, Sun et al. 2017; Lind et al. 2012): each step a particle moves by dr_i = -K Ma H^2 sum_j [1 + 0.2 (W_ij/W(dx))^4] grad W_ij V_j, Ma = max speed / c0, walls counted as water; only along the free surface for particles within one kernel support of it (Marrone et al. 2010's indicator), not at all for splash; at most a quarter spacing a step (kernels/sph/shifting.py); 0 = off; basic method only (default: from fidelity, 0.02 for 'delta_plus', 0 otherwise)", min=0.0, max=5.0),
         density_diffusion_form=Key("str", "what the density diffusion diffuses: 'hydrostatic': the continuity density, its hydrostatic part rho0 g.x_ji/c0^2 taken out of the difference (Fourtakas et al. 2019), the Adami wall particles in the sum with the density of their extrapolated pressure; 'pressure': the same for the density of the pressure, max(rho, rho0) with clipped negative pressure (a density below rho0 holds no pressure; diffused as it is, the run-up sheet on a wall drained the compression of the water pressed into the wall, which then crept into it: docs/physics.md 'The delta_plus level') (kernels/sph/diffusion.py; default: from fidelity)", choices=("hydrostatic", "pressure")),
+        density_diffusion_renormalised=Key("bool", "Antuono et al. (2010)'s delta-SPH term: the renormalised density gradients of both particles taken out of the diffusion's difference, psi_ij = 2 (rho_j - rho_i) x_ji/|x_ji|^2 - (<grad rho>_i^L + <grad rho>_j^L), so that it vanishes for any linear density field, also where the support is cut under the free surface (one more neighbour pass; kernels/sph/diffusion.py; default: from fidelity, false for every level)"),
         method=Key("str", "'basic': WCSPH as above; 'ghost': Ghost SPH free surface (Schechter & Bridson 2012), ghost air particles seeded each step around the free surface ([fluid.ghost])", default="basic", choices=("basic", "ghost")),
         ghost=_sec(
             "Ghost SPH settings (used when method = 'ghost')",
@@ -707,7 +709,7 @@ def apply_fidelity(v: _Validator, fl: Node, tank: Node | None) -> None:
     formulation cannot do: Adami walls need boundary layers as thick as the kernel support."""
     level = FIDELITY.get(fl.get("fidelity")) or FIDELITY["standard"]
     for k in ("kernel", "support_radius_ratio", "boundary", "density_floor", "gradient_correction", "particle_shifting",
-              "density_diffusion_form"):
+              "density_diffusion_form", "density_diffusion_renormalised"):
         if fl.get(k) is None:
             fl[k] = level[k]
             # a level's density floor and gradient correction are for basic WCSPH with continuity density and
@@ -789,6 +791,10 @@ def _check_method_options(v: _Validator, fl: Node) -> None:
     if isinstance(dd, (int, float)) and dd > 0 and fl.get("density") == "summation":
         v.err("fluid.density_diffusion", "diffuses the continuity density; with fluid.density = 'summation' the density "
                                          "is recomputed each step: remove it or set fluid.density = 'continuity'")
+    if raw.get("density_diffusion_renormalised") and not (isinstance(dd, (int, float)) and dd > 0):
+        v.err("fluid.density_diffusion_renormalised", "changes the density diffusion's term, and there is no diffusion "
+                                                      "(fluid.density_diffusion is 0 here): set fluid.density_diffusion > 0 "
+                                                      "or remove it")
 
 
 # the largest EOS constant (B or k, Pa) the float32 pressure arithmetic takes with room to spare

@@ -171,6 +171,10 @@ class FluidParameters:
     in the sum) or "pressure" (the same for the density of the pressure, max(rho, rho0) with clipped negative
     pressure; kernels/sph/diffusion.py)."""
 
+    density_diffusion_renormalised: bool = False
+    """Antuono et al. (2010)'s form: the renormalised density gradients taken out of the diffusion's difference
+    (kernels/sph/diffusion.py)."""
+
     @property
     def support_radius_m(self) -> float:
         """Kernel support radius H [m] (support_radius)."""
@@ -293,6 +297,9 @@ class FluidModel:
 
     density_diffusion_form: str = "hydrostatic"
     """FluidParameters.density_diffusion_form: "hydrostatic" or "pressure" (kernels/sph/diffusion.py)."""
+
+    density_diffusion_renormalised: bool = False
+    """FluidParameters.density_diffusion_renormalised (kernels/sph/diffusion.py)."""
 
     @property
     def n_static_boundary(self) -> int:
@@ -1092,17 +1099,25 @@ class FluidSolver:
         """delta-SPH density diffusion after the continuity density (opt-in; kernels/sph/diffusion.py)."""
 
         m = self.model
+        renorm = int(m.density_diffusion_renormalised)
         if getattr(self, "_diff_rate", None) is None:
             self._diff_rate = wp.zeros(m.n_fluid, dtype=float, device=m.device)
+            # Antuono et al.'s renormalised density gradients (kernels/sph/diffusion.py); a one-entry placeholder without
+            self._diff_grad = wp.zeros(m.n_fluid if renorm else 1, dtype=wp.vec3, device=m.device)
         # Adami walls take part with the density of their pressure extrapolated from this step's density (the
         # root of the blow-up after an impact, kernels/sph/diffusion.py); the wall_pressure pass then extrapolates
         # again from the diffused density
         walls = int(m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary > 0)
         if walls:
             self.wall_pressure(state)
+        pd = int(m.density_diffusion_form == "pressure")
+        if renorm:
+            self._launch(diffusion.density_gradient_renormalised, m.n_fluid,
+                         [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, self._wall_pr2, walls, m.params,
+                          pd], [self._diff_grad])
         self._launch(diffusion.density_diffusion_rate, m.n_fluid,
                      [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, self._wall_pr2, walls, m.params,
-                      m.density_diffusion, int(m.density_diffusion_form == "pressure")], [self._diff_rate])
+                      m.density_diffusion, pd, renorm, self._diff_grad], [self._diff_rate])
         self._launch(diffusion.apply_density_diffusion, m.n_fluid, [self._diff_rate, dt, m.params],
                      [state.drho_dt, state.rho, state.pressure, self._pr2])
 
@@ -1262,6 +1277,7 @@ def build_fluid_model(fluid_positions: np.ndarray, fluid_velocities: np.ndarray,
         boundary_spacing=float(bstep) if nb else 0.0, n_moving_walls=n_moving,
         particle_shifting=float(fp.particle_shifting),
         density_diffusion_form=fp.density_diffusion_form,
+        density_diffusion_renormalised=bool(fp.density_diffusion_renormalised),
     )
     if nb and full_support:
         mb = calibrate_lattice(params, bstep, dim, device)[0]
