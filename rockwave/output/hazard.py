@@ -52,7 +52,7 @@ from rockwave.base.maths import pad3
 from rockwave.kernels.sim import readers as gauge_k
 from rockwave.scene.format import DEFAULT_MAX_COLUMNS, DEFAULT_SAMPLE_INTERVAL_S, SceneError
 from rockwave.sim.checkpoint import CheckpointError
-from rockwave.sim.readers import Gauges
+from rockwave.sim.readers import Gauges, HostWater, fluid_chunks
 
 
 def _clean(v):
@@ -142,7 +142,8 @@ class HazardMonitor(SampledRecorder):
             self.columns.append((len(lines), pos))
             lines += [SimpleNamespace(name=f"{r.name}_{c}", kind="height", position_m=list(p)) for c, p in enumerate(pos)]
         self.n_wave = len(self.waves)
-        self.gauges = Gauges(scene, fluid, d, sim.blocks, sim.block_state, gauges=lines) if lines else None
+        host = sim.state if isinstance(sim.state, HostWater) else None  # rank 0 of several: the water on the host
+        self.gauges = Gauges(scene, fluid, d, sim.blocks, sim.block_state, gauges=lines, host=host) if lines else None
         self.t_start = sim.time
         # still levels: given, or the reading now
         errors = []
@@ -254,9 +255,10 @@ class HazardMonitor(SampledRecorder):
         if self.crossings:
             m = sim.fluid
             self.cross_vol.zero_()
-            wp.launch(gauge_k.hazard_side_volume, dim=(m.n_fluid, len(self.crossings)),
-                      inputs=[sim.state.x, sim.state.rho, m.particle_mass, self.cross_point, self.cross_normal],
-                      outputs=[self.cross_vol], device=d)
+            for k, a in fluid_chunks(sim.state, m, ("x", "rho")):
+                wp.launch(gauge_k.hazard_side_volume, dim=(k, len(self.crossings)),
+                          inputs=[a["x"], a["rho"], a["mass"], self.cross_point, self.cross_normal],
+                          outputs=[self.cross_vol], device=d)
             wp.launch(gauge_k.hazard_crossing_update, dim=len(self.crossings), inputs=[self.cross_vol, t],
                       outputs=[self.cross_stats], device=d)
         self.samples += 1
