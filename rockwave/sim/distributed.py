@@ -355,6 +355,16 @@ class DistributedFluid:
                                       *flags])
         return flags
 
+    def start_walls(self) -> None:
+        """The walls' pressure of a fresh layout (a start or a restore), as the one-process build computes it for
+        its initial state (Adami walls: extrapolated from the owned and halo fluid; the gauges read it before the
+        first step); nothing with other walls."""
+        sv = self.solver
+        if sv.model.params.boundary == sph.BOUNDARY_ADAMI and sv.model.n_boundary and self.n_own:
+            with wp.ScopedDevice(self.device):
+                sv.build_cells(self.state)
+                sv.wall_pressure(self.state)
+
     def relayout(self) -> None:
         """At a list rebuild (collective): owned particles that left the slab go to the neighbour (migration; the
         skin check bounds a particle's drift since the last rebuild far below a slab, so only to a neighbour), then
@@ -818,6 +828,7 @@ class DistributedSimulation(Simulation):
             self.built = {"seeded": int(self.fluid.n_fluid), "held_points": int(self.fluid.n_fluid),
                           "layout_window_points": 0, "whole": int(self.fluid.n_fluid), "slab_build": False}
             self.dfluid.partition(self.state)
+        self.dfluid.start_walls()
         if self.rank == 0:  # the whole scene's water for the outputs: on rank 0's host (HostWater), not on a device
             self._output_water()
         else:
@@ -908,6 +919,8 @@ class DistributedSimulation(Simulation):
                 "rank0_owned": df.n_own, "rank0_halo": df.n_halo, "rank0_build": self.built,
                 "rank0_bytes_per_particle": round(df.bytes_per_particle(), 1),
                 "rank0_output_device_bytes": self.state.device_bytes() if isinstance(self.state, HostWater) else 0,
+                "rank0_output_chunk": self.state.chunk if isinstance(self.state, HostWater) else None,
+                "rank0_whole_scene_device_arrays": whole_scene_device_arrays(self),
                 "rank0_seconds": {k: round(v, 4) for k, v in df.timings.items()}}
 
     # ------------------------------------------------------------ the clock's questions ----
@@ -1018,6 +1031,7 @@ class DistributedSimulation(Simulation):
                 for k, (arrays, meta) in sync.items():
                     provs[k].restore(arrays, meta)
             self.dfluid.partition(self.state)
+            self.dfluid.start_walls()
             self._synced_time = self.clock.time
 
     def serve(self) -> None:
