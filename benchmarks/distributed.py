@@ -181,6 +181,13 @@ def _memory(a, comm) -> int:
             sim.gather()
             gather = {"gather_s": time.perf_counter() - t0, "gather_host_peak_bytes": tracemalloc.get_traced_memory()[1]}
             tracemalloc.stop()
+            if a.outputs:  # one frame's device-evaluated outputs from rank 0's water: the surface and the gauges
+                from rockwave.output import recorders as rec
+                from rockwave.output import surface as surf
+
+                t0 = time.perf_counter()
+                mesh = rec.Frame(sim, 0, surf.extractor_for(sim.scene, sim.fluid, sim.device)).surface
+                gather.update(outputs_s=time.perf_counter() - t0, surface_points=len(mesh.points) if mesh else 0)
             sim.close()
         else:
             sim.serve()
@@ -193,6 +200,12 @@ def _memory(a, comm) -> int:
             "warp_peak_build_bytes": build.get(dev, 0.0), "warp_peak_run_bytes": run.get(dev, 0.0),
             "host_rss_peak_build_bytes": rss_build, "host_rss_peak_run_bytes": rss_run,
             "rank_bytes_per_owned_particle": round(df.bytes_per_particle(), 1), **gather}
+    if sim.rank == 0:
+        from rockwave.sim.distributed import whole_scene_device_arrays
+        from rockwave.sim.readers import HostWater
+
+        mine.update(whole_scene_device_arrays=whole_scene_device_arrays(sim),
+                    output_device_bytes=sim.state.device_bytes() if isinstance(sim.state, HostWater) else None)
     for k in ("warp_peak_build_bytes", "warp_peak_run_bytes", "host_rss_peak_build_bytes", "host_rss_peak_run_bytes",
               "gather_host_peak_bytes"):
         if k not in mine:
@@ -230,6 +243,8 @@ def main(argv=None) -> int:
                     "compared, with two plain runs one float32 ulp apart as the round-off yardstick")
     ap.add_argument("--memory", action="store_true", help="peak bytes per rank at build and over --steps steps "
                     "(Warp allocations and resident host memory) instead of speed")
+    ap.add_argument("--outputs", action="store_true", help="with --memory: rank 0 also extracts one frame's water "
+                    "surface (on its device, from its host copy of the water, a chunk at a time)")
     ap.add_argument("--whole-build", action="store_true", help="every rank builds the whole scene, rank 0 scatters "
                     "it (the earlier start; default: each rank seeds its slab)")
     a = ap.parse_args(argv)

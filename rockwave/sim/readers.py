@@ -106,19 +106,22 @@ class HostWater:
         self._dev: dict[str, wp.array] = {}  # the chunk buffers on the device
 
     def _upload(self, name: str, host: np.ndarray, dtype) -> wp.array:
-        """host (rows of one chunk) in the device buffer ``name`` (made once, ``chunk`` long)."""
+        """host (rows of one chunk) in the device buffer ``name`` (made once: a chunk, or less in a small scene)."""
         buf = self._dev.get(name)
         if buf is None:
-            buf = self._dev[name] = wp.empty(self.chunk, dtype=dtype, device=self.device)
+            buf = self._dev[name] = wp.empty(self._length(), dtype=dtype, device=self.device)
         n = len(host)
         if n:
             wp.copy(buf, wp.array(np.ascontiguousarray(host), dtype=dtype, device="cpu", copy=False), 0, 0, n)
         return buf[:n]
 
+    def _length(self) -> int:
+        return max(min(self.chunk, max(self.n_fluid, self.n_boundary)), 1)
+
     def _mass(self, n: int) -> wp.array:
         buf = self._dev.get("mass")
         if buf is None:
-            buf = self._dev["mass"] = wp.empty(self.chunk, dtype=float, device=self.device)
+            buf = self._dev["mass"] = wp.empty(self._length(), dtype=float, device=self.device)
             buf.fill_(self.fluid_mass)
         return buf[:n]
 
