@@ -614,7 +614,7 @@ class DistributedFluid:
             return
         self.migrated_total = int(migrated)
         host, nf = self.sim.state, self.n_global
-        seen = np.zeros(nf, np.int32)
+        seen = np.zeros(nf, bool)
         for r in range(self.size):
             if counts[r]:
                 if r == 0:
@@ -623,14 +623,14 @@ class DistributedFluid:
                     buf = np.empty((int(counts[r]), kd.FULL_COLS), np.float32)
                     self.comm.Recv([buf, MPI.FLOAT], source=r, tag=41)
                 ids = buf[:, 11].astype(np.int64) * ID_SPLIT + buf[:, 12].astype(np.int64)
-                if ids.min() < 0 or ids.max() >= nf:
-                    raise RuntimeError(f"rank {r} sent particle ids outside 0..{nf - 1}")
-                np.add.at(seen, ids, 1)
+                if ids.min() < 0 or ids.max() >= nf or seen[ids].any():
+                    raise RuntimeError(f"rank {r} sent particle ids outside 0..{nf - 1} or held by another rank")
+                seen[ids] = True
                 host.x[ids], host.v[ids], host.rho[ids] = buf[:, 0:3], buf[:, 3:6], buf[:, 6]
                 host.accel[ids], host.pressure[ids] = buf[:, 7:10], buf[:, 10]
             idx, wp_, wv = walls if r == 0 else self.comm.recv(source=r, tag=42)
             host.wall_pressure[idx], host.wall_velocity[idx] = wp_, wv
-        if int(counts.sum()) != nf or not (seen == 1).all():
+        if int(counts.sum()) != nf or not seen.all():
             raise RuntimeError(f"rank 0 gathered {int(counts.sum())} particles for {nf}: a particle was lost or "
                                "duplicated")
         if getattr(self.sim, "_fill_initial", False):  # the start's positions (EnergyBudget's reference)
