@@ -38,15 +38,16 @@ Hydrodynamics simulations", IEEE TPDS 25(1)):
   bit-identical loads) and every rank integrates the blocks identically. The walls' impulse on the water
   (CouplingOptions.track_walls, Coupling.wall_impulse) is summed over the ranks the same way.
 * Rank 0 drives: ``advance`` and ``step`` on rank 0 broadcast a command that the other ranks follow (``serve``);
-  after each advance the owned particles are gathered (one rank's rows at a time, written by id on rank 0's
-  device: kd.unpack_by_id) into rank 0's full FluidState, so readers, gauges,
-  recorders, run.json and checkpoints on rank 0 are those of a one-rank run. A checkpoint is the full state: it
+  after each advance the owned particles are gathered (one rank's rows at a time, written by id) into rank 0's
+  HostWater (rockwave/sim/readers.py): the whole water in rank 0's host memory, never on a device; readers, gauges,
+  the surface, the hazard monitor, run.json and checkpoints on rank 0 are those of a one-rank run, the kernels
+  among them run over chunks of it (``output_chunk`` particles at a time). A checkpoint is the whole state: it
   resumes on any number of ranks (rank 0 scatters it again when its clock differs from the last one it
   distributed).
 * Start: each rank seeds only its slab (rockwave/build/slab.py: the faces from the whole scene's per-column
-  counts, the particles with the whole seeding's positions, densities and ids); rank 0 then holds the whole
-  state for its outputs (no neighbour lists), filled by the first gather. ``slab_build=False`` (and the scenes the
-  slab build does not cover) build the whole scene on every rank, rank 0 scatters it, the others drop it.
+  counts, the particles with the whole seeding's positions, densities and ids); rank 0's HostWater is filled by
+  the first gather. ``slab_build=False`` (and the scenes the slab build does not cover) build the whole scene on
+  every rank, rank 0 scatters it, all drop it from their devices.
 
 Results differ from one rank within float32 round-off, not bit for bit: a rank's neighbour lists hold the same
 pairs in another order, so the float32 sums over neighbours are added in another order; the block loads are summed
@@ -789,7 +790,8 @@ class DistributedSimulation(Simulation):
     per-rank compute time) or "count" (owned particles); ``balance_tolerance`` None: the faces never move.
     ``slab_build``: each rank seeds only its slab (rockwave/build/slab.py; default); False: every rank builds the
     whole scene and rank 0 scatters it (the earlier start, kept for comparisons; also what scenes the slab build
-    does not cover take)."""
+    does not cover take). ``output_chunk``: rank 0 evaluates its outputs on the device this many particles at a time
+    (default HostWater.CHUNK); its ``state`` is a HostWater (the whole water on its host) and ``fluid_solver`` None."""
 
     def __init__(self, scene, device: str | None = None, options: SimulationOptions | None = None, comm=None,
                  balance_tolerance: float | None = 0.1, balance_interval: int = 20, transport: str = "auto",
