@@ -88,6 +88,10 @@ class SampledRecorder:
     every step, ``sample()`` when a sample time is reached. Needs sim, device, slide_index, slide_d, slide_stats,
     t_start, interval, next_t and sample()."""
 
+    def wants_water(self) -> bool:
+        """Will after_step() read the water now (a sample time reached)? (A distributed run gathers it only then.)"""
+        return float(self.sim.time) + 1e-12 >= self.next_t
+
     def after_step(self) -> None:
         """Block speeds now; the lines and crossings when a sample time has been reached (device launches only)."""
         sim, d = self.sim, self.device
@@ -95,7 +99,7 @@ class SampledRecorder:
         if self.slide_index:
             wp.launch(gauge_k.hazard_block_speed, dim=len(self.slide_index), inputs=[sim.block_state.v, self.slide_d, t],
                       outputs=[self.slide_stats], device=d)
-        if t + 1e-12 >= self.next_t:
+        if self.wants_water():
             self.sample()
             k = math.floor((t - self.t_start) / self.interval + 1e-9) + 1
             self.next_t = self.t_start + k * self.interval

@@ -838,7 +838,10 @@ class DistributedSimulation(Simulation):
         self.dfluid.gather()  # fills rank 0's HostWater
         self._synced_time = self.clock.time
         self._last_gather = time.perf_counter()
-        self._gather_every_step = scene.hazard is not None  # the hazard monitor reads the state after every step
+        self._gather_every_step = scene.hazard is not None  # the hazard monitor may read the water after any step
+        # rank 0: a callable, True when a hook will read the water after the step just taken (the hazard monitor's
+        # sample times: rockwave/app/run.py sets it); None: after every step with a [hazard] section
+        self.gather_when = None
         self._collective = False
         self._busy = False  # rank 0 is inside a command the other ranks follow
         self.timings = self.dfluid.timings
@@ -1097,10 +1100,13 @@ class DistributedSimulation(Simulation):
         self._synced_time = self.clock.time
 
     def _advance(self, duration: float, watch, gather: bool = True) -> None:
+        def due() -> bool:  # rank 0: does anything read the water after this step?
+            if time.perf_counter() - self._last_gather >= GATHER_WALL_S:
+                return True
+            return self._gather_every_step and (self.gather_when is None or bool(self.gather_when()))
+
         def after_step():
-            now = self.comm.bcast(time.perf_counter() - self._last_gather >= GATHER_WALL_S if self.rank == 0 else None,
-                                  root=0)
-            if now or self._gather_every_step:
+            if self.comm.bcast(due() if self.rank == 0 else None, root=0):
                 self.dfluid.gather()
                 self._last_gather = time.perf_counter()
             if watch is not None:
@@ -1120,14 +1126,26 @@ class DistributedSimulation(Simulation):
 
 
 def whole_scene_device_arrays(sim) -> int:
-    """Live Warp allocations on ``sim``'s device (not views: slices, numpy memory) as long as the whole
-    scene's water: n_fluid or n_fluid + n_boundary elements of the whole scene (what rank 0's output state was)."""
+    """Live Warp allocations on ``sim``'s device (not views: slices, numpy memory) as long as the whole scene's
+    water (n_fluid or n_fluid + n_boundary elements of the whole scene: what rank 0's output state was), other
+    than the rank's own step arrays (those reachable from sim.dfluid, whose owned + halo count may equal n)."""
     import gc
+    import types
 
     n, nb = sim.dfluid.n_global, sim.fluid.n_boundary
     dev = wp.get_device(sim.device)
-    return sum(1 for o in gc.get_objects() if isinstance(o, wp.array) and getattr(o, "device", None) == dev
-               and getattr(o, "deleter", None) is not None and o.ptr is not None and o.shape[0] in (n, n + nb))
+    own, seen, todo = set(), {id(sim)}, [sim.dfluid]
+    while todo:  # the objects reachable from the rank's water, not through the simulation
+        o = todo.pop()
+        if id(o) in seen or isinstance(o, (type, type(sys), types.FunctionType, types.MethodType)):
+            continue
+        seen.add(id(o))
+        if isinstance(o, wp.array):
+            own.add(id(o))
+        todo.extend(gc.get_referents(o))
+    return sum(1 for o in gc.get_objects() if isinstance(o, wp.array) and id(o) not in own
+               and getattr(o, "device", None) == dev and getattr(o, "deleter", None) is not None
+               and o.ptr is not None and o.shape[0] in (n, n + nb))
 
 
 def _main(argv=None) -> int:
