@@ -26,7 +26,10 @@ migration, new halos, new lists), the transport that ran, and rank 0's device by
 (wp.ScopedMemoryTracker's peak: the GPU's memory on CUDA, host memory on the CPU) and the process's peak resident
 host memory (ru_maxrss), per particle of the whole scene and per particle the rank owns, for the slab build
 (default) or every rank building the whole scene (``--whole-build``, the earlier start); run both in separate
-launches (a process's peak never goes down).
+launches (a process's peak never goes down). ``--outputs``: with the scene's gauges, rank 0 also reads one frame's
+surface and gauges from its host copy of the water (HostWater, on its device a chunk at a time), inside the peak;
+rank 0's record then has the count of device arrays as long as the scene's water outside its own step arrays
+(``whole_scene_device_arrays``: 0 once the scene is larger than a chunk, 2^21 particles) and the chunk buffers' bytes.
 """
 
 from __future__ import annotations
@@ -42,13 +45,14 @@ from pathlib import Path
 from benchmarks.common import RESULTS, ROOT, commit, device_name, write_json
 
 
-def _scene(particles: float, name: str = "dam_break_3d"):
+def _scene(particles: float, name: str = "dam_break_3d", gauges: bool = False):
     """The shipped scene ``name`` with the spacing that gives about ``particles`` in its fluid boxes (never coarser
-    than its own), gauges and the hazard summary off (the hazard monitor reads the whole state every step)."""
+    than its own), the hazard summary off and its gauges off unless ``gauges``."""
     import rockwave
 
     scene = rockwave.load_scene(ROOT / "scenes" / f"{name}.toml")
-    scene.output["gauges"] = []
+    if not gauges:
+        scene.output["gauges"] = []
     scene.hazard = None
     s0 = float(scene.fluid["spacing_m"])
     volume = sum((hi[0] - lo[0]) * (hi[1] - lo[1]) * (hi[2] - lo[2])
@@ -163,7 +167,8 @@ def _memory(a, comm) -> int:
     reports: list[str] = []
     with wp.ScopedMemoryTracker("build", print=False, report_func=reports.append) as tracker:
         t0 = time.perf_counter()
-        sim = DistributedSimulation(_scene(a.particles * (size if a.weak else 1), a.scene), device=a.device,
+        sim = DistributedSimulation(_scene(a.particles * (size if a.weak else 1), a.scene, gauges=a.outputs),
+                                    device=a.device,
                                     comm=comm, transport=a.transport, balance_by=a.balance_by,
                                     slab_build=not a.whole_build)
         build_s = time.perf_counter() - t0
@@ -181,6 +186,15 @@ def _memory(a, comm) -> int:
             sim.gather()
             gather = {"gather_s": time.perf_counter() - t0, "gather_host_peak_bytes": tracemalloc.get_traced_memory()[1]}
             tracemalloc.stop()
+            if a.outputs:  # one frame's device-evaluated outputs from rank 0's water: the surface and the gauges
+                from rockwave.output import recorders as rec
+                from rockwave.output import surface as surf
+
+                t0 = time.perf_counter()
+                frame = rec.Frame(sim, 0, surf.extractor_for(sim.scene, sim.fluid, sim.device))
+                mesh, readings = frame.surface, frame.gauges
+                gather.update(outputs_s=time.perf_counter() - t0, surface_points=len(mesh.points) if mesh else 0,
+                              gauges=readings)
             sim.close()
         else:
             sim.serve()
@@ -193,6 +207,12 @@ def _memory(a, comm) -> int:
             "warp_peak_build_bytes": build.get(dev, 0.0), "warp_peak_run_bytes": run.get(dev, 0.0),
             "host_rss_peak_build_bytes": rss_build, "host_rss_peak_run_bytes": rss_run,
             "rank_bytes_per_owned_particle": round(df.bytes_per_particle(), 1), **gather}
+    if sim.rank == 0:
+        from rockwave.sim.distributed import whole_scene_device_arrays
+        from rockwave.sim.readers import HostWater
+
+        mine.update(whole_scene_device_arrays=whole_scene_device_arrays(sim),
+                    output_device_bytes=sim.state.device_bytes() if isinstance(sim.state, HostWater) else None)
     for k in ("warp_peak_build_bytes", "warp_peak_run_bytes", "host_rss_peak_build_bytes", "host_rss_peak_run_bytes",
               "gather_host_peak_bytes"):
         if k not in mine:
@@ -230,6 +250,9 @@ def main(argv=None) -> int:
                     "compared, with two plain runs one float32 ulp apart as the round-off yardstick")
     ap.add_argument("--memory", action="store_true", help="peak bytes per rank at build and over --steps steps "
                     "(Warp allocations and resident host memory) instead of speed")
+    ap.add_argument("--outputs", action="store_true", help="with --memory: the scene's gauges kept, and rank 0 reads "
+                    "one frame's water surface and gauges (on its device, from its host copy of the water, a chunk "
+                    "at a time)")
     ap.add_argument("--whole-build", action="store_true", help="every rank builds the whole scene, rank 0 scatters "
                     "it (the earlier start; default: each rank seeds its slab)")
     a = ap.parse_args(argv)

@@ -355,6 +355,55 @@ def surface_pressure(
         out[k] = (sf + sw) / (vf + vw)
 
 
+@wp.kernel
+def surface_pressure_sums(
+    grid: wp.uint64,
+    x: wp.array(dtype=wp.vec3),
+    rho: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
+    particle_mass: wp.array(dtype=float),
+    wall: int,
+    n: int,
+    points: wp.array(dtype=wp.vec3),
+    p: SPHParams,
+    sums: wp.array2d(dtype=float),
+):
+    """surface_pressure's four sums over one chunk of particles (rockwave/sim/readers.py HostWater), added to
+    sums[k]: fluid (wall = 0) sums[k, 0] += V_j p_j W, sums[k, 1] += V_j W, V_j = m_j / rho_j; Adami walls
+    (wall = 1, ``pressure`` their extrapolated pressure) sums[k, 2] += V_b p_b W, sums[k, 3] += V_b W,
+    V_b = m_b / rho0; over the chunk's n particles within H of point k (its hash grid)."""
+    k = wp.tid()
+    xp = points[k]
+    s = float(0.0)
+    v = float(0.0)
+    q = wp.hash_grid_query(grid, xp, p.H)
+    j = int(0)
+    while wp.hash_grid_query_next(q, j):
+        if j >= n:
+            continue
+        r2 = wp.length_sq(xp - x[j])
+        if r2 < p.H * p.H:
+            if wall == 0:
+                w = particle_mass[j] / rho[j] * kernel_w(r2, p)
+            else:
+                w = particle_mass[j] / p.rest_density * kernel_w(r2, p)
+            s += w * pressure[j]
+            v += w
+    sums[k, 2 * wall] = sums[k, 2 * wall] + s
+    sums[k, 2 * wall + 1] = sums[k, 2 * wall + 1] + v
+
+
+@wp.kernel
+def surface_pressure_finish(sums: wp.array2d(dtype=float), wet_min: float, out: wp.array(dtype=float)):
+    """surface_pressure's reading from the summed chunks (surface_pressure_sums): 0 where the fluid's volume
+    fraction is below wet_min, else (s_f + s_w) / (v_f + v_w)."""
+    k = wp.tid()
+    if sums[k, 1] < wet_min:
+        out[k] = 0.0
+    else:
+        out[k] = (sums[k, 0] + sums[k, 2]) / (sums[k, 1] + sums[k, 3])
+
+
 # ---------------------------------------------------------------------------------------------------
 # Hazard summary (rockwave/output/hazard.py): running extremes reduced on the device, one host read at the end.
 # ---------------------------------------------------------------------------------------------------

@@ -109,6 +109,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--balance-by", choices=BALANCE_BY, default="time",
                    help="with ranks: the slab faces follow each rank's measured compute time (time, default) or its "
                    "particle count (count)")
+    r.add_argument("--output-chunk", type=int, default=None, metavar="PARTICLES",
+                   help="with ranks: rank 0 holds the whole water on the host and evaluates the outputs (gauges, surface, "
+                   "hazard) on its device this many particles at a time (default 2^21; docs/mpi.md)")
     v = sub.add_parser("validate", help="check a scene file without running it: every check 'run' makes before its first step")
     v.add_argument("scene", nargs="?", default=None, help=f"scene TOML file, or the name of a shipped scene (python -m rockwave scenes; default: the built-in {DEFAULT_SCENE_NAME})")
     v.add_argument("--device", default=None, help="device the memory and run-length estimates are for (default: the scene's)")
@@ -255,7 +258,8 @@ def _main(args) -> int:
     try:
         if ranks:  # rockwave/sim/distributed.py: rank 0 runs the loop below, the other ranks follow it
 
-            sim = DistributedSimulation(scene, device=device, transport=args.transport, balance_by=args.balance_by)
+            sim = DistributedSimulation(scene, device=device, transport=args.transport, balance_by=args.balance_by,
+                                        output_chunk=args.output_chunk)
             if sim.rank != 0:
                 sim.serve()
                 return 0

@@ -163,6 +163,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         # resumed run's summary is the whole run's
         hazard = HazardMonitor(sim)
         ckpt.register(sim, "hazard", hazard)
+        if hasattr(sim, "gather_when"):  # several ranks: the water comes to rank 0 at the sample times only
+            sim.gather_when = hazard.wants_water
     if resumed is not None:
         ckpt.restore(sim, *resumed)
         meta = resumed[1]
@@ -170,6 +172,8 @@ def run(sim, out_dir: str | os.PathLike, duration: float | None = None, progress
         if hazard is not None and "hazard" not in meta["groups"]:  # a checkpoint from before format 5
             hazard = HazardMonitor(sim)
             ckpt.register(sim, "hazard", hazard)
+            if hasattr(sim, "gather_when"):
+                sim.gather_when = hazard.wants_water
             print(f"warning: the checkpoint holds no hazard statistics (written by an older rockwave): {HAZARD_FILE} "
                   f"covers t >= {sim.time:.6g} s only", file=sys.stderr)
     else:

@@ -52,7 +52,7 @@ from rockwave.base.maths import pad3
 from rockwave.kernels.sim import readers as gauge_k
 from rockwave.scene.format import DEFAULT_MAX_COLUMNS, DEFAULT_SAMPLE_INTERVAL_S, SceneError
 from rockwave.sim.checkpoint import CheckpointError
-from rockwave.sim.readers import Gauges
+from rockwave.sim.readers import Gauges, HostWater, fluid_chunks
 
 
 def _clean(v):
@@ -88,6 +88,10 @@ class SampledRecorder:
     every step, ``sample()`` when a sample time is reached. Needs sim, device, slide_index, slide_d, slide_stats,
     t_start, interval, next_t and sample()."""
 
+    def wants_water(self) -> bool:
+        """Will after_step() read the water now (a sample time reached)? (A distributed run gathers it only then.)"""
+        return float(self.sim.time) + 1e-12 >= self.next_t
+
     def after_step(self) -> None:
         """Block speeds now; the lines and crossings when a sample time has been reached (device launches only)."""
         sim, d = self.sim, self.device
@@ -95,7 +99,7 @@ class SampledRecorder:
         if self.slide_index:
             wp.launch(gauge_k.hazard_block_speed, dim=len(self.slide_index), inputs=[sim.block_state.v, self.slide_d, t],
                       outputs=[self.slide_stats], device=d)
-        if t + 1e-12 >= self.next_t:
+        if self.wants_water():
             self.sample()
             k = math.floor((t - self.t_start) / self.interval + 1e-9) + 1
             self.next_t = self.t_start + k * self.interval
@@ -142,7 +146,8 @@ class HazardMonitor(SampledRecorder):
             self.columns.append((len(lines), pos))
             lines += [SimpleNamespace(name=f"{r.name}_{c}", kind="height", position_m=list(p)) for c, p in enumerate(pos)]
         self.n_wave = len(self.waves)
-        self.gauges = Gauges(scene, fluid, d, sim.blocks, sim.block_state, gauges=lines) if lines else None
+        host = sim.state if isinstance(sim.state, HostWater) else None  # rank 0 of several: the water on the host
+        self.gauges = Gauges(scene, fluid, d, sim.blocks, sim.block_state, gauges=lines, host=host) if lines else None
         self.t_start = sim.time
         # still levels: given, or the reading now
         errors = []
@@ -254,9 +259,10 @@ class HazardMonitor(SampledRecorder):
         if self.crossings:
             m = sim.fluid
             self.cross_vol.zero_()
-            wp.launch(gauge_k.hazard_side_volume, dim=(m.n_fluid, len(self.crossings)),
-                      inputs=[sim.state.x, sim.state.rho, m.particle_mass, self.cross_point, self.cross_normal],
-                      outputs=[self.cross_vol], device=d)
+            for k, a in fluid_chunks(sim.state, m, ("x", "rho")):
+                wp.launch(gauge_k.hazard_side_volume, dim=(k, len(self.crossings)),
+                          inputs=[a["x"], a["rho"], a["mass"], self.cross_point, self.cross_normal],
+                          outputs=[self.cross_vol], device=d)
             wp.launch(gauge_k.hazard_crossing_update, dim=len(self.crossings), inputs=[self.cross_vol, t],
                       outputs=[self.cross_stats], device=d)
         self.samples += 1

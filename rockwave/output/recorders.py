@@ -31,6 +31,7 @@ from rockwave.output import usd, vtk
 from rockwave.output.usd import UsdFrameWriter, points_setup
 from rockwave.sim.checkpoint import csv_restore, csv_state
 from rockwave.sim.energy import COLUMNS
+from rockwave.sim.readers import HostWater
 
 FLUID_PRIM = "/World/fluid"
 BLOCKS_PRIM = "/World/blocks"
@@ -90,6 +91,9 @@ class Frame:
             return None
         st = self.sim.state
         xs = self.x[:, :3]
+        if isinstance(st, HostWater):  # rank 0 of several: the water on the host, on the device a chunk at a time
+            parts = ((a["x"], a["rho"]) for _, a in st.fluid_chunks(("x", "rho")))
+            return self._surface.extract_parts(parts, xs.min(axis=0), xs.max(axis=0))
         return self._surface.extract(st.x[: self.n_fluid], st.rho, xs.min(axis=0), xs.max(axis=0))
 
 

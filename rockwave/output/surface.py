@@ -130,10 +130,11 @@ class SurfaceExtractor:
             self._buffers[name] = b
         return b
 
-    def field(self, x: wp.array, rho: wp.array, lo: np.ndarray, hi: np.ndarray):
+    def field(self, x: wp.array, rho: wp.array, lo: np.ndarray, hi: np.ndarray, parts=None):
         """The scalar field on the grid covering [lo, hi] padded by R + one cell.
         Returns (field wp.array3d, lower corner (3,), cell size); the field is a view of a buffer the
-        extractor reuses, valid until its next call."""
+        extractor reuses, valid until its next call. ``parts``: (x, rho) pairs of device arrays whose fields
+        are summed (the chunks of water held on the host: the field is a sum over particles), instead of x, rho."""
         pad = self.radius + self.cell
         lower = np.asarray(lo, np.float64)[:3] - pad
         upper = np.asarray(hi, np.float64)[:3] + pad
@@ -155,11 +156,12 @@ class SurfaceExtractor:
         f = buf[:size].reshape(shape)  # a view of the kept buffer
         f.zero_()
         with wp.ScopedDevice(self.device):
-            g = self._particle_cells(x, rho, lower, (n - 1) * cell)
-            run = self.node_run
-            wp.launch(surface_k.fluid_field, dim=((f.shape[0] + run - 1) // run, f.shape[1], f.shape[2]),
-                      inputs=[g, lower32, float(cell), self.radius, self.kind, self.dim, float(self.metaball_norm), run],
-                      outputs=[f])
+            for px, prho in (parts if parts is not None else [(x, rho)]):
+                g = self._particle_cells(px, prho, lower, (n - 1) * cell)
+                run = self.node_run
+                wp.launch(surface_k.fluid_field, dim=((f.shape[0] + run - 1) // run, f.shape[1], f.shape[2]),
+                          inputs=[g, lower32, float(cell), self.radius, self.kind, self.dim, float(self.metaball_norm),
+                                  run], outputs=[f])
         return f, lower, cell
 
     def _particle_cells(self, x: wp.array, rho: wp.array, lower: np.ndarray, extent: np.ndarray) -> surface_k.ParticleCells:
@@ -201,6 +203,14 @@ class SurfaceExtractor:
             xn = x.numpy()
             lo, hi = xn.min(axis=0), xn.max(axis=0)
         f, lower, cell = self.field(x, rho, lo, hi)
+        if self.dim == 3:
+            return self._cubes(f, lower, cell)
+        return self._squares(f, lower, cell)
+
+    def extract_parts(self, parts, lo, hi) -> SurfaceMesh:
+        """Surface of the water given as (x, rho) chunks of device arrays (an iterable; the field of each added,
+        field()) whose particles lie in the box [lo, hi]."""
+        f, lower, cell = self.field(None, None, lo, hi, parts=parts)
         if self.dim == 3:
             return self._cubes(f, lower, cell)
         return self._squares(f, lower, cell)

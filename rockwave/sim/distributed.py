@@ -38,15 +38,16 @@ Hydrodynamics simulations", IEEE TPDS 25(1)):
   bit-identical loads) and every rank integrates the blocks identically. The walls' impulse on the water
   (CouplingOptions.track_walls, Coupling.wall_impulse) is summed over the ranks the same way.
 * Rank 0 drives: ``advance`` and ``step`` on rank 0 broadcast a command that the other ranks follow (``serve``);
-  after each advance the owned particles are gathered (one rank's rows at a time, written by id on rank 0's
-  device: kd.unpack_by_id) into rank 0's full FluidState, so readers, gauges,
-  recorders, run.json and checkpoints on rank 0 are those of a one-rank run. A checkpoint is the full state: it
+  after each advance the owned particles are gathered (one rank's rows at a time, written by id) into rank 0's
+  HostWater (rockwave/sim/readers.py): the whole water in rank 0's host memory, never on a device; readers, gauges,
+  the surface, the hazard monitor, run.json and checkpoints on rank 0 are those of a one-rank run, the kernels
+  among them run over chunks of it (``output_chunk`` particles at a time). A checkpoint is the whole state: it
   resumes on any number of ranks (rank 0 scatters it again when its clock differs from the last one it
   distributed).
 * Start: each rank seeds only its slab (rockwave/build/slab.py: the faces from the whole scene's per-column
-  counts, the particles with the whole seeding's positions, densities and ids); rank 0 then holds the whole
-  state for its outputs (no neighbour lists), filled by the first gather. ``slab_build=False`` (and the scenes the
-  slab build does not cover) build the whole scene on every rank, rank 0 scatters it, the others drop it.
+  counts, the particles with the whole seeding's positions, densities and ids); rank 0's HostWater is filled by
+  the first gather. ``slab_build=False`` (and the scenes the slab build does not cover) build the whole scene on
+  every rank, rank 0 scatters it, all drop it from their devices.
 
 Results differ from one rank within float32 round-off, not bit for bit: a rank's neighbour lists hold the same
 pairs in another order, so the float32 sums over neighbours are added in another order; the block loads are summed
@@ -72,6 +73,7 @@ from rockwave.kernels.sim import distributed as kd
 from rockwave.kernels.sph import fluid as sph
 from rockwave.scene.format import Scene, load_scene
 from rockwave.sim import checkpoint as ckpt
+from rockwave.sim.readers import HostWater
 from rockwave.sim.simulation import Simulation, SimulationOptions
 from rockwave.sim.transport import KINDS, make_transport
 from rockwave.sph.fluid import Density, FluidOptions, FluidSolver, FluidState, fluid_dt_limit
@@ -268,6 +270,9 @@ class DistributedFluid:
         sel = (xb[:, ax] >= self.lo - reach) & (xb[:, ax] < self.hi + reach) if len(xb) else np.zeros(0, bool)
         self.boundary_index = np.flatnonzero(sel)
         self.xb, self.mb = xb[self.boundary_index], self._mb_all[self.boundary_index]
+        # the walls whose wall pressure this rank reports to rank 0's outputs: those in its slab (each wall on one
+        # rank; its fluid within H is in the rank's owned particles and halo)
+        self._wall_mine = self.dec.owner(self.xb[:, ax]) == self.rank if len(self.xb) else np.zeros(0, bool)
         d = self.device
         self._xb_dev = wp.array(self.xb.astype(np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
         self._mb_dev = wp.array(np.asarray(self.mb, np.float32), dtype=float, device=d)
@@ -350,6 +355,16 @@ class DistributedFluid:
         self._launch(kd.classify, n, [self.state.x, self.dec.axis, _finite(self.lo), _finite(self.hi), self.dec.halo,
                                       *flags])
         return flags
+
+    def start_walls(self) -> None:
+        """The walls' pressure of a fresh layout (a start or a restore), as the one-process build computes it for
+        its initial state (Adami walls: extrapolated from the owned and halo fluid; the gauges read it before the
+        first step); nothing with other walls."""
+        sv = self.solver
+        if sv.model.params.boundary == sph.BOUNDARY_ADAMI and sv.model.n_boundary and self.n_own:
+            with wp.ScopedDevice(self.device):
+                sv.build_cells(self.state)
+                sv.wall_pressure(self.state)
 
     def relayout(self) -> None:
         """At a list rebuild (collective): owned particles that left the slab go to the neighbour (migration; the
@@ -582,41 +597,56 @@ class DistributedFluid:
         self.set_owned(mine)
 
     def gather(self) -> None:
-        """Rank 0's full FluidState := the union of the owned particles, in id order (an output): rank 0 takes one
-        rank's rows at a time (its own from its device; the others' through a host buffer of that rank's rows),
-        and a kernel writes each row to the slot of its id (kd.unpack_by_id): no host array of the whole scene."""
+        """Rank 0's HostWater (rockwave/sim/readers.py) := the union of the owned particles, in id order (an
+        output): rank 0 takes one rank's rows at a time (its own from its device; the others' through MPI into a
+        host buffer of that rank's rows) and writes each row to the slot of its id on the host; likewise the
+        walls' pressure and velocity, each wall from the rank whose slab holds it. Nothing of the whole scene on
+        a device."""
         MPI = require_mpi()
         rows = self._pack_full(self._own_idx) if self.n_own else wp.zeros((0, kd.FULL_COLS), dtype=float,
                                                                              device=self.device)
         counts = np.array(self.comm.allgather(self.n_own), np.int64)
         migrated = self.comm.reduce(self.migrated, op=MPI.SUM, root=0)
+        walls = self._wall_rows()
         if self.rank != 0:
             if self.n_own:
                 self.comm.Send([np.ascontiguousarray(rows.numpy()), MPI.FLOAT], dest=0, tag=41)
+            self.comm.send(walls, dest=0, tag=42)
             return
         self.migrated_total = int(migrated)
-        st, nf, d = self.sim.state, self.n_global, self.device
-        seen = wp.zeros(max(nf, 1), dtype=int, device=d)
+        host, nf = self.sim.state, self.n_global
+        seen = np.zeros(nf, bool)
         for r in range(self.size):
-            if counts[r] == 0:
-                continue
-            if r == 0:
-                buf = rows
-            else:
-                host = np.empty((int(counts[r]), kd.FULL_COLS), np.float32)
-                self.comm.Recv([host, MPI.FLOAT], source=r, tag=41)
-                buf = wp.array(host, dtype=float, device=d)
-            self._launch(kd.unpack_by_id, buf.shape[0], [buf, nf, st.x, st.v, st.rho, st.accel, st.pressure, st.ids,
-                                                         seen])
-        got = seen.numpy()[:nf]
-        if int(counts.sum()) != nf or not (got == 1).all():
+            if counts[r]:
+                if r == 0:
+                    buf = rows.numpy()
+                else:
+                    buf = np.empty((int(counts[r]), kd.FULL_COLS), np.float32)
+                    self.comm.Recv([buf, MPI.FLOAT], source=r, tag=41)
+                ids = buf[:, 11].astype(np.int64) * ID_SPLIT + buf[:, 12].astype(np.int64)
+                if ids.min() < 0 or ids.max() >= nf or seen[ids].any():
+                    raise RuntimeError(f"rank {r} sent particle ids outside 0..{nf - 1} or held by another rank")
+                seen[ids] = True
+                host.x[ids], host.v[ids], host.rho[ids] = buf[:, 0:3], buf[:, 3:6], buf[:, 6]
+                host.accel[ids], host.pressure[ids] = buf[:, 7:10], buf[:, 10]
+            idx, wp_, wv = walls if r == 0 else self.comm.recv(source=r, tag=42)
+            host.wall_pressure[idx], host.wall_velocity[idx] = wp_, wv
+        if int(counts.sum()) != nf or not seen.all():
             raise RuntimeError(f"rank 0 gathered {int(counts.sum())} particles for {nf}: a particle was lost or "
                                "duplicated")
-        self.sim.fluid_solver._in_original_order = True
-        self.sim.fluid_solver.invalidate_lists()
-        if getattr(self.sim, "_fill_initial", False):  # a slab build: the start's positions (EnergyBudget's reference)
-            self.sim.fluid.initial_positions[:nf] = st.x.numpy()[:nf]
+        if getattr(self.sim, "_fill_initial", False):  # the start's positions (EnergyBudget's reference)
+            self.sim.fluid.initial_positions[:nf] = host.x[:nf]
             self.sim._fill_initial = False
+
+    def _wall_rows(self) -> tuple:
+        """(global wall indices, wall pressures, wall velocities) of the walls in this rank's slab."""
+        mine = self._wall_mine
+        if not mine.any():
+            return np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros((0, 3), np.float32)
+        k = np.flatnonzero(mine)
+        st = self.state
+        return (self.boundary_index[k], st.wall_pressure.numpy()[k],
+                st.wall_velocity.numpy().reshape(-1, 3)[k])
 
     def bytes_per_particle(self) -> float:
         """Device bytes this rank holds for its water (rank arrays, solver lists and grids, exchange buffers) per
@@ -644,15 +674,18 @@ ID_SPLIT = 1 << 20  # kernels/sim/distributed.py: a global id in two float32 par
 
 
 def state_rows(st: FluidState, nf: int) -> np.ndarray:
-    """Host rows (kd.FULL_COLS layout) of the nf fluid particles of ``st``, in id order (the ranks' slots in a
-    reproducible order)."""
-    ids = st.ids.numpy()[:nf].astype(np.int64)
+    """Host rows (kd.FULL_COLS layout) of the nf fluid particles of ``st`` (a FluidState or a HostWater), in id
+    order (the ranks' slots in a reproducible order)."""
+    def host(a):
+        return a if isinstance(a, np.ndarray) else a.numpy()
+
+    ids = host(st.ids)[:nf].astype(np.int64)
     rows = np.zeros((nf, kd.FULL_COLS), np.float32)
-    rows[:, 0:3] = st.x.numpy()[:nf]
-    rows[:, 3:6] = st.v.numpy()[:nf]
-    rows[:, 6] = st.rho.numpy()[:nf]
-    rows[:, 7:10] = st.accel.numpy()[:nf]
-    rows[:, 10] = st.pressure.numpy()[:nf]
+    rows[:, 0:3] = host(st.x)[:nf]
+    rows[:, 3:6] = host(st.v)[:nf]
+    rows[:, 6] = host(st.rho)[:nf]
+    rows[:, 7:10] = host(st.accel)[:nf]
+    rows[:, 10] = host(st.pressure)[:nf]
     rows[:, 11], rows[:, 12] = ids // ID_SPLIT, ids % ID_SPLIT
     return rows[np.argsort(ids, kind="stable")]
 
@@ -715,6 +748,39 @@ def _lap(timings: dict, key: str, t0: float) -> float:
     return now
 
 
+class HostWaterProvider:
+    """Rank 0's checkpoint group "fluid" (rockwave/sim/checkpoint.py): the HostWater as the one-process FluidProvider
+    writes a FluidState (same names and shapes, id order; the solver's list-build positions and a rebuild flag
+    set), so a checkpoint resumes on any number of ranks; restored in id order whatever the writer's slot order."""
+
+    def __init__(self, sim):
+        self.sim = sim
+
+    def capture(self):
+        h = self.sim.state
+        n = h.n_fluid
+        arrays = {"x": h.x.copy(), "v": h.v.copy(), "rho": h.rho.copy(), "pressure": h.pressure.copy(),
+                  "accel": h.accel.copy(), "xsph_dv": np.zeros((n, 3), np.float32), "drho_dt": np.zeros(n, np.float32),
+                  "ids": h.ids.copy(), "wall_pressure": h.wall_pressure.copy(), "wall_velocity": h.wall_velocity.copy(),
+                  "solver/x_build": h.x[:n].copy(), "solver/rebuild": np.ones(1, np.int32)}
+        return arrays
+
+    def pack(self, captured):
+        return captured, {}
+
+    def restore(self, arrays, meta):
+        h = self.sim.state
+        n = h.n_fluid
+        ids = np.asarray(arrays["ids"], np.int64)[:n]
+        if len(ids) != n or not np.array_equal(np.sort(ids), np.arange(n)):
+            raise ckpt.CheckpointError(f"the checkpoint's fluid ids are not a permutation of 0..{n - 1}")
+        for name in ("x", "v", "rho", "pressure", "accel"):
+            getattr(h, name)[ids] = np.asarray(arrays[name], np.float32)[:n]
+        for name in ("wall_pressure", "wall_velocity"):
+            a = np.asarray(arrays[name], np.float32)
+            getattr(h, name)[: len(a)] = a
+
+
 class DistributedSimulation(Simulation):
     """A Simulation stepped by every rank of ``comm`` together (module doc). Rank 0 is the one to use:
     ``run``, ``advance``, ``step`` and the readers work as on one rank; the other ranks call ``serve()``
@@ -724,12 +790,14 @@ class DistributedSimulation(Simulation):
     per-rank compute time) or "count" (owned particles); ``balance_tolerance`` None: the faces never move.
     ``slab_build``: each rank seeds only its slab (rockwave/build/slab.py; default); False: every rank builds the
     whole scene and rank 0 scatters it (the earlier start, kept for comparisons; also what scenes the slab build
-    does not cover take)."""
+    does not cover take). ``output_chunk``: rank 0 evaluates its outputs on the device this many particles at a time
+    (default HostWater.CHUNK); its ``state`` is a HostWater (the whole water on its host) and ``fluid_solver`` None."""
 
     def __init__(self, scene, device: str | None = None, options: SimulationOptions | None = None, comm=None,
                  balance_tolerance: float | None = 0.1, balance_interval: int = 20, transport: str = "auto",
-                 balance_by: str = "time", slab_build: bool = True):
+                 balance_by: str = "time", slab_build: bool = True, output_chunk: int | None = None):
         MPI = require_mpi()
+        self._output_chunk = output_chunk
         self._slab_wanted = bool(slab_build)
         if balance_by not in BALANCE_BY:
             raise ValueError(f"balance_by {balance_by!r}: expected one of {', '.join(BALANCE_BY)}")
@@ -758,22 +826,22 @@ class DistributedSimulation(Simulation):
             self.built = {"seeded": int(self.fluid.n_fluid), "held_points": int(self._slab["held"]),
                           "layout_window_points": int(self._slab["window"]), "whole": int(self.dfluid.n_global),
                           "slab_build": True}
-            if self.rank == 0:
-                self._output_water()
-            else:
-                self._release_global_water()
-            self.dfluid.gather()  # rank 0's whole state for its outputs (host rows, then its device)
         else:
             self.built = {"seeded": int(self.fluid.n_fluid), "held_points": int(self.fluid.n_fluid),
                           "layout_window_points": 0, "whole": int(self.fluid.n_fluid), "slab_build": False}
             self.dfluid.partition(self.state)
-            if self.rank != 0:  # the whole scene's water lives on rank 0 alone (its outputs); the others drop it
-                self._release_global_water()
-            else:  # rank 0 keeps the whole state for its outputs and checkpoints, not the whole scene's neighbour lists
-                self.fluid_solver.set_list_capacity(1)
+        self.dfluid.start_walls()
+        if self.rank == 0:  # the whole scene's water for the outputs: on rank 0's host (HostWater), not on a device
+            self._output_water()
+        else:
+            self._release_global_water()
+        self.dfluid.gather()  # fills rank 0's HostWater
         self._synced_time = self.clock.time
         self._last_gather = time.perf_counter()
-        self._gather_every_step = scene.hazard is not None  # the hazard monitor reads the state after every step
+        self._gather_every_step = scene.hazard is not None  # the hazard monitor may read the water after any step
+        # rank 0: a callable, True when a hook will read the water after the step just taken (the hazard monitor's
+        # sample times: rockwave/app/run.py sets it); None: after every step with a [hazard] section
+        self.gather_when = None
         self._collective = False
         self._busy = False  # rank 0 is inside a command the other ranks follow
         self.timings = self.dfluid.timings
@@ -814,31 +882,27 @@ class DistributedSimulation(Simulation):
         return parts
 
     def _output_water(self) -> None:
-        """Rank 0 after a slab build: the whole scene's water as a state to read (outputs, checkpoints; the
-        gather fills it), with a solver of one list slot (no neighbour lists of the whole scene)."""
-        loc, lst = self.fluid, self.state
-        n, nb, d = self.dfluid.n_global, loc.n_boundary, self.device
+        """Rank 0: the whole scene's water as a HostWater (rockwave/sim/readers.py: host arrays in id order, filled
+        by the gathers; the outputs' kernels see it in chunks) and a FluidModel of the whole scene whose arrays are
+        on the host; the device's state and solver of the build are dropped (the rank's own are in dfluid).
+        Readers, gauges, the surface, the hazard monitor and checkpoints read the HostWater."""
+        loc, df = self.fluid, self.dfluid
+        n, nb = df.n_global, loc.n_boundary
         xb = np.asarray(loc.initial_positions[loc.n_fluid:], float)
         init = np.zeros((n + nb, 3))  # the fluid rows from the first gather (energy.py reads the lowest)
         init[n:] = xb
-        mass = wp.empty(n + nb, dtype=float, device=d)
-        mass.fill_(self.dfluid.fluid_mass)
-        if nb:
-            wp.copy(mass, loc.particle_mass, n, loc.n_fluid, nb)
-        full = replace(loc, n_fluid=n, params=_copy_params(loc.params, n), particle_mass=mass,
+        masses = np.empty(n + nb, np.float32)  # on the host (a Warp view of numpy memory: .numpy() and fluid_mass)
+        masses[:n] = df.fluid_mass
+        masses[n:] = df._mb_all
+        full = replace(loc, n_fluid=n, params=_copy_params(loc.params, n),
+                       particle_mass=wp.array(masses, dtype=float, device="cpu", copy=False),
                        initial_positions=init, initial_velocities=np.zeros((1, 3)))
-        st = FluidState(
-            x=wp.zeros(n + nb, dtype=wp.vec3, device=d), v=wp.zeros(n + nb, dtype=wp.vec3, device=d),
-            rho=wp.zeros(n, dtype=float, device=d), pressure=wp.zeros(n, dtype=float, device=d),
-            accel=wp.zeros(n, dtype=wp.vec3, device=d), xsph_dv=wp.zeros(n, dtype=wp.vec3, device=d),
-            drho_dt=wp.zeros(n, dtype=float, device=d), ids=wp.zeros(n, dtype=int, device=d),
-            wall_pressure=wp.clone(lst.wall_pressure), wall_velocity=wp.clone(lst.wall_velocity))
-        if nb:
-            wp.copy(st.x, lst.x, n, loc.n_fluid, nb)
-        solver = FluidSolver(full, self.fluid_solver.options, list_capacity=1)
-        self.fluid, self.state, self.fluid_solver = full, st, solver
+        self.host_masses = masses  # (the view above does not own it)
+        self.fluid, self.fluid_solver = full, None
+        self.state = HostWater(n, xb, df._mb_all, df.fluid_mass, self.device, chunk=self._output_chunk)
         if self.coupling is not None:
             self.coupling.fluid = full
+        ckpt.register(self, "fluid", HostWaterProvider(self))
         self._fill_initial = True
 
     def _release_global_water(self) -> None:
@@ -859,6 +923,9 @@ class DistributedSimulation(Simulation):
                 "rebalances": df.rebalances, "solver_reuses": df.solver_reuses, "balance_by": self.balance_by, "migrated": df.migrated_total,
                 "rank0_owned": df.n_own, "rank0_halo": df.n_halo, "rank0_build": self.built,
                 "rank0_bytes_per_particle": round(df.bytes_per_particle(), 1),
+                "rank0_output_device_bytes": self.state.device_bytes() if isinstance(self.state, HostWater) else 0,
+                "rank0_output_chunk": self.state.chunk if isinstance(self.state, HostWater) else None,
+                "rank0_whole_scene_device_arrays": whole_scene_device_arrays(self),
                 "rank0_seconds": {k: round(v, 4) for k, v in df.timings.items()}}
 
     # ------------------------------------------------------------ the clock's questions ----
@@ -868,10 +935,12 @@ class DistributedSimulation(Simulation):
             base = out["fluid"]
 
             def fluid(initial: bool) -> float:
-                if initial or not self._collective:  # rank 0 alone (a checkpoint restore): its full state
+                if initial:
                     return base(initial)
-
-                v2, a2 = self.dfluid.motion_extrema()
+                if self._collective:
+                    v2, a2 = self.dfluid.motion_extrema()
+                else:  # rank 0 alone (a checkpoint restore): the whole water on its host, in chunks on the device
+                    v2, a2 = self.state.motion_extrema()
                 return fluid_dt_limit(self.fluid, self._cfl, math.sqrt(v2), math.sqrt(a2))
 
             out["fluid"] = fluid
@@ -967,6 +1036,7 @@ class DistributedSimulation(Simulation):
                 for k, (arrays, meta) in sync.items():
                     provs[k].restore(arrays, meta)
             self.dfluid.partition(self.state)
+            self.dfluid.start_walls()
             self._synced_time = self.clock.time
 
     def serve(self) -> None:
@@ -1030,10 +1100,13 @@ class DistributedSimulation(Simulation):
         self._synced_time = self.clock.time
 
     def _advance(self, duration: float, watch, gather: bool = True) -> None:
+        def due() -> bool:  # rank 0: does anything read the water after this step?
+            if time.perf_counter() - self._last_gather >= GATHER_WALL_S:
+                return True
+            return self._gather_every_step and (self.gather_when is None or bool(self.gather_when()))
+
         def after_step():
-            now = self.comm.bcast(time.perf_counter() - self._last_gather >= GATHER_WALL_S if self.rank == 0 else None,
-                                  root=0)
-            if now or self._gather_every_step:
+            if self.comm.bcast(due() if self.rank == 0 else None, root=0):
                 self.dfluid.gather()
                 self._last_gather = time.perf_counter()
             if watch is not None:
@@ -1052,6 +1125,29 @@ class DistributedSimulation(Simulation):
         self._synced_time = self.clock.time
 
 
+def whole_scene_device_arrays(sim) -> int:
+    """Live Warp allocations on ``sim``'s device (not views: slices, numpy memory) as long as the whole scene's
+    water (n_fluid or n_fluid + n_boundary elements of the whole scene: what rank 0's output state was), other
+    than the rank's own step arrays (those reachable from sim.dfluid, whose owned + halo count may equal n)."""
+    import gc
+    import types
+
+    n, nb = sim.dfluid.n_global, sim.fluid.n_boundary
+    dev = wp.get_device(sim.device)
+    own, seen, todo = set(), {id(sim)}, [sim.dfluid]
+    while todo:  # the objects reachable from the rank's water, not through the simulation
+        o = todo.pop()
+        if id(o) in seen or isinstance(o, (type, type(sys), types.FunctionType, types.MethodType)):
+            continue
+        seen.add(id(o))
+        if isinstance(o, wp.array):
+            own.add(id(o))
+        todo.extend(gc.get_referents(o))
+    return sum(1 for o in gc.get_objects() if isinstance(o, wp.array) and id(o) not in own
+               and getattr(o, "device", None) == dev and getattr(o, "deleter", None) is not None
+               and o.ptr is not None and o.shape[0] in (n, n + nb))
+
+
 def _main(argv=None) -> int:
     """``mpiexec -n N python -m rockwave.sim.distributed SCENE --duration T --out STATE.npz``: advance T seconds
     on N ranks (``--plain``: the one-process Simulation, no MPI) and save the gathered particles and blocks
@@ -1068,6 +1164,8 @@ def _main(argv=None) -> int:
     ap.add_argument("--balance-by", choices=BALANCE_BY, default="count", help="a rank's load: its owned particles "
                     "(count, default: reproducible) or its measured compute time (time)")
     ap.add_argument("--transport", choices=KINDS, default="auto", help="how halos travel (default auto)")
+    ap.add_argument("--output-chunk", type=int, default=None, help="rank 0 evaluates its outputs on the device this "
+                    "many particles at a time (default HostWater.CHUNK)")
     ap.add_argument("--track-walls", action="store_true", help="sum the fixed and kinematic blocks' force on the "
                     "water (CouplingOptions.track_walls) and save it as wall_impulse")
     a = ap.parse_args(argv)
@@ -1078,7 +1176,7 @@ def _main(argv=None) -> int:
         options = SimulationOptions(coupling=replace(coupling_options(load_scene(a.scene)), track_walls=True))
     sim = (Simulation(a.scene, device=a.device, options=options) if a.plain else
            DistributedSimulation(a.scene, device=a.device, options=options, balance_tolerance=a.balance,
-                                 balance_by=a.balance_by, transport=a.transport))
+                                 balance_by=a.balance_by, transport=a.transport, output_chunk=a.output_chunk))
     if not a.plain:  # each rank's seeded particles and the most lattice points its build held
         built = sim.comm.gather(sim.built["seeded"], root=0)
         held = sim.comm.gather(sim.built["held_points"], root=0)
@@ -1095,6 +1193,7 @@ def _main(argv=None) -> int:
         save.update(migrated=df.migrated_total, axis=df.dec.axis, rebalances=df.rebalances, faces=df.dec.faces,
                     relayouts=df.relayouts, rank_steps=df.steps, transport=sim.transport, solver_reuses=df.solver_reuses,
                     bytes_per_particle=df.bytes_per_particle(),
+                    whole_device_arrays=whole_scene_device_arrays(sim), host_water=isinstance(sim.state, HostWater),
                     built=np.array(built), built_held=np.array(held), slab_build=sim.built["slab_build"])
         sim.close()
     np.savez(a.out, **save)

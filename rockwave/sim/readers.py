@@ -76,6 +76,108 @@ def face_samples(geometry, dim: int, step: float) -> tuple[np.ndarray, np.ndarra
     return np.concatenate(pts), np.concatenate(areas)
 
 
+class HostWater:
+    """The whole scene's water held on the host (rank 0 of a distributed run, rockwave/sim/distributed.py): numpy
+    float32 arrays in id order (x and v: the fluid, then the static walls; rho, pressure, accel: the fluid; the
+    walls' pressure and velocity), filled from the ranks a chunk at a time. Device kernels see it in chunks of at
+    most ``chunk`` particles (``fluid_chunks``, ``wall_chunks``), copied into device buffers that are kept from
+    call to call: the device holds ``chunk`` particles of it, never the whole scene. A sum over particles (the
+    gauges' profiles and Shepard sums, the hazard's volumes, the surface field) is the sum of the chunks' sums."""
+
+    CHUNK = 1 << 21  # particles per chunk (at most 52 B each of device buffers: x, v, a, rho, p, mass, the walls')
+
+    def __init__(self, n_fluid: int, xb: np.ndarray, wall_mass: np.ndarray, fluid_mass: float, device,
+                 chunk: int | None = None):
+        n, nb = int(n_fluid), len(xb)
+        self.n_fluid, self.n_boundary = n, nb
+        self.x = np.zeros((n + nb, 3), np.float32)
+        self.x[n:] = np.asarray(xb, np.float32).reshape(-1, 3)
+        self.v = np.zeros((n + nb, 3), np.float32)
+        self.rho = np.zeros(n, np.float32)
+        self.pressure = np.zeros(n, np.float32)
+        self.accel = np.zeros((n, 3), np.float32)
+        self.ids = np.arange(n, dtype=np.int32)  # id order: slot i holds particle i
+        self.wall_pressure = np.zeros(max(nb, 1), np.float32)
+        self.wall_velocity = np.zeros((max(nb, 1), 3), np.float32)
+        self.fluid_mass = float(fluid_mass)
+        self.wall_mass = np.asarray(wall_mass, np.float32).reshape(-1)
+        self.device = device
+        self.chunk = max(int(chunk or self.CHUNK), 1)
+        self._dev: dict[str, wp.array] = {}  # the chunk buffers on the device
+
+    def _upload(self, name: str, host: np.ndarray, dtype) -> wp.array:
+        """host (rows of one chunk) in the device buffer ``name`` (made once: a chunk, or less in a small scene)."""
+        buf = self._dev.get(name)
+        if buf is None:
+            buf = self._dev[name] = wp.empty(self._length(), dtype=dtype, device=self.device)
+        n = len(host)
+        if n:
+            wp.copy(buf, wp.array(np.ascontiguousarray(host), dtype=dtype, device="cpu", copy=False), 0, 0, n)
+        return buf[:n]
+
+    def _length(self) -> int:
+        return max(min(self.chunk, max(self.n_fluid, self.n_boundary)), 1)
+
+    def _mass(self, n: int) -> wp.array:
+        buf = self._dev.get("mass")
+        if buf is None:
+            buf = self._dev["mass"] = wp.empty(self._length(), dtype=float, device=self.device)
+            buf.fill_(self.fluid_mass)
+        return buf[:n]
+
+    def fluid_chunks(self, fields=("x", "rho", "pressure")):
+        """The fluid in chunks: (n, arrays) with arrays[f] the device copy of ``f`` of particles [start, start + n)
+        and arrays["mass"] their masses (all equal: a distributed run's fluid particles share one mass)."""
+        types = {"x": wp.vec3, "v": wp.vec3, "accel": wp.vec3, "rho": float, "pressure": float}
+        for s in range(0, self.n_fluid, self.chunk):
+            e = min(s + self.chunk, self.n_fluid)
+            arrays = {f: self._upload(f, getattr(self, f)[s:e], types[f]) for f in fields}
+            arrays["mass"] = self._mass(e - s)
+            yield e - s, arrays
+
+    def wall_chunks(self):
+        """The static walls in chunks: (n, positions, pressures, masses) device copies."""
+        nf = self.n_fluid
+        for s in range(0, self.n_boundary, self.chunk):
+            e = min(s + self.chunk, self.n_boundary)
+            yield (e - s, self._upload("x", self.x[nf + s: nf + e], wp.vec3),
+                   self._upload("wall_pressure", self.wall_pressure[s:e], float),
+                   self._upload("wall_mass", self.wall_mass[s:e], float))
+
+    def motion_extrema(self) -> tuple[float, float]:
+        """max |v|^2 and |a|^2 over the fluid (kernels/sph/fluid.py motion_extrema over the chunks)."""
+        out = wp.zeros(2, dtype=float, device=self.device)
+        for n, a in self.fluid_chunks(("v", "accel")):
+            stride = min(n, 16384)
+            wp.launch(sph.motion_extrema, dim=stride, inputs=[a["v"], a["accel"], n, stride], outputs=[out],
+                      device=self.device)
+        v2, a2 = (float(c) for c in out.numpy())
+        return v2, a2
+
+    def device_bytes(self) -> int:
+        """Bytes of the chunk buffers on the device."""
+        return sum(b.capacity for b in self._dev.values())
+
+
+def _params_with(p, n_fluid: int):
+    """A copy of the SPHParams ``p`` with ``n_fluid`` fluid particles."""
+    q = sph.SPHParams()
+    for name in sph.SPHParams.vars:
+        setattr(q, name, getattr(p, name))
+    q.n_fluid = n_fluid
+    return q
+
+
+def fluid_chunks(state, m, fields=("x", "rho", "pressure")):
+    """(n, arrays) over the fluid of ``state``: a HostWater's chunks, or the device state in one piece."""
+    if isinstance(state, HostWater):
+        yield from state.fluid_chunks(fields)
+        return
+    arrays = {f: getattr(state, f) for f in fields}
+    arrays["mass"] = m.particle_mass
+    yield m.n_fluid, arrays
+
+
 class ForceGauges:
     """Force gauges (``[[output.gauges]]`` kind 'force'): the water's pressure force on a block along a direction,
     F . e = -sum_k p(x_k) A_k (n_k . e) over points x_k on the block's faces (face_samples, half a particle spacing
@@ -141,6 +243,8 @@ class ForceGauges:
         m = self.fluid
         pts, areas = self.world(block_state)
         self.points.assign(pts.astype(np.float32))
+        if isinstance(state, HostWater):
+            return self._chunked_pressures(state), areas
         n_all = m.n_fluid + m.n_boundary
         self.grid.build(state.x, m.support_radius)
         adami = int(m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary > 0)
@@ -148,6 +252,23 @@ class ForceGauges:
                   inputs=[self.grid.id, state.x, state.rho, state.pressure, state.wall_pressure, m.particle_mass, adami,
                           n_all, self.points, m.params, self.WET_MIN], outputs=[self.p], device=self.device)
         return self.p.numpy().astype(np.float64), areas
+
+    def _chunked_pressures(self, host: HostWater) -> np.ndarray:
+        """pressures() over a HostWater: the four Shepard sums at each point (fluid and wall, numerator and
+        volume) summed over its chunks (a hash grid of each chunk), then surface_pressure's ratio."""
+        m, d, n = self.fluid, self.device, len(self.body_r)
+        sums = wp.zeros((n, 4), dtype=float, device=d)
+        for k, a in host.fluid_chunks():
+            self.grid.build(a["x"], m.support_radius)
+            wp.launch(gauge_k.surface_pressure_sums, dim=n, inputs=[self.grid.id, a["x"], a["rho"], a["pressure"], a["mass"],
+                                                                  0, k, self.points, m.params], outputs=[sums], device=d)
+        if m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary:
+            for k, xw, pw, mw in host.wall_chunks():
+                self.grid.build(xw, m.support_radius)
+                wp.launch(gauge_k.surface_pressure_sums, dim=n, inputs=[self.grid.id, xw, pw, pw, mw, 1, k, self.points,
+                                                                      m.params], outputs=[sums], device=d)
+        wp.launch(gauge_k.surface_pressure_finish, dim=n, inputs=[sums, self.WET_MIN], outputs=[self.p], device=d)
+        return self.p.numpy().astype(np.float64)
 
     def read(self, state, block_state) -> np.ndarray:
         """Each gauge's force along its direction [N; 2D N/m]."""
@@ -264,7 +385,8 @@ class Gauges:
 
     MAX_SAMPLES = 1 << 16  # per gauge line; the step grows past s/8 only for a domain 8192 spacings tall
 
-    def __init__(self, scene, fluid, device, blocks=None, block_state=None, gauges=None):
+    def __init__(self, scene, fluid, device, blocks=None, block_state=None, gauges=None, host=None):
+        """``host``: the HostWater the readings will come from (rank 0 of a distributed run; its static walls)."""
         g = scene.output.gauges if gauges is None else gauges  # gauges: objects with name, kind, position_m
         self.names = [gg.name for gg in g]
         self.fluid = fluid
@@ -290,7 +412,12 @@ class Gauges:
         self.phi_f = wp.zeros((rows, self.n_samples), dtype=float, device=device)
         self.phi_s = wp.zeros((rows, self.n_samples), dtype=float, device=device)
         nf, nb = fluid.n_fluid, fluid.n_boundary - getattr(fluid, "n_moving_walls", 0)
-        if any(heights) and nb:  # the static walls: their fraction along the lines once (not the moving blocks')
+        if any(heights) and nb and host is not None:  # the walls of a HostWater, in chunks
+            for k, xw, _, mw in host.wall_chunks():
+                wp.launch(gauge_k.gauge_solid_profile, dim=(k, n), inputs=[xw, mw, 0, self.pos, self.is_height, up,
+                                                                          self.z0, self.dz, fluid.params],
+                          outputs=[self.phi_s], device=device)
+        elif any(heights) and nb:  # the static walls: their fraction along the lines once (not the moving blocks')
             xb = wp.array(np.asarray(fluid.initial_positions[nf:nf + nb], dtype=np.float32), dtype=wp.vec3, device=device)
             wp.launch(gauge_k.gauge_solid_profile, dim=(nb, n), inputs=[xb, fluid.particle_mass, nf, self.pos, self.is_height,
                                                                    up, self.z0, self.dz, fluid.params],
@@ -340,11 +467,19 @@ class Gauges:
             return PendingRead(None, None, lambda a: {})
         d = self.device
         self.sums.zero_()
-        wp.launch(gauge_k.gauge_pressure_sums, dim=(m.n_fluid, n), inputs=[state.x, state.rho, state.pressure, m.particle_mass,
-                                                                     self.pos, m.params], outputs=[self.sums], device=d)
+        for k, a in fluid_chunks(state, m):
+            wp.launch(gauge_k.gauge_pressure_sums, dim=(k, n), inputs=[a["x"], a["rho"], a["pressure"], a["mass"], self.pos,
+                                                                 m.params], outputs=[self.sums], device=d)
         if m.params.boundary == sph.BOUNDARY_ADAMI and m.n_boundary:  # Adami walls carry the fluid's pressure
-            wp.launch(gauge_k.gauge_pressure_wall_sums, dim=(m.n_boundary, n),
-                      inputs=[state.x, state.wall_pressure, m.particle_mass, self.pos, m.params], outputs=[self.sums], device=d)
+            if isinstance(state, HostWater):  # the walls' chunks: wall b at slot b (n_fluid 0 in the kernel's params)
+                p0 = _params_with(m.params, 0)
+                for k, xw, pw, mw in state.wall_chunks():
+                    wp.launch(gauge_k.gauge_pressure_wall_sums, dim=(k, n), inputs=[xw, pw, mw, self.pos, p0],
+                              outputs=[self.sums], device=d)
+            else:
+                wp.launch(gauge_k.gauge_pressure_wall_sums, dim=(m.n_boundary, n),
+                          inputs=[state.x, state.wall_pressure, m.particle_mass, self.pos, m.params], outputs=[self.sums],
+                          device=d)
         wp.launch(gauge_k.gauge_pressure, dim=n, inputs=[self.sums], outputs=[self.out], device=d)
         self.launch_levels(state)
         names = self.names
@@ -364,9 +499,10 @@ class Gauges:
         m = self.fluid
         if self.any_height and m.n_fluid:
             self.phi_f.zero_()
-            wp.launch(gauge_k.gauge_fluid_profile, dim=(m.n_fluid, len(self.names)),
-                      inputs=[state.x, state.rho, m.particle_mass, self.pos, self.is_height, self.up, self.z0, self.dz,
-                              m.params], outputs=[self.phi_f], device=self.device)
+            for k, a in fluid_chunks(state, m, ("x", "rho")):
+                wp.launch(gauge_k.gauge_fluid_profile, dim=(k, len(self.names)),
+                          inputs=[a["x"], a["rho"], a["mass"], self.pos, self.is_height, self.up, self.z0, self.dz,
+                                  m.params], outputs=[self.phi_f], device=self.device)
             moving = self.moving.launch(self.block_state) if self.moving is not None else self.phi_s
             wp.launch(gauge_k.gauge_level, dim=len(self.names),
                       inputs=[self.phi_f, self.phi_s, moving, int(self.moving is not None), self.is_height, self.z0,
@@ -418,8 +554,9 @@ class Readers:
         self._host = {}  # host buffers, two per quantity (pinned on CUDA)
         self._copied = {}  # CUDA: the event after the last copy of each quantity to the host
         self._stream = None  # CUDA: the stream of the copies to the host
+        host = sim.state if isinstance(sim.state, HostWater) else None
         self._gauges = (Gauges(sim.scene, sim.fluid, sim.device, getattr(sim, "blocks", None),
-                               getattr(sim, "block_state", None)) if sim.fluid is not None else None)
+                               getattr(sim, "block_state", None), host=host) if sim.fluid is not None else None)
 
     def view(self, name: str) -> np.ndarray:
         """state.<name>[:n_fluid] (x, v, rho or pressure) in the seeded order, in the state's precision
@@ -435,6 +572,8 @@ class Readers:
         st, m = self.sim.state, self.fluid
         a = getattr(st, name)
         nf = m.n_fluid
+        if isinstance(st, HostWater):  # already on the host, in id order (the seeded order)
+            return PendingRead(None, None, lambda h: a[:nf])
         if nf == 0:
             return PendingRead(None, None, lambda h: a.numpy()[:0])
         pair = self._host.get(name)
@@ -496,8 +635,9 @@ class Readers:
         return self.view("pressure").astype(np.float64)
 
     def boundary_positions(self) -> np.ndarray:
-        m = self.fluid
-        return self.sim.state.x.numpy()[m.n_fluid:, : self.dim].astype(np.float64)
+        m, st = self.fluid, self.sim.state
+        x = st.x if isinstance(st, HostWater) else st.x.numpy()
+        return x[m.n_fluid:, : self.dim].astype(np.float64)
 
     def gauges(self) -> dict[str, float]:
         if self._gauges is None:
