@@ -275,6 +275,23 @@ KGC_LAMBDA_FULL = wp.constant(0.75)
 KGC_LAMBDA_NONE = wp.constant(0.6)
 
 
+@wp.func
+def kgc_blend(m_in: wp.mat33, p: SPHParams) -> wp.mat33:
+    """L_i from the moment M_i (gradient_correction_matrix): symmetrised, then w M_i^-1 + (1 - w) I with w from
+    its smallest eigenvalue lambda, (lambda - KGC_LAMBDA_NONE)/(KGC_LAMBDA_FULL - KGC_LAMBDA_NONE) clipped to [0, 1]."""
+    m = m_in
+    ident = wp.identity(n=3, dtype=float)
+    if p.dim == 2:
+        m[2, 2] = 1.0
+    m = 0.5 * (m + wp.transpose(m))
+    q, d = wp.eig3(m)
+    lam = wp.min(wp.min(d[0], d[1]), d[2])
+    w = wp.clamp((lam - KGC_LAMBDA_NONE) / (KGC_LAMBDA_FULL - KGC_LAMBDA_NONE), 0.0, 1.0)
+    if w > 0.0:
+        return w * wp.inverse(m) + (1.0 - w) * ident
+    return ident
+
+
 @wp.kernel
 def gradient_correction_matrix(
     count: wp.array(dtype=int),
@@ -312,16 +329,7 @@ def gradient_correction_matrix(
             else:
                 vol = particle_mass[j] / p.rest_density
             m += vol * wp.outer(kernel_grad(rij, wp.sqrt(r2), p), -rij)
-    if p.dim == 2:
-        m[2, 2] = 1.0
-    m = 0.5 * (m + wp.transpose(m))
-    q, d = wp.eig3(m)
-    lam = wp.min(wp.min(d[0], d[1]), d[2])
-    w = wp.clamp((lam - KGC_LAMBDA_NONE) / (KGC_LAMBDA_FULL - KGC_LAMBDA_NONE), 0.0, 1.0)
-    if w > 0.0:
-        kgc[i] = w * wp.inverse(m) + (1.0 - w) * ident
-    else:
-        kgc[i] = ident
+    kgc[i] = kgc_blend(m, p)
 
 
 @wp.func
