@@ -35,17 +35,23 @@ def _pool(device: str, high: bool = False):
         return None
 
 
-def measure(device: str, spacing: float, level: str, neighbours: str, flow_s: float, warmup: int, steps: int) -> tuple:
+def measure(device: str, spacing: float, level: str, neighbours: str, flow_s: float, warmup: int, steps: int,
+            cell_span: int = 1) -> tuple:
     import warp as wp
 
+    import rockwave
     from benchmarks import harness as H
-    from benchmarks.common import timed
+    from benchmarks.common import ROOT, timed
+    from rockwave.sim.simulation import SimulationOptions
+    from rockwave.sph.fluid import FluidOptions
 
     gc.collect()
     pool0 = _pool(device)
     variant = {"fluid.fidelity": level, "fluid.neighbours": neighbours, "output.gauges": []}
     t0 = time.perf_counter()
-    sim = H.build("spheric", H.scene_dict("spheric", spacing, variant, strip=H.FORMULATION_KEYS), device)
+    scene = rockwave.parse_scene(H.scene_dict("spheric", spacing, variant, strip=H.FORMULATION_KEYS), "spheric.toml",
+                                 ROOT / "scenes")
+    sim = rockwave.Simulation(scene, device=device, options=SimulationOptions(fluid=FluidOptions(cell_span=cell_span)))
     build_s = time.perf_counter() - t0
     if flow_s > 0:
         sim.advance(flow_s)
@@ -60,7 +66,7 @@ def measure(device: str, spacing: float, level: str, neighbours: str, flow_s: fl
         nbrs = float(np.mean(fs.pair_counts(sim.state)))
     b = fs.device_bytes(sim.state)
     pool_hi = _pool(device, high=True)
-    row = dict(level=level, neighbours=neighbours, spacing_m=spacing, fluid=nf, boundary=sim.fluid.n_boundary,
+    row = dict(level=level, neighbours=neighbours, cell_span=cell_span, spacing_m=spacing, fluid=nf, boundary=sim.fluid.n_boundary,
                neighbours_within_H=nbrs, list_slots=fs.neighbour_cap, sim_time_s=sim.time, build_s=build_s,
                steps=steps, ms_per_step=1e3 * t / steps, particle_steps_per_s=nf * steps / t,
                pairs_per_s=nf * nbrs * steps / t, list_builds=builds if not wp.get_device(device).is_cuda else None,
@@ -68,7 +74,7 @@ def measure(device: str, spacing: float, level: str, neighbours: str, flow_s: fl
     if pool0 is not None and pool_hi is not None:
         row["pool_peak_b_per_particle"] = (pool_hi - pool0) / nf  # the pool's high-water mark above the start
     x = sim.positions()
-    del sim, fs
+    sim = fs = None  # (freed before the next build)
     gc.collect()
     return row, x
 
@@ -77,11 +83,11 @@ COLS = ("lists", "solver", "state", "model", "hash_grid", "total")
 
 
 def markdown(rows: list, head: str) -> str:
-    out = [head, "", "| level | neighbours | fluid | boundary | nbrs in H | ms/step | particle-steps/s | pairs/s | "
+    out = [head, "", "| level | neighbours (cell span) | fluid | boundary | nbrs in H | ms/step | particle-steps/s | pairs/s | "
            + " | ".join(f"{c} B" for c in COLS) + " | pool peak B | max dx / spacing |", "|---" * (10 + len(COLS)) + "|"]
     for r in rows:
         pk = r.get("pool_peak_b_per_particle")
-        out.append(f"| {r['level']} | {r['neighbours']} | {r['fluid']:,} | {r['boundary']:,} | {r['neighbours_within_H']:.1f} | "
+        out.append(f"| {r['level']} | {r['neighbours']} ({r.get('cell_span', 1)}) | {r['fluid']:,} | {r['boundary']:,} | {r['neighbours_within_H']:.1f} | "
                    f"{r['ms_per_step']:.3f} | {r['particle_steps_per_s']:.3g} | {r['pairs_per_s']:.3g} | "
                    + " | ".join(f"{r[c + '_b_per_particle']:.0f}" for c in COLS)
                    + f" | {'-' if pk is None else f'{pk:.0f}'} | {r.get('max_dx_spacings', 0.0):.2g} |")
@@ -98,6 +104,8 @@ def main() -> None:
     ap.add_argument("--spacing", type=float, default=0.04)
     ap.add_argument("--levels", nargs="+", default=["standard"])
     ap.add_argument("--neighbours", nargs="+", default=["lists", "cells"], choices=["lists", "cells"])
+    ap.add_argument("--cell-span", nargs="+", type=int, default=[1],
+                    help="FluidOptions.cell_span of the rows (y/z cells R/n wide, (2n+1)^2 columns a query)")
     ap.add_argument("--flow-s", type=float, default=0.2, help="simulated seconds of flow before the timed steps")
     ap.add_argument("--warmup", type=int, default=20)
     ap.add_argument("--steps", type=int, default=200)
@@ -111,13 +119,13 @@ def main() -> None:
     rows = []
     for lv in a.levels:
         first = None
-        for nb in a.neighbours:
-            row, x = measure(a.device, a.spacing, lv, nb, a.flow_s, a.warmup, a.steps)
+        for nb, span in [(nb, span) for span in a.cell_span for nb in a.neighbours]:
+            row, x = measure(a.device, a.spacing, lv, nb, a.flow_s, a.warmup, a.steps, span)
             if first is None:
                 first = x
             row["max_dx_spacings"] = float(np.abs(x - first).max() / a.spacing)
             rows.append(row)
-            log(f"  {lv} {nb}: {row['fluid']:,} particles, {row['ms_per_step']:.3f} ms/step, "
+            log(f"  {lv} {nb} (span {span}): {row['fluid']:,} particles, {row['ms_per_step']:.3f} ms/step, "
                 f"{row['particle_steps_per_s']:.3g} particle-steps/s, {row['total_b_per_particle']:.0f} B/particle")
     date = time.strftime("%Y-%m-%d")
     stem = a.out or str(RESULTS / f"{date}-{a.device.replace(':', '')}-neighbour_gather")

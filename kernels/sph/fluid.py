@@ -433,7 +433,8 @@ def pair_acceleration(
 class CellGrid:
     lo: wp.vec3  # grid origin
     inv_cx: float  # 1 / x-cell width
-    c: float  # y and z cell width (>= H)
+    c: float  # y and z cell width (>= H / span)
+    span: int  # y/z columns on each side of a particle's own that a query visits (c >= H / span)
     nx: int
     ny: int
     nz: int
@@ -502,11 +503,13 @@ def gather_sorted_positions(order: wp.array(dtype=int), x: wp.array(dtype=wp.vec
 
 @wp.func
 def slot_range(g: CellGrid, xi: wp.vec3, H: float, iy: int, iz: int, r: int):
-    """Sorted-slot range [s, e) number r of a query around xi: column col = r / 2 (dy = col % 3 - 1,
-    dz = col / 3 - 1), part r % 2 (the second part is non-empty only when the column's x-run wraps)."""
+    """Sorted-slot range [s, e) number r of a query around xi: column col = r / 2 of the (2 span + 1)^2 around the
+    particle's (dy = col % (2 span + 1) - span, dz = col / (2 span + 1) - span), part r % 2 (the second part is
+    non-empty only when the column's x-run wraps)."""
     col = r / 2
-    cy = iy + col % 3 - 1
-    cz = iz + col / 3 - 1
+    side = 2 * g.span + 1
+    cy = iy + col % side - g.span
+    cz = iz + col / side - g.span
     y0 = g.lo[1] + float(cy) * g.c
     z0 = g.lo[2] + float(cz) * g.c
     dy = wp.max(wp.max(y0 - xi[1], xi[1] - (y0 + g.c)), 0.0)

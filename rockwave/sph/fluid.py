@@ -69,6 +69,14 @@ class FluidOptions:
     cell_subdivision_x: int = 4
     """The list cell grid's x-cells are H/n wide [-]."""
 
+    cell_span: int = 1
+    """The cell grid's y and z cells are R/n wide (R the list radius) and a query visits the (2n + 1)^2 columns
+    around a particle's (2n + 1 in 2D) [-]. 1: 9 columns, candidates ~3.5x the sphere of R (3.8x the neighbours
+    within H at support 3); 2: 25 columns, ~2.2x (Monte Carlo over the particle's place in its cell). Measured on the
+    CPU (3D dam break, 10,850 particles, standard): 2 is slower, 157 vs 131 ms/step with lists and 205 vs 170 with
+    the cell gather (the runs' setup outweighs the candidates saved); a GPU may differ
+    (benchmarks/neighbour_gather.py --cell-span)."""
+
     min_cells: int = 1 << 20
     """The list cell grid wraps past max(min_cells, cells_per_particle x particles) cells [cells]."""
 
@@ -105,6 +113,8 @@ class FluidOptions:
             raise ValueError(f"FluidOptions.skin_check = {self.skin_check!r}: expected 'relative' or 'absolute'")
         if self.neighbour_skin < 0:
             raise ValueError(f"FluidOptions.neighbour_skin = {self.neighbour_skin}: must be >= 0")
+        if self.cell_span < 1:
+            raise ValueError(f"FluidOptions.cell_span = {self.cell_span}: must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -489,6 +499,7 @@ class FluidSolver:
         self.cell_gather = (o.neighbours or FluidOptions.DEFAULT_NEIGHBOURS) == "cells"
         self.fused_density = (not is_cuda) if o.fused_density is None else bool(o.fused_density)
         self.fused_density = self.fused_density and not self.cell_gather
+        self.cell_span = int(o.cell_span)
         self.cfl_number = FluidOptions.DEFAULT_CFL_NUMBER if o.cfl_number is None else float(o.cfl_number)
         self.skin_check = o.skin_check
         self.conditional_rebuild = o.conditional_rebuild
@@ -608,7 +619,8 @@ class FluidSolver:
         wrapped (hashed) when that would exceed max(min_cells, cells_per_particle x particles) cells."""
         m, d = self.model, self.model.device
         H = self.list_radius
-        c = H * 1.0001  # a neighbour within R is at most one y/z cell away despite rounding
+        span = self.cell_span
+        c = H * 1.0001 / span  # a neighbour within R is at most span y/z cells away despite rounding
         cx = H / self.options.cell_subdivision_x
         lo = np.asarray(m.domain_lo, float) - 2 * H
         hi = np.asarray(m.domain_hi, float) + 2 * H
@@ -617,7 +629,8 @@ class FluidSolver:
             dims[2] = 1
         limit = min(max(self.options.min_cells, self.options.cells_per_particle * m.n_total), 1 << 26)
         # wrapped y/z rows keep >= 3 cells so the 3 columns around a particle never alias
-        floor = np.array([1, min(3, dims[1]), min(3, dims[2])])
+        side = 2 * span + 1
+        floor = np.array([1, min(side, dims[1]), min(side, dims[2])])
         while int(np.prod(dims)) > limit and np.any(dims > floor):
             k = int(np.argmax(np.where(dims > floor, dims, 0)))
             dims[k] = max(floor[k], (dims[k] + 1) // 2)
@@ -631,6 +644,7 @@ class FluidSolver:
         g.lo = wp.vec3(*[float(a) for a in lo])
         g.inv_cx = 1.0 / cx
         g.c = c
+        g.span = span
         g.nx, g.ny, g.nz = (int(a) for a in dims)
         g.first = self._cell_first
         g.order = self._cell_order
@@ -638,7 +652,8 @@ class FluidSolver:
         self._x_sorted = wp.zeros(1 if self.cell_gather else nt, dtype=wp.vec3, device=d)
         g.x_sorted = self._x_sorted
         self.cells = g
-        self._slot_ranges = (0, 18) if m.dim == 3 else (6, 12)  # 9 columns (3 in 2D) x 2 parts
+        # (2 span + 1)^2 columns (2 span + 1 in 2D: those of dz = 0) x 2 parts
+        self._slot_ranges = (0, 2 * side * side) if m.dim == 3 else (2 * span * side, 2 * (span + 1) * side)
 
     def _launch(self, kernel, dim, inputs, outputs=(), block_dim: int = 256) -> None:
         """wp.launch for the per-step launches: with ``recorded_launches``, recorded once per kernel and
