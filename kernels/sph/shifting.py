@@ -70,47 +70,32 @@ def surface_and_concentration(
         grad_s[i] = wp.vec3(0.0)
         return
     xi = x[i]
+    H2 = p.H * p.H
     m = wp.mat33(0.0)
     gc = wp.vec3(0.0)
     gs = wp.vec3(0.0)
     for k in range(c):
-        dm, dc, ds = surface_pair(xi, nbr[k * n + i], x, rho, particle_mass, p, w_dx)
-        m += dm
-        gc += dc
-        gs += ds
-    lam[i] = surface_finish(m, p)
-    grad_c[i] = gc
-    grad_s[i] = gs
-
-
-@wp.func
-def surface_pair(xi: wp.vec3, j: int, x: wp.array(dtype=wp.vec3), rho: wp.array(dtype=float),
-                 particle_mass: wp.array(dtype=float), p: SPHParams, w_dx: float):
-    """Neighbour j's terms of surface_and_concentration: V_j grad W_ij (x) (x_j - x_i), V_j grad W_ij and
-    V_j [1 + R (W_ij/W(dx))^4] grad W_ij (zeros at r >= H)."""
-    rij = xi - x[j]
-    r2 = wp.length_sq(rij)
-    if r2 < p.H * p.H:
-        vol = float(0.0)
-        if j < p.n_fluid:
-            vol = p.fluid_mass / rho[j]
-        else:
-            vol = particle_mass[j] / p.rest_density
-        g = kernel_grad(rij, wp.sqrt(r2), p)
-        q = kernel_w(r2, p) / w_dx
-        return vol * wp.outer(g, -rij), vol * g, (vol * (1.0 + ANTICLUMP_R * q * q * q * q)) * g
-    return wp.mat33(0.0), wp.vec3(0.0), wp.vec3(0.0)
-
-
-@wp.func
-def surface_finish(m_in: wp.mat33, p: SPHParams) -> float:
-    """lambda_i, the smallest eigenvalue of the symmetrised moment M_i (2D: its z row the identity's)."""
-    m = m_in
+        j = nbr[k * n + i]
+        rij = xi - x[j]
+        r2 = wp.length_sq(rij)
+        if r2 < H2:
+            vol = float(0.0)
+            if j < p.n_fluid:
+                vol = p.fluid_mass / rho[j]
+            else:
+                vol = particle_mass[j] / p.rest_density
+            g = kernel_grad(rij, wp.sqrt(r2), p)
+            m += vol * wp.outer(g, -rij)
+            gc += vol * g
+            q = kernel_w(r2, p) / w_dx
+            gs += (vol * (1.0 + ANTICLUMP_R * q * q * q * q)) * g
     if p.dim == 2:
         m[2, 2] = 1.0
     m = 0.5 * (m + wp.transpose(m))
     ev, d = wp.eig3(m)
-    return wp.min(wp.min(d[0], d[1]), d[2])
+    lam[i] = wp.min(wp.min(d[0], d[1]), d[2])
+    grad_c[i] = gc
+    grad_s[i] = gs
 
 
 @wp.kernel
@@ -165,12 +150,76 @@ def shift_displacement(
         dr[i] = wp.vec3(0.0)
         return
     xi = x[i]
-    ns, band = band_start(i, lam, grad_c, p)
+    H2 = p.H * p.H
+    ns = wp.vec3(0.0)
+    band = int(0)
+    if li < FS_LAMBDA:
+        band = 1
+        gl = wp.length(grad_c[i])
+        if gl > 0.0:
+            ns = -kernel_w(0.0, p) / gl * grad_c[i]
     for k in range(c):
-        dn, hit = band_pair(xi, nbr[k * n + i], x, lam, grad_c, p)
-        ns -= dn
-        band = wp.max(band, hit)
-    dr[i] = shift_finish(i, ns, band, grad_s, v2max, ids, owner, p, coef, dx)
+        j = nbr[k * n + i]
+        if j < p.n_fluid:
+            if lam[j] < FS_LAMBDA:
+                r2 = wp.length_sq(xi - x[j])
+                if r2 < H2:
+                    band = 1
+                    gl = wp.length(grad_c[j])
+                    if gl > 0.0:
+                        ns -= kernel_w(r2, p) / gl * grad_c[j]
+    k = int(0)
+    if v2max.shape[0] > 1:
+        k = owner[ids[i]]
+    ma = wp.sqrt(v2max[k]) / p.sound_speed
+    d = -(coef * ma * p.H * p.H) * grad_s[i]
+    if band != 0:
+        nl = wp.length(ns)
+        if nl > 0.0:
+            nn = ns / nl
+            d = d - wp.dot(d, nn) * nn
+        else:
+            d = wp.vec3(0.0)
+    dl = wp.length(d)
+    if dl > MAX_SHIFT * dx:
+        d = (MAX_SHIFT * dx / dl) * d
+    if p.dim == 2:
+        d = wp.vec3(d[0], d[1], 0.0)
+    dr[i] = d
+
+
+# The pair terms and the finishes of the two list passes above, for the list-free gather (kernels/sph/gather.py
+# surface_and_concentration_cells, shift_displacement_cells: the same arithmetic).
+
+
+@wp.func
+def surface_pair(xi: wp.vec3, j: int, x: wp.array(dtype=wp.vec3), rho: wp.array(dtype=float),
+                 particle_mass: wp.array(dtype=float), p: SPHParams, w_dx: float):
+    """Neighbour j's terms of surface_and_concentration: V_j grad W_ij (x) (x_j - x_i), V_j grad W_ij and
+    V_j [1 + R (W_ij/W(dx))^4] grad W_ij (zeros at r >= H)."""
+    rij = xi - x[j]
+    r2 = wp.length_sq(rij)
+    if r2 < p.H * p.H:
+        vol = float(0.0)
+        if j < p.n_fluid:
+            vol = p.fluid_mass / rho[j]
+        else:
+            vol = particle_mass[j] / p.rest_density
+        g = kernel_grad(rij, wp.sqrt(r2), p)
+        q = kernel_w(r2, p) / w_dx
+        return vol * wp.outer(g, -rij), vol * g, (vol * (1.0 + ANTICLUMP_R * q * q * q * q)) * g
+    return wp.mat33(0.0), wp.vec3(0.0), wp.vec3(0.0)
+
+
+@wp.func
+def surface_finish(m_in: wp.mat33, p: SPHParams) -> float:
+    """lambda_i, the smallest eigenvalue of the symmetrised moment M_i (2D: its z row the identity's)."""
+    m = m_in
+    if p.dim == 2:
+        m[2, 2] = 1.0
+    m = 0.5 * (m + wp.transpose(m))
+    ev, d = wp.eig3(m)
+    return wp.min(wp.min(d[0], d[1]), d[2])
 
 
 @wp.func
