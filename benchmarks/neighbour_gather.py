@@ -6,8 +6,8 @@ or cell grid are rebuilt as it flows), then ``--warmup`` steps and ``--steps`` t
 the CUDA-graph chunks with the rebuild as a conditional node and the reorder every 10 steps, as a run steps). Each row:
 particles, mean neighbours within H (fluid and walls), ms per step, particle-steps/s, pairs/s (particle-steps/s x
 mean neighbours), list builds of the timed steps, the device bytes per fluid particle counted by
-FluidSolver.device_bytes (lists, solver, state, model, hash grid) and, on a GPU, the memory pool's peak above the
-start; and the largest position difference of the second search from the first after the same steps (in spacings:
+FluidSolver.device_bytes (lists, solver, state, model, hash grid) and, on a GPU, the memory pool's growth from before
+the build to after the steps; and the largest position difference of the second search from the first after the same steps (in spacings:
 the two visit the same pairs in the same order).
 
     python -m benchmarks.neighbour_gather --device cuda:0 --spacing 0.0065 --steps 200          # 2.5 M particles
@@ -23,14 +23,14 @@ import time
 import numpy as np
 
 
-def _pool(device: str, high: bool = False):
+def _pool(device: str):
     import warp as wp
 
     d = wp.get_device(device)
     if not d.is_cuda:
         return None
     try:
-        return wp.get_mempool_used_mem_high(d) if high else wp.get_mempool_used_mem_current(d)
+        return wp.get_mempool_used_mem_current(d)
     except Exception:  # no memory pool
         return None
 
@@ -65,14 +65,14 @@ def measure(device: str, spacing: float, level: str, neighbours: str, flow_s: fl
     with wp.ScopedDevice(sim.device):
         nbrs = float(np.mean(fs.pair_counts(sim.state)))
     b = fs.device_bytes(sim.state)
-    pool_hi = _pool(device, high=True)
+    pool1 = _pool(device)
     row = dict(level=level, neighbours=neighbours, cell_span=cell_span, spacing_m=spacing, fluid=nf, boundary=sim.fluid.n_boundary,
                neighbours_within_H=nbrs, list_slots=fs.neighbour_cap, sim_time_s=sim.time, build_s=build_s,
                steps=steps, ms_per_step=1e3 * t / steps, particle_steps_per_s=nf * steps / t,
                pairs_per_s=nf * nbrs * steps / t, list_builds=builds if not wp.get_device(device).is_cuda else None,
                **{f"{k}_b_per_particle": v / nf for k, v in b.items() if k != "per_particle"})
-    if pool0 is not None and pool_hi is not None:
-        row["pool_peak_b_per_particle"] = (pool_hi - pool0) / nf  # the pool's high-water mark above the start
+    if pool0 is not None and pool1 is not None:
+        row["pool_growth_b_per_particle"] = (pool1 - pool0) / nf  # what the build and the steps left allocated
     x = sim.positions()
     sim = fs = None  # (freed before the next build)
     gc.collect()
@@ -84,9 +84,9 @@ COLS = ("lists", "solver", "state", "model", "hash_grid", "total")
 
 def markdown(rows: list, head: str) -> str:
     out = [head, "", "| level | neighbours (cell span) | fluid | boundary | nbrs in H | ms/step | particle-steps/s | pairs/s | "
-           + " | ".join(f"{c} B" for c in COLS) + " | pool peak B | max dx / spacing |", "|---" * (10 + len(COLS)) + "|"]
+           + " | ".join(f"{c} B" for c in COLS) + " | pool growth B | max dx / spacing |", "|---" * (10 + len(COLS)) + "|"]
     for r in rows:
-        pk = r.get("pool_peak_b_per_particle")
+        pk = r.get("pool_growth_b_per_particle")
         out.append(f"| {r['level']} | {r['neighbours']} ({r.get('cell_span', 1)}) | {r['fluid']:,} | {r['boundary']:,} | {r['neighbours_within_H']:.1f} | "
                    f"{r['ms_per_step']:.3f} | {r['particle_steps_per_s']:.3g} | {r['pairs_per_s']:.3g} | "
                    + " | ".join(f"{r[c + '_b_per_particle']:.0f}" for c in COLS)

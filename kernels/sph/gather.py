@@ -69,6 +69,25 @@ def neighbour_count_cells(g: CellGrid, r_lo: int, r_hi: int, R: float, x_build: 
 
 
 @wp.kernel
+def neighbour_count_list(count: wp.array(dtype=int), nbr: wp.array(dtype=int), x: wp.array(dtype=wp.vec3), H: float,
+                         out: wp.array(dtype=int)):
+    """neighbour_count_cells's count from the neighbour lists (their pairs now closer than H; -1 where a list
+    overflowed), for comparing the two searches."""
+    i = wp.tid()
+    n = count.shape[0]
+    c = count[i]
+    if c > nbr.shape[0] // n:
+        out[i] = -1
+        return
+    xi = x[i]
+    k_in = int(0)
+    for k in range(c):
+        if wp.length_sq(xi - x[nbr[k * n + i]]) < H * H:
+            k_in += 1
+    out[i] = k_in
+
+
+@wp.kernel
 def gradient_correction_cells(g: CellGrid, r_lo: int, r_hi: int, R: float, x_build: wp.array(dtype=wp.vec3),
                               x: wp.array(dtype=wp.vec3), rho: wp.array(dtype=float),
                               particle_mass: wp.array(dtype=float), p: SPHParams, kgc: wp.array(dtype=wp.mat33)):

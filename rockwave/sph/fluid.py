@@ -1227,23 +1227,17 @@ class FluidSolver:
         pairs of the current lists closer than H, or those of the cell gather (``neighbours = 'cells'``). The lists
         or cell grid must be current (after a step or build_lists)."""
         m = self.model
+        out = wp.zeros(m.n_fluid, dtype=int, device=m.device)
         if self.cell_gather:
-            out = wp.zeros(m.n_fluid, dtype=int, device=m.device)
             wp.launch(gather.neighbour_count_cells, dim=m.n_fluid,
                       inputs=[*self._gather_args(), state.x, m.support_radius], outputs=[out], device=m.device)
-            return out.numpy()
-        if self.list_overflow():
+        else:
+            wp.launch(gather.neighbour_count_list, dim=m.n_fluid,
+                      inputs=[self._nbr_count, self._nbr, state.x, m.support_radius], outputs=[out], device=m.device)
+        counts = out.numpy()
+        if counts.min(initial=0) < 0:
             raise RuntimeError("pair_counts: a neighbour list overflowed its capacity")
-        n = m.n_fluid
-        count = self._nbr_count.numpy()
-        nbr = self._nbr.numpy()[: n * self.neighbour_cap].reshape(self.neighbour_cap, n)
-        x = state.x.numpy()
-        out = np.zeros(n, dtype=np.int64)
-        H2 = np.float32(m.support_radius) ** 2
-        for i in range(n):
-            j = nbr[: count[i], i]
-            out[i] = int((np.sum((x[j] - x[i]) ** 2, axis=1, dtype=np.float32) < H2).sum())
-        return out
+        return counts
 
     def stable_dt(self, state: FluidState, cfl: float | None = None) -> float:
         """Largest stable step for the current motion (one host read; cfl: default ``cfl_number``):
