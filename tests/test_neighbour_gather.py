@@ -137,3 +137,36 @@ def test_neighbours_option_is_checked():
     from rockwave.sph.ghost import GhostFluidSolver
     with pytest.raises(ValueError, match="neighbours = 'cells'"):
         GhostFluidSolver(sim.fluid, FluidOptions(neighbours="cells"))
+
+
+def test_cell_gather_with_moving_block_walls_and_a_checkpoint():
+    """A floating box with wall particles (coupling.block_walls: moving Adami walls, their own skin check): the
+    gather steps it as the lists do, and a run resumed from a checkpoint continues bit for bit (the build
+    positions travel in it; the gather queries from them)."""
+    from test_block_walls import S
+    from test_block_walls import _scene as box_scene
+
+    from rockwave.sim import checkpoint
+
+    def scene(nb):
+        d = box_scene(lift=S)
+        d["fluid"]["neighbours"] = nb
+        return rockwave.parse_scene(d)
+
+    a = rockwave.Simulation(scene("lists"), device=DEVICE)
+    b = rockwave.Simulation(scene("cells"), device=DEVICE)
+    assert b.fluid.n_moving_walls > 0 and b.fluid_solver.cell_gather
+    for s in (a, b):
+        s.advance(0.06)
+    arrays, metas = checkpoint.pack(b, checkpoint.capture(b))
+    meta = {"scene": checkpoint.scene_identity(b), "groups": metas}
+    for s in (a, b):
+        s.advance(0.06)
+    assert a.steps == b.steps
+    assert np.abs(a.positions() - b.positions()).max() <= TOL * np.abs(a.positions()).max()
+    assert np.abs(a.block_positions() - b.block_positions()).max() <= TOL
+    c = rockwave.Simulation(scene("cells"), device=DEVICE)
+    checkpoint.restore(c, arrays, meta)
+    c.advance(0.06)
+    assert c.steps == b.steps
+    assert np.array_equal(b.state.x.numpy(), c.state.x.numpy())  # the wall particles too
