@@ -37,6 +37,9 @@ def _pool(device: str):
 
 def measure(device: str, spacing: float, level: str, neighbours: str, flow_s: float, warmup: int, steps: int,
             cell_span: int = 1) -> tuple:
+    """One row: ``neighbours`` "lists", "cells" or "cells_prefilter" (cells with FluidOptions.gather_prefilter)."""
+    prefilter = neighbours == "cells_prefilter"
+    neighbours = "cells" if prefilter else neighbours
     import warp as wp
 
     import rockwave
@@ -51,7 +54,8 @@ def measure(device: str, spacing: float, level: str, neighbours: str, flow_s: fl
     t0 = time.perf_counter()
     scene = rockwave.parse_scene(H.scene_dict("spheric", spacing, variant, strip=H.FORMULATION_KEYS), "spheric.toml",
                                  ROOT / "scenes")
-    sim = rockwave.Simulation(scene, device=device, options=SimulationOptions(fluid=FluidOptions(cell_span=cell_span)))
+    fo = FluidOptions(cell_span=cell_span, gather_prefilter=prefilter)
+    sim = rockwave.Simulation(scene, device=device, options=SimulationOptions(fluid=fo))
     build_s = time.perf_counter() - t0
     if flow_s > 0:
         sim.advance(flow_s)
@@ -66,7 +70,7 @@ def measure(device: str, spacing: float, level: str, neighbours: str, flow_s: fl
         nbrs = float(np.mean(fs.pair_counts(sim.state)))
     b = fs.device_bytes(sim.state)
     pool1 = _pool(device)
-    row = dict(level=level, neighbours=neighbours, cell_span=cell_span, spacing_m=spacing, fluid=nf, boundary=sim.fluid.n_boundary,
+    row = dict(level=level, neighbours=neighbours + (" prefilter" if prefilter else ""), cell_span=cell_span, spacing_m=spacing, fluid=nf, boundary=sim.fluid.n_boundary,
                neighbours_within_H=nbrs, list_slots=fs.neighbour_cap, sim_time_s=sim.time, build_s=build_s,
                steps=steps, ms_per_step=1e3 * t / steps, particle_steps_per_s=nf * steps / t,
                pairs_per_s=nf * nbrs * steps / t, list_builds=builds if not wp.get_device(device).is_cuda else None,
@@ -103,7 +107,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--spacing", type=float, default=0.04)
     ap.add_argument("--levels", nargs="+", default=["standard"])
-    ap.add_argument("--neighbours", nargs="+", default=["lists", "cells"], choices=["lists", "cells"])
+    ap.add_argument("--neighbours", nargs="+", default=["lists", "cells"], choices=["lists", "cells", "cells_prefilter"],
+                    help="fluid.neighbours of the rows; cells_prefilter: cells with FluidOptions.gather_prefilter")
     ap.add_argument("--cell-span", nargs="+", type=int, default=[1],
                     help="FluidOptions.cell_span of the rows (y/z cells R/n wide, (2n+1)^2 columns a query)")
     ap.add_argument("--flow-s", type=float, default=0.2, help="simulated seconds of flow before the timed steps")

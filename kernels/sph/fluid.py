@@ -441,6 +441,7 @@ class CellGrid:
     first: wp.array(dtype=int)  # first[k] = first sorted slot whose cell key is >= k (nx*ny*nz + 1 entries)
     order: wp.array(dtype=int)  # sorted slot -> particle index
     x_sorted: wp.array(dtype=wp.vec3)  # positions in slot order (the list build reads candidates contiguously)
+    prefilter: int  # the cell gather (kernels/sph/gather.py) first keeps the candidates within R in x_sorted
 
 
 @wp.func

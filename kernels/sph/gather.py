@@ -41,6 +41,18 @@ from rockwave.kernels.sph.shifting import SPLASH_LAMBDA, band_pair, band_start, 
 wp.set_module_options({"enable_backward": False})  # forward kernels only
 
 
+@wp.func
+def candidate(g: CellGrid, k: int, xq: wp.vec3, R: float) -> int:
+    """The particle of sorted slot k, or -1 when the grid prefilters (g.prefilter, FluidOptions.gather_prefilter) and
+    its position at the build lies R or farther from the query centre xq: the list build's own test
+    (kernels/sph/fluid.py build_neighbour_list_cells), read from the slot-ordered positions (contiguous) before the
+    particle's current position (a random read)."""
+    if g.prefilter != 0:
+        if wp.length_sq(xq - g.x_sorted[k]) >= R * R:
+            return -1
+    return g.order[k]
+
+
 @wp.kernel
 def store_build_positions_all(x: wp.array(dtype=wp.vec3), rebuild: wp.array(dtype=int), x_build: wp.array(dtype=wp.vec3)):
     """At a rebuild of the cell grid: x_build[i] = x[i] for every fluid particle (the list build's x_build, for
@@ -62,8 +74,8 @@ def neighbour_count_cells(g: CellGrid, r_lo: int, r_hi: int, R: float, x_build: 
     for r in range(r_lo, r_hi):
         s0, e0 = slot_range(g, xq, R, iy, iz, r)
         for k in range(s0, e0):
-            j = g.order[k]
-            if j != i and wp.length_sq(xi - x[j]) < H * H:
+            j = candidate(g, k, xq, R)
+            if j >= 0 and j != i and wp.length_sq(xi - x[j]) < H * H:
                 c += 1
     count[i] = c
 
@@ -102,8 +114,8 @@ def gradient_correction_cells(g: CellGrid, r_lo: int, r_hi: int, R: float, x_bui
     for r in range(r_lo, r_hi):
         s0, e0 = slot_range(g, xq, R, iy, iz, r)
         for k in range(s0, e0):
-            j = g.order[k]
-            if j != i:
+            j = candidate(g, k, xq, R)
+            if j >= 0 and j != i:
                 rij = xi - x[j]
                 r2 = wp.length_sq(rij)
                 if r2 < H2:
@@ -151,13 +163,13 @@ def particle_density_cells(
     for r in range(r_lo, r_hi):
         s0, e0 = slot_range(g, xq, R, iy, iz, r)
         for k in range(s0, e0):
-            j = g.order[k]
-            if j != i:
-                if mode == DENSITY_CONTINUITY:
-                    s += pair_density_rate(xi, vi, j, x, v, particle_mass, li, kgc, p)
-                else:
-                    r2 = wp.length_sq(xi - x[j])
-                    if r2 < H2:
+            j = candidate(g, k, xq, R)
+            if j >= 0 and j != i:
+                r2 = wp.length_sq(xi - x[j])
+                if r2 < H2:  # (the candidates beyond H skip the pair term)
+                    if mode == DENSITY_CONTINUITY:
+                        s += pair_density_rate(xi, vi, j, x, v, particle_mass, li, kgc, p)
+                    else:
                         s += particle_mass[j] * kernel_w(r2, p)
     if mode == DENSITY_CONTINUITY:
         drho_dt[i] = s
@@ -201,6 +213,7 @@ def particle_acceleration_cells(
     pi = pressure[i]
     pi_r2 = pr2[i]
     xq = x_build[i]
+    H2 = p.H * p.H
     a = wp.vec3(0.0)
     dv = wp.vec3(0.0)
     li = own_correction(kgc, i, p)
@@ -208,8 +221,8 @@ def particle_acceleration_cells(
     for r in range(r_lo, r_hi):
         s0, e0 = slot_range(g, xq, R, iy, iz, r)
         for k in range(s0, e0):
-            j = g.order[k]
-            if j != i:
+            j = candidate(g, k, xq, R)
+            if j >= 0 and j != i and wp.length_sq(xi - x[j]) < H2:  # (the candidates beyond H skip the pair term's call)
                 da, ddv = pair_acceleration_fluid(j, xi, vi, rhoi, pi, pi_r2, x, v, rho, pressure, pr2, particle_mass,
                                                   wall_pr2, wall_v, li, kgc, p)
                 a += da
@@ -248,8 +261,8 @@ def density_diffusion_rate_cells(
     for r in range(r_lo, r_hi):
         s0, e0 = slot_range(g, xq, R, iy, iz, r)
         for k in range(s0, e0):
-            j = g.order[k]
-            if j != i:
+            j = candidate(g, k, xq, R)
+            if j >= 0 and j != i:
                 s += diffusion_pair(xi, ri, j, x, rho, particle_mass, wall_pr2, walls, clip, p)
     out[i] = delta * 0.5 * p.H * p.sound_speed * s
 
@@ -281,8 +294,8 @@ def surface_and_concentration_cells(
     for r in range(r_lo, r_hi):
         s0, e0 = slot_range(g, xq, R, iy, iz, r)
         for k in range(s0, e0):
-            j = g.order[k]
-            if j != i:
+            j = candidate(g, k, xq, R)
+            if j >= 0 and j != i:
                 dm, dc, ds = surface_pair(xi, j, x, rho, particle_mass, p, w_dx)
                 m += dm
                 gc += dc
@@ -324,8 +337,8 @@ def shift_displacement_cells(
     for r in range(r_lo, r_hi):
         s0, e0 = slot_range(g, xq, R, iy, iz, r)
         for k in range(s0, e0):
-            j = g.order[k]
-            if j != i:
+            j = candidate(g, k, xq, R)
+            if j >= 0 and j != i:
                 dn, hit = band_pair(xi, j, x, lam, grad_c, p)
                 ns -= dn
                 band = wp.max(band, hit)

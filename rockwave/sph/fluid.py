@@ -106,6 +106,11 @@ class FluidOptions:
     grid that the list path builds, kernels/sph/gather.py; the same pairs in the same order, 4 B x list_capacity
     less per particle). None: the scene's ``fluid.neighbours`` when built from a scene, else DEFAULT_NEIGHBOURS."""
 
+    gather_prefilter: bool = False
+    """With neighbours = "cells": keep the slot-ordered positions of the last build (12 B per particle, walls
+    included, as the lists have) and test each candidate's build position against R first, as the list build does,
+    before reading its current position (kernels/sph/gather.py candidate). The same pairs either way."""
+
     def __post_init__(self):
         if self.neighbours is not None and self.neighbours not in self.NEIGHBOURS:
             raise ValueError(f"FluidOptions.neighbours = {self.neighbours!r}: expected 'lists' or 'cells'")
@@ -500,6 +505,8 @@ class FluidSolver:
         self.fused_density = (not is_cuda) if o.fused_density is None else bool(o.fused_density)
         self.fused_density = self.fused_density and not self.cell_gather
         self.cell_span = int(o.cell_span)
+        self.gather_prefilter = self.cell_gather and bool(o.gather_prefilter)
+        self._slot_positions = not self.cell_gather or self.gather_prefilter  # cells.x_sorted kept
         self.cfl_number = FluidOptions.DEFAULT_CFL_NUMBER if o.cfl_number is None else float(o.cfl_number)
         self.skin_check = o.skin_check
         self.conditional_rebuild = o.conditional_rebuild
@@ -648,9 +655,10 @@ class FluidSolver:
         g.nx, g.ny, g.nz = (int(a) for a in dims)
         g.first = self._cell_first
         g.order = self._cell_order
-        # positions in slot order: the list build's candidates (the gather passes read current positions instead)
-        self._x_sorted = wp.zeros(1 if self.cell_gather else nt, dtype=wp.vec3, device=d)
+        # positions in slot order: the list build's candidates (the gather reads them only with gather_prefilter)
+        self._x_sorted = wp.zeros(nt if self._slot_positions else 1, dtype=wp.vec3, device=d)
         g.x_sorted = self._x_sorted
+        g.prefilter = 1 if self.gather_prefilter else 0
         self.cells = g
         # (2 span + 1)^2 columns (2 span + 1 in 2D: those of dz = 0) x 2 parts
         self._slot_ranges = (0, 2 * side * side) if m.dim == 3 else (2 * span * side, 2 * (span + 1) * side)
@@ -694,7 +702,7 @@ class FluidSolver:
         self._launch(sph.cell_keys, m.n_total, [self.cells, state.x, self._cell_keys, self._cell_order, f])
         wp.utils.radix_sort_pairs(self._cell_keys, self._cell_order, m.n_total, 0, self._cell_bits)
         self._launch(sph.cell_first, self._cell_first.shape[0], [self._cell_keys, m.n_total, self._cell_first, f])
-        if not self.cell_gather:
+        if self._slot_positions:
             self._launch(sph.gather_sorted_positions, m.n_total, [self._cell_order, state.x, self._x_sorted, f])
 
     @staticmethod
