@@ -635,7 +635,7 @@ class FluidSolver:
         if m.dim == 2:
             dims[2] = 1
         limit = min(max(self.options.min_cells, self.options.cells_per_particle * m.n_total), 1 << 26)
-        # wrapped y/z rows keep >= 3 cells so the 3 columns around a particle never alias
+        # wrapped y/z rows keep >= 2 span + 1 cells so the columns around a particle never alias
         side = 2 * span + 1
         floor = np.array([1, min(side, dims[1]), min(side, dims[2])])
         while int(np.prod(dims)) > limit and np.any(dims > floor):
