@@ -65,6 +65,33 @@ from rockwave.kernels.sph.fluid import BOUNDARY_ADAMI, SPHParams, kernel_grad, s
 wp.set_module_options({"enable_backward": False})  # forward kernels only: nothing here is differentiated
 
 
+@wp.func
+def diffusion_pair(xi: wp.vec3, ri: float, j: int, x: wp.array(dtype=wp.vec3), rho: wp.array(dtype=float),
+                   particle_mass: wp.array(dtype=float), wall_pr2: wp.array(dtype=wp.vec2), walls: int, clip: bool,
+                   p: SPHParams) -> float:
+    """The term of neighbour j in density_diffusion_rate's sum (before the factor delta h c0):
+    2 (rho_j - rho_i - rho0 g.x_ji/c0^2) (x_ji . grad_i W_ij)/|x_ij|^2 V_j; 0 at r >= H, for a wall particle
+    without ``walls`` (or with Akinci walls)."""
+    rj = float(0.0)
+    vj = float(0.0)
+    if j < p.n_fluid:
+        rj = rho[j]
+        if clip:
+            rj = wp.max(rj, p.rest_density)
+        vj = p.fluid_mass / p.rest_density
+    elif walls != 0 and p.boundary == BOUNDARY_ADAMI:
+        rj = p.rest_density * wall_pr2[j - p.n_fluid][1]
+        vj = particle_mass[j] / p.rest_density
+    if vj > 0.0:
+        xji = x[j] - xi
+        r2 = wp.length_sq(xji)
+        if r2 < p.H * p.H and r2 > 0.0:
+            g = kernel_grad(-xji, wp.sqrt(r2), p)
+            drho = rj - ri - p.rest_density * wp.dot(p.gravity, xji) / (p.sound_speed * p.sound_speed)
+            return 2.0 * drho * wp.dot(xji, g) / r2 * vj
+    return 0.0
+
+
 @wp.kernel
 def density_diffusion_rate(
     count: wp.array(dtype=int),

@@ -275,6 +275,23 @@ KGC_LAMBDA_FULL = wp.constant(0.75)
 KGC_LAMBDA_NONE = wp.constant(0.6)
 
 
+@wp.func
+def kgc_blend(m_in: wp.mat33, p: SPHParams) -> wp.mat33:
+    """L_i from the moment M_i (gradient_correction_matrix): symmetrised, then w M_i^-1 + (1 - w) I with w from
+    its smallest eigenvalue lambda, (lambda - KGC_LAMBDA_NONE)/(KGC_LAMBDA_FULL - KGC_LAMBDA_NONE) clipped to [0, 1]."""
+    m = m_in
+    ident = wp.identity(n=3, dtype=float)
+    if p.dim == 2:
+        m[2, 2] = 1.0
+    m = 0.5 * (m + wp.transpose(m))
+    q, d = wp.eig3(m)
+    lam = wp.min(wp.min(d[0], d[1]), d[2])
+    w = wp.clamp((lam - KGC_LAMBDA_NONE) / (KGC_LAMBDA_FULL - KGC_LAMBDA_NONE), 0.0, 1.0)
+    if w > 0.0:
+        return w * wp.inverse(m) + (1.0 - w) * ident
+    return ident
+
+
 @wp.kernel
 def gradient_correction_matrix(
     count: wp.array(dtype=int),
@@ -312,16 +329,7 @@ def gradient_correction_matrix(
             else:
                 vol = particle_mass[j] / p.rest_density
             m += vol * wp.outer(kernel_grad(rij, wp.sqrt(r2), p), -rij)
-    if p.dim == 2:
-        m[2, 2] = 1.0
-    m = 0.5 * (m + wp.transpose(m))
-    q, d = wp.eig3(m)
-    lam = wp.min(wp.min(d[0], d[1]), d[2])
-    w = wp.clamp((lam - KGC_LAMBDA_NONE) / (KGC_LAMBDA_FULL - KGC_LAMBDA_NONE), 0.0, 1.0)
-    if w > 0.0:
-        kgc[i] = w * wp.inverse(m) + (1.0 - w) * ident
-    else:
-        kgc[i] = ident
+    kgc[i] = kgc_blend(m, p)
 
 
 @wp.func
@@ -425,13 +433,15 @@ def pair_acceleration(
 class CellGrid:
     lo: wp.vec3  # grid origin
     inv_cx: float  # 1 / x-cell width
-    c: float  # y and z cell width (>= H)
+    c: float  # y and z cell width (>= H / span)
+    span: int  # y/z columns on each side of a particle's own that a query visits (c >= H / span)
     nx: int
     ny: int
     nz: int
     first: wp.array(dtype=int)  # first[k] = first sorted slot whose cell key is >= k (nx*ny*nz + 1 entries)
     order: wp.array(dtype=int)  # sorted slot -> particle index
     x_sorted: wp.array(dtype=wp.vec3)  # positions in slot order (the list build reads candidates contiguously)
+    prefilter: int  # the cell gather (kernels/sph/gather.py) first keeps the candidates within R in x_sorted
 
 
 @wp.func
@@ -494,11 +504,13 @@ def gather_sorted_positions(order: wp.array(dtype=int), x: wp.array(dtype=wp.vec
 
 @wp.func
 def slot_range(g: CellGrid, xi: wp.vec3, H: float, iy: int, iz: int, r: int):
-    """Sorted-slot range [s, e) number r of a query around xi: column col = r / 2 (dy = col % 3 - 1,
-    dz = col / 3 - 1), part r % 2 (the second part is non-empty only when the column's x-run wraps)."""
+    """Sorted-slot range [s, e) number r of a query around xi: column col = r / 2 of the (2 span + 1)^2 around the
+    particle's (dy = col % (2 span + 1) - span, dz = col / (2 span + 1) - span), part r % 2 (the second part is
+    non-empty only when the column's x-run wraps)."""
     col = r / 2
-    cy = iy + col % 3 - 1
-    cz = iz + col / 3 - 1
+    side = 2 * g.span + 1
+    cy = iy + col % side - g.span
+    cz = iz + col / side - g.span
     y0 = g.lo[1] + float(cy) * g.c
     z0 = g.lo[2] + float(cz) * g.c
     dy = wp.max(wp.max(y0 - xi[1], xi[1] - (y0 + g.c)), 0.0)

@@ -188,6 +188,95 @@ def shift_displacement(
     dr[i] = d
 
 
+# The pair terms and the finishes of the two list passes above, for the list-free gather (kernels/sph/gather.py
+# surface_and_concentration_cells, shift_displacement_cells: the same arithmetic).
+
+
+@wp.func
+def surface_pair(xi: wp.vec3, j: int, x: wp.array(dtype=wp.vec3), rho: wp.array(dtype=float),
+                 particle_mass: wp.array(dtype=float), p: SPHParams, w_dx: float):
+    """Neighbour j's terms of surface_and_concentration: V_j grad W_ij (x) (x_j - x_i), V_j grad W_ij and
+    V_j [1 + R (W_ij/W(dx))^4] grad W_ij (zeros at r >= H)."""
+    rij = xi - x[j]
+    r2 = wp.length_sq(rij)
+    if r2 < p.H * p.H:
+        vol = float(0.0)
+        if j < p.n_fluid:
+            vol = p.fluid_mass / rho[j]
+        else:
+            vol = particle_mass[j] / p.rest_density
+        g = kernel_grad(rij, wp.sqrt(r2), p)
+        q = kernel_w(r2, p) / w_dx
+        return vol * wp.outer(g, -rij), vol * g, (vol * (1.0 + ANTICLUMP_R * q * q * q * q)) * g
+    return wp.mat33(0.0), wp.vec3(0.0), wp.vec3(0.0)
+
+
+@wp.func
+def surface_finish(m_in: wp.mat33, p: SPHParams) -> float:
+    """lambda_i, the smallest eigenvalue of the symmetrised moment M_i (2D: its z row the identity's)."""
+    m = m_in
+    if p.dim == 2:
+        m[2, 2] = 1.0
+    m = 0.5 * (m + wp.transpose(m))
+    ev, d = wp.eig3(m)
+    return wp.min(wp.min(d[0], d[1]), d[2])
+
+
+@wp.func
+def band_start(i: int, lam: wp.array(dtype=float), grad_c: wp.array(dtype=wp.vec3), p: SPHParams):
+    """shift_displacement's surface normal and band from particle i itself: (-W(0) grad C_i/|grad C_i|, 1) at the
+    free surface, else (0, 0)."""
+    ns = wp.vec3(0.0)
+    band = int(0)
+    if lam[i] < FS_LAMBDA:
+        band = 1
+        gl = wp.length(grad_c[i])
+        if gl > 0.0:
+            ns = -kernel_w(0.0, p) / gl * grad_c[i]
+    return ns, band
+
+
+@wp.func
+def band_pair(xi: wp.vec3, j: int, x: wp.array(dtype=wp.vec3), lam: wp.array(dtype=float),
+              grad_c: wp.array(dtype=wp.vec3), p: SPHParams):
+    """Neighbour j's part of the band's normal: (W_ij grad C_j/|grad C_j|, 1) for a fluid surface particle within H
+    (the normal sums minus it), else (0, 0)."""
+    if j < p.n_fluid:
+        if lam[j] < FS_LAMBDA:
+            r2 = wp.length_sq(xi - x[j])
+            if r2 < p.H * p.H:
+                gl = wp.length(grad_c[j])
+                if gl > 0.0:
+                    return kernel_w(r2, p) / gl * grad_c[j], 1
+                return wp.vec3(0.0), 1
+    return wp.vec3(0.0), 0
+
+
+@wp.func
+def shift_finish(i: int, ns: wp.vec3, band: int, grad_s: wp.array(dtype=wp.vec3), v2max: wp.array(dtype=float),
+                 ids: wp.array(dtype=int), owner: wp.array(dtype=int), p: SPHParams, coef: float, dx: float) -> wp.vec3:
+    """shift_displacement's shift from the band's normal ns and flag: -coef Ma H^2 grad_s_i, along the surface in
+    the band, at most MAX_SHIFT spacings."""
+    k = int(0)
+    if v2max.shape[0] > 1:
+        k = owner[ids[i]]
+    ma = wp.sqrt(v2max[k]) / p.sound_speed
+    d = -(coef * ma * p.H * p.H) * grad_s[i]
+    if band != 0:
+        nl = wp.length(ns)
+        if nl > 0.0:
+            nn = ns / nl
+            d = d - wp.dot(d, nn) * nn
+        else:
+            d = wp.vec3(0.0)
+    dl = wp.length(d)
+    if dl > MAX_SHIFT * dx:
+        d = (MAX_SHIFT * dx / dl) * d
+    if p.dim == 2:
+        d = wp.vec3(d[0], d[1], 0.0)
+    return d
+
+
 @wp.kernel
 def apply_shift(dr: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3)):
     """x_i += dr_i (after the step's integration: dr_i was found at the step's start positions)."""

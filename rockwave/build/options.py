@@ -105,10 +105,14 @@ def gravity_norm(scene: Scene) -> float:
 
 def fluid_options(scene: Scene, base: FluidOptions | None = None) -> FluidOptions:
     """The fluid solver's options: ``base`` (Python; None: the defaults) with the scene's Courant number
-    (``simulation.cfl_number``) where ``base.cfl_number`` is None."""
+    (``simulation.cfl_number``) where ``base.cfl_number`` is None and its neighbour search (``fluid.neighbours``)
+    where ``base.neighbours`` is None."""
     o = base or FluidOptions()
     if o.cfl_number is None:
         o = replace(o, cfl_number=scene.simulation.cfl_number)
+    if o.neighbours is None:
+        given = scene.fluid.get("neighbours") if scene.fluid is not None else None
+        o = replace(o, neighbours=given or FluidOptions.DEFAULT_NEIGHBOURS)
     return o
 
 

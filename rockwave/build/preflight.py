@@ -261,8 +261,11 @@ def estimate(scene: Scene, meshes: dict | None = None) -> Estimate:
 
 
 def neighbour_capacity(scene: Scene) -> int:
-    """Neighbour-list entries per fluid particle (rockwave/sph/fluid.py FluidSolver.list_capacity at the default skin)."""
+    """Neighbour-list entries per fluid particle (rockwave/sph/fluid.py FluidSolver.list_capacity at the default skin;
+    0 with fluid.neighbours = 'cells', which stores no list)."""
     fl = scene.fluid
+    if fl.get("neighbours") == "cells":
+        return 0
     t = scene.tank
     ratio = float(t.boundary_spacing_ratio) if t is not None and t.get("boundary_spacing_ratio") else 1.0
     model = SimpleNamespace(support_radius=fl.support_radius_ratio * fl.spacing_m, spacing=fl.spacing_m,

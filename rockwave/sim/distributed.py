@@ -814,6 +814,9 @@ class DistributedSimulation(Simulation):
             raise ValueError("--ranks decomposes the water: this scene has none (run it on one rank)")
         if type(self.fluid_solver) is not FluidSolver:
             raise ValueError("--ranks: Ghost SPH (fluid.method = 'ghost') is not decomposed yet; run it on one rank")
+        if self.fluid_solver.cell_gather:
+            raise ValueError("--ranks: fluid.neighbours = 'cells' is not decomposed yet (a rank's halo exchange and "
+                             "relayouts keep neighbour lists); set fluid.neighbours = 'lists' or run on one rank")
         if self.fluid.n_moving_walls:
             raise ValueError("--ranks: the wall particles of moving blocks are not decomposed yet; set "
                              "coupling.block_walls = false or run on one rank")

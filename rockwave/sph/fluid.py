@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from rockwave.base.solver import TimeStep
-from rockwave.kernels.sph import diffusion, shifting
+from rockwave.kernels.sph import diffusion, gather, shifting
 from rockwave.kernels.sph import fluid as sph
 
 
@@ -69,6 +69,14 @@ class FluidOptions:
     cell_subdivision_x: int = 4
     """The list cell grid's x-cells are H/n wide [-]."""
 
+    cell_span: int = 1
+    """The cell grid's y and z cells are R/n wide (R the list radius) and a query visits the (2n + 1)^2 columns
+    around a particle's (2n + 1 in 2D) [-]. 1: 9 columns, candidates ~3.5x the sphere of R (3.8x the neighbours
+    within H at support 3); 2: 25 columns, ~2.2x (Monte Carlo over the particle's place in its cell). Measured on the
+    CPU (3D dam break, 10,850 particles, standard): 2 is slower, 157 vs 131 ms/step with lists and 205 vs 170 with
+    the cell gather (the runs' setup outweighs the candidates saved); a GPU may differ
+    (benchmarks/neighbour_gather.py --cell-span)."""
+
     min_cells: int = 1 << 20
     """The list cell grid wraps past max(min_cells, cells_per_particle x particles) cells [cells]."""
 
@@ -86,11 +94,32 @@ class FluidOptions:
     """Courant number C of the adaptive step, dt <= C h/(c0 + u_max) [-] (None: the scene's ``simulation.cfl_number``
     when built from a scene, else DEFAULT_CFL_NUMBER)."""
 
+    DEFAULT_NEIGHBOURS: ClassVar[str] = "lists"
+    """The neighbour search when neighbours is None and no scene gives one (the default of the scene's
+    ``fluid.neighbours``: rockwave/scene/format.py takes it from here)."""
+
+    NEIGHBOURS: ClassVar[tuple[str, ...]] = ("lists", "cells")
+
+    neighbours: str | None = None
+    """How the fluid passes find their neighbours: "lists" (a Verlet list of the pairs within (1 + skin) H, built when
+    the skin check says so, read by every pass) or "cells" (no stored list: each pass gathers from the sorted cell
+    grid that the list path builds, kernels/sph/gather.py; the same pairs in the same order, 4 B x list_capacity
+    less per particle). None: the scene's ``fluid.neighbours`` when built from a scene, else DEFAULT_NEIGHBOURS."""
+
+    gather_prefilter: bool = False
+    """With neighbours = "cells": keep the slot-ordered positions of the last build (12 B per particle, walls
+    included, as the lists have) and test each candidate's build position against R first, as the list build does,
+    before reading its current position (kernels/sph/gather.py candidate). The same pairs either way."""
+
     def __post_init__(self):
+        if self.neighbours is not None and self.neighbours not in self.NEIGHBOURS:
+            raise ValueError(f"FluidOptions.neighbours = {self.neighbours!r}: expected 'lists' or 'cells'")
         if self.skin_check not in ("relative", "absolute"):
             raise ValueError(f"FluidOptions.skin_check = {self.skin_check!r}: expected 'relative' or 'absolute'")
         if self.neighbour_skin < 0:
             raise ValueError(f"FluidOptions.neighbour_skin = {self.neighbour_skin}: must be >= 0")
+        if self.cell_span < 1:
+            raise ValueError(f"FluidOptions.cell_span = {self.cell_span}: must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -478,7 +507,16 @@ class FluidSolver:
         self.neighbour_skin = float(o.neighbour_skin)
         self.reorder_interval = self.default_reorder_interval if o.reorder_interval is None else int(o.reorder_interval)
         self.recorded_launches = self.default_recorded_launches if o.recorded_launches is None else bool(o.recorded_launches)
+        # fluid.neighbours = 'cells': no stored list, each pass gathers from the cell grid (kernels/sph/gather.py)
+        self.cell_gather = (o.neighbours or FluidOptions.DEFAULT_NEIGHBOURS) == "cells"
+        if self.cell_gather and model.density_diffusion_renormalised:  # a scene gets a SceneError (scene/format.py)
+            raise ValueError("density_diffusion_renormalised needs neighbours = 'lists': its gradient pass reads the "
+                             "neighbour list")
         self.fused_density = (not is_cuda) if o.fused_density is None else bool(o.fused_density)
+        self.fused_density = self.fused_density and not self.cell_gather
+        self.cell_span = int(o.cell_span)
+        self.gather_prefilter = self.cell_gather and bool(o.gather_prefilter)
+        self._slot_positions = not self.cell_gather or self.gather_prefilter  # cells.x_sorted kept
         self.cfl_number = FluidOptions.DEFAULT_CFL_NUMBER if o.cfl_number is None else float(o.cfl_number)
         self.skin_check = o.skin_check
         self.conditional_rebuild = o.conditional_rebuild
@@ -541,8 +579,13 @@ class FluidSolver:
         self.list_radius = m.support_radius * (1.0 + self.neighbour_skin)
         self.neighbour_cap = self.list_capacity(m, self.neighbour_skin) if capacity is None else int(capacity)
         nf = max(m.n_fluid, 1)
-        self._nbr_count = wp.zeros(nf, dtype=int, device=d)
-        self._nbr = wp.zeros(nf * self.neighbour_cap, dtype=int, device=d)
+        if self.cell_gather:  # no list: one-entry placeholders (the passes gather from the cell grid)
+            self.neighbour_cap = 0
+            self._nbr_count = wp.zeros(1, dtype=int, device=d)
+            self._nbr = wp.zeros(1, dtype=int, device=d)
+        else:
+            self._nbr_count = wp.zeros(nf, dtype=int, device=d)
+            self._nbr = wp.zeros(nf * self.neighbour_cap, dtype=int, device=d)
         self._x_build = wp.zeros(nf, dtype=wp.vec3, device=d)
         self._rebuild.fill_(1)
         self.arrays_version = getattr(self, "arrays_version", 0) + 1  # captured graphs of older arrays are stale
@@ -593,7 +636,8 @@ class FluidSolver:
         wrapped (hashed) when that would exceed max(min_cells, cells_per_particle x particles) cells."""
         m, d = self.model, self.model.device
         H = self.list_radius
-        c = H * 1.0001  # a neighbour within R is at most one y/z cell away despite rounding
+        span = self.cell_span
+        c = H * 1.0001 / span  # a neighbour within R is at most span y/z cells away despite rounding
         cx = H / self.options.cell_subdivision_x
         lo = np.asarray(m.domain_lo, float) - 2 * H
         hi = np.asarray(m.domain_hi, float) + 2 * H
@@ -601,8 +645,9 @@ class FluidSolver:
         if m.dim == 2:
             dims[2] = 1
         limit = min(max(self.options.min_cells, self.options.cells_per_particle * m.n_total), 1 << 26)
-        # wrapped y/z rows keep >= 3 cells so the 3 columns around a particle never alias
-        floor = np.array([1, min(3, dims[1]), min(3, dims[2])])
+        # wrapped y/z rows keep >= 2 span + 1 cells so the columns around a particle never alias
+        side = 2 * span + 1
+        floor = np.array([1, min(side, dims[1]), min(side, dims[2])])
         while int(np.prod(dims)) > limit and np.any(dims > floor):
             k = int(np.argmax(np.where(dims > floor, dims, 0)))
             dims[k] = max(floor[k], (dims[k] + 1) // 2)
@@ -616,13 +661,17 @@ class FluidSolver:
         g.lo = wp.vec3(*[float(a) for a in lo])
         g.inv_cx = 1.0 / cx
         g.c = c
+        g.span = span
         g.nx, g.ny, g.nz = (int(a) for a in dims)
         g.first = self._cell_first
         g.order = self._cell_order
-        self._x_sorted = wp.zeros(nt, dtype=wp.vec3, device=d)
+        # positions in slot order: the list build's candidates (the gather reads them only with gather_prefilter)
+        self._x_sorted = wp.zeros(nt if self._slot_positions else 1, dtype=wp.vec3, device=d)
         g.x_sorted = self._x_sorted
+        g.prefilter = 1 if self.gather_prefilter else 0
         self.cells = g
-        self._slot_ranges = (0, 18) if m.dim == 3 else (6, 12)  # 9 columns (3 in 2D) x 2 parts
+        # (2 span + 1)^2 columns (2 span + 1 in 2D: those of dz = 0) x 2 parts
+        self._slot_ranges = (0, 2 * side * side) if m.dim == 3 else (2 * span * side, 2 * (span + 1) * side)
 
     def _launch(self, kernel, dim, inputs, outputs=(), block_dim: int = 256) -> None:
         """wp.launch for the per-step launches: with ``recorded_launches``, recorded once per kernel and
@@ -663,7 +712,8 @@ class FluidSolver:
         self._launch(sph.cell_keys, m.n_total, [self.cells, state.x, self._cell_keys, self._cell_order, f])
         wp.utils.radix_sort_pairs(self._cell_keys, self._cell_order, m.n_total, 0, self._cell_bits)
         self._launch(sph.cell_first, self._cell_first.shape[0], [self._cell_keys, m.n_total, self._cell_first, f])
-        self._launch(sph.gather_sorted_positions, m.n_total, [self._cell_order, state.x, self._x_sorted, f])
+        if self._slot_positions:
+            self._launch(sph.gather_sorted_positions, m.n_total, [self._cell_order, state.x, self._x_sorted, f])
 
     @staticmethod
     def list_capacity(model: "FluidModel", skin: float = 0.0) -> int:
@@ -734,9 +784,12 @@ class FluidSolver:
         build_cells); ``rebuild`` as in build_cells."""
         m = self.model
         f = self._always if rebuild is None else rebuild
-        self._launch(sph.build_neighbour_list_cells, m.n_fluid,
-                     [self.cells, state.x, self.list_radius, *self._slot_ranges, f],
-                     [self._nbr_count, self._nbr, self._x_build])
+        if self.cell_gather:  # no list: the build positions only (the skin check's, and the gathers' query centres)
+            self._launch(gather.store_build_positions_all, m.n_fluid, [state.x, f, self._x_build])
+        else:
+            self._launch(sph.build_neighbour_list_cells, m.n_fluid,
+                         [self.cells, state.x, self.list_radius, *self._slot_ranges, f],
+                         [self._nbr_count, self._nbr, self._x_build])
         self._store_wall_build(state, f)
         self._flag_overflow(f)
 
@@ -752,7 +805,8 @@ class FluidSolver:
         m = self.model
         if self._check is not None:
             self._launch(sph.list_overflow_reset, 1, [rebuild, self._overflowed])
-            self._launch(sph.list_overflow_flag, m.n_fluid, [self._nbr_count, self.neighbour_cap, rebuild, self._overflowed])
+            if not self.cell_gather:  # (a gather never overflows)
+                self._launch(sph.list_overflow_flag, m.n_fluid, [self._nbr_count, self.neighbour_cap, rebuild, self._overflowed])
 
     def _list_guard(self, state: FluidState):
         """Start of a step: the displacement check. Returns the flag the cell grid and list build take,
@@ -808,7 +862,10 @@ class FluidSolver:
         """fluid.gradient_correction: the matrices L_i of this step into self.kgc (kernels/sph/fluid.py
         gradient_correction_matrix), after the lists and before the density; nothing without the correction."""
         m = self.model
-        if m.params.gradient_correction:
+        if m.params.gradient_correction and self.cell_gather:
+            self._launch(gather.gradient_correction_cells, m.n_fluid,
+                         [*self._gather_args(), state.x, state.rho, m.particle_mass, m.params], [self.kgc])
+        elif m.params.gradient_correction:
             self._launch(sph.gradient_correction_matrix, m.n_fluid,
                          [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, m.params], [self.kgc])
 
@@ -820,10 +877,20 @@ class FluidSolver:
             self.build_cells(state)
             self.build_neighbour_lists(state)
             self._lists_built()
+        if self.cell_gather:
+            self._launch(gather.particle_density_cells, m.n_fluid,
+                         [*self._gather_args(), state.x, state.v, m.particle_mass, self._zero_dt, self.kgc, m.params,
+                          int(Density.SUMMATION)], [state.drho_dt, state.rho, state.pressure, self._pr2])
+            return
         self._launch(sph.particle_density_summation_list, m.n_fluid,
                      [self._nbr_count, self._nbr, state.x, m.particle_mass, m.params],
                      [state.rho, state.pressure, self._pr2])
         self._density_overflow(state, None, summation=True)
+
+    def _gather_args(self) -> tuple:
+        """The cell gather's first arguments (kernels/sph/gather.py): the grid, its slot ranges, the query radius (the
+        list radius) and the query centres (the fluid's positions at the last build)."""
+        return (self.cells, *self._slot_ranges, self.list_radius, self._x_build)
 
     def _density_overflow(self, state: FluidState, dt, summation: bool) -> None:
         m = self.model
@@ -984,9 +1051,14 @@ class FluidSolver:
                 self._shift_v2 = wp.zeros(1, dtype=float, device=d)
             self._shift_one = wp.ones(1, dtype=float, device=d)  # the step when none is given: any non-zero
             self._shift_wdx = float(lattice_kernel_value(m.params, m.spacing, d))
-        self._launch(shifting.surface_and_concentration, m.n_fluid,
-                     [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, m.params, self._shift_wdx],
-                     [self._shift_lam, self._shift_gc, self._shift_gs])
+        if self.cell_gather:
+            self._launch(gather.surface_and_concentration_cells, m.n_fluid,
+                         [*self._gather_args(), state.x, state.rho, m.particle_mass, m.params, self._shift_wdx],
+                         [self._shift_lam, self._shift_gc, self._shift_gs])
+        else:
+            self._launch(shifting.surface_and_concentration, m.n_fluid,
+                         [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, m.params, self._shift_wdx],
+                         [self._shift_lam, self._shift_gc, self._shift_gs])
         self._shift_v2.zero_()
         if self._shift_v2.shape[0] > 1:  # by scenario (shift_by_scenario)
             self._launch(shifting.scenario_speed_max, m.n_fluid, [state.v, state.ids, self._shift_owner, self._shift_v2])
@@ -994,15 +1066,23 @@ class FluidSolver:
             stride = min(m.n_fluid, 16384)
             self._launch(shifting.speed_max, stride, [state.v, m.n_fluid, stride, self._shift_v2])
             self.reduce_shift_speed(self._shift_v2)
-        self._launch(shifting.shift_displacement, m.n_fluid,
-                     [self._nbr_count, self._nbr, state.x, self._shift_lam, self._shift_gc, self._shift_gs,
-                      self._shift_v2, state.ids, self._shift_owner, self._shift_one if dt is None else dt, m.params,
-                      m.particle_shifting, m.spacing], [self._shift_dr])
+        shift_args = [state.x, self._shift_lam, self._shift_gc, self._shift_gs, self._shift_v2, state.ids,
+                      self._shift_owner, self._shift_one if dt is None else dt, m.params, m.particle_shifting, m.spacing]
+        if self.cell_gather:
+            self._launch(gather.shift_displacement_cells, m.n_fluid, [*self._gather_args(), *shift_args], [self._shift_dr])
+        else:
+            self._launch(shifting.shift_displacement, m.n_fluid, [self._nbr_count, self._nbr, *shift_args], [self._shift_dr])
 
     def _pair_forces_pass(self, state: FluidState, dt: wp.array) -> None:
         """Acceleration and XSPH velocity of every fluid particle from its neighbours (the lists, then the
         particles whose lists overflowed)."""
         m = self.model
+        if self.cell_gather:
+            self._launch(gather.particle_acceleration_cells, m.n_fluid,
+                         [*self._gather_args(), state.x, state.v, state.rho, state.pressure, self._pr2, m.particle_mass,
+                          self._wall_pr2, state.wall_velocity, self.kgc, m.params],
+                         [state.accel, state.xsph_dv], block_dim=self._block_dim)
+            return
         self._launch(sph.particle_acceleration_list, m.n_fluid,
                      [self._nbr_count, self._nbr, state.x, state.v, state.rho, state.pressure, self._pr2,
                       m.particle_mass, self._wall_pr2, state.wall_velocity, self.kgc, m.params],
@@ -1089,6 +1169,10 @@ class FluidSolver:
         m = self.model
         if m.density is Density.SUMMATION:
             self.compute_density(state, lists=True)
+        elif self.cell_gather:
+            self._launch(gather.particle_density_cells, m.n_fluid,
+                         [*self._gather_args(), state.x, state.v, m.particle_mass, dt, self.kgc, m.params,
+                          int(Density.CONTINUITY)], [state.drho_dt, state.rho, state.pressure, self._pr2])
         else:
             self._launch(sph.particle_density_continuity_list, m.n_fluid,
                          [self._nbr_count, self._nbr, state.x, state.v, m.particle_mass, dt, self.kgc, m.params],
@@ -1111,13 +1195,18 @@ class FluidSolver:
         if walls:
             self.wall_pressure(state)
         pd = int(m.density_diffusion_form == "pressure")
-        if renorm:
-            self._launch(diffusion.density_gradient_renormalised, m.n_fluid,
-                         [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, self._wall_pr2, walls, m.params,
-                          pd], [self._diff_grad])
-        self._launch(diffusion.density_diffusion_rate, m.n_fluid,
-                     [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, self._wall_pr2, walls, m.params,
-                      m.density_diffusion, pd, renorm, self._diff_grad], [self._diff_rate])
+        if self.cell_gather:
+            self._launch(gather.density_diffusion_rate_cells, m.n_fluid,
+                         [*self._gather_args(), state.x, state.rho, m.particle_mass, self._wall_pr2, walls, m.params,
+                          m.density_diffusion, pd], [self._diff_rate])
+        else:
+            if renorm:
+                self._launch(diffusion.density_gradient_renormalised, m.n_fluid,
+                             [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, self._wall_pr2, walls,
+                              m.params, pd], [self._diff_grad])
+            self._launch(diffusion.density_diffusion_rate, m.n_fluid,
+                         [self._nbr_count, self._nbr, state.x, state.rho, m.particle_mass, self._wall_pr2, walls,
+                          m.params, m.density_diffusion, pd, renorm, self._diff_grad], [self._diff_rate])
         self._launch(diffusion.apply_density_diffusion, m.n_fluid, [self._diff_rate, dt, m.params],
                      [state.drho_dt, state.rho, state.pressure, self._pr2])
 
@@ -1155,7 +1244,26 @@ class FluidSolver:
 
     def list_overflow(self) -> int:
         """Fluid particles whose last neighbour list overflowed the capacity (summed by a cell-grid query)."""
-        return int((self._nbr_count.numpy() > self.neighbour_cap).sum()) if self.model.n_fluid else 0
+        if self.cell_gather or self.model.n_fluid == 0:  # a gather has no capacity to overflow
+            return 0
+        return int((self._nbr_count.numpy() > self.neighbour_cap).sum())
+
+    def pair_counts(self, state: FluidState) -> np.ndarray:
+        """Neighbours within H of each fluid particle (int, n_fluid, slot order) as the step's passes see them: the
+        pairs of the current lists closer than H, or those of the cell gather (``neighbours = 'cells'``). The lists
+        or cell grid must be current (after a step or build_lists)."""
+        m = self.model
+        out = wp.zeros(m.n_fluid, dtype=int, device=m.device)
+        if self.cell_gather:
+            wp.launch(gather.neighbour_count_cells, dim=m.n_fluid,
+                      inputs=[*self._gather_args(), state.x, m.support_radius], outputs=[out], device=m.device)
+        else:
+            wp.launch(gather.neighbour_count_list, dim=m.n_fluid,
+                      inputs=[self._nbr_count, self._nbr, state.x, m.support_radius], outputs=[out], device=m.device)
+        counts = out.numpy()
+        if counts.min(initial=0) < 0:
+            raise RuntimeError("pair_counts: a neighbour list overflowed its capacity")
+        return counts
 
     def stable_dt(self, state: FluidState, cfl: float | None = None) -> float:
         """Largest stable step for the current motion (one host read; cfl: default ``cfl_number``):

@@ -259,6 +259,9 @@ class GhostFluidSolver(FluidSolver):
         if options is not None and options.reorder_interval:
             raise ValueError(f"FluidOptions.reorder_interval = {options.reorder_interval}: Ghost SPH keeps the particle "
                              "order (its grid also holds the ghosts); leave it None or 0")
+        if options is not None and options.neighbours == "cells":
+            raise ValueError("FluidOptions.neighbours = 'cells': the Ghost SPH passes read the neighbour lists; "
+                             "use 'lists' (or None)")
         super().__init__(model, options)
         self.replace_pass("neighbour_lists", self._ghost_lists_pass)
         self.replace_pass("density", self._ghost_density_pass)
