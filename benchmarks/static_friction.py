@@ -58,6 +58,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+import warnings
 
 import numpy as np
 
@@ -80,6 +81,9 @@ CONFIG = {
                  duration=60.0, creep_window=10.0),
 }
 RHO = 2600.0
+# the locked twin's friction angle: mu = tan 89 deg = 57, so a point sticks unless its shear exceeds 57 x its normal
+# force (a standing block's least loaded corner carries far more than 1/57 of its shear share); run_group checks it
+LOCK_DEG = 89.0
 
 
 def _rot_y(deg: float) -> np.ndarray:
@@ -114,6 +118,20 @@ def topple_stiffness(width: float, aspect: float, slope: float) -> float:
     return 2.0 * RHO * 9.81 * aspect * aspect / (1.0 - e0)
 
 
+def partial_slip(aspect: float, slope: float, margin: float, k_joint: float) -> float:
+    """The displacement beyond the locked twin's of a block whose uphill corners slip, as a fraction of the equal
+    share's deflection W sin(slope) / (4 k_s). Statics of a rigid block on four corner springs: the overturning
+    moment of the weight about the base leaves the uphill pair a normal force W cos(slope) (1 - e) / 4 each, e the
+    weight line's offset on springs (module docstring: e0 / (1 - K_c / K)). Locked, each corner carries the equal
+    share W sin(slope) / 4; Coulomb lets an uphill corner keep mu W cos(slope) (1 - e) / 4 at most, and the downhill
+    pair takes the rest, W / 4 [2 sin - mu cos (1 - e)] each: its springs stretch beyond the equal share by
+    W / (4 k_s) [sin - mu cos (1 - e)], and the base with them. Zero where the uphill corners can keep their share."""
+    a, mu = math.radians(slope), math.tan(math.radians(slope + margin))
+    e0 = aspect * math.tan(a)
+    e = e0 / (1.0 - 2.0 * RHO * 9.81 * aspect * aspect / k_joint) if math.isfinite(k_joint) else e0
+    return max(0.0, 1.0 - mu * (1.0 - e) / math.tan(a))
+
+
 def _joint_k(width: float, spec) -> float:
     """The joint stiffness K [Pa/m] of a stiffness spec on a block of that width (k = K w^2 / 4 per point)."""
     k = k_point(width, spec)
@@ -145,26 +163,31 @@ def cases(cfg: dict) -> list:
     return out
 
 
-def group_model(device: str, group: list):
+def group_model(device: str, group: list, twins: bool = False):
     """One model for the cases of ``group`` (same width and stiffness): each block and its slab, side by side.
-    Returns (model, frames: (R, n, d, h) per case)."""
+    ``twins``: each case also gets its locked twin (the same block on its own slab, friction LOCK_DEG on both,
+    placed after the cases: block 2 (len(group) + c) + 1 is case c's twin). Returns (model, frames: (R, n, d, h)
+    per case)."""
     from rockwave.dda import geometry as G
     from rockwave.dda.blocks import BlockModel, BlockSpec, ContactMaterial
 
     specs, frames = [], []
-    for i, (w, asp, s, mg, k) in enumerate(group):
+    copies = [(c, False) for c in group] + ([(c, True) for c in group] if twins else [])
+    for i, ((w, asp, s, mg, k), locked) in enumerate(copies):
         R = _rot_y(s)
         n, d = R @ [0.0, 0.0, 1.0], R @ [1.0, 0.0, 0.0]
         h = asp * w
         slab = (6 * w, 3 * w, w / 2)
         origin = np.array([0.0, 4.0 * w * i, 0.0])  # cases side by side along y, 1 slab width apart
         kp = k_point(w, k)
-        mat = ContactMaterial(friction_angle_deg=s + mg, normal_stiffness=kp, shear_stiffness=kp)
+        mat = ContactMaterial(friction_angle_deg=LOCK_DEG if locked else s + mg, normal_stiffness=kp, shear_stiffness=kp)
+        tag = "locked" if locked else ""
         specs.append(BlockSpec(G.box(slab), kind="fixed", orientation=_quat(R), position=tuple(origin), material=mat,
-                               name=f"slab{i}"))
+                               name=f"slab{tag}{i}"))
         specs.append(BlockSpec(G.box((w, w, h)), position=tuple(origin + (slab[2] + h) / 2 * n), orientation=_quat(R),
-                               density=RHO, material=mat, name=f"block{i}"))
-        frames.append((R, n, d, h))
+                               density=RHO, material=mat, name=f"block{tag}{i}"))
+        if not locked:
+            frames.append((R, n, d, h))
     return BlockModel(specs, device=device, check_overlap=False), frames
 
 
@@ -178,47 +201,9 @@ def group_steps(group: list, duration: float) -> tuple[int, float]:
     return int(round(duration / dt)), dt
 
 
-def run_group(device: str, group: list, start: str, duration: float, window: float) -> list:
-    """One model for the cases of ``group`` (same width and stiffness): each block and its slab; a row per case."""
-    import warp as wp
-
-    from rockwave.base.solver import TimeStep
-    from rockwave.dda import geometry as G
-    from rockwave.dda.blocks import BlockOptions, BlockSolver
-
-    model, frames = group_model(device, group)
-    state = model.state()
-    solver = BlockSolver(model, options=BlockOptions(start=start))
-    t0 = time.perf_counter()
-    rep = solver.settle(state) if start == "settled" else {"start": "plain"}
-    dt = solver.stable_dt(state)
-    dta = wp.array([dt], dtype=float, device=device)
-    steps = int(round(duration / dt))
-    blocks = np.arange(1, 2 * len(group), 2)
-    base0 = model.base_position[blocks] - np.array([f[3] / 2 * f[1] for f in frames])
-
-    def base_disp():
-        x = state.positions_numpy()[blocks]
-        q = state.orientations_numpy()[blocks]
-        out = np.zeros(len(group))
-        for c, (R, n, d, h) in enumerate(frames):
-            Rq = G.quat_to_matrix(q[c])
-            base = x[c] + Rq @ (R.T @ (-h / 2 * n))
-            out[c] = (base - base0[c]) @ d
-        return out
-
-    t_window = duration - window
-    d_window = None
-    for i in range(steps):
-        solver.step(state, TimeStep(dt, state.time, dta))
-        if d_window is None and state.time >= t_window - 0.5 * dt:
-            d_window = base_disp()
-    wp.synchronize_device(device)
-    wall = time.perf_counter() - t0
-    d_end = base_disp()
-    if d_window is None:
-        d_window = d_end
-    # largest spring extension of each block's contact points (history table: key = A * N + B)
+def _contact_table(state, model) -> tuple:
+    """(largest spring extension max |f_s| [N] of each block's contact points, its points at the Coulomb cap) from
+    the contact history table (key = A * N + B: the block is B, the slab A)."""
     t = state.tables[0]
     keys, nc, ps = t["keys"].numpy(), t["nc"].numpy(), t["pstart"].numpy()
     shear = np.linalg.norm(t["shear"].numpy(), axis=1)
@@ -231,27 +216,103 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
             sl = slice(ps[slot], ps[slot] + nc[slot])
             ext[b] = max(ext[b], float(shear[sl].max()))
             at_cap[b] += int(np.count_nonzero(shear[sl] >= 0.999 * fcap[sl]))
+    return ext, at_cap
+
+
+def run_group(device: str, group: list, start: str, duration: float, window: float, twins: bool = True,
+              cap_checks: int = 50) -> list:
+    """One model for the cases of ``group`` (same width and stiffness): each block and its slab; a row per case.
+    ``twins``: each case's locked twin (group_model) is stepped beside it. Every block's contact points are checked
+    for the Coulomb cap at every step of the first 2 s, ``cap_checks`` times along the rest and at the end (``max_at_cap``, ``locked_max_at_cap``: the
+    most points at their cap in a check; ``points_at_cap``: at the end)."""
+    import warp as wp
+
+    from rockwave.base.solver import TimeStep
+    from rockwave.dda import geometry as G
+    from rockwave.dda.blocks import BlockOptions, BlockSolver
+
+    model, frames = group_model(device, group, twins=twins)
+    state = model.state()
+    solver = BlockSolver(model, options=BlockOptions(start=start))
+    t0 = time.perf_counter()
+    rep = solver.settle(state) if start == "settled" else {"start": "plain"}
+    dt = solver.stable_dt(state)
+    dta = wp.array([dt], dtype=float, device=device)
+    steps = int(round(duration / dt))
+    ncase = len(group)
+    copies = 2 if twins else 1
+    blocks = np.arange(1, 2 * ncase * copies, 2)  # the cases' blocks, then their twins'
+    fr = frames * copies
+    base0 = model.base_position[blocks] - np.array([f[3] / 2 * f[1] for f in fr])
+
+    def base_disp():
+        x = state.positions_numpy()[blocks]
+        q = state.orientations_numpy()[blocks]
+        out = np.zeros(len(blocks))
+        for c, (R, n, d, h) in enumerate(fr):
+            Rq = G.quat_to_matrix(q[c])
+            base = x[c] + Rq @ (R.T @ (-h / 2 * n))
+            out[c] = (base - base0[c]) @ d
+        return out
+
+    t_window = duration - window
+    d_window = None
+    max_cap = np.zeros(model.num_blocks, int)  # the most points of each block at their cap in a check
+    every = max(1, steps // max(cap_checks, 1))
+    dense_s = 2.0  # every step over the first 2 s: a released block's corners slip within ~0.1-1 s (notes)
+    for i in range(steps):
+        solver.step(state, TimeStep(dt, state.time, dta))
+        if d_window is None and state.time >= t_window - 0.5 * dt:
+            d_window = base_disp()
+        if cap_checks and ((i + 1) % every == 0 or state.time <= dense_s):
+            max_cap = np.maximum(max_cap, _contact_table(state, model)[1])
+    wp.synchronize_device(device)
+    wall = time.perf_counter() - t0
+    d_end = base_disp()
+    if d_window is None:
+        d_window = d_end
+    ext, at_cap = _contact_table(state, model)
+    max_cap = np.maximum(max_cap, at_cap)
+    twin_cap = max_cap
     ks = model.np["k_s"]
     q = state.orientations_numpy()[blocks]
+
+    def tilt_of(c):
+        R = fr[c][0]
+        Rq = G.quat_to_matrix(q[c])
+        return math.acos(min(1.0, (float(np.trace(Rq @ R.T)) - 1.0) / 2.0))
+
     rows = []
     for c, (w, asp, s, mg, k) in enumerate(group):
         b = blocks[c]
         m = model.np["mass"][b]
         elastic = m * 9.81 * math.sin(math.radians(s)) / (4.0 * ks[b])
-        R = frames[c][0]
-        Rq = G.quat_to_matrix(q[c])
-        tilt = math.acos(min(1.0, (float(np.trace(Rq @ R.T)) - 1.0) / 2.0))
         kp = float(model.np["k_n"][b])
-        rows.append(dict(width_m=w, aspect=round(asp, 3), slope_deg=s, margin_deg=mg, stiffness=str(k or "default"),
-                         k_n_m=kp, k_joint_pa_m=4.0 * kp / (w * w), k_s=float(ks[b]), start=start, duration_s=steps * dt, steps=steps, dt_s=dt,
-                         disp_mm=1e3 * d_end[c], elastic_mm=1e3 * elastic, beyond_elastic_mm=1e3 * (d_end[c] - elastic),
-                         slip_mm=1e3 * (d_end[c] - ext[b] / ks[b]),
-                         creep_um_s=1e6 * (d_end[c] - d_window[c]) / max(window, 1e-12),
-                         tilt_mrad=1e3 * tilt, settle_steps=rep.get("steps", 0),
-                         topples_on_springs=bool(4.0 * kp / (w * w) < topple_stiffness(w, asp, s)),
-                         points_at_cap=int(at_cap[b]),
-                         floor=bool(rep.get("float32_floor", False)), settled=rep.get("start") == "settled",
-                         wall_s=wall))
+        row = dict(width_m=w, aspect=round(asp, 3), slope_deg=s, margin_deg=mg, stiffness=str(k or "default"),
+                   k_n_m=kp, k_joint_pa_m=4.0 * kp / (w * w), k_s=float(ks[b]), start=start, duration_s=steps * dt, steps=steps, dt_s=dt,
+                   disp_mm=1e3 * d_end[c], elastic_mm=1e3 * elastic, beyond_elastic_mm=1e3 * (d_end[c] - elastic),
+                   slip_mm=1e3 * (d_end[c] - ext[b] / ks[b]),
+                   creep_um_s=1e6 * (d_end[c] - d_window[c]) / max(window, 1e-12),
+                   tilt_mrad=1e3 * tilt_of(c), settle_steps=rep.get("steps", 0),
+                   topples_on_springs=bool(4.0 * kp / (w * w) < topple_stiffness(w, asp, s)),
+                   points_at_cap=int(at_cap[b]), max_at_cap=int(max_cap[b]),
+                   floor=bool(rep.get("float32_floor", False)), settled=rep.get("start") == "settled",
+                   wall_s=wall)
+        if twins:  # the locked twin: this model's elastic deflection (springs, tilt, contact geometry), no slip
+            t = ncase + c
+            row.update(locked_mm=1e3 * d_end[t], beyond_locked_mm=1e3 * (d_end[c] - d_end[t]),
+                       locked_slip_mm=1e3 * (d_end[t] - ext[blocks[t]] / ks[blocks[t]]),
+                       locked_creep_um_s=1e6 * (d_end[t] - d_window[t]) / max(window, 1e-12),
+                       locked_tilt_mrad=1e3 * tilt_of(t), locked_max_at_cap=int(twin_cap[blocks[t]]),
+                       locked_deg=LOCK_DEG)
+            # the uphill corners' partial slip (partial_slip) predicted from statics, and what is left beyond it
+            ps_mm = 1e3 * elastic * partial_slip(asp, s, mg, 4.0 * kp / (w * w))
+            row.update(partial_slip_mm=ps_mm, beyond_partial_mm=row["beyond_locked_mm"] - ps_mm)
+            if twin_cap[blocks[t]]:
+                warnings.warn(f"the locked twin of w {w:g} h/w {asp:.3g} slope {s:g} +{mg:g} {k} ({start}) had "
+                              f"{int(twin_cap[blocks[t]])} contact point(s) at their Coulomb cap at {LOCK_DEG:g} deg: "
+                              f"not locked, its locked_mm is not a pure elastic reference")
+        rows.append(row)
     return rows
 
 
@@ -333,42 +394,66 @@ def run(device: str, cfg: dict) -> dict:
                 log(f"  w {w:g} {k}: {steps} steps of {dt:.3g} s > {cfg['max_group_steps']}: skipped")
                 continue
         for start in cfg.get("starts", ("plain", "settled")):
-            r = run_group(device, group, start, float(cfg["duration"]), float(cfg["creep_window"]))
+            r = run_group(device, group, start, float(cfg["duration"]), float(cfg["creep_window"]),
+                          twins=cfg.get("twins", True))
             for row in r:
+                twin = (f", beyond locked {row['beyond_locked_mm']:.4f} mm (twin {row['locked_mm']:.4f} mm, "
+                        f"{row['locked_max_at_cap']} at cap)" if "locked_mm" in row else "")
                 log(f"  w {row['width_m']:g} h/w {row['aspect']:g} slope {row['slope_deg']:g} +{row['margin_deg']:g} "
                     f"k {row['stiffness']} ({row['k_n_m']:.3g} N/m) {start}: beyond elastic {row['beyond_elastic_mm']:.4f} mm, slip "
-                    f"{row['slip_mm']:.4f} mm, creep {row['creep_um_s']:.4f} um/s ({row['steps']} steps, "
+                    f"{row['slip_mm']:.4f} mm{twin}, creep {row['creep_um_s']:.4f} um/s ({row['steps']} steps, "
                     f"{row['wall_s']:.0f} s)")
             rows.extend(r)
     return {"rows": rows, "skipped": skipped}
 
 
+def slip_of(r: dict) -> float:
+    """A row's slip against the bound [mm]: beyond_locked_mm (the displacement beyond its locked twin's) where the
+    record has a twin, else slip_mm (records before the twins)."""
+    return r["beyond_locked_mm"] if "beyond_locked_mm" in r else r["slip_mm"]
+
+
 def summary(rows: list, slip_bound_mm: float = 0.1, creep_bound_um_s: float = 1.0) -> str:
     """The targets, counted: rows that stand (not topples_on_springs) meeting the slip bound from the settled start
-    and the creep bound from either start; rows predicted to topple and whether they did (moved > 10 mm)."""
+    (slip_of: beyond the locked twin where there is one) and the creep bound from either start; rows predicted to
+    topple and whether they did (moved > 10 mm)."""
     for r in rows:
         if "topples_on_springs" not in r:  # older records
             r["topples_on_springs"] = bool(r["k_joint_pa_m"] < topple_stiffness(r["width_m"], r["aspect"], r["slope_deg"]))
     stand = [r for r in rows if not r["topples_on_springs"]]
     settled = [r for r in stand if r["start"] == "settled" and r.get("settled", True)]
-    ok_slip = [r for r in settled if r["slip_mm"] <= slip_bound_mm]
+    twins = all("beyond_locked_mm" in r for r in settled) and bool(settled)
+    measure = "beyond its locked twin's displacement (beyond_locked_mm)" if twins else "slip beyond the elastic deflection (slip_mm)"
+    ok_slip = [r for r in settled if slip_of(r) <= slip_bound_mm]
     ok_creep = [r for r in stand if abs(r["creep_um_s"]) < creep_bound_um_s]
     fell = [r for r in rows if r["topples_on_springs"]]
     fell_did = [r for r in fell if abs(r["disp_mm"]) > 10.0]
     not_settled = [r for r in stand if r["start"] == "settled" and not r.get("settled", True)]
-    worst_slip = max((r["slip_mm"] for r in settled), default=float("nan"))
+    worst_slip = max((abs(slip_of(r)) for r in settled), default=float("nan"))
     worst_creep = max((abs(r["creep_um_s"]) for r in stand), default=float("nan"))
-    over = [r for r in settled if r["slip_mm"] > slip_bound_mm]
+    over = [r for r in settled if slip_of(r) > slip_bound_mm]
     stuck = [r for r in over if r.get("points_at_cap") == 0]
     known = [r for r in over if "points_at_cap" in r]
-    stuck_note = (f" Of the {len(over)} beyond it, {len(stuck)} have no contact point at its Coulomb cap (every point "
-                  f"stuck: the excess is the measure's, the base centre against the corner springs of a tilted block, "
-                  f"not slip)." if known else "")
+    stuck_note = (f" Of the {len(over)} beyond it, {len(stuck)} have no contact point at its Coulomb cap at the end."
+                  if known else "")
+    twin_note = ""
+    if twins:
+        old_over = [r for r in settled if r["slip_mm"] > slip_bound_mm]
+        unlocked = [r for r in rows if r.get("locked_max_at_cap", 0) > 0]
+        plain = [r for r in stand if r["start"] == "plain" and "beyond_locked_mm" in r]
+        worst_plain = max((abs(r["beyond_locked_mm"]) for r in plain), default=float("nan"))
+        twin_note = (f" Against the corner-spring measure (slip_mm) {len(old_over)} settled rows would be over "
+                     f"{slip_bound_mm:g} mm (largest {max((r['slip_mm'] for r in settled), default=float('nan')):.4f}"
+                     f" mm) and against the equal share (beyond_elastic_mm) "
+                     f"{sum(r['beyond_elastic_mm'] > slip_bound_mm for r in settled)}. Locked twins with a point at "
+                     f"their cap at any check ({LOCK_DEG:g} deg not enough): {len(unlocked)} rows. Plain start beyond "
+                     f"its twin (the slip while the contacts load): largest abs {worst_plain:.4f} mm.")
     return (f"Standing rows (not predicted to topple on their springs): {len(stand)}. Settled start: {len(ok_slip)} of "
-            f"{len(settled)} within {slip_bound_mm:g} mm of slip beyond the elastic deflection (largest "
-            f"{worst_slip:.4f} mm; {len(not_settled)} more fell back to the plain start).{stuck_note} Creep below {creep_bound_um_s:g} um/s: "
-            f"{len(ok_creep)} of {len(stand)} rows, both starts (largest {worst_creep:.3f} um/s). Predicted to topple on "
-            f"their springs (K < K_c / (1 - e0)): {len(fell)} rows, {len(fell_did)} of them toppled.\n\n")
+            f"{len(settled)} within {slip_bound_mm:g} mm {measure} (largest abs {worst_slip:.4f} mm; "
+            f"{len(not_settled)} more fell back to the plain start).{stuck_note}{twin_note} Creep below "
+            f"{creep_bound_um_s:g} um/s: {len(ok_creep)} of {len(stand)} rows, both starts (largest "
+            f"{worst_creep:.3f} um/s). Predicted to topple on their springs (K < K_c / (1 - e0)): {len(fell)} rows, "
+            f"{len(fell_did)} of them toppled.\n\n")
 
 
 def table(rows: list) -> str:
@@ -378,8 +463,11 @@ def table(rows: list) -> str:
         k = r.get("stiffness", r["k_n_m"])  # records before the stiffness axis: k_n_m was the spec
         kp = r["k_n_m"] if isinstance(r["k_n_m"], float) and "stiffness" in r else None
         by.setdefault((r["width_m"], r["aspect"], r["slope_deg"], r["margin_deg"], str(k), kp), {})[r["start"]] = r
-    head = ("| width m | h/w | slope deg | margin deg | stiffness | k N/m per point | settled: beyond elastic mm | slip mm | creep um/s | "
-            "plain: beyond elastic mm | slip mm | creep um/s | steps | s | settle steps |\n|" + "---|" * 15 + "\n")
+    twins = any("locked_mm" in r for r in rows)
+    tw = "beyond locked mm | locked mm | " if twins else ""
+    head = (f"| width m | h/w | slope deg | margin deg | stiffness | k N/m per point | settled: {tw}beyond elastic mm | slip mm | "
+            f"creep um/s | plain: {tw}beyond elastic mm | slip mm | creep um/s | steps | s | settle steps |\n|"
+            + "---|" * (15 + 4 * twins) + "\n")
     lines = []
     for key, d in by.items():
         s, p = d.get("settled", {}), d.get("plain", {})
@@ -388,8 +476,14 @@ def table(rows: list) -> str:
             return format(r[k], fmt) if k in r else "-"
 
         kp = "-" if key[5] is None else f"{key[5]:.3g}"
-        lines.append(f"| {key[0]:g} | {key[1]:g} | {key[2]:g} | {key[3]:g} | {key[4]} | {kp} | {f(s, 'beyond_elastic_mm', '.4f')} | "
-                     f"{f(s, 'slip_mm', '.4f')} | {f(s, 'creep_um_s', '.4f')} | {f(p, 'beyond_elastic_mm', '.4f')} | "
+        def t(r):
+            if not twins:
+                return ""
+            cap = f" (twin {r['locked_max_at_cap']} at cap)" if r.get("locked_max_at_cap") else ""
+            return f"{f(r, 'beyond_locked_mm', '.4f')}{cap} | {f(r, 'locked_mm', '.4f')} | "
+
+        lines.append(f"| {key[0]:g} | {key[1]:g} | {key[2]:g} | {key[3]:g} | {key[4]} | {kp} | {t(s)}{f(s, 'beyond_elastic_mm', '.4f')} | "
+                     f"{f(s, 'slip_mm', '.4f')} | {f(s, 'creep_um_s', '.4f')} | {t(p)}{f(p, 'beyond_elastic_mm', '.4f')} | "
                      f"{f(p, 'slip_mm', '.4f')} | {f(p, 'creep_um_s', '.4f')} | {s.get('steps', p.get('steps', '-'))} | "
                      f"{format(s.get('duration_s', p.get('duration_s', float('nan'))), '.3g')} | "
                      f"{s.get('settle_steps', '-')}{' (floor)' if s.get('floor') else ''} |")
@@ -410,6 +504,9 @@ def main() -> None:
     ap.add_argument("--step-cost-us", type=float, default=500.0, help="GPU cost of a step for --estimate (H200: ~500 us)")
     ap.add_argument("--widths", type=float, nargs="+", default=None)
     ap.add_argument("--slopes", type=float, nargs="+", default=None)
+    ap.add_argument("--aspects", nargs="+", default=None, help="h/w values or 0.9topple (default: the subset's)")
+    ap.add_argument("--margins", type=float, nargs="+", default=None)
+    ap.add_argument("--no-twins", action="store_true", help="leave out the locked twins (half the blocks; no beyond_locked_mm)")
     ap.add_argument("--groups", nargs="+", default=None, metavar="W:SPEC",
                     help="exactly these (width, stiffness) groups, e.g. 0.2:default 1:1e10Pa/m (the full matrix's aspects, slopes, margins)")
     ap.add_argument("--starts", nargs="+", choices=["plain", "settled"], default=None, help="one start or both (default both)")
@@ -448,14 +545,20 @@ def main() -> None:
     if a.widths:
         cfg["widths"] = a.widths
         cfg.pop("groups", None)
-    if a.slopes:
-        cfg["slopes"] = a.slopes
     if a.stiffness:
         cfg["stiffness"] = a.stiffness
         cfg.pop("groups", None)
     if a.groups:
         cfg = with_groups(dict(CONFIG["full"], duration=cfg["duration"], creep_window=cfg["creep_window"]),
                           parse_groups(a.groups))
+    if a.slopes:  # also over --groups
+        cfg["slopes"] = a.slopes
+    if a.aspects:
+        cfg["aspects"] = [x if x == "0.9topple" else float(x) for x in a.aspects]
+    if a.margins:
+        cfg["margins"] = a.margins
+    if a.no_twins:
+        cfg["twins"] = False
     if a.starts:
         cfg["starts"] = a.starts
     if a.max_group_steps is not None:
