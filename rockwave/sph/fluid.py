@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from rockwave.base.solver import TimeStep
-from rockwave.kernels.sph import diffusion, shifting
+from rockwave.kernels.sph import diffusion, shifting, wall_work
 from rockwave.kernels.sph import fluid as sph
 
 
@@ -498,6 +498,7 @@ class FluidSolver:
         # eq. 27, written by the coupling each step; zero for static walls) and their positions at the last list
         # build (_xq: the cell queries of the wall pressure start there; static walls: their own positions)
         self.wall_accel = wp.zeros(max(model.n_boundary, 1), dtype=wp.vec3, device=d)
+        self._wall_rate = wp.zeros(max(model.n_boundary, 1), dtype=float, device=d)  # kernels/sph/wall_work.py
         self._xq = None
         if model.n_moving_walls:
             xb = np.asarray(model.initial_positions, float)[model.n_fluid: model.n_total]
@@ -882,12 +883,13 @@ class FluidSolver:
     # array of the step's length. A variant solver (rockwave/sph/ghost.py) or an attached part (the wall particles of
     # moving blocks, rockwave/coupling/walls.py; a rank's halo exchange, rockwave/sim/distributed.py) replaces or
     # inserts passes by name (replace_pass / insert_pass); nothing copies the sequence.
-    PASS_NAMES = ("neighbour_lists", "gradient_correction", "density", "density_diffusion", "wall_pressure",
-                  "pair_forces", "shifting", "integrate", "shift")
+    PASS_NAMES = ("neighbour_lists", "gradient_correction", "density", "wall_work", "density_diffusion",
+                  "wall_pressure", "pair_forces", "shifting", "integrate", "shift")
 
     def _default_passes(self) -> list:
         return [("neighbour_lists", self._neighbour_lists_pass), ("gradient_correction", self._gradient_correction_pass),
-                ("density", self._density_pass), ("density_diffusion", self._density_diffusion_pass),
+                ("density", self._density_pass), ("wall_work", self._wall_work_pass),
+                ("density_diffusion", self._density_diffusion_pass),
                 ("wall_pressure", self._wall_pressure_pass), ("pair_forces", self._pair_forces_pass),
                 ("shifting", self._shifting_pass), ("integrate", self._integrate_pass), ("shift", self._shift_pass)]
 
@@ -931,6 +933,9 @@ class FluidSolver:
 
     def _density_pass(self, state: FluidState, dt: wp.array) -> None:
         self._density(state, dt, self._density_done)
+
+    def _wall_work_pass(self, state: FluidState, dt: wp.array) -> None:
+        self.wall_work(state, dt)
 
     def _density_diffusion_pass(self, state: FluidState, dt: wp.array) -> None:
         m = self.model
@@ -1038,6 +1043,24 @@ class FluidSolver:
                      [self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, state.rho, state.pressure,
                       xq, q_off, self.wall_accel, m.params],
                      [state.wall_pressure, self._wall_pr2, state.wall_velocity])
+
+    def wall_work(self, state: FluidState, dt: wp.array) -> None:
+        """Adami walls with continuity density: the work of the walls' extrapolated pressure on the water, paid by
+        the fluid particles that set it (kernels/sph/wall_work.py: each wall's rate of the fluid's summation density,
+        then the fluid's continuity density by their Shepard weights). After the density pass, before the wall
+        pressure (it reads the walls' density of the last step); the cell grid and lists of this step."""
+        m = self.model
+        if (m.params.boundary != sph.BOUNDARY_ADAMI or m.density is not Density.CONTINUITY or m.n_boundary == 0
+                or m.n_fluid == 0):
+            return
+        xq, q_off = (state.x, m.n_fluid) if self._xq is None else (self._xq, 0)
+        self._launch(wall_work.wall_density_rate, m.n_boundary,
+                     [self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, m.particle_mass, xq, q_off,
+                      self._wall_pr2, m.params], [self._wall_rate])
+        self._launch(wall_work.paired_wall_density, m.n_fluid,
+                     [self._nbr_count, self._nbr, self.cells, *self._slot_ranges, self.list_radius, state.x,
+                      m.particle_mass, self._wall_rate, dt, m.params],
+                     [state.drho_dt, state.rho, state.pressure, self._pr2])
 
     def _neighbour_lists(self, state: FluidState, dt: wp.array) -> bool:
         """The cell grid and Verlet lists, rebuilt when the skin check says so. Returns True when the
