@@ -53,7 +53,7 @@ def test_wall_particles_follow_the_block():
     assert abs(inset.min() - 0.5 * S) < 1e-6 and inset.max() < H
     sim.advance(0.05)
     xb, q = sim.block_positions()[0], sim.block_state.orientations_numpy()[0]
-    assert np.linalg.norm(xb - x0) > 1e-3  # it fell
+    assert np.linalg.norm(xb - x0) > 5e-4  # it fell (0.67 mm; 1.65 mm before the walls' pressure work was paired)
     from rockwave.base.maths import quat_to_matrix
 
     body = sim.coupling.walls.body_r.numpy().astype(float)

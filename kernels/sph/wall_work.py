@@ -1,6 +1,6 @@
 """The work of the Adami walls' extrapolated pressure, paired in the continuity equation (launched by
-rockwave/sph/fluid.py FluidSolver.wall_work, the ``wall_work`` pass after the density pass; continuity density with
-Adami walls only).
+rockwave/sph/fluid.py FluidSolver.wall_work, the ``wall_work`` pass between the density and the wall pressure;
+continuity density with Adami walls only).
 
 The wall term of the momentum equation (Adami, Hu & Adams 2012) a_i -= m_b (p_i/rho_i^2 + p_b/rho_b^2) grad W_ib has
 two parts. The p_i part does work that the continuity equation pays back exactly: d rho_i/dt holds
@@ -29,8 +29,8 @@ then pushed the water beside it away for nothing: the landing under water of iss
 
 import warp as wp
 
-from rockwave.kernels.sph.fluid import (SPHParams, CellGrid, cell_of, slot_range, kernel_w, kernel_grad, step_of,
-                                        store_density)
+from rockwave.kernels.sph.fluid import (EOS_TAIT, SPHParams, CellGrid, cell_of, slot_range, kernel_w, kernel_grad,
+                                        step_of, store_density)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -46,13 +46,14 @@ def wall_density_rate(
     particle_mass: wp.array(dtype=float),
     xq: wp.array(dtype=wp.vec3),
     q_off: int,
-    wall_pr2: wp.array(dtype=wp.vec2),
+    wall_pressure: wp.array(dtype=float),
     p: SPHParams,
     wall_rate: wp.array(dtype=float),
 ):
     """Per boundary particle b (launched over them; the cell-grid query of wall_pressure_adami, radius R centred at
-    xq[q_off + t]): wall_rate[t] = c_b R_b / sum_f W_bf (module docstring), c_b from the wall's density of the last
-    wall-pressure pass (wall_pr2[t][1] = rho_b/rho0; rho0 before the first). 0 with no fluid within H."""
+    xq[q_off + t]): wall_rate[t] = c_b R_b / sum_f W_bf (module docstring), c_b from the wall's pressure of the last step
+    (wall_pressure[t], part of the state: a resumed run is the same; 0 before the first: rho_b = rho0) through the
+    inverse EOS. 0 with no fluid within H."""
     t = wp.tid()
     b = t + p.n_fluid
     xb = x[b]
@@ -76,9 +77,13 @@ def wall_density_rate(
     if sw <= 0.0:
         wall_rate[t] = 0.0
         return
-    rr = wall_pr2[t][1]  # rho_b / rho0
-    if rr <= 0.0:
-        rr = 1.0
+    # rho_b/rho0 from the inverse EOS, as wall_pressure_adami: Tait (p/B + 1)^(1/gamma); linear 1 + p/(k rho0)
+    pb = wall_pressure[t]
+    rr = float(0.0)
+    if p.eos == EOS_TAIT:
+        rr = wp.pow(wp.max(pb / p.eos_b + 1.0, 1.0e-3), 1.0 / p.eos_gamma)
+    else:
+        rr = wp.max(1.0 + pb / (p.eos_b * p.rest_density), 1.0e-3)
     mp = particle_mass[b]
     if p.wall_volume != 0:
         mp = mp * rr
