@@ -14,25 +14,44 @@ nobody's energy. Its power on the water (relative to the wall, whose reaction th
 m_b' the wall's mass in the force term (m_b, or m_b rho_b/rho0 with fluid.wall_volume = 'geometric'). R_b is the
 rate of the fluid's summation density at the wall: water that leaves the wall (R_b < 0) is pushed by p_b and gains
 kinetic energy. If p_b were a state of the wall's own (its summation density through an EOS, as a fluid particle)
-its internal energy m_b e(rho_b) would pay for it. Here the fluid particles that set p_b pay: each gets
+its internal energy m_b e(rho_b) would pay for it. Here the fluid particles that set p_b pay, each by its share of
+the extrapolation:
 
-    d rho_f/dt += rho_f^2/m_f sum_b w_bf c_b R_b,
+    d rho_f/dt += rho_f^2/m_f sum_b w_bf c_b (p_b/pbar_b) R_b,   pbar_b = sum_f w_bf p_f,
 
-so that sum_f m_f p_f/rho_f^2 d rho_f/dt = sum_b c_b R_b sum_f w_bf p_f, the power of p_b less its hydrostatic part
-(a gravity term of the water between the fluid and the wall). The particles whose pressure the wall carries
-decompress as water leaves the wall and are compressed as water arrives, as the mirror image of the water behind a
-wall would be. Without it a particle held compressed by something that does no work (water pressed into the
-floor's wall layer by a block resting on the floor) raised the wall pressure of its whole neighbourhood, which
-then pushed the water beside it away for nothing: the landing under water of issue 37 (docs/notes.md,
-"Landing under water: the wall pressure's work paired").
+so that sum_f m_f p_f/rho_f^2 d rho_f/dt = sum_b c_b p_b R_b, the power of p_b, its hydrostatic part included. The
+particles whose pressure the wall carries decompress as water leaves the wall and are compressed as water arrives,
+as the mirror image of the water behind a wall would be. The share p_b/pbar_b is kept within [0, PB_SHARE_MAX]:
+where the setters hold almost no pressure (a wall beside the free surface, p_b mostly the extrapolation's
+hydrostatic term) they cannot pay for it, and an unbounded share there would compress them without limit; a bound
+of 2 pays for the hydrostatic part up to the setters' own pressure (chosen, not fitted: no other value was run).
+Without the share (pairing sum_f w_bf p_f only) the hydrostatic part's work stayed unpaired and the standing wave
+of tests/test_standing_wave.py decayed 17% per period with 6.5% of its kinetic energy at the particle scale,
+against 13% and 2.8% without any pairing and 15% and 3.6% with it (CPU, 16 per depth; docs/notes.md).
+
+Without the pairing a particle held compressed by something that does no work (water pressed into the floor's wall
+layer by a block resting on the floor) raised the wall pressure of its whole neighbourhood, which then pushed the
+water beside it away for nothing: the landing under water of issue 37 (docs/notes.md, "Landing under water: the
+wall pressure's work paired").
 """
 
 import warp as wp
 
-from rockwave.kernels.sph.fluid import (EOS_TAIT, SPHParams, CellGrid, cell_of, slot_range, kernel_w, kernel_grad,
-                                        step_of, store_density)
+from rockwave.kernels.sph.fluid import (
+    EOS_TAIT,
+    CellGrid,
+    SPHParams,
+    cell_of,
+    kernel_grad,
+    kernel_w,
+    slot_range,
+    step_of,
+    store_density,
+)
 
 wp.set_module_options({"enable_backward": False})
+
+PB_SHARE_MAX = wp.constant(2.0)  # the largest share p_b/pbar_b the setters pay for (module docstring)
 
 
 @wp.kernel
@@ -47,11 +66,12 @@ def wall_density_rate(
     xq: wp.array(dtype=wp.vec3),
     q_off: int,
     wall_pressure: wp.array(dtype=float),
+    pressure: wp.array(dtype=float),
     p: SPHParams,
     wall_rate: wp.array(dtype=float),
 ):
     """Per boundary particle b (launched over them; the cell-grid query of wall_pressure_adami, radius R centred at
-    xq[q_off + t]): wall_rate[t] = c_b R_b / sum_f W_bf (module docstring), c_b from the wall's pressure of the last step
+    xq[q_off + t]): wall_rate[t] = c_b (p_b/pbar_b) R_b / sum_f W_bf (module docstring), c_b from the wall's pressure of the last step
     (wall_pressure[t], part of the state: a resumed run is the same; 0 before the first: rho_b = rho0) through the
     inverse EOS. 0 with no fluid within H."""
     t = wp.tid()
@@ -60,6 +80,7 @@ def wall_density_rate(
     vb = v[b]
     sw = float(0.0)
     rate = float(0.0)
+    spf = float(0.0)
     H2 = p.H * p.H
     xc = xq[q_off + t]
     ix, iy, iz = cell_of(g, xc)
@@ -71,7 +92,9 @@ def wall_density_rate(
                 d = x[f] - xb
                 r2 = wp.length_sq(d)
                 if r2 < H2:
-                    sw += kernel_w(r2, p)
+                    wf = kernel_w(r2, p)
+                    sw += wf
+                    spf += wf * pressure[f]
                     # R_b = sum_f m_f (v_f - v_b) . grad_f W(x_f - x_b): the rate of the fluid's summation density at b
                     rate += particle_mass[f] * wp.dot(v[f] - vb, kernel_grad(d, wp.sqrt(r2), p))
     if sw <= 0.0:
@@ -88,12 +111,18 @@ def wall_density_rate(
     if p.wall_volume != 0:
         mp = mp * rr
     rho_b = rr * p.rest_density
-    wall_rate[t] = mp / (rho_b * rho_b) * rate / sw
+    # the share of the setters' pressure: p_b / pbar_b, pbar_b = sum_f p_f W_bf / sum_f W_bf (this step's), so that the
+    # paired work is that of the whole p_b, its hydrostatic part included; at most PB_SHARE_MAX (module docstring)
+    c = mp / (rho_b * rho_b)
+    pbar = spf / sw
+    if pbar > 1.0e-6 * p.eos_b:
+        c = c * wp.clamp(pb / pbar, 0.0, PB_SHARE_MAX)
+    wall_rate[t] = c * rate / sw
 
 
 @wp.func
 def wall_share(xi: wp.vec3, j: int, x: wp.array(dtype=wp.vec3), wall_rate: wp.array(dtype=float), p: SPHParams):
-    # W_ib c_b R_b / sum_f W_bf of wall particle j (0 for a fluid neighbour or beyond H)
+    # W_ib (wall_rate of wall particle j): 0 for a fluid neighbour or beyond H
     if j < p.n_fluid:
         return 0.0
     r2 = wp.length_sq(xi - x[j])

@@ -1058,7 +1058,7 @@ class FluidSolver:
         xq, q_off = (state.x, m.n_fluid) if self._xq is None else (self._xq, 0)
         self._launch(wall_work.wall_density_rate, m.n_boundary,
                      [self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, m.particle_mass, xq, q_off,
-                      state.wall_pressure, m.params], [self._wall_rate])
+                      state.wall_pressure, state.pressure, m.params], [self._wall_rate])
         self._launch(wall_work.paired_wall_density, m.n_fluid,
                      [self._nbr_count, self._nbr, self.cells, *self._slot_ranges, self.list_radius, state.x,
                       m.particle_mass, self._wall_rate, dt, m.params],
