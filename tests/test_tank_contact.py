@@ -195,13 +195,14 @@ def test_energy_check_warns_or_stops():
     # the 3D single-rate case: 0.0026 J, bound 0.051 J)
     (2, False, "multirate", "akinci"), (3, True, "multirate", "akinci"),
     # the default Adami walls under multi-rate: +3.8 J/m before the walls' pressure work was paired in the continuity
-    # equation (kernels/sph/wall_work.py), 0 to 0.004 J/m after (three read rhythms)
+    # equation (kernels/sph/wall_work.py), 0 after (three read rhythms: 0.01, 0.005, 0.004 s)
     (2, False, "multirate", None)])
 def test_landing_under_water_creates_no_energy(dim, squeeze, stepping, boundary):
     """A rock landing on the tank floor under water (issue 37's scenes at CPU size). Bounds tested:
-    - the total energy of water and rock (the budget, read every 0.01 s) never rises above its lowest value so far by
-      more than 1% of the rock's potential energy above the floor (before the fix: +18.9 J in the 2D scene at 0.01 m,
-      16x the bound);
+    - the total energy of water and rock (the budget, read every 0.01 s to 0.6 s in 2D, 0.46 s in 3D: the water
+      under the rock cushions the last millimetres, the 2D single-rate rock lands at 0.53 s) never rises above its
+      lowest value so far by more than 1% of the rock's potential energy above the floor (before the fix: +18.9 J in
+      the 2D scene at 0.01 m, 16x the bound);
     - the water's speed after the landing stays below 3x the rock's arrival speed plus the water's fastest before it
       (the squeeze flow out of a gap of one spacing under a 0.1 m face: (L/2)/s = 2.5 spacings here; before the fix
       11.3 m/s from an arrival at 1.05 m/s);
@@ -217,7 +218,7 @@ def test_landing_under_water_creates_no_energy(dim, squeeze, stepping, boundary)
     depth = 0.1 if dim == 2 else 1.0  # 2D: the budget is per metre of depth
     pe_floor = sim.blocks.np["mass"][0] / depth * 9.81 * (sim.block_positions()[0][up] - 0.05)  # its fall to the floor
     low, rise, v_before, v_after, arrival = None, 0.0, 0.0, 0.0, 0.0
-    while sim.time < (0.52 if dim == 2 else 0.46):
+    while sim.time < (0.6 if dim == 2 else 0.46):
         sim.advance(0.01)
         r = b.measure()
         low = r["total_j"] if low is None else min(low, r["total_j"])
