@@ -16,7 +16,8 @@ Hydrodynamics simulations", IEEE TPDS 25(1)):
   between two list rebuilds (halo_width). The forces on an owned particle i read its neighbours' densities *updated
   in the same step*, which a halo slot cannot compute, so inside the step (RankFluidSolver's ``halo_densities``
   pass, after the density passes, before the wall pressure) the owners send each halo particle's new rho, p and
-  p/rho^2. depth: 1, +1 with Adami walls (a wall particle within H of i extrapolates the fluid within H of itself),
+  p/rho^2 (with Adami walls and continuity density also before the walls' work pass, which reads the halo's
+  pressures: FluidSolver.wall_work). depth: 1, +1 with Adami walls (a wall particle within H of i extrapolates the fluid within H of itself),
   +1 with delta-SPH diffusion (it reads the neighbours' densities before that exchange), +1 with particle shifting.
   Halo results (accelerations, new positions) are never used: at the next step the halo slots take their owners'
   x, v and rho again.
@@ -665,6 +666,10 @@ class RankFluidSolver(FluidSolver):
     def __init__(self, model, options, exchange, comm=None):
         super().__init__(model, options)
         self.insert_pass("halo_densities", lambda state, dt: exchange(state, self), before="wall_pressure")
+        if model.params.boundary == sph.BOUNDARY_ADAMI and model.density is Density.CONTINUITY and model.n_boundary:
+            # the wall work (FluidSolver.wall_work) reads the pressures of the fluid within H of the walls within H of
+            # an owned particle, before the exchange above: the owners' densities first, then again after it
+            self.insert_pass("halo_densities_walls", lambda state, dt: exchange(state, self), before="wall_work")
         self.build_now = True
         self.comm = comm
 
