@@ -27,7 +27,7 @@ hydrostatic term) they cannot pay for it, and an unbounded share there would com
 of 2 pays for the hydrostatic part up to the setters' own pressure (chosen, not fitted: no other value was run).
 Without the share (pairing sum_f w_bf p_f only) the hydrostatic part's work stayed unpaired and the standing wave
 of tests/test_standing_wave.py decayed 17% per period with 6.5% of its kinetic energy at the particle scale,
-against 13% and 2.8% without any pairing and 15% and 3.6% with it (CPU, 16 per depth; docs/notes.md).
+against 13% and 2.8% without any pairing and 15% and 3.0% with it (CPU, 16 per depth; docs/notes.md).
 
 Without the pairing a particle held compressed by something that does no work (water pressed into the floor's wall
 layer by a block resting on the floor) raised the wall pressure of its whole neighbourhood, which then pushed the
