@@ -27,7 +27,10 @@ hydrostatic term) they cannot pay for it, and an unbounded share there would com
 of 2 pays for the hydrostatic part up to the setters' own pressure (chosen, not fitted: no other value was run).
 Without the share (pairing sum_f w_bf p_f only) the hydrostatic part's work stayed unpaired and the standing wave
 of tests/test_standing_wave.py decayed 17% per period with 6.5% of its kinetic energy at the particle scale,
-against 13% and 2.8% without any pairing and 15% and 3.0% with it (CPU, 16 per depth; docs/notes.md).
+against 13% and 2.8% without any pairing and 15% and 3.6% with it (CPU, 16 per depth; docs/notes.md). p_b and
+rho_b are the wall's of the last step (state.wall_pressure): extrapolated again here from this step's density
+before the pairing, the piston wave maker of tests/test_coupling.py read -19.8% of linear theory (-8.7% with the
+last step's, -10% without pairing); why this is so sensitive was not found.
 
 Without the pairing a particle held compressed by something that does no work (water pressed into the floor's wall
 layer by a block resting on the floor) raised the wall pressure of its whole neighbourhood, which then pushed the
@@ -65,16 +68,15 @@ def wall_density_rate(
     particle_mass: wp.array(dtype=float),
     xq: wp.array(dtype=wp.vec3),
     q_off: int,
-    rho: wp.array(dtype=float),
+    wall_pressure: wp.array(dtype=float),
     pressure: wp.array(dtype=float),
-    wall_accel: wp.array(dtype=wp.vec3),
     p: SPHParams,
     wall_rate: wp.array(dtype=float),
 ):
     """Per boundary particle b (launched over them; the cell-grid query of wall_pressure_adami, radius R centred at
-    xq[q_off + t]): wall_rate[t] = c_b (p_b/pbar_b) R_b / sum_f W_bf (module docstring), p_b (and rho_b in c_b,
-    through the inverse EOS) as wall_pressure_adami extrapolates it from this step's density before the pairing
-    (Adami et al. 2012, eq. 27). 0 with no fluid within H."""
+    xq[q_off + t]): wall_rate[t] = c_b (p_b/pbar_b) R_b / sum_f W_bf (module docstring), c_b from the wall's pressure of the last step
+    (wall_pressure[t], part of the state: a resumed run is the same; 0 before the first: rho_b = rho0) through the
+    inverse EOS. 0 with no fluid within H."""
     t = wp.tid()
     b = t + p.n_fluid
     xb = x[b]
@@ -82,7 +84,6 @@ def wall_density_rate(
     sw = float(0.0)
     rate = float(0.0)
     spf = float(0.0)
-    srx = wp.vec3(0.0)
     H2 = p.H * p.H
     xc = xq[q_off + t]
     ix, iy, iz = cell_of(g, xc)
@@ -97,17 +98,13 @@ def wall_density_rate(
                     wf = kernel_w(r2, p)
                     sw += wf
                     spf += wf * pressure[f]
-                    srx -= (rho[f] * wf) * d  # rho_f (x_b - x_f) W_bf
                     # R_b = sum_f m_f (v_f - v_b) . grad_f W(x_f - x_b): the rate of the fluid's summation density at b
                     rate += particle_mass[f] * wp.dot(v[f] - vb, kernel_grad(d, wp.sqrt(r2), p))
     if sw <= 0.0:
         wall_rate[t] = 0.0
         return
-    # p_b = (sum_f p_f W_bf + (g - a_b) . sum_f rho_f (x_b - x_f) W_bf) / sum_f W_bf, then rho_b/rho0 from the inverse
-    # EOS, as wall_pressure_adami: Tait (p/B + 1)^(1/gamma); linear 1 + p/(k rho0)
-    pb = (spf + wp.dot(p.gravity - wall_accel[t], srx)) / sw
-    if p.clamp_negative != 0:
-        pb = wp.max(pb, 0.0)
+    # rho_b/rho0 from the inverse EOS, as wall_pressure_adami: Tait (p/B + 1)^(1/gamma); linear 1 + p/(k rho0)
+    pb = wall_pressure[t]
     rr = float(0.0)
     if p.eos == EOS_TAIT:
         rr = wp.pow(wp.max(pb / p.eos_b + 1.0, 1.0e-3), 1.0 / p.eos_gamma)

@@ -356,6 +356,7 @@ class DistributedFluid:
         """At a list rebuild (collective): owned particles that left the slab go to the neighbour (migration; the
         skin check bounds a particle's drift since the last rebuild far below a slab, so only to a neighbour), then
         the new halo set and the solver of the new layout. Device kernels; host reads of counts only."""
+        self._wall_state = self.state.wall_pressure  # the rank's walls are fixed: their last pressure carries over
         keep, down, up, _, _ = self._classify(self.n_own)
         k_idx, d_idx, u_idx = (self._compact(f, self.n_own) for f in (keep, down, up))
         recv_lo, recv_hi = self._exchange_full(d_idx, u_idx)
@@ -395,6 +396,10 @@ class DistributedFluid:
             self._launch(kd.unpack_full, buf.shape[0], [buf, off, gid, st.x, st.v, st.rho, st.accel, st.pressure])
         if nb:
             wp.copy(st.x, self._xb_dev, n, 0, nb)
+            keep = getattr(self, "_wall_state", None)  # the walls' pressure of the last step (FluidSolver.wall_work reads it)
+            if keep is not None and keep.shape == st.wall_pressure.shape:
+                wp.copy(st.wall_pressure, keep)
+        self._wall_state = None
         self.state, self.gid, self.n_halo, self.n_halo_from = st, gid, n_lo + n_hi, (n_lo, n_hi)
         self._make_solver(n, nb)
         d = self.device

@@ -1050,7 +1050,7 @@ class FluidSolver:
         then the fluid's continuity density by their Shepard weights). After the density pass and before the wall
         pressure, which then extrapolates the paired density (after it, the wall pressure lagged a step behind
         and still water in a 2D tank grew unstable: RMS speed 0.09 m/s after 0.5 s against 0.003); c_b from the
-        walls' pressure extrapolated in the kernel from this step's density. The cell grid and lists of this step."""
+        walls' pressure of the last step (state.wall_pressure). The cell grid and lists of this step."""
         m = self.model
         if (m.params.boundary != sph.BOUNDARY_ADAMI or m.density is not Density.CONTINUITY or m.n_boundary == 0
                 or m.n_fluid == 0):
@@ -1058,7 +1058,7 @@ class FluidSolver:
         xq, q_off = (state.x, m.n_fluid) if self._xq is None else (self._xq, 0)
         self._launch(wall_work.wall_density_rate, m.n_boundary,
                      [self.cells, *self._slot_ranges, self.list_radius, state.x, state.v, m.particle_mass, xq, q_off,
-                      state.rho, state.pressure, self.wall_accel, m.params], [self._wall_rate])
+                      state.wall_pressure, state.pressure, m.params], [self._wall_rate])
         self._launch(wall_work.paired_wall_density, m.n_fluid,
                      [self._nbr_count, self._nbr, self.cells, *self._slot_ranges, self.list_radius, state.x,
                       m.particle_mass, self._wall_rate, dt, m.params],
