@@ -267,7 +267,13 @@ class DistributedFluid:
         reach = self.dec.halo + self.global_model.support_radius
         xb = self._xb_all
         sel = (xb[:, ax] >= self.lo - reach) & (xb[:, ax] < self.hi + reach) if len(xb) else np.zeros(0, bool)
+        old_index, old_state = getattr(self, "boundary_index", None), getattr(self, "state", None)
         self.boundary_index = np.flatnonzero(sel)
+        if old_index is not None and old_state is not None and len(old_index) and len(self.boundary_index):
+            # the walls' pressure of the last step over to the new wall set (walls new to this rank: 0)
+            vals = np.zeros(len(xb), np.float32)
+            vals[old_index] = old_state.wall_pressure.numpy()[: len(old_index)]
+            self._wall_state = wp.array(vals[self.boundary_index], dtype=float, device=self.device)
         self.xb, self.mb = xb[self.boundary_index], self._mb_all[self.boundary_index]
         d = self.device
         self._xb_dev = wp.array(self.xb.astype(np.float32).reshape(-1, 3), dtype=wp.vec3, device=d)
@@ -356,7 +362,8 @@ class DistributedFluid:
         """At a list rebuild (collective): owned particles that left the slab go to the neighbour (migration; the
         skin check bounds a particle's drift since the last rebuild far below a slab, so only to a neighbour), then
         the new halo set and the solver of the new layout. Device kernels; host reads of counts only."""
-        self._wall_state = self.state.wall_pressure  # the rank's walls are fixed: their last pressure carries over
+        if getattr(self, "_wall_state", None) is None:  # the rank's walls are fixed: their last pressure carries over
+            self._wall_state = self.state.wall_pressure
         keep, down, up, _, _ = self._classify(self.n_own)
         k_idx, d_idx, u_idx = (self._compact(f, self.n_own) for f in (keep, down, up))
         recv_lo, recv_hi = self._exchange_full(d_idx, u_idx)
@@ -585,6 +592,14 @@ class DistributedFluid:
         sizes = counts * kd.FULL_COLS
         displ = np.concatenate([[0], np.cumsum(sizes)[:-1]])
         self.comm.Scatterv([rows, (sizes, displ), MPI.FLOAT] if self.rank == 0 else None, [mine, MPI.FLOAT], root=0)
+        # the walls' pressure of the last step (FluidSolver.wall_work reads it): the full state's, each rank its walls
+        nb = len(self._xb_all)
+        walls = np.zeros(nb, np.float64)
+        if self.rank == 0 and nb and full_state.wall_pressure.shape[0] == nb:
+            walls = full_state.wall_pressure.numpy().astype(np.float64)
+        if nb:
+            self.comm.Bcast(walls, root=0)
+            self._wall_state = wp.array(walls[self.boundary_index].astype(np.float32), dtype=float, device=self.device)
         self.set_owned(mine)
 
     def gather(self) -> None:
@@ -596,6 +611,7 @@ class DistributedFluid:
                                                                              device=self.device)
         counts = np.array(self.comm.allgather(self.n_own), np.int64)
         migrated = self.comm.reduce(self.migrated, op=MPI.SUM, root=0)
+        self._gather_walls()
         if self.rank != 0:
             if self.n_own:
                 self.comm.Send([np.ascontiguousarray(rows.numpy()), MPI.FLOAT], dest=0, tag=41)
@@ -623,6 +639,26 @@ class DistributedFluid:
         if getattr(self.sim, "_fill_initial", False):  # a slab build: the start's positions (EnergyBudget's reference)
             self.sim.fluid.initial_positions[:nf] = st.x.numpy()[:nf]
             self.sim._fill_initial = False
+
+    def _gather_walls(self) -> None:
+        """Rank 0's full state's wall pressures := each wall's from the rank whose slab holds it (there its fluid within
+        H is owned or halo: the extrapolation is the one-process one); FluidSolver.wall_work reads them next step."""
+        nb = len(self._xb_all)
+        if not nb or self.state is None:
+            return
+        ax = self.dec.axis
+        mine = (self.xb[:, ax] >= self.lo) & (self.xb[:, ax] < self.hi)
+        part = (self.boundary_index[mine], self.state.wall_pressure.numpy()[: len(self.xb)][mine])
+        parts = self.comm.gather(part, root=0)
+        if self.rank != 0:
+            return
+        st = self.sim.state
+        if st.wall_pressure.shape[0] != nb:
+            return
+        full = st.wall_pressure.numpy().copy()
+        for idx, vals in parts:
+            full[idx] = vals
+        st.wall_pressure.assign(full)
 
     def bytes_per_particle(self) -> float:
         """Device bytes this rank holds for its water (rank arrays, solver lists and grids, exchange buffers) per
