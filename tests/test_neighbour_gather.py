@@ -120,7 +120,7 @@ def test_cell_gather_in_a_batch_equals_the_lists():
 
 def test_neighbours_option_is_checked():
     """fluid.neighbours: a scene key with the default of FluidOptions ('lists'), an unknown value a SceneError naming
-    the key, 'cells' with Ghost SPH or the renormalised diffusion a SceneError (their passes read lists); the Python option wins over the scene's and
+    the key, 'cells' with Ghost SPH, the renormalised diffusion or the wall work a SceneError (their passes read lists); the Python option wins over the scene's and
     refuses an unknown value; the Ghost solver refuses the gather."""
     assert FluidOptions.DEFAULT_NEIGHBOURS == "lists"
     assert _scene(2, "standard", None).fluid["neighbours"] == "lists"
@@ -134,6 +134,8 @@ def test_neighbours_option_is_checked():
     renorm = tank_2d(neighbours="cells", density_diffusion=0.1, density_diffusion_renormalised=True)
     with pytest.raises(SceneError, match="fluid.density_diffusion_renormalised"):  # its gradient pass reads lists
         rockwave.parse_scene(renorm)
+    with pytest.raises(SceneError, match="fluid.wall_work"):  # the wall work pass reads lists
+        rockwave.parse_scene(tank_2d(neighbours="cells", wall_work=True))
     sim = rockwave.Simulation(_scene(2, "standard", "lists"), device=DEVICE,
                               options=SimulationOptions(fluid=FluidOptions(neighbours="cells")))
     assert sim.fluid_solver.cell_gather and sim.fluid_solver.neighbour_cap == 0

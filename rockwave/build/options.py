@@ -73,6 +73,7 @@ def fluid_parameters(fluid: Node | dict) -> FluidParameters:
         particle_shifting=float(fluid.get("particle_shifting", 0.0) or 0.0),
         density_diffusion_form=fluid.get("density_diffusion_form") or "hydrostatic",
         density_diffusion_renormalised=bool(fluid.get("density_diffusion_renormalised")),
+        wall_work=bool(fluid.get("wall_work", FluidParameters.wall_work)),
     )
 
 

@@ -26,7 +26,7 @@ from rockwave.dda.blocks import (
     BlockSpec,
     ContactMaterial,
 )
-from rockwave.sph.fluid import FluidOptions, support_radius, walls_cover_support
+from rockwave.sph.fluid import FluidOptions, FluidParameters, support_radius, walls_cover_support
 from rockwave.sph.ghost import DEFAULT_RADIUS_RATIO, DEFAULT_THRESHOLD, GHOST_CFL_MAX, GhostOptions
 
 
@@ -177,6 +177,7 @@ SCHEMA: dict[str, Key] = {
         particle_shifting=Key("float", "K of the particle shifting (delta-plus-SPH, Sun et al. 2017; Lind et al. 2012): each step a particle moves by dr_i = -K Ma H^2 sum_j [1 + 0.2 (W_ij/W(dx))^4] grad W_ij V_j, Ma = max speed / c0, walls counted as water; only along the free surface for particles within one kernel support of it (Marrone et al. 2010's indicator), not at all for splash; at most a quarter spacing a step (kernels/sph/shifting.py); 0 = off; basic method only (default: from fidelity, 0.02 for 'delta_plus', 0 otherwise)", min=0.0, max=5.0),
         density_diffusion_form=Key("str", "what the density diffusion diffuses: 'hydrostatic': the continuity density, its hydrostatic part rho0 g.x_ji/c0^2 taken out of the difference (Fourtakas et al. 2019), the Adami wall particles in the sum with the density of their extrapolated pressure; 'pressure': the same for the density of the pressure, max(rho, rho0) with clipped negative pressure (a density below rho0 holds no pressure; diffused as it is, the run-up sheet on a wall drained the compression of the water pressed into the wall, which then crept into it: docs/physics.md 'The delta_plus level') (kernels/sph/diffusion.py; default: from fidelity)", choices=("hydrostatic", "pressure")),
         density_diffusion_renormalised=Key("bool", "Antuono et al. (2010)'s delta-SPH term: the renormalised density gradients of both particles taken out of the diffusion's difference, psi_ij = 2 (rho_j - rho_i) x_ji/|x_ji|^2 - (<grad rho>_i^L + <grad rho>_j^L), so that it vanishes for any linear density field, also where the support is cut under the free surface (one more neighbour pass; kernels/sph/diffusion.py; default: from fidelity, false for every level)"),
+        wall_work=Key("bool", "Adami walls with continuity density: the work of the walls' extrapolated pressure p_b on the water paid by the fluid particles that set it, each by its Shepard share of the extrapolation times p_b/mean(p_b) (at most 2), through its continuity density (kernels/sph/wall_work.py). Without it a block landing on a floor under water gains the water energy from nothing (the p_b half of the wall term is paid by no equation; docs/coupling.md 'Landing under water'); with it sloshing is damped more (standing wave at 12 per depth: 5.1% a period against 3.8%; docs/physics.md 'Walls'). Opt-in; needs fluid.neighbours = 'lists' and one rank", default=FluidParameters.wall_work),
         neighbours=Key("str", "how the fluid passes find their neighbours (the physics is the same, the pairs and their order too): 'lists': a Verlet list of the pairs within (1 + skin) H per particle, rebuilt when a particle may have come within H, read by every pass (4 B a slot, ~1.6x the neighbours: 864 B a particle at support 3); 'cells': no stored list, each pass gathers the particles of the sorted cell grid around the particle's position at the last rebuild (the list build's query) and keeps those within H (docs/physics.md 'Neighbour search'); basic method only", default=FluidOptions.DEFAULT_NEIGHBOURS, choices=FluidOptions.NEIGHBOURS),
         method=Key("str", "'basic': WCSPH as above; 'ghost': Ghost SPH free surface (Schechter & Bridson 2012), ghost air particles seeded each step around the free surface ([fluid.ghost])", default="basic", choices=("basic", "ghost")),
         ghost=_sec(
@@ -774,6 +775,9 @@ def _check_method_options(v: _Validator, fl: Node) -> None:
     if fl.get("gradient_correction") and fl.get("method") == "ghost":
         v.err("fluid.gradient_correction", "= true needs fluid.method = 'basic': the Ghost SPH passes use the plain "
                                            "kernel gradient (remove the key or the ghost method)")
+    if fl.get("neighbours") == "cells" and fl.get("wall_work"):
+        v.err("fluid.wall_work", "= true needs fluid.neighbours = 'lists': the wall work pass reads the neighbour list "
+                                 "(remove one of the two)")
     if fl.get("neighbours") == "cells" and raw.get("density_diffusion_renormalised"):
         v.err("fluid.density_diffusion_renormalised", "= true needs fluid.neighbours = 'lists': the renormalised "
                                                       "gradient pass reads the neighbour list (remove one of the two)")

@@ -817,6 +817,9 @@ class DistributedSimulation(Simulation):
         if self.fluid_solver.cell_gather:
             raise ValueError("--ranks: fluid.neighbours = 'cells' is not decomposed yet (a rank's halo exchange and "
                              "relayouts keep neighbour lists); set fluid.neighbours = 'lists' or run on one rank")
+        if self.fluid.wall_work:
+            raise ValueError("--ranks: fluid.wall_work is not decomposed yet (its pass reads the walls' pressure of the "
+                             "last step, which a relayout does not carry); remove the key or run on one rank")
         if self.fluid.n_moving_walls:
             raise ValueError("--ranks: the wall particles of moving blocks are not decomposed yet; set "
                              "coupling.block_walls = false or run on one rank")
