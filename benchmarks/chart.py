@@ -79,6 +79,10 @@ FORMULATIONS: dict[str, dict] = {
                               "fluid.density_diffusion_renormalised": True, "fluid.viscosity.artificial_alpha": 0.02},
     "delta_plus_nokgc_a01": {"fluid.fidelity": "delta_plus", "fluid.gradient_correction": False,
                              "fluid.viscosity.artificial_alpha": 0.01},
+    # issue 37: the Adami walls' pressure work paired (fluid.wall_work, opt-in; docs/physics.md 'Walls'): what it costs
+    # the waves at the chart's resolutions
+    "standard_wallwork": {"fluid.fidelity": "standard", "fluid.wall_work": True},
+    "delta_plus_wallwork": {"fluid.fidelity": "delta_plus", "fluid.wall_work": True},
 }
 CASES = ("standing_wave", "wave_maker", "dam_break", "spheric")
 STANDING = dict(depth=0.2, kh=0.9, mode=1, a=0.02, c0=12.0, signal="projection")  # first sloshing mode

@@ -574,7 +574,7 @@ def run_spheric(device: str, spacing: float, variant: dict, t_end: float, sample
 # ---------------------------------------------------------------------------- standing wave ----
 FORMULATION_KEYS = ("kernel", "support_radius_ratio", "density", "density_diffusion", "pressure_force", "fidelity",
                     "boundary", "density_floor", "gradient_correction", "particle_shifting", "density_diffusion_form",
-                    "shifting_correction", "density_diffusion_renormalised")
+                    "shifting_correction", "density_diffusion_renormalised", "wall_work")
 
 
 def fluid_settings(sim) -> dict:
