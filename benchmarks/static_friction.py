@@ -266,6 +266,8 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
             out[c] = (base - base0[c]) @ d
         return out
 
+    d_start = base_disp()  # t = 0: where the start put the blocks (the settled start: its equilibrium)
+    moved_max = np.zeros(len(blocks))  # the largest |displacement since t = 0| seen in the checks
     t_window = duration - window
     d_window = None
     max_cap = np.zeros(model.num_blocks, int)  # the most points of each block at their cap in a check
@@ -279,11 +281,13 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
             d_window = base_disp()
         if cap_checks and ((i + 1) % every == 0 or (state.time <= dense_s and (i + 1) % dense_every == 0)):
             max_cap = np.maximum(max_cap, _contact_table(state, model)[1])
+            moved_max = np.maximum(moved_max, np.abs(base_disp() - d_start))
     wp.synchronize_device(device)
     wall = time.perf_counter() - t0
     d_end = base_disp()
     if d_window is None:
         d_window = d_end
+    moved_max = np.maximum(moved_max, np.abs(d_end - d_start))
     ext, at_cap = _contact_table(state, model)
     max_cap = np.maximum(max_cap, at_cap)
     twin_cap = max_cap
@@ -306,7 +310,9 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
                    disp_mm=1e3 * d_end[c], elastic_mm=1e3 * elastic, beyond_elastic_mm=1e3 * (d_end[c] - elastic),
                    slip_mm=1e3 * (d_end[c] - ext[b] / ks[b]),
                    creep_um_s=1e6 * (d_end[c] - d_window[c]) / max(window, 1e-12),
+                   since_start_mm=1e3 * (d_end[c] - d_start[c]), max_since_start_mm=1e3 * moved_max[c],
                    tilt_mrad=1e3 * tilt_of(c), settle_steps=rep.get("steps", 0),
+                   relax_steps=rep.get("friction_stage", {}).get("steps", 0),
                    topples_on_springs=bool(4.0 * kp / (w * w) < topple_stiffness(w, asp, s)),
                    points_at_cap=int(at_cap[b]), max_at_cap=int(max_cap[b]),
                    floor=bool(rep.get("float32_floor", False)), settled=rep.get("start") == "settled",
