@@ -273,6 +273,8 @@ material = {{ friction_angle_deg = {ALPHA + 0.1}, normal_stiffness_n_m = 1e8, sh
     assert sim.block_state.time == 0.0 and np.all(sim.block_state.v.numpy() == 0.0)
     summary = sim.run(str(tmp_path / "run"))
     assert summary["block_start"]["start"] == "settled"
+    stage = summary["block_start"]["friction_stage"]  # the second stage, friction on (BlockSolver._relax_with_friction)
+    assert stage["converged"] and stage["steps"] > 0 and "sliding" not in stage, stage
     default = rockwave.Simulation(parse_scene(tomllib.loads(text.replace('start = "settled"', "")), "slope.toml"),
                                   device=DEVICE)
     assert default.block_solver.start_report["start"] == "settled"

@@ -1532,6 +1532,10 @@ class BlockSolver:
                 arr[settling] = 0.0
                 a.assign(arr)
             report["friction_stage"] = self._relax_with_friction(state, settling, allow, dt, tol, steps_total)
+            for a in (state.v, state.w, state.strain_rate):  # at rest after it too
+                arr = a.numpy()
+                arr[settling] = 0.0
+                a.assign(arr)
             if released.any():
                 names = report["released_as_placed"]
                 warnings.warn(f"settled start: {len(names)} block(s) left their place with their friction locked (they "
