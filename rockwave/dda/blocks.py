@@ -942,8 +942,10 @@ class BlockOptions:
     start: str = "settled"
     """How a scene's blocks start (scene: ``simulation.start``): "settled" (the default): BlockSolver.settle() first
     brings the blocks resting on another at t = 0 with no initial velocity to the equilibrium of their contact
-    springs under gravity with friction locked, then releases it, so a stable block or rock mass starts at rest
-    with its contacts loaded; blocks placed in the air or given a velocity start as placed; a resting block that
+    springs under gravity with friction locked, then with friction on under kinetic damping (contact points whose
+    locked shear is above their Coulomb cap slip quasi-statically to it; a block that slides is detected and
+    starts from the locked state), then releases them, so a stable block or rock mass starts at rest in a
+    statically admissible state with its contacts loaded; blocks placed in the air or given a velocity start as placed; a resting block that
     does not stay where it was put with its friction locked (it topples or falls: settle_max_move) is held while
     the others settle and released as placed (settle_attempts); a scene that does not come to rest
     (settle_max_steps) starts plain, with a warning. "plain": every block
@@ -976,6 +978,13 @@ class BlockOptions:
     settle_contact_gap: float = 1.0e-4
     """Settled start: a block rests on another at t = 0 when their gap is below this fraction of the smaller
     one's size [-] (a block placed in the air, e.g. 1 mm above a slope, falls as placed)."""
+
+
+# the settled start's friction stage (BlockSolver._relax_with_friction) is calm when every block is slower than this
+# fraction of the locked stage's bound (settle_speed_ratio x g / omega_max): a block released at speed v creeps on by
+# ~ v / omega of its slowest mode (its tilt on soft joints), 0.56 mm after t = 0 for a 20 m block at 1 MPa/m with the
+# locked stage's bound, 0.010 mm with 1% of it; kinetic damping reaches it in ~1.8x the steps (docs/notes.md)
+SETTLE_RELAX_TOL = 0.01
 
 
 class BlockSolver:
@@ -1372,7 +1381,10 @@ class BlockSolver:
         equilibrium of their contact springs under gravity with friction locked (every contact point sticks:
         kernels/dda/blocks.py contact_forces, the block clock's flag), the others held where they are (as fixed blocks; kinematic blocks at their pose of t = 0, at
         rest); once every settling block moves slower than settle_speed_ratio x g / omega_max (twice in a row,
-        16 steps apart) their velocities are zeroed and friction is released. The contact history keeps the
+        16 steps apart) their velocities are zeroed and friction is switched on for a second stage under kinetic
+        damping (_relax_with_friction: the points whose locked share is above their cap slip quasi-statically to
+        it, so the blocks start in a statically admissible state; a block that slides is detected and starts from
+        the locked stage's state; run.json's block_start.friction_stage), then released. The contact history keeps the
         loaded springs: a block whose equilibrium needs less than its friction starts at rest, its normal springs
         already carrying it (a plain start loads them while gravity already pulls: a 10 m cube at 2.5e8 N/m per
         point on 35 deg at a 0.1 deg margin slid 24 mm that way); one whose points would slip slides from a
@@ -1568,7 +1580,7 @@ class BlockSolver:
         whose locked share of the shear is above its cap mu F_n (the uphill corners of a tall block on a slope)
         slips quasi-statically to its limit, and the block starts at rest in a statically admissible state
         (the partial-slip state) instead of slipping dynamically, and overshooting, at t = 0. Calm: every block
-        slower than tol over two windows of 16 steps in a row (or at float32's floor, as the locked stage). A block
+        slower than SETTLE_RELAX_TOL x tol over two windows of 16 steps in a row (or at float32's floor, as the locked stage). A block
         that slides (friction below what it needs: its kinetic energy rises for more steps than the locked stage
         took to come to rest, or it leaves its place, settle_max_move) is detected, the stage is undone and run
         again with that block held; it starts from its locked-stage state and slides at t = 0. Not calm within
@@ -1624,7 +1636,7 @@ class BlockSolver:
                     if steps % 16 == 0:
                         flags.zero_()
                         wp.launch(dda_k.relax_check, dim=n,
-                                  inputs=[props.kinds, reach_max, float(tol), state.x, x1_dev, allow_dev, rise,
+                                  inputs=[props.kinds, reach_max, float(tol * SETTLE_RELAX_TOL), state.x, x1_dev, allow_dev, rise,
                                           int(max_rise), flags, reach, sliding], device=d)
                         fl = flags.numpy()
                         if fl[1]:
