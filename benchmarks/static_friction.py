@@ -30,7 +30,10 @@ Measured at the centre of the block's base, along the dip:
 - ``creep_um_s``: displacement over the last ``creep_window`` s (10 s of a 60 s run) per second;
 - ``points_at_cap``: its contact points whose spring sits at the Coulomb cap at the end (sliding or about to);
 - ``tilt_mrad``: its rotation; ``settle_steps``: the settled start's steps (``floor``: it stopped at float32's
-  chatter floor, BlockSolver.settle).
+  chatter floor, BlockSolver.settle), ``relax_steps``: those of its second stage, friction on under kinetic damping;
+- ``since_start_mm``: its displacement since t = 0 (the settled start's equilibrium; the plain start's placed pose),
+  ``max_since_start_mm``: the largest |displacement since t = 0| seen in the cap checks and at the end (table column
+  'since t=0': a stable block must not move after the equilibrium start).
 
 Targets (issue 36): from the settled start the displacement beyond the elastic deflection <= 0.1 mm after 60 s;
 from either start creep < 1 um/s. The summary counts ``beyond_locked_mm`` against the bound (``slip_mm`` in records
@@ -266,6 +269,8 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
             out[c] = (base - base0[c]) @ d
         return out
 
+    d_start = base_disp()  # t = 0: where the start put the blocks (the settled start: its equilibrium)
+    moved_max = np.zeros(len(blocks))  # the largest |displacement since t = 0| seen in the checks
     t_window = duration - window
     d_window = None
     max_cap = np.zeros(model.num_blocks, int)  # the most points of each block at their cap in a check
@@ -279,11 +284,13 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
             d_window = base_disp()
         if cap_checks and ((i + 1) % every == 0 or (state.time <= dense_s and (i + 1) % dense_every == 0)):
             max_cap = np.maximum(max_cap, _contact_table(state, model)[1])
+            moved_max = np.maximum(moved_max, np.abs(base_disp() - d_start))
     wp.synchronize_device(device)
     wall = time.perf_counter() - t0
     d_end = base_disp()
     if d_window is None:
         d_window = d_end
+    moved_max = np.maximum(moved_max, np.abs(d_end - d_start))
     ext, at_cap = _contact_table(state, model)
     max_cap = np.maximum(max_cap, at_cap)
     twin_cap = max_cap
@@ -306,7 +313,9 @@ def run_group(device: str, group: list, start: str, duration: float, window: flo
                    disp_mm=1e3 * d_end[c], elastic_mm=1e3 * elastic, beyond_elastic_mm=1e3 * (d_end[c] - elastic),
                    slip_mm=1e3 * (d_end[c] - ext[b] / ks[b]),
                    creep_um_s=1e6 * (d_end[c] - d_window[c]) / max(window, 1e-12),
+                   since_start_mm=1e3 * (d_end[c] - d_start[c]), max_since_start_mm=1e3 * moved_max[c],
                    tilt_mrad=1e3 * tilt_of(c), settle_steps=rep.get("steps", 0),
+                   relax_steps=rep.get("friction_stage", {}).get("steps", 0),
                    topples_on_springs=bool(4.0 * kp / (w * w) < topple_stiffness(w, asp, s)),
                    points_at_cap=int(at_cap[b]), max_at_cap=int(max_cap[b]),
                    floor=bool(rep.get("float32_floor", False)), settled=rep.get("start") == "settled",
@@ -471,6 +480,13 @@ def summary(rows: list, slip_bound_mm: float = 0.1, creep_bound_um_s: float = 1.
                      f"{sum(r['beyond_elastic_mm'] > slip_bound_mm for r in settled)}. Locked twins with a point at "
                      f"their cap at any check ({LOCK_DEG:g} deg not enough): {len(unlocked)} rows. Plain start beyond "
                      f"its twin (the slip while the contacts load): largest abs {worst_plain:.4f} mm.")
+    since = [r for r in settled if "max_since_start_mm" in r]
+    if since:  # a stable block must not move after the equilibrium start
+        worst = max(since, key=lambda r: r["max_since_start_mm"])
+        twin_note += (f" Settled start, the largest displacement after t = 0 seen in the checks (max_since_start_mm): "
+                      f"{sum(r['max_since_start_mm'] <= slip_bound_mm for r in since)} of {len(since)} within "
+                      f"{slip_bound_mm:g} mm (largest {worst['max_since_start_mm']:.4f} mm: w {worst['width_m']:g} h/w "
+                      f"{worst['aspect']:g} slope {worst['slope_deg']:g} +{worst['margin_deg']:g} {worst['stiffness']}).")
     return (f"Standing rows (not predicted to topple on their springs): {len(stand)}. Settled start: {len(ok_slip)} of "
             f"{len(settled)} within {slip_bound_mm:g} mm {measure} (largest abs {worst_slip:.4f} mm; "
             f"{len(not_settled)} more fell back to the plain start).{stuck_note}{twin_note} Creep below "
@@ -488,9 +504,11 @@ def table(rows: list) -> str:
         by.setdefault((r["width_m"], r["aspect"], r["slope_deg"], r["margin_deg"], str(k), kp), {})[r["start"]] = r
     twins = any("locked_mm" in r for r in rows)
     tw = "beyond locked mm | partial slip mm | locked mm | max at cap | " if twins else ""
+    since = any("max_since_start_mm" in r for r in rows)  # the largest displacement after t = 0 (newer records)
+    sc = "since t=0 mm | " if since else ""
     head = (f"| width m | h/w | slope deg | margin deg | stiffness | k N/m per point | settled: {tw}beyond elastic mm | slip mm | "
-            f"creep um/s | plain: {tw}beyond elastic mm | slip mm | creep um/s | steps | s | settle steps |\n|"
-            + "---|" * (15 + 8 * twins) + "\n")
+            f"creep um/s | {sc}plain: {tw}beyond elastic mm | slip mm | creep um/s | {sc}steps | s | settle steps |\n|"
+            + "---|" * (15 + 8 * twins + 2 * since) + "\n")
     lines = []
     for key, d in by.items():
         s, p = d.get("settled", {}), d.get("plain", {})
@@ -506,11 +524,15 @@ def table(rows: list) -> str:
             return (f"{f(r, 'beyond_locked_mm', '.4f')}{cap} | {f(r, 'partial_slip_mm', '.4f')} | {f(r, 'locked_mm', '.4f')} | "
                     f"{r.get('max_at_cap', '-')} | ")
 
+        def m(r):
+            return f"{f(r, 'max_since_start_mm', '.4f')} | " if since else ""
+
+        relax = f" + {s['relax_steps']} friction" if s.get("relax_steps") else ""
         lines.append(f"| {key[0]:g} | {key[1]:g} | {key[2]:g} | {key[3]:g} | {key[4]} | {kp} | {t(s)}{f(s, 'beyond_elastic_mm', '.4f')} | "
-                     f"{f(s, 'slip_mm', '.4f')} | {f(s, 'creep_um_s', '.4f')} | {t(p)}{f(p, 'beyond_elastic_mm', '.4f')} | "
-                     f"{f(p, 'slip_mm', '.4f')} | {f(p, 'creep_um_s', '.4f')} | {s.get('steps', p.get('steps', '-'))} | "
+                     f"{f(s, 'slip_mm', '.4f')} | {f(s, 'creep_um_s', '.4f')} | {m(s)}{t(p)}{f(p, 'beyond_elastic_mm', '.4f')} | "
+                     f"{f(p, 'slip_mm', '.4f')} | {f(p, 'creep_um_s', '.4f')} | {m(p)}{s.get('steps', p.get('steps', '-'))} | "
                      f"{format(s.get('duration_s', p.get('duration_s', float('nan'))), '.3g')} | "
-                     f"{s.get('settle_steps', '-')}{' (floor)' if s.get('floor') else ''} |")
+                     f"{s.get('settle_steps', '-')}{relax}{' (floor)' if s.get('floor') else ''} |")
     return head + "\n".join(lines) + "\n"
 
 

@@ -2053,6 +2053,75 @@ def settle_speed(
 
 
 @wp.kernel
+def relax_blocks(
+    kinds: wp.array(dtype=int),
+    block_size: wp.array(dtype=float),
+    v: wp.array(dtype=wp.vec3),
+    w: wp.array(dtype=wp.vec3),
+    strain_rate: wp.array(dtype=wp.spatial_vector),
+    e_prev: wp.array(dtype=float),
+    rise: wp.array(dtype=int),
+    reach_max: wp.array(dtype=float),
+):
+    """BlockSolver.settle's friction stage, after each step: kinetic damping (dynamic relaxation; Cundall 1976,
+    Topping & Khan 1996): a block's kinetic measure e = |v|^2 + (|w| r)^2 (r = block_size / 2) is followed step by
+    step, and when it stops rising (a peak: the block crosses its equilibrium) v, w and the strain rate are zeroed,
+    so the block creeps to the nearest statically admissible state without the momentum that would carry it past.
+    rise[b]: steps since the last peak (a block whose e rises without end is sliding); reach_max[b]: the largest
+    |v| + |w| r since it was last read (relax_check)."""
+    b = wp.tid()
+    if not movable(kinds[b]):
+        return
+    r = block_reach(b, v, w, block_size)
+    reach_max[b] = wp.max(reach_max[b], r)
+    rw = wp.length(w[b]) * 0.5 * block_size[b]
+    e = wp.dot(v[b], v[b]) + rw * rw
+    if e < e_prev[b]:
+        v[b] = wp.vec3(0.0, 0.0, 0.0)
+        w[b] = wp.vec3(0.0, 0.0, 0.0)
+        strain_rate[b] = wp.spatial_vector(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        e_prev[b] = 0.0
+        rise[b] = 0
+    elif e > e_prev[b]:
+        e_prev[b] = e
+        rise[b] = rise[b] + 1
+    else:
+        rise[b] = 0
+
+
+@wp.kernel
+def relax_check(
+    kinds: wp.array(dtype=int),
+    reach_max: wp.array(dtype=float),
+    tol: float,
+    x: wp.array(dtype=wp.vec3),
+    x0: wp.array(dtype=wp.vec3),
+    max_move: wp.array(dtype=float),
+    rise: wp.array(dtype=int),
+    max_rise: int,
+    flags: wp.array(dtype=int),
+    reach: wp.array(dtype=float),
+    sliding: wp.array(dtype=int),
+):
+    """BlockSolver.settle's friction stage, every few steps: reach[b] = the fastest a block moved since the last
+    check (reach_max, then reset), flags[0] = 1 when one is above tol; a block that leaves its place (|x - x0| >
+    max_move[b]) or whose kinetic measure has risen for more than max_rise steps without a peak (it accelerates:
+    friction below what the slope needs) is sliding: sliding[b] = 1, flags[1] = 1."""
+    b = wp.tid()
+    reach[b] = 0.0
+    if not movable(kinds[b]):
+        return
+    r = reach_max[b]
+    reach_max[b] = 0.0
+    reach[b] = r
+    if r > tol:
+        flags[0] = 1
+    if wp.length(x[b] - x0[b]) > max_move[b] or rise[b] > max_rise:
+        sliding[b] = 1
+        flags[1] = 1
+
+
+@wp.kernel
 def hold_check_pairs(
     pl: PairList,
     props: BlockProps,

@@ -942,8 +942,10 @@ class BlockOptions:
     start: str = "settled"
     """How a scene's blocks start (scene: ``simulation.start``): "settled" (the default): BlockSolver.settle() first
     brings the blocks resting on another at t = 0 with no initial velocity to the equilibrium of their contact
-    springs under gravity with friction locked, then releases it, so a stable block or rock mass starts at rest
-    with its contacts loaded; blocks placed in the air or given a velocity start as placed; a resting block that
+    springs under gravity with friction locked, then with friction on under kinetic damping (contact points whose
+    locked shear is above their Coulomb cap slip quasi-statically to it; a block that slides is detected and
+    starts from the locked state), then releases them, so a stable block or rock mass starts at rest in a
+    statically admissible state with its contacts loaded; blocks placed in the air or given a velocity start as placed; a resting block that
     does not stay where it was put with its friction locked (it topples or falls: settle_max_move) is held while
     the others settle and released as placed (settle_attempts); a scene that does not come to rest
     (settle_max_steps) starts plain, with a warning. "plain": every block
@@ -976,6 +978,13 @@ class BlockOptions:
     settle_contact_gap: float = 1.0e-4
     """Settled start: a block rests on another at t = 0 when their gap is below this fraction of the smaller
     one's size [-] (a block placed in the air, e.g. 1 mm above a slope, falls as placed)."""
+
+
+# the settled start's friction stage (BlockSolver._relax_with_friction) is calm when every block is slower than this
+# fraction of the locked stage's bound (settle_speed_ratio x g / omega_max): a block released at speed v creeps on by
+# ~ v / omega of its slowest mode (its tilt on soft joints), 0.56 mm after t = 0 for a 20 m block at 1 MPa/m with the
+# locked stage's bound, 0.010 mm with 1% of it; kinetic damping reaches it in ~1.8x the steps (docs/notes.md)
+SETTLE_RELAX_TOL = 0.01
 
 
 class BlockSolver:
@@ -1372,7 +1381,10 @@ class BlockSolver:
         equilibrium of their contact springs under gravity with friction locked (every contact point sticks:
         kernels/dda/blocks.py contact_forces, the block clock's flag), the others held where they are (as fixed blocks; kinematic blocks at their pose of t = 0, at
         rest); once every settling block moves slower than settle_speed_ratio x g / omega_max (twice in a row,
-        16 steps apart) their velocities are zeroed and friction is released. The contact history keeps the
+        16 steps apart) their velocities are zeroed and friction is switched on for a second stage under kinetic
+        damping (_relax_with_friction: the points whose locked share is above their cap slip quasi-statically to
+        it, so the blocks start in a statically admissible state; a block that slides is detected and starts from
+        the locked stage's state; run.json's block_start.friction_stage), then released. The contact history keeps the
         loaded springs: a block whose equilibrium needs less than its friction starts at rest, its normal springs
         already carrying it (a plain start loads them while gravity already pulls: a 10 m cube at 2.5e8 N/m per
         point on 35 deg at a 0.1 deg margin slid 24 mm that way); one whose points would slip slides from a
@@ -1531,6 +1543,11 @@ class BlockSolver:
                 arr = a.numpy()
                 arr[settling] = 0.0
                 a.assign(arr)
+            report["friction_stage"] = self._relax_with_friction(state, settling, allow, dt, tol, steps_total)
+            for a in (state.v, state.w, state.strain_rate):  # at rest after it too
+                arr = a.numpy()
+                arr[settling] = 0.0
+                a.assign(arr)
             if released.any():
                 names = report["released_as_placed"]
                 warnings.warn(f"settled start: {len(names)} block(s) left their place with their friction locked (they "
@@ -1539,6 +1556,128 @@ class BlockSolver:
         state.time = 0.0
         self.start_report = report
         return report
+
+    @staticmethod
+    def _snapshot(state: BlockState) -> dict:
+        """A copy of the state's arrays and contact-history tables (BlockSolver._restore)."""
+        arrays = {k: wp.clone(a) for k, a in vars(state).items() if isinstance(a, wp.array)}
+        tables = [{k: wp.clone(a) for k, a in t.items()} for t in state.tables]
+        return {"arrays": arrays, "tables": tables, "cap": (state.table_cap, state.point_cap)}
+
+    @staticmethod
+    def _restore(state: BlockState, snap: dict) -> None:
+        for k, a in snap["arrays"].items():  # in place: the argument groups (bodies, loads) hold these arrays
+            wp.copy(getattr(state, k), a)
+        state.tables = [{k: wp.clone(a) for k, a in t.items()} for t in snap["tables"]]
+        state.table_views = [_table_view(t) for t in state.tables]
+        state.table_cap, state.point_cap = snap["cap"]
+
+    def _relax_with_friction(self, state: BlockState, settling: np.ndarray, allow: np.ndarray, dt: float, tol: float,
+                             locked_steps: int) -> dict:
+        """The settled start's second stage (issue 36): after the locked stage, friction is switched on (Coulomb
+        caps, the clock's flag 0) and the settling blocks relax under kinetic damping (kernels/dda/blocks.py
+        relax_blocks: a block's velocities are zeroed whenever its kinetic energy stops rising), so a contact point
+        whose locked share of the shear is above its cap mu F_n (the uphill corners of a tall block on a slope)
+        slips quasi-statically to its limit, and the block starts at rest in a statically admissible state
+        (the partial-slip state) instead of slipping dynamically, and overshooting, at t = 0. Calm: every block
+        slower than SETTLE_RELAX_TOL x tol over two windows of 16 steps in a row (or at float32's floor, as the locked stage). A block
+        that slides (friction below what it needs: its kinetic energy rises for more steps than the locked stage
+        took to come to rest, or it leaves its place, settle_max_move) is detected, the stage is undone and run
+        again with that block held; it starts from its locked-stage state and slides at t = 0. Not calm within
+        settle_max_steps: the locked-stage state is kept, with a warning. Returns the stage's report."""
+        m, d, opt = self.model, self.device, self.options
+        n = m.num_blocks
+        kinds = m.np["kinds"]
+        movable = (kinds == int(dda_k.KIND_RIGID)) | (kinds == int(dda_k.KIND_DEFORMABLE))
+        body = m.body_of
+        counts = (self.broad_phases, self.narrow_phases)
+        locked = self._snapshot(state)
+        x1 = state.positions_numpy()
+        x1_dev = wp.clone(state.x)
+        allow_dev = wp.array(allow.astype(np.float32), dtype=float, device=d)
+        # a block's kinetic energy may rise without a peak at most as long as the locked stage took to ring its
+        # springs down (its elastic periods are shorter); longer, it accelerates: it slides
+        max_rise = max(int(locked_steps), 64)
+        flags = wp.zeros(2, dtype=int, device=d)
+        reach = wp.zeros(n, dtype=float, device=d)
+        stall_checks, v_max = 32, self.g_mag * self.critical_dt() / 2.0
+        held = np.zeros(n, bool)
+        rep = {"friction": "on", "damping": "kinetic", "steps": 0, "converged": False, "max_displacement_m": 0.0}
+        steps_total, calm = 0, 0
+        for attempt in range(opt.settle_attempts):
+            active = settling & ~held
+            if not active.any():
+                break
+            props = dda_k.BlockProps()
+            for name in ("inertia_body", "inv_inertia_body", "strain_minv", "strain_k", "strain_damp"):
+                setattr(props, name, getattr(m, name))
+            props.kinds = wp.array(np.where(movable & ~active, int(dda_k.KIND_FIXED), kinds).astype(np.int32), dtype=int, device=d)
+            props.inv_mass = wp.array(np.where(active, m.inv_mass.numpy(), 0.0).astype(np.float32), dtype=float, device=d)
+            e_prev = wp.zeros(n, dtype=float, device=d)
+            rise = wp.zeros(n, dtype=int, device=d)
+            reach_max = wp.zeros(n, dtype=float, device=d)
+            sliding = wp.zeros(n, dtype=int, device=d)
+            slid = False
+            calm, steps, best, stall = 0, 0, math.inf, 0
+            self.props = props
+            self.block_clock.assign(np.array([0.0, dt, 0.0]))  # clock[2] = 0: Coulomb caps on
+            try:
+                while steps < opt.settle_max_steps:
+                    self._set_clock(0.0, dt)
+                    self._contact_forces(state, dt)
+                    # between the contact forces and the integration: the shear springs have just recorded the
+                    # last step's motion (df = -k_s v_t dt with the velocity that moved the block), so zeroing v
+                    # here loses no motion from them (zeroed after the integration, the step's v dt would be a slip)
+                    wp.launch(dda_k.relax_blocks, dim=n, inputs=[props.kinds, m.block_size, state.v, state.w,
+                                                                 state.strain_rate, e_prev, rise, reach_max], device=d)
+                    self._integrate(state)
+                    steps += 1
+                    self.broad_phases, self.narrow_phases = counts
+                    if steps % 16 == 0:
+                        flags.zero_()
+                        wp.launch(dda_k.relax_check, dim=n,
+                                  inputs=[props.kinds, reach_max, float(tol * SETTLE_RELAX_TOL), state.x, x1_dev, allow_dev, rise,
+                                          int(max_rise), flags, reach, sliding], device=d)
+                        fl = flags.numpy()
+                        if fl[1]:
+                            slid = True
+                            break
+                        calm = calm + 1 if int(fl[0]) == 0 else 0
+                        if calm >= 2:
+                            break
+                        speed = float(reach.numpy().max())
+                        if speed < 0.5 * best:
+                            best, stall = speed, 0
+                        else:
+                            stall += 1
+                        if stall >= stall_checks and speed < 0.1 * v_max:
+                            calm = 2
+                            rep["float32_floor"] = True
+                            break
+            finally:
+                self.props = m.props
+            steps_total += steps
+            if not slid:
+                break
+            out = (sliding.numpy() != 0) & active
+            out = out[body] | np.isin(body, body[out])
+            held |= out
+            self._restore(state, locked)
+        if held.any():
+            rep["sliding"] = [m.names[b] for b in np.flatnonzero(held & m.lead)]
+        active = settling & ~held
+        rep["steps"] = steps_total
+        rep["time_s"] = steps_total * dt
+        if active.any() and calm < 2:  # not calm: the locked-stage state, as before this stage
+            self._restore(state, locked)
+            warnings.warn(f"settled start: the blocks did not come to rest with friction on within {opt.settle_max_steps} "
+                          f"block steps: they start from the locked stage's state (contact points above their cap slip at t = 0)")
+        else:
+            rep["converged"] = True
+            disp = np.linalg.norm(state.positions_numpy() - x1, axis=1)
+            rep["max_displacement_m"] = float(np.max(disp, where=active, initial=0.0))
+        self.block_clock.assign(np.array([0.0, dt, 0.0]))
+        return rep
 
     def _reset_history(self, state: BlockState) -> None:
         """No contact history (as a fresh state: the plain start)."""
