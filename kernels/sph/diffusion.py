@@ -66,12 +66,10 @@ wp.set_module_options({"enable_backward": False})  # forward kernels only: nothi
 
 
 @wp.func
-def diffusion_pair(xi: wp.vec3, ri: float, j: int, x: wp.array(dtype=wp.vec3), rho: wp.array(dtype=float),
-                   particle_mass: wp.array(dtype=float), wall_pr2: wp.array(dtype=wp.vec2), walls: int, clip: bool,
-                   p: SPHParams) -> float:
-    """The term of neighbour j in density_diffusion_rate's sum (before the factor delta h c0):
-    2 (rho_j - rho_i - rho0 g.x_ji/c0^2) (x_ji . grad_i W_ij)/|x_ij|^2 V_j; 0 at r >= H, for a wall particle
-    without ``walls`` (or with Akinci walls)."""
+def neighbour_density(j: int, rho: wp.array(dtype=float), particle_mass: wp.array(dtype=float),
+                      wall_pr2: wp.array(dtype=wp.vec2), walls: int, clip: bool, p: SPHParams) -> wp.vec2:
+    """(rho_j, V_j) of neighbour j in the diffusion's sums: a fluid particle rho_j (max(rho_j, rho0) with ``clip``) and
+    m/rho0; with ``walls`` and Adami walls a wall particle rho0 wall_pr2[b][1] and m_b/rho0; otherwise (0, 0)."""
     rj = float(0.0)
     vj = float(0.0)
     if j < p.n_fluid:
@@ -82,6 +80,19 @@ def diffusion_pair(xi: wp.vec3, ri: float, j: int, x: wp.array(dtype=wp.vec3), r
     elif walls != 0 and p.boundary == BOUNDARY_ADAMI:
         rj = p.rest_density * wall_pr2[j - p.n_fluid][1]
         vj = particle_mass[j] / p.rest_density
+    return wp.vec2(rj, vj)
+
+
+@wp.func
+def diffusion_pair(xi: wp.vec3, ri: float, j: int, x: wp.array(dtype=wp.vec3), rho: wp.array(dtype=float),
+                   particle_mass: wp.array(dtype=float), wall_pr2: wp.array(dtype=wp.vec2), walls: int, clip: bool,
+                   p: SPHParams) -> float:
+    """The term of neighbour j in density_diffusion_rate's sum (before the factor delta h c0):
+    2 (rho_j - rho_i - rho0 g.x_ji/c0^2) (x_ji . grad_i W_ij)/|x_ij|^2 V_j; 0 at r >= H, for a wall particle
+    without ``walls`` (or with Akinci walls)."""
+    rv = neighbour_density(j, rho, particle_mass, wall_pr2, walls, clip, p)
+    rj = rv[0]
+    vj = rv[1]
     if vj > 0.0:
         xji = x[j] - xi
         r2 = wp.length_sq(xji)
@@ -129,26 +140,18 @@ def density_diffusion_rate(
         ri = wp.max(ri, p.rest_density)
     H2 = p.H * p.H
     c2 = p.sound_speed * p.sound_speed
-    with_walls = walls != 0 and p.boundary == BOUNDARY_ADAMI
     s = float(0.0)
     gi = wp.vec3(0.0)
     if renormalised != 0:
         gi = grad[i]
     for k in range(c):
         j = nbr[k * n + i]
-        rj = float(0.0)
-        vj = float(0.0)
+        rv = neighbour_density(j, rho, particle_mass, wall_pr2, walls, clip, p)
+        rj = rv[0]
+        vj = rv[1]
         gj = gi
-        if j < p.n_fluid:
-            rj = rho[j]
-            if renormalised != 0:
-                gj = grad[j]
-            if clip:
-                rj = wp.max(rj, p.rest_density)
-            vj = p.fluid_mass / p.rest_density
-        elif with_walls:
-            rj = p.rest_density * wall_pr2[j - p.n_fluid][1]
-            vj = particle_mass[j] / p.rest_density
+        if renormalised != 0 and j < p.n_fluid:
+            gj = grad[j]
         if vj > 0.0:
             xji = x[j] - xi
             r2 = wp.length_sq(xji)
@@ -196,21 +199,13 @@ def density_gradient_renormalised(
         ri = wp.max(ri, p.rest_density)
     H2 = p.H * p.H
     c2 = p.sound_speed * p.sound_speed
-    with_walls = walls != 0 and p.boundary == BOUNDARY_ADAMI
     m = wp.mat33(0.0)
     s = wp.vec3(0.0)
     for k in range(c):
         j = nbr[k * n + i]
-        rj = float(0.0)
-        vj = float(0.0)
-        if j < p.n_fluid:
-            rj = rho[j]
-            if clip:
-                rj = wp.max(rj, p.rest_density)
-            vj = p.fluid_mass / p.rest_density
-        elif with_walls:
-            rj = p.rest_density * wall_pr2[j - p.n_fluid][1]
-            vj = particle_mass[j] / p.rest_density
+        rv = neighbour_density(j, rho, particle_mass, wall_pr2, walls, clip, p)
+        rj = rv[0]
+        vj = rv[1]
         if vj > 0.0:
             xji = x[j] - xi
             r2 = wp.length_sq(xji)
